@@ -1,0 +1,948 @@
+//! Loading and validating experiment graphs from TOML.
+//!
+//! A graph file has a `[run]` table of run-wide settings ([`RunSettings`]) and one
+//! `[stages.<id>]` table per stage:
+//!
+//! ```toml
+//! [run]
+//! seed = 7
+//!
+//! [stages.scene]
+//! type = "edge_scene"
+//!
+//! [stages.enc]
+//! type = "izhikevich"
+//! inputs = ["scene"]
+//! dt_ms = 0.5
+//! ```
+//!
+//! Loading follows Vector's `compile`: every problem is gathered before failing,
+//! each a [`Diagnostic`] naming the file, line, stage and key. The checks, in
+//! order: TOML syntax; unknown top-level tables; `[run]` keys; per stage, its
+//! `type` (unknown types list close matches), unknown and missing keys (against
+//! the config's schema), mistyped keys (serde's error, located by
+//! `serde_path_to_error`), the config's own range checks (`build`); then the
+//! graph: unknown inputs, input counts, payload-kind mismatches on edges, cycles
+//! (naming their stages), the absence of a source, and (a warning) stages whose
+//! output nobody reads. Nothing runs on a graph with an error.
+
+use crate::registry;
+use crate::stage::{BuildContext, InputSpec, Stage, StageConfig};
+use petgraph::graph::{DiGraph, NodeIndex};
+use serde::{Deserialize, Serialize};
+use std::collections::HashMap;
+use std::fmt;
+use std::path::{Path, PathBuf};
+
+/// How trained estimators are evaluated.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum Protocol {
+    /// Leave-one-trial-out, as in the paper: fold `f` tests the `f`-th
+    /// repetition of every class and trains on every other repetition.
+    /// Model-based estimators (WSS) ignore the training part.
+    #[default]
+    LeaveOneTrialOut,
+}
+
+/// Run-wide settings: the graph file's `[run]` table.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
+#[serde(deny_unknown_fields, default)]
+pub struct RunSettings {
+    /// Seed of every random generator in the run (each stage and trial derives
+    /// its own from it). Default 0.
+    pub seed: u64,
+    /// Evaluation protocol for trained estimators. Default "leave_one_trial_out".
+    pub protocol: Protocol,
+    /// Directory the run's reports go to, relative to the working directory.
+    /// Default `out/<graph file name without .toml>`.
+    pub out: Option<PathBuf>,
+}
+
+impl Default for RunSettings {
+    fn default() -> Self {
+        RunSettings {
+            seed: 0,
+            protocol: Protocol::LeaveOneTrialOut,
+            out: None,
+        }
+    }
+}
+
+/// How bad a diagnostic is.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Severity {
+    /// The graph cannot run.
+    Error,
+    /// The graph runs, but probably not as meant.
+    Warning,
+}
+
+/// One problem found while loading a graph.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Diagnostic {
+    /// Error or warning.
+    pub severity: Severity,
+    /// The graph file's name as given.
+    pub file: String,
+    /// 1-based line, where the problem has one.
+    pub line: Option<usize>,
+    /// The stage concerned, if any.
+    pub stage: Option<String>,
+    /// The key concerned, if any.
+    pub key: Option<String>,
+    /// What is wrong.
+    pub message: String,
+}
+
+impl fmt::Display for Diagnostic {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "{}", self.file)?;
+        if let Some(line) = self.line {
+            write!(f, ":{line}")?;
+        }
+        let sev = match self.severity {
+            Severity::Error => "error",
+            Severity::Warning => "warning",
+        };
+        write!(f, ": {sev}: ")?;
+        if let Some(stage) = &self.stage {
+            write!(f, "stage `{stage}`: ")?;
+        }
+        f.write_str(&self.message)
+    }
+}
+
+/// All the errors (and warnings) that stopped a graph from loading.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LoadErrors(pub Vec<Diagnostic>);
+
+impl LoadErrors {
+    /// Only the errors.
+    pub fn errors(&self) -> impl Iterator<Item = &Diagnostic> {
+        self.0.iter().filter(|d| d.severity == Severity::Error)
+    }
+}
+
+impl fmt::Display for LoadErrors {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        for d in &self.0 {
+            writeln!(f, "{d}")?;
+        }
+        let n = self.errors().count();
+        write!(
+            f,
+            "{n} error{} in the graph; nothing was run",
+            if n == 1 { "" } else { "s" }
+        )
+    }
+}
+
+impl std::error::Error for LoadErrors {}
+
+/// Options applied while loading.
+#[derive(Clone, Debug, Default)]
+pub struct LoadOptions {
+    /// `--set` overrides: (`stages.<id>.<key>` or `run.<key>`, TOML value text).
+    /// A value that does not parse as TOML is taken as a string.
+    pub overrides: Vec<(String, String)>,
+    /// Output directory, overriding `[run] out`.
+    pub out: Option<PathBuf>,
+}
+
+impl LoadOptions {
+    /// Parses `path=value` into an override.
+    pub fn parse_set(arg: &str) -> Result<(String, String), String> {
+        let (k, v) = arg
+            .split_once('=')
+            .ok_or_else(|| format!("`--set {arg}` needs the form stages.<id>.<key>=<value>"))?;
+        Ok((k.trim().to_string(), v.trim().to_string()))
+    }
+}
+
+/// One stage of a loaded graph.
+pub struct StageNode {
+    /// The stage's id (its table name).
+    pub id: String,
+    /// Its registered type.
+    pub type_name: String,
+    /// Ids of the stages it reads, in order.
+    pub inputs: Vec<String>,
+    /// Its config.
+    pub config: Box<dyn StageConfig>,
+    /// The built runtime stage.
+    pub stage: Stage,
+    /// Line of its table in the file.
+    pub line: Option<usize>,
+}
+
+impl fmt::Debug for StageNode {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.debug_struct("StageNode")
+            .field("id", &self.id)
+            .field("type_name", &self.type_name)
+            .field("inputs", &self.inputs)
+            .field("role", &self.stage.role())
+            .finish()
+    }
+}
+
+/// A validated graph, ready to run.
+#[derive(Debug)]
+pub struct Graph {
+    /// The file it came from, as given.
+    pub file: String,
+    /// Run-wide settings (after overrides).
+    pub run: RunSettings,
+    /// Where reports go.
+    pub out_dir: PathBuf,
+    /// Stages in file order.
+    pub nodes: Vec<StageNode>,
+    /// Indices into `nodes`, in an order where every stage follows its inputs.
+    pub order: Vec<usize>,
+    /// For each node, the indices of its inputs.
+    pub input_index: Vec<Vec<usize>>,
+    /// Warnings found while loading.
+    pub warnings: Vec<Diagnostic>,
+}
+
+impl Graph {
+    /// Index of the stage with `id`.
+    pub fn index_of(&self, id: &str) -> Option<usize> {
+        self.nodes.iter().position(|n| n.id == id)
+    }
+
+    /// The graph in Graphviz dot.
+    pub fn to_dot(&self) -> String {
+        let mut s = String::from("digraph palpate {\n  rankdir=LR;\n");
+        for n in &self.nodes {
+            s.push_str(&format!(
+                "  \"{}\" [label=\"{}\\n({})\" shape={}];\n",
+                n.id,
+                n.id,
+                n.type_name,
+                match n.stage {
+                    Stage::Source(_) => "invhouse",
+                    Stage::Sink(_) => "house",
+                    Stage::Estimator(_) => "box3d",
+                    Stage::Map(_) => "box",
+                }
+            ));
+        }
+        for (i, n) in self.nodes.iter().enumerate() {
+            for &j in &self.input_index[i] {
+                let kind = self.nodes[j]
+                    .config
+                    .output()
+                    .map(|k| k.to_string())
+                    .unwrap_or_default();
+                s.push_str(&format!(
+                    "  \"{}\" -> \"{}\" [label=\"{}\"];\n",
+                    self.nodes[j].id, n.id, kind
+                ));
+            }
+        }
+        s.push_str("}\n");
+        s
+    }
+
+    /// The graph as a Mermaid flowchart.
+    pub fn to_mermaid(&self) -> String {
+        let mut s = String::from("flowchart LR\n");
+        let safe = |id: &str| id.replace(|c: char| !c.is_ascii_alphanumeric() && c != '_', "_");
+        for n in &self.nodes {
+            s.push_str(&format!(
+                "  {}[\"{}<br/>({})\"]\n",
+                safe(&n.id),
+                n.id,
+                n.type_name
+            ));
+        }
+        for (i, n) in self.nodes.iter().enumerate() {
+            for &j in &self.input_index[i] {
+                let kind = self.nodes[j]
+                    .config
+                    .output()
+                    .map(|k| k.to_string())
+                    .unwrap_or_default();
+                s.push_str(&format!(
+                    "  {} -->|{}| {}\n",
+                    safe(&self.nodes[j].id),
+                    kind,
+                    safe(&n.id)
+                ));
+            }
+        }
+        s
+    }
+}
+
+/// Loads and validates a graph file.
+pub fn load_file(path: &Path, opts: &LoadOptions) -> Result<Graph, LoadErrors> {
+    let file = path.display().to_string();
+    let text = std::fs::read_to_string(path).map_err(|e| {
+        LoadErrors(vec![Diagnostic {
+            severity: Severity::Error,
+            file: file.clone(),
+            line: None,
+            stage: None,
+            key: None,
+            message: format!("cannot read the graph file: {e}"),
+        }])
+    })?;
+    let stem = path.file_stem().and_then(|s| s.to_str()).unwrap_or("graph");
+    load_str(&text, &file, stem, opts)
+}
+
+/// Loads and validates a graph from text. `file` names it in messages; `stem`
+/// names the default output directory `out/<stem>`.
+pub fn load_str(text: &str, file: &str, stem: &str, opts: &LoadOptions) -> Result<Graph, LoadErrors> {
+    Loader {
+        file: file.to_string(),
+        text,
+        diags: Vec::new(),
+    }
+    .load(stem, opts)
+}
+
+struct Loader<'t> {
+    file: String,
+    text: &'t str,
+    diags: Vec<Diagnostic>,
+}
+
+/// Lines of the tables and keys of a graph file.
+#[derive(Default)]
+struct Lines {
+    top: HashMap<String, usize>,
+    run: HashMap<String, usize>,
+    stages: HashMap<String, usize>,
+    keys: HashMap<(String, String), usize>,
+}
+
+struct Pending {
+    id: String,
+    type_name: String,
+    inputs: Vec<String>,
+    config: Box<dyn StageConfig>,
+    stage: Stage,
+    line: Option<usize>,
+}
+
+impl<'t> Loader<'t> {
+    fn line_of(&self, offset: usize) -> usize {
+        self.text[..offset.min(self.text.len())].matches('\n').count() + 1
+    }
+
+    fn error(&mut self, line: Option<usize>, stage: Option<&str>, key: Option<&str>, message: String) {
+        self.diags.push(Diagnostic {
+            severity: Severity::Error,
+            file: self.file.clone(),
+            line,
+            stage: stage.map(str::to_string),
+            key: key.map(str::to_string),
+            message,
+        });
+    }
+
+    fn lines(&self) -> Lines {
+        let mut lines = Lines::default();
+        let Ok(doc) = toml::de::DeTable::parse(self.text) else {
+            return lines;
+        };
+        for (k, v) in doc.get_ref().iter() {
+            lines
+                .top
+                .insert(k.get_ref().to_string(), self.line_of(k.span().start));
+            let toml::de::DeValue::Table(t) = v.get_ref() else {
+                continue;
+            };
+            match k.get_ref().as_ref() {
+                "run" => {
+                    for (rk, _) in t.iter() {
+                        lines
+                            .run
+                            .insert(rk.get_ref().to_string(), self.line_of(rk.span().start));
+                    }
+                }
+                "stages" => {
+                    for (sid, sv) in t.iter() {
+                        let id = sid.get_ref().to_string();
+                        lines.stages.insert(id.clone(), self.line_of(sid.span().start));
+                        if let toml::de::DeValue::Table(st) = sv.get_ref() {
+                            for (key, _) in st.iter() {
+                                lines.keys.insert(
+                                    (id.clone(), key.get_ref().to_string()),
+                                    self.line_of(key.span().start),
+                                );
+                            }
+                        }
+                    }
+                }
+                _ => {}
+            }
+        }
+        lines
+    }
+
+    fn load(mut self, stem: &str, opts: &LoadOptions) -> Result<Graph, LoadErrors> {
+        let mut doc: toml::Table = match toml::from_str(self.text) {
+            Ok(t) => t,
+            Err(e) => {
+                let line = e.span().map(|s| self.line_of(s.start));
+                self.error(line, None, None, format!("not valid TOML: {}", e.message()));
+                return Err(LoadErrors(self.diags));
+            }
+        };
+        let lines = self.lines();
+        self.apply_overrides(&mut doc, &opts.overrides);
+
+        for key in doc.keys() {
+            if key != "run" && key != "stages" {
+                let line = lines.top.get(key).copied();
+                self.error(
+                    line,
+                    None,
+                    Some(key),
+                    format!(
+                        "unknown top-level table `{key}`; a graph has `[run]` and `[stages.<id>]` tables"
+                    ),
+                );
+            }
+        }
+
+        let run = self.load_run(doc.get("run"), &lines);
+        let out_dir = opts
+            .out
+            .clone()
+            .or_else(|| run.out.clone())
+            .unwrap_or_else(|| PathBuf::from("out").join(stem));
+
+        let mut pending = Vec::new();
+        match doc.get("stages") {
+            None => self.error(
+                None,
+                None,
+                None,
+                "the graph declares no stages: add `[stages.<id>]` tables".into(),
+            ),
+            Some(toml::Value::Table(stages)) => {
+                for (id, value) in stages {
+                    if let Some(p) = self.load_stage(id, value, &lines, &run, &out_dir) {
+                        pending.push(p);
+                    }
+                }
+            }
+            Some(_) => {
+                let line = lines.top.get("stages").copied();
+                self.error(
+                    line,
+                    None,
+                    None,
+                    "`stages` must be a table of `[stages.<id>]` tables".into(),
+                );
+            }
+        }
+
+        let (order, input_index) = self.check_graph(&pending, &lines, stages_declared(&doc));
+        if self.diags.iter().any(|d| d.severity == Severity::Error) {
+            return Err(LoadErrors(self.diags));
+        }
+        let nodes = pending
+            .into_iter()
+            .map(|p| StageNode {
+                id: p.id,
+                type_name: p.type_name,
+                inputs: p.inputs,
+                config: p.config,
+                stage: p.stage,
+                line: p.line,
+            })
+            .collect();
+        Ok(Graph {
+            file: self.file,
+            run,
+            out_dir,
+            nodes,
+            order,
+            input_index,
+            warnings: self.diags,
+        })
+    }
+
+    fn apply_overrides(&mut self, doc: &mut toml::Table, overrides: &[(String, String)]) {
+        for (path, raw) in overrides {
+            let value = parse_value(raw);
+            let parts: Vec<&str> = path.split('.').collect();
+            let target = match parts.as_slice() {
+                ["stages", id, key @ ..] if !key.is_empty() => {
+                    match doc
+                        .get_mut("stages")
+                        .and_then(|s| s.get_mut(*id))
+                        .and_then(|s| s.as_table_mut())
+                    {
+                        Some(t) => Some((t, key.to_vec())),
+                        None => {
+                            self.error(
+                                None,
+                                Some(id),
+                                None,
+                                format!("`--set {path}` names a stage the graph does not declare"),
+                            );
+                            None
+                        }
+                    }
+                }
+                ["run", key @ ..] if !key.is_empty() => {
+                    let run = doc
+                        .entry("run")
+                        .or_insert_with(|| toml::Value::Table(toml::Table::new()));
+                    run.as_table_mut().map(|t| (t, key.to_vec()))
+                }
+                _ => {
+                    self.error(
+                        None,
+                        None,
+                        None,
+                        format!("`--set {path}=...`: the path must be stages.<id>.<key> or run.<key>"),
+                    );
+                    None
+                }
+            };
+            if let Some((table, keys)) = target {
+                set_path(table, &keys, value);
+            }
+        }
+    }
+
+    fn load_run(&mut self, value: Option<&toml::Value>, lines: &Lines) -> RunSettings {
+        let Some(value) = value else {
+            return RunSettings::default();
+        };
+        match serde_path_to_error::deserialize::<_, RunSettings>(value.clone()) {
+            Ok(r) => r,
+            Err(e) => {
+                let key = e
+                    .path()
+                    .iter()
+                    .next()
+                    .map(|s| s.to_string())
+                    .or_else(|| unknown_field(e.inner().message()));
+                let line = key
+                    .as_ref()
+                    .and_then(|k| lines.run.get(k))
+                    .copied()
+                    .or(lines.top.get("run").copied());
+                let msg = format!("in [run]: {}", e.inner().message());
+                self.error(line, None, key.as_deref(), msg);
+                RunSettings::default()
+            }
+        }
+    }
+
+    fn load_stage(
+        &mut self,
+        id: &str,
+        value: &toml::Value,
+        lines: &Lines,
+        run: &RunSettings,
+        out_dir: &Path,
+    ) -> Option<Pending> {
+        let line = lines.stages.get(id).copied();
+        let key_line = |k: &str| lines.keys.get(&(id.to_string(), k.to_string())).copied().or(line);
+        if id.is_empty()
+            || !id
+                .chars()
+                .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-')
+        {
+            self.error(
+                line,
+                Some(id),
+                None,
+                "a stage id may hold only letters, digits, `_` and `-`".into(),
+            );
+        }
+        let Some(table) = value.as_table() else {
+            self.error(
+                line,
+                Some(id),
+                None,
+                "a stage must be a table with at least a `type` key".into(),
+            );
+            return None;
+        };
+        let type_name = match table.get("type") {
+            None => {
+                self.error(
+                    line,
+                    Some(id),
+                    Some("type"),
+                    "missing key `type`: which kind of stage this is".into(),
+                );
+                return None;
+            }
+            Some(toml::Value::String(s)) => s.clone(),
+            Some(other) => {
+                self.error(
+                    key_line("type"),
+                    Some(id),
+                    Some("type"),
+                    format!("`type` must be a string, got {}", other.type_str()),
+                );
+                return None;
+            }
+        };
+        let Some(reg) = registry::find(&type_name) else {
+            let close = registry::close_matches(&type_name);
+            let hint = if close.is_empty() {
+                "; `palpate stages` lists every type".to_string()
+            } else {
+                format!(
+                    "; did you mean {}?",
+                    close
+                        .iter()
+                        .map(|c| format!("`{c}`"))
+                        .collect::<Vec<_>>()
+                        .join(" or ")
+                )
+            };
+            self.error(
+                key_line("type"),
+                Some(id),
+                Some("type"),
+                format!("unknown stage type `{type_name}`{hint}"),
+            );
+            return None;
+        };
+        let inputs: Vec<String> = match table.get("inputs") {
+            None => Vec::new(),
+            Some(toml::Value::Array(a)) => {
+                let mut v = Vec::new();
+                for x in a {
+                    match x.as_str() {
+                        Some(s) => v.push(s.to_string()),
+                        None => self.error(
+                            key_line("inputs"),
+                            Some(id),
+                            Some("inputs"),
+                            format!("`inputs` must list stage ids as strings, got {}", x.type_str()),
+                        ),
+                    }
+                }
+                v
+            }
+            Some(other) => {
+                self.error(
+                    key_line("inputs"),
+                    Some(id),
+                    Some("inputs"),
+                    format!("`inputs` must be an array of stage ids, got {}", other.type_str()),
+                );
+                Vec::new()
+            }
+        };
+
+        // Keys against the schema: every unknown and missing key at once.
+        let doc = registry::stage_doc(reg);
+        let known = doc.key_names();
+        let mut keys_ok = true;
+        for key in table.keys() {
+            if key == "type" || key == "inputs" || known.contains(&key.as_str()) {
+                continue;
+            }
+            keys_ok = false;
+            let close: Vec<&str> = known
+                .iter()
+                .copied()
+                .filter(|k| strsim::jaro_winkler(k, key) > 0.85)
+                .collect();
+            let hint = match close.first() {
+                Some(c) => format!("; did you mean `{c}`?"),
+                None if known.is_empty() => "; this type has no keys".to_string(),
+                None => format!(
+                    "; its keys are {}",
+                    known
+                        .iter()
+                        .map(|k| format!("`{k}`"))
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                ),
+            };
+            self.error(
+                key_line(key),
+                Some(id),
+                Some(key),
+                format!("unknown key `{key}` for type `{type_name}`{hint}"),
+            );
+        }
+        for k in &doc.keys {
+            if k.default.is_none() && !table.contains_key(&k.name) {
+                keys_ok = false;
+                self.error(
+                    line,
+                    Some(id),
+                    Some(&k.name),
+                    format!(
+                        "missing key `{}` ({})",
+                        k.name,
+                        k.doc.lines().next().unwrap_or("")
+                    ),
+                );
+            }
+        }
+        if !keys_ok {
+            return None;
+        }
+
+        let mut inner = table.clone();
+        inner.remove("type");
+        inner.remove("inputs");
+        let mut tagged = toml::Table::new();
+        tagged.insert(type_name.clone(), toml::Value::Table(inner));
+        let config: Box<dyn StageConfig> = match serde_path_to_error::deserialize(toml::Value::Table(tagged))
+        {
+            Ok(c) => c,
+            Err(e) => {
+                let path: Vec<String> = e.path().iter().skip(1).map(|s| s.to_string()).collect();
+                let key = if path.is_empty() {
+                    unknown_field(e.inner().message())
+                } else {
+                    Some(path.join("."))
+                };
+                let first = key
+                    .as_deref()
+                    .map(|k| k.split(['.', '[']).next().unwrap_or(k).to_string());
+                let l = first.as_deref().map(key_line).unwrap_or(line);
+                let msg = match &key {
+                    Some(k) => format!("key `{k}`: {}", e.inner().message()),
+                    None => e.inner().message().to_string(),
+                };
+                self.error(l, Some(id), key.as_deref(), msg);
+                return None;
+            }
+        };
+        let ctx = BuildContext {
+            stage_id: id.to_string(),
+            seed: run.seed,
+            out_dir: out_dir.to_path_buf(),
+        };
+        match config.build(&ctx) {
+            Ok(stage) => Some(Pending {
+                id: id.to_string(),
+                type_name,
+                inputs,
+                config,
+                stage,
+                line,
+            }),
+            Err(e) => {
+                let l = e
+                    .key
+                    .as_deref()
+                    .map(|k| key_line(k.split(['.', '[']).next().unwrap_or(k)))
+                    .unwrap_or(line);
+                self.error(l, Some(id), e.key.as_deref(), e.to_string());
+                None
+            }
+        }
+    }
+
+    /// Checks edges, kinds, cycles and sources. Returns (topological order, input indices).
+    fn check_graph(
+        &mut self,
+        nodes: &[Pending],
+        lines: &Lines,
+        declared: Vec<String>,
+    ) -> (Vec<usize>, Vec<Vec<usize>>) {
+        let index: HashMap<&str, usize> = nodes
+            .iter()
+            .enumerate()
+            .map(|(i, n)| (n.id.as_str(), i))
+            .collect();
+        let mut g: DiGraph<usize, ()> = DiGraph::new();
+        let ids: Vec<NodeIndex> = (0..nodes.len()).map(|i| g.add_node(i)).collect();
+        let mut input_index = vec![Vec::new(); nodes.len()];
+        let mut read = vec![false; nodes.len()];
+
+        for (i, n) in nodes.iter().enumerate() {
+            let spec: InputSpec = n.config.inputs();
+            let inputs_line = lines
+                .keys
+                .get(&(n.id.clone(), "inputs".to_string()))
+                .copied()
+                .or(n.line);
+            if spec.max == Some(0) && !n.inputs.is_empty() {
+                self.error(
+                    inputs_line,
+                    Some(&n.id),
+                    Some("inputs"),
+                    format!("`{}` is a source and takes no inputs", n.type_name),
+                );
+                continue;
+            }
+            if n.inputs.len() < spec.min || spec.max.is_some_and(|m| n.inputs.len() > m) {
+                let want = match spec.max {
+                    Some(m) if m == spec.min => format!("exactly {m}"),
+                    Some(m) => format!("{} to {m}", spec.min),
+                    None => format!("at least {}", spec.min),
+                };
+                self.error(
+                    inputs_line,
+                    Some(&n.id),
+                    Some("inputs"),
+                    format!(
+                        "`{}` takes {want} input(s) of {}, got {}",
+                        n.type_name,
+                        spec.describe_kinds(),
+                        n.inputs.len()
+                    ),
+                );
+            }
+            for input in &n.inputs {
+                let Some(&j) = index.get(input.as_str()) else {
+                    if declared.contains(input) {
+                        continue; // declared but failed to load: already reported
+                    }
+                    let close: Vec<String> = nodes
+                        .iter()
+                        .map(|m| m.id.clone())
+                        .chain(declared.iter().cloned())
+                        .filter(|m| strsim::jaro_winkler(m, input) > 0.8)
+                        .take(1)
+                        .collect();
+                    let hint = close
+                        .first()
+                        .map(|c| format!("; did you mean `{c}`?"))
+                        .unwrap_or_default();
+                    self.error(
+                        inputs_line,
+                        Some(&n.id),
+                        Some("inputs"),
+                        format!("unknown input `{input}`: no stage has that id{hint}"),
+                    );
+                    continue;
+                };
+                read[j] = true;
+                input_index[i].push(j);
+                g.add_edge(ids[j], ids[i], ());
+                match nodes[j].config.output() {
+                    None => self.error(
+                        inputs_line,
+                        Some(&n.id),
+                        Some("inputs"),
+                        format!("input `{}` is a sink and gives nothing to read", nodes[j].id),
+                    ),
+                    Some(kind) if !spec.kinds.contains(&kind) => self.error(
+                        inputs_line,
+                        Some(&n.id),
+                        Some("inputs"),
+                        format!(
+                            "stage `{}` takes {} but `{}` gives {}",
+                            n.id,
+                            spec.describe_kinds(),
+                            nodes[j].id,
+                            kind
+                        ),
+                    ),
+                    Some(_) => {}
+                }
+            }
+        }
+
+        for scc in petgraph::algo::tarjan_scc(&g) {
+            let is_cycle = scc.len() > 1 || g.contains_edge(scc[0], scc[0]);
+            if is_cycle {
+                let mut members: Vec<usize> = scc.iter().map(|&ix| g[ix]).collect();
+                members.sort_unstable();
+                let names: Vec<String> = members.iter().map(|&m| format!("`{}`", nodes[m].id)).collect();
+                let first = &nodes[members[0]];
+                self.error(
+                    first.line,
+                    Some(&first.id),
+                    Some("inputs"),
+                    format!(
+                        "cycle through stages {}: data must flow one way",
+                        names.join(" -> ")
+                    ),
+                );
+            }
+        }
+
+        let has_source = nodes.iter().any(|n| n.config.inputs().max == Some(0));
+        if !has_source && !nodes.is_empty() {
+            self.error(
+                None,
+                None,
+                None,
+                "the graph has no source stage (a scene, file or DAQ source)".into(),
+            );
+        }
+
+        for (i, n) in nodes.iter().enumerate() {
+            if !read[i] && n.config.output().is_some() {
+                self.diags.push(Diagnostic {
+                    severity: Severity::Warning,
+                    file: self.file.clone(),
+                    line: n.line,
+                    stage: Some(n.id.clone()),
+                    key: None,
+                    message: format!(
+                        "the output of `{}` ({}) is read by no stage",
+                        n.id,
+                        n.config.output().map(|k| k.to_string()).unwrap_or_default()
+                    ),
+                });
+            }
+        }
+
+        let order = match petgraph::algo::toposort(&g, None) {
+            Ok(o) => o.into_iter().map(|ix| g[ix]).collect(),
+            Err(_) => Vec::new(),
+        };
+        (order, input_index)
+    }
+}
+
+fn stages_declared(doc: &toml::Table) -> Vec<String> {
+    doc.get("stages")
+        .and_then(|s| s.as_table())
+        .map(|t| t.keys().cloned().collect())
+        .unwrap_or_default()
+}
+
+/// serde reports an unknown field at the struct's level; take its name from the message.
+fn unknown_field(message: &str) -> Option<String> {
+    let rest = message
+        .strip_prefix("unknown field `")
+        .or_else(|| message.strip_prefix("missing field `"))?;
+    rest.split('`').next().map(str::to_string)
+}
+
+fn parse_value(raw: &str) -> toml::Value {
+    match toml::from_str::<toml::Table>(&format!("v = {raw}")) {
+        Ok(mut t) => t
+            .remove("v")
+            .unwrap_or_else(|| toml::Value::String(raw.to_string())),
+        Err(_) => toml::Value::String(raw.to_string()),
+    }
+}
+
+fn set_path(table: &mut toml::Table, keys: &[&str], value: toml::Value) {
+    match keys {
+        [] => {}
+        [last] => {
+            table.insert((*last).to_string(), value);
+        }
+        [first, rest @ ..] => {
+            let entry = table
+                .entry((*first).to_string())
+                .or_insert_with(|| toml::Value::Table(toml::Table::new()));
+            if !entry.is_table() {
+                *entry = toml::Value::Table(toml::Table::new());
+            }
+            if let Some(t) = entry.as_table_mut() {
+                set_path(t, rest, value);
+            }
+        }
+    }
+}

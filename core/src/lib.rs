@@ -1,0 +1,43 @@
+//! palpate-core: the skeleton every palpate stage plugs into.
+//!
+//! * [`payload`]: the typed data on the graph's edges (analog signals, spike
+//!   events, spike images, orientation estimates) and the trial metadata that
+//!   travels with each;
+//! * [`stage`]: stage configs (serde + typetag), the runtime roles (source, map,
+//!   estimator, sink) and seed derivation;
+//! * [`registry`]: every registered stage type with its schema (keys, defaults,
+//!   units, docs);
+//! * [`graph`]: loading a TOML graph, gathering every error with its line;
+//! * [`runtime`]: running a graph, in parallel and deterministically;
+//! * [`output`]: atomic report files.
+//!
+//! `core` knows no stage by name: stages register themselves, and the CLI finds
+//! them through the registry.
+
+pub mod graph;
+pub mod output;
+pub mod payload;
+pub mod registry;
+pub mod runtime;
+pub mod stage;
+
+pub use graph::{
+    load_file, load_str, Diagnostic, Graph, LoadErrors, LoadOptions, Protocol, RunSettings, Severity,
+};
+pub use payload::{
+    ClassScore, Estimate, Item, Label, Payload, PayloadKind, Provenance, Signals, SpikeEvent, SpikeImages,
+    SpikeTrain, Stimulus, TaxelLayout, TrialMeta,
+};
+pub use runtime::{run, Progress, RunError, RunOptions, RunResult, StageTiming};
+pub use stage::{
+    check_positive, check_range, derive_seed, BuildContext, ConfigError, Estimator, FitContext, InputSpec,
+    Map, Model, Sink, SinkContext, SinkInput, SinkReport, Source, Stage, StageConfig, StageError,
+    TrialContext,
+};
+
+/// Re-exports used by [`register_stage!`]; not part of the public API.
+#[doc(hidden)]
+pub mod __private {
+    pub use inventory;
+    pub use schemars;
+}

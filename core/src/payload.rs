@@ -1,0 +1,515 @@
+//! Typed payloads that travel on the graph's edges, and the trial metadata that
+//! travels with each of them.
+//!
+//! Four payload kinds exist, in the order data flows through a tactile pipeline:
+//!
+//! | kind | type | what it holds |
+//! |---|---|---|
+//! | [`PayloadKind::Signals`] | [`Signals`] | analog taxel signals, one sample vector per taxel, at a sample rate |
+//! | [`PayloadKind::Spikes`] | [`SpikeTrain`] | time-sorted spike events `(taxel, t_ms)` |
+//! | [`PayloadKind::Images`] | [`SpikeImages`] | spike counts binned into frames of `window_ms`, one every `hop_ms` |
+//! | [`PayloadKind::Estimates`] | [`Estimate`] | an orientation estimate (or "no edge") with every class's score |
+//!
+//! Coordinates: millimetres, `x` along the array's horizontal axis (the sliding
+//! direction), `y` perpendicular to it, pointing "up" (towards row 0). A grid's
+//! centre is the origin; taxel `i` of a grid sits at row `i / cols`, column
+//! `i % cols`.
+
+use serde::{Deserialize, Serialize};
+use std::fmt;
+use std::sync::Arc;
+
+/// The kind of a payload: what an edge of the graph carries.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum PayloadKind {
+    /// Analog taxel signals ([`Signals`]).
+    Signals,
+    /// Spike events ([`SpikeTrain`]).
+    Spikes,
+    /// Binned spike images ([`SpikeImages`]).
+    Images,
+    /// Orientation estimates ([`Estimate`]).
+    Estimates,
+}
+
+impl PayloadKind {
+    /// Every kind, in data-flow order.
+    pub const ALL: [PayloadKind; 4] = [
+        PayloadKind::Signals,
+        PayloadKind::Spikes,
+        PayloadKind::Images,
+        PayloadKind::Estimates,
+    ];
+}
+
+impl fmt::Display for PayloadKind {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(match self {
+            PayloadKind::Signals => "analog signals",
+            PayloadKind::Spikes => "spike events",
+            PayloadKind::Images => "spike images",
+            PayloadKind::Estimates => "orientation estimates",
+        })
+    }
+}
+
+/// Where the taxels of an array are.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
+pub enum TaxelLayout {
+    /// A regular `rows x cols` grid with centre-to-centre spacing `pitch_mm` and
+    /// square taxels of side `taxel_mm`, centred on the origin.
+    Grid {
+        /// Number of rows (along `y`).
+        rows: usize,
+        /// Number of columns (along `x`).
+        cols: usize,
+        /// Centre-to-centre spacing, mm.
+        pitch_mm: f64,
+        /// Side of a square taxel, mm.
+        taxel_mm: f64,
+    },
+    /// An explicit list of taxel centres, mm, for skins that are not grids; each
+    /// taxel is taken as a square of side `taxel_mm`.
+    Positions {
+        /// Taxel centres `[x, y]`, mm.
+        positions_mm: Vec<[f64; 2]>,
+        /// Side of a square taxel, mm.
+        taxel_mm: f64,
+    },
+}
+
+impl TaxelLayout {
+    /// The paper's array: 4 x 4 taxels, 3 mm pitch, 2 mm taxels.
+    pub fn paper() -> Self {
+        TaxelLayout::Grid {
+            rows: 4,
+            cols: 4,
+            pitch_mm: 3.0,
+            taxel_mm: 2.0,
+        }
+    }
+
+    /// Number of taxels.
+    pub fn len(&self) -> usize {
+        match self {
+            TaxelLayout::Grid { rows, cols, .. } => rows * cols,
+            TaxelLayout::Positions { positions_mm, .. } => positions_mm.len(),
+        }
+    }
+
+    /// True when the layout has no taxel.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Side of a (square) taxel, mm.
+    pub fn taxel_mm(&self) -> f64 {
+        match self {
+            TaxelLayout::Grid { taxel_mm, .. } | TaxelLayout::Positions { taxel_mm, .. } => *taxel_mm,
+        }
+    }
+
+    /// `(rows, cols)` for a grid, `None` for an explicit list.
+    pub fn grid(&self) -> Option<(usize, usize)> {
+        match self {
+            TaxelLayout::Grid { rows, cols, .. } => Some((*rows, *cols)),
+            TaxelLayout::Positions { .. } => None,
+        }
+    }
+
+    /// `(row, col)` of taxel `i` in a grid.
+    pub fn row_col(&self, i: usize) -> Option<(usize, usize)> {
+        self.grid().map(|(_, cols)| (i / cols, i % cols))
+    }
+
+    /// Centre of taxel `i`, `[x, y]` in mm.
+    ///
+    /// Panics if `i >= self.len()` (an internal invariant: callers index taxels
+    /// of this layout).
+    pub fn position(&self, i: usize) -> [f64; 2] {
+        match self {
+            TaxelLayout::Grid {
+                rows, cols, pitch_mm, ..
+            } => {
+                let (r, c) = (i / cols, i % cols);
+                assert!(r < *rows, "taxel {i} outside a {rows}x{cols} grid");
+                let x = (c as f64 - (*cols as f64 - 1.0) / 2.0) * pitch_mm;
+                let y = ((*rows as f64 - 1.0) / 2.0 - r as f64) * pitch_mm;
+                [x, y]
+            }
+            TaxelLayout::Positions { positions_mm, .. } => positions_mm[i],
+        }
+    }
+
+    /// Every taxel centre, in taxel order.
+    pub fn positions(&self) -> Vec<[f64; 2]> {
+        (0..self.len()).map(|i| self.position(i)).collect()
+    }
+
+    /// Checks that the layout describes at least one taxel of positive, finite size.
+    pub fn validate(&self) -> Result<(), String> {
+        let t = self.taxel_mm();
+        if !(t.is_finite() && t > 0.0) {
+            return Err(format!("taxel size must be a positive number of mm, got {t}"));
+        }
+        match self {
+            TaxelLayout::Grid {
+                rows, cols, pitch_mm, ..
+            } => {
+                if *rows == 0 || *cols == 0 {
+                    return Err(format!(
+                        "a grid needs at least one row and one column, got {rows}x{cols}"
+                    ));
+                }
+                if !(pitch_mm.is_finite() && *pitch_mm > 0.0) {
+                    return Err(format!("pitch must be a positive number of mm, got {pitch_mm}"));
+                }
+            }
+            TaxelLayout::Positions { positions_mm, .. } => {
+                if positions_mm.is_empty() {
+                    return Err("an explicit layout needs at least one taxel position".into());
+                }
+                if let Some(p) = positions_mm
+                    .iter()
+                    .find(|p| !(p[0].is_finite() && p[1].is_finite()))
+                {
+                    return Err(format!("taxel position {p:?} is not finite"));
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+/// What kind of stimulus a trial palpates.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum Stimulus {
+    /// The boundary edge of an object (the paper's main experiment).
+    #[default]
+    Edge,
+    /// A ridge on a flat surface (paper section 3.6).
+    Ridge,
+    /// Not known (e.g. a recording without a label).
+    Unknown,
+}
+
+impl fmt::Display for Stimulus {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(match self {
+            Stimulus::Edge => "edge",
+            Stimulus::Ridge => "ridge",
+            Stimulus::Unknown => "unknown",
+        })
+    }
+}
+
+/// The ground truth of a trial, where known.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, Default)]
+pub struct Label {
+    /// Stimulus kind.
+    pub stimulus: Stimulus,
+    /// True orientation of the edge, degrees from the array's horizontal axis;
+    /// `None` when unknown or when the trial has no edge.
+    pub angle_deg: Option<f64>,
+}
+
+/// One step of a payload's provenance: which stage made it, with which settings.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Provenance {
+    /// The stage's id in the graph.
+    pub stage: String,
+    /// The stage's registered type.
+    pub type_name: String,
+    /// The stage's settings, as the JSON of its config (shared by every trial).
+    pub settings: Arc<serde_json::Value>,
+}
+
+/// Metadata that travels with every payload of a trial.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, Default)]
+pub struct TrialMeta {
+    /// Unique id of the trial within its source, e.g. `edge-45deg-r03`.
+    pub trial_id: String,
+    /// Position of the trial in its source's order.
+    pub index: usize,
+    /// Ground truth.
+    pub label: Label,
+    /// The key cross-validation groups by: the repetition number of the trial
+    /// within its class. Leave-one-trial-out fold `f` tests every trial whose
+    /// group is the `f`-th distinct group.
+    pub group: usize,
+    /// When the edge crosses the array, `[start, end]` in ms from the trial's
+    /// start, if the source knows it (simulated scenes do).
+    pub crossing_ms: Option<[f64; 2]>,
+    /// Which stages made this payload, source first.
+    pub provenance: Vec<Provenance>,
+}
+
+/// Analog taxel signals of one trial.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Signals {
+    /// Samples per second of every taxel, Hz.
+    pub sample_rate_hz: f64,
+    /// Where the taxels are.
+    pub layout: TaxelLayout,
+    /// What the values measure, e.g. `"V"`, `"pressure (normalized)"`, `"current"`.
+    pub unit: String,
+    /// `data[taxel][sample]`; every taxel has the same number of samples.
+    pub data: Vec<Vec<f64>>,
+}
+
+impl Signals {
+    /// Number of samples per taxel.
+    pub fn n_samples(&self) -> usize {
+        self.data.first().map_or(0, Vec::len)
+    }
+
+    /// Duration of the trial, ms.
+    pub fn duration_ms(&self) -> f64 {
+        self.n_samples() as f64 * 1000.0 / self.sample_rate_hz
+    }
+
+    /// A copy of these signals' frame (rate, layout) with new data and unit.
+    pub fn with_data(&self, unit: impl Into<String>, data: Vec<Vec<f64>>) -> Signals {
+        Signals {
+            sample_rate_hz: self.sample_rate_hz,
+            layout: self.layout.clone(),
+            unit: unit.into(),
+            data,
+        }
+    }
+}
+
+/// One spike: which taxel fired, and when.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SpikeEvent {
+    /// Taxel index in the layout.
+    pub taxel: u32,
+    /// Time from the trial's start, ms.
+    pub t_ms: f64,
+}
+
+/// The spike events of one trial, sorted by time (ties by taxel).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SpikeTrain {
+    /// Where the taxels are.
+    pub layout: TaxelLayout,
+    /// Length of the trial, ms; every event lies in `[0, duration_ms)`.
+    pub duration_ms: f64,
+    /// Events, time-sorted.
+    pub events: Vec<SpikeEvent>,
+}
+
+impl SpikeTrain {
+    /// Sorts events by time, then taxel (a total order: times are finite).
+    pub fn sort(&mut self) {
+        self.events
+            .sort_by(|a, b| a.t_ms.total_cmp(&b.t_ms).then(a.taxel.cmp(&b.taxel)));
+    }
+
+    /// True when events are sorted by time.
+    pub fn is_sorted(&self) -> bool {
+        self.events.windows(2).all(|w| w[0].t_ms <= w[1].t_ms)
+    }
+}
+
+/// Spike counts binned into frames: frame `k` covers `[k*hop_ms, k*hop_ms + window_ms)`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SpikeImages {
+    /// Where the taxels are.
+    pub layout: TaxelLayout,
+    /// Frame length, ms.
+    pub window_ms: f64,
+    /// Time between frame starts, ms.
+    pub hop_ms: f64,
+    /// Number of frames.
+    pub n_frames: usize,
+    /// `counts[k * n_taxels + taxel]`: spikes of `taxel` in frame `k`.
+    pub counts: Vec<f64>,
+}
+
+impl SpikeImages {
+    /// Number of taxels per frame.
+    pub fn n_taxels(&self) -> usize {
+        self.layout.len()
+    }
+
+    /// The counts of frame `k`, one per taxel.
+    pub fn frame(&self, k: usize) -> &[f64] {
+        let n = self.n_taxels();
+        &self.counts[k * n..(k + 1) * n]
+    }
+}
+
+/// One class's score in an estimate.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ClassScore {
+    /// The class's orientation, degrees.
+    pub angle_deg: f64,
+    /// The estimator's score for it (higher is more likely).
+    pub score: f64,
+}
+
+/// An estimator's answer for one trial.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, Default)]
+pub struct Estimate {
+    /// Estimated orientation, degrees; `None` means "no edge".
+    pub angle_deg: Option<f64>,
+    /// The best class of the estimator's grid (equals `angle_deg` unless the
+    /// estimator refines between classes); `None` means "no edge".
+    pub class_deg: Option<f64>,
+    /// Every class's score, in the estimator's class order.
+    pub scores: Vec<ClassScore>,
+    /// Frame at which the best score was reached, if the estimator is frame-based.
+    pub best_frame: Option<usize>,
+    /// How much palpation the answer needed, ms from the trial's start.
+    pub decision_time_ms: Option<f64>,
+}
+
+/// A payload of any kind. Large payloads are shared, never copied, between the
+/// stages that read them.
+#[derive(Clone, Debug)]
+pub enum Payload {
+    /// Analog signals.
+    Signals(Arc<Signals>),
+    /// Spike events.
+    Spikes(Arc<SpikeTrain>),
+    /// Spike images.
+    Images(Arc<SpikeImages>),
+    /// An estimate.
+    Estimate(Arc<Estimate>),
+}
+
+impl Payload {
+    /// This payload's kind.
+    pub fn kind(&self) -> PayloadKind {
+        match self {
+            Payload::Signals(_) => PayloadKind::Signals,
+            Payload::Spikes(_) => PayloadKind::Spikes,
+            Payload::Images(_) => PayloadKind::Images,
+            Payload::Estimate(_) => PayloadKind::Estimates,
+        }
+    }
+
+    /// The signals, or an error naming the kind actually present.
+    pub fn signals(&self) -> Result<&Arc<Signals>, crate::StageError> {
+        match self {
+            Payload::Signals(s) => Ok(s),
+            other => Err(crate::StageError::wrong_kind(PayloadKind::Signals, other.kind())),
+        }
+    }
+
+    /// The spikes, or an error naming the kind actually present.
+    pub fn spikes(&self) -> Result<&Arc<SpikeTrain>, crate::StageError> {
+        match self {
+            Payload::Spikes(s) => Ok(s),
+            other => Err(crate::StageError::wrong_kind(PayloadKind::Spikes, other.kind())),
+        }
+    }
+
+    /// The images, or an error naming the kind actually present.
+    pub fn images(&self) -> Result<&Arc<SpikeImages>, crate::StageError> {
+        match self {
+            Payload::Images(s) => Ok(s),
+            other => Err(crate::StageError::wrong_kind(PayloadKind::Images, other.kind())),
+        }
+    }
+
+    /// The estimate, or an error naming the kind actually present.
+    pub fn estimate(&self) -> Result<&Arc<Estimate>, crate::StageError> {
+        match self {
+            Payload::Estimate(s) => Ok(s),
+            other => Err(crate::StageError::wrong_kind(
+                PayloadKind::Estimates,
+                other.kind(),
+            )),
+        }
+    }
+}
+
+impl From<Signals> for Payload {
+    fn from(v: Signals) -> Self {
+        Payload::Signals(Arc::new(v))
+    }
+}
+impl From<SpikeTrain> for Payload {
+    fn from(v: SpikeTrain) -> Self {
+        Payload::Spikes(Arc::new(v))
+    }
+}
+impl From<SpikeImages> for Payload {
+    fn from(v: SpikeImages) -> Self {
+        Payload::Images(Arc::new(v))
+    }
+}
+impl From<Estimate> for Payload {
+    fn from(v: Estimate) -> Self {
+        Payload::Estimate(Arc::new(v))
+    }
+}
+
+/// A payload together with its trial's metadata: what flows along an edge.
+#[derive(Clone, Debug)]
+pub struct Item {
+    /// The trial's metadata, including provenance up to and including the stage
+    /// that made `payload`.
+    pub meta: Arc<TrialMeta>,
+    /// The data.
+    pub payload: Payload,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn grid_positions_are_centred_and_row0_on_top() {
+        let l = TaxelLayout::paper();
+        assert_eq!(l.len(), 16);
+        assert_eq!(l.position(0), [-4.5, 4.5]);
+        assert_eq!(l.position(3), [4.5, 4.5]);
+        assert_eq!(l.position(15), [4.5, -4.5]);
+        assert_eq!(l.row_col(6), Some((1, 2)));
+        let sum: [f64; 2] = l
+            .positions()
+            .iter()
+            .fold([0.0, 0.0], |a, p| [a[0] + p[0], a[1] + p[1]]);
+        assert_eq!(sum, [0.0, 0.0]);
+    }
+
+    #[test]
+    fn layout_validation_names_the_problem() {
+        let bad = TaxelLayout::Grid {
+            rows: 0,
+            cols: 4,
+            pitch_mm: 3.0,
+            taxel_mm: 2.0,
+        };
+        assert!(bad.validate().unwrap_err().contains("row"));
+        let bad = TaxelLayout::Positions {
+            positions_mm: vec![[0.0, f64::NAN]],
+            taxel_mm: 1.0,
+        };
+        assert!(bad.validate().unwrap_err().contains("not finite"));
+        assert!(TaxelLayout::paper().validate().is_ok());
+    }
+
+    #[test]
+    fn spike_sort_is_by_time_then_taxel() {
+        let mut s = SpikeTrain {
+            layout: TaxelLayout::paper(),
+            duration_ms: 10.0,
+            events: vec![
+                SpikeEvent { taxel: 3, t_ms: 2.0 },
+                SpikeEvent { taxel: 1, t_ms: 2.0 },
+                SpikeEvent { taxel: 0, t_ms: 1.0 },
+            ],
+        };
+        assert!(!s.is_sorted());
+        s.sort();
+        assert!(s.is_sorted());
+        assert_eq!(s.events[1].taxel, 1);
+    }
+}

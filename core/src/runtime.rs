@@ -1,0 +1,468 @@
+//! Running a validated graph.
+//!
+//! Stages run one at a time in topological order; within a stage, trials run in
+//! parallel on rayon's pool. Stage-at-a-time (rather than trial-at-a-time)
+//! because estimators and sinks need every trial of their input, and because it
+//! keeps the runtime small. A stage's output is computed once and shared by every
+//! stage that reads it, then dropped as soon as its last reader is done.
+//!
+//! Determinism: every per-trial computation is a pure function of (config, input,
+//! seed), seeds come from [`derive_seed`] over (graph seed, stage id, trial id or
+//! fold), and results are gathered in trial order, so 1 and N threads give the
+//! same bits. When several trials fail, the first in trial order is reported.
+//!
+//! Estimators run under the evaluation protocol: a model-based estimator fits
+//! once on nothing and estimates every trial; a trained one, under
+//! leave-one-trial-out, fits once per distinct `group` (fold `f` holds out the
+//! `f`-th group of every class) and estimates only that fold's held-out trials.
+
+use crate::graph::{Graph, Protocol};
+use crate::payload::{Item, Payload, Provenance, TrialMeta};
+use crate::stage::{
+    derive_seed, settings_json, FitContext, SinkContext, SinkInput, SinkReport, Stage, TrialContext,
+};
+use rayon::prelude::*;
+use std::collections::HashMap;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+/// Receives progress while a graph runs (the CLI draws a bar with it).
+pub trait Progress: Sync {
+    /// A stage starts `total` units of work (trials, or folds).
+    fn start(&self, stage: &str, total: usize);
+    /// One unit of work is done.
+    fn tick(&self);
+    /// The stage is done.
+    fn finish(&self, stage: &str);
+}
+
+/// Options for [`run`].
+#[derive(Default)]
+pub struct RunOptions<'a> {
+    /// Progress receiver.
+    pub progress: Option<&'a dyn Progress>,
+    /// Keep every stage's output in the result (tests and tools use it);
+    /// otherwise outputs are dropped once read.
+    pub keep_outputs: bool,
+}
+
+/// Wall time a stage spent.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct StageTiming {
+    /// The stage's id.
+    pub id: String,
+    /// Its type.
+    pub type_name: String,
+    /// Its role (source, map, estimator, sink).
+    pub role: &'static str,
+    /// Per trial, in trial order: producing, processing or predicting it.
+    pub per_trial: Vec<Duration>,
+    /// Per fold: fitting (trained estimators), or the single fit of a model-based one.
+    pub fits: Vec<Duration>,
+    /// Wall time of the whole stage.
+    pub total: Duration,
+}
+
+/// What a run produced.
+#[derive(Debug, Default)]
+pub struct RunResult {
+    /// Each sink's report, in execution order.
+    pub reports: Vec<(String, SinkReport)>,
+    /// Each stage's timing, in execution order.
+    pub timings: Vec<StageTiming>,
+    /// Every stage's output, when [`RunOptions::keep_outputs`] was set.
+    pub outputs: HashMap<String, Arc<Vec<Item>>>,
+}
+
+/// A failure while running, naming the stage and (where there is one) the trial.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+#[error("stage `{stage}`{}: {message}", trial.as_ref().map(|t| format!(", trial `{t}`")).unwrap_or_default())]
+pub struct RunError {
+    /// The failing stage.
+    pub stage: String,
+    /// The failing trial, if the failure is per trial.
+    pub trial: Option<String>,
+    /// What went wrong.
+    pub message: String,
+}
+
+impl RunError {
+    fn new(stage: &str, trial: Option<&str>, message: impl Into<String>) -> Self {
+        RunError {
+            stage: stage.to_string(),
+            trial: trial.map(str::to_string),
+            message: message.into(),
+        }
+    }
+}
+
+type Timed<T> = (T, Duration);
+
+fn timed<T>(f: impl FnOnce() -> T) -> Timed<T> {
+    let t0 = Instant::now();
+    let v = f();
+    (v, t0.elapsed())
+}
+
+/// Runs a graph to the end.
+pub fn run(graph: &Graph, opts: &RunOptions<'_>) -> Result<RunResult, RunError> {
+    let n = graph.nodes.len();
+    let mut readers = vec![0usize; n];
+    for inputs in &graph.input_index {
+        for &j in inputs {
+            readers[j] += 1;
+        }
+    }
+    let mut outputs: Vec<Option<Arc<Vec<Item>>>> = vec![None; n];
+    let mut result = RunResult::default();
+    let seed = graph.run.seed;
+
+    for &i in &graph.order {
+        let node = &graph.nodes[i];
+        let id = node.id.as_str();
+        let prov = Provenance {
+            stage: node.id.clone(),
+            type_name: node.type_name.clone(),
+            settings: settings_json(node.config.as_ref()),
+        };
+        let inputs: Vec<Arc<Vec<Item>>> = graph.input_index[i]
+            .iter()
+            .map(|&j| {
+                outputs[j].clone().ok_or_else(|| {
+                    RunError::new(
+                        id,
+                        None,
+                        format!(
+                            "input `{}` has no output (internal ordering error)",
+                            graph.nodes[j].id
+                        ),
+                    )
+                })
+            })
+            .collect::<Result<_, _>>()?;
+        let mut timing = StageTiming {
+            id: node.id.clone(),
+            type_name: node.type_name.clone(),
+            role: node.stage.role(),
+            ..StageTiming::default()
+        };
+        let t_stage = Instant::now();
+        let produced: Option<Vec<Item>> = match &node.stage {
+            Stage::Source(src) => {
+                let mut metas = src.trials().map_err(|e| RunError::new(id, None, e.message))?;
+                for (k, m) in metas.iter_mut().enumerate() {
+                    m.index = k;
+                }
+                check_unique_ids(id, &metas)?;
+                start(opts, id, metas.len());
+                let done: Vec<Result<Timed<Item>, RunError>> = metas
+                    .into_par_iter()
+                    .map(|meta| {
+                        let ctx = TrialContext {
+                            stage_id: id,
+                            meta: &meta,
+                            seed: derive_seed(seed, &[id, &meta.trial_id]),
+                        };
+                        let (payload, dt) = timed(|| src.produce(&ctx));
+                        tick(opts);
+                        let payload =
+                            payload.map_err(|e| RunError::new(id, Some(&meta.trial_id), e.message))?;
+                        Ok((with_provenance(&meta, &prov, payload), dt))
+                    })
+                    .collect();
+                Some(unzip_timed(done, &mut timing.per_trial)?)
+            }
+            Stage::Map(map) => {
+                let trials = aligned_len(id, graph, i, &inputs)?;
+                start(opts, id, trials);
+                let done: Vec<Result<Timed<Item>, RunError>> = (0..trials)
+                    .into_par_iter()
+                    .map(|t| {
+                        let items: Vec<&Item> = inputs.iter().map(|v| &v[t]).collect();
+                        let meta = &items[0].meta;
+                        let ctx = TrialContext {
+                            stage_id: id,
+                            meta,
+                            seed: derive_seed(seed, &[id, &meta.trial_id]),
+                        };
+                        let (payload, dt) = timed(|| map.process(&items, &ctx));
+                        tick(opts);
+                        let payload =
+                            payload.map_err(|e| RunError::new(id, Some(&meta.trial_id), e.message))?;
+                        Ok((with_provenance(meta, &prov, payload), dt))
+                    })
+                    .collect();
+                Some(unzip_timed(done, &mut timing.per_trial)?)
+            }
+            Stage::Estimator(est) => {
+                let items = &inputs[0];
+                let folds = folds(est.trained(), graph.run.protocol, items);
+                if est.trained() && folds.len() < 2 {
+                    return Err(RunError::new(
+                        id,
+                        None,
+                        "a trained estimator needs at least two repetitions (groups) of its classes for leave-one-trial-out",
+                    ));
+                }
+                start(opts, id, items.len());
+                let mut per_trial = vec![Duration::ZERO; items.len()];
+                let mut estimates: Vec<Option<Item>> = vec![None; items.len()];
+                let fold_results: Vec<Result<(Duration, Vec<(usize, Timed<Item>)>), RunError>> = folds
+                    .par_iter()
+                    .enumerate()
+                    .map(|(f, (train, test))| {
+                        let fold_name = format!("fold{f}");
+                        let fctx = FitContext {
+                            stage_id: id,
+                            fold: f,
+                            seed: derive_seed(seed, &[id, &fold_name]),
+                        };
+                        let train_items: Vec<&Item> = train.iter().map(|&t| &items[t]).collect();
+                        let (model, fit_time) = timed(|| est.fit(&train_items, &fctx));
+                        let model = model.map_err(|e| {
+                            RunError::new(id, None, format!("fitting fold {f}: {}", e.message))
+                        })?;
+                        let preds: Vec<Result<(usize, Timed<Item>), RunError>> = test
+                            .par_iter()
+                            .map(|&t| {
+                                let item = &items[t];
+                                let ctx = TrialContext {
+                                    stage_id: id,
+                                    meta: &item.meta,
+                                    seed: derive_seed(seed, &[id, &item.meta.trial_id]),
+                                };
+                                let (est, dt) = timed(|| model.predict(item, &ctx));
+                                tick(opts);
+                                let est =
+                                    est.map_err(|e| RunError::new(id, Some(&item.meta.trial_id), e.message))?;
+                                Ok((t, (with_provenance(&item.meta, &prov, Payload::from(est)), dt)))
+                            })
+                            .collect();
+                        let preds = preds.into_iter().collect::<Result<Vec<_>, _>>()?;
+                        Ok((fit_time, preds))
+                    })
+                    .collect();
+                for r in fold_results {
+                    let (fit_time, preds) = r?;
+                    timing.fits.push(fit_time);
+                    for (t, (item, dt)) in preds {
+                        per_trial[t] = dt;
+                        estimates[t] = Some(item);
+                    }
+                }
+                timing.per_trial = per_trial;
+                let mut out = Vec::with_capacity(estimates.len());
+                for (t, e) in estimates.into_iter().enumerate() {
+                    out.push(e.ok_or_else(|| {
+                        RunError::new(
+                            id,
+                            Some(&items[t].meta.trial_id),
+                            "no fold tested this trial (internal protocol error)",
+                        )
+                    })?);
+                }
+                Some(out)
+            }
+            Stage::Sink(sink) => {
+                std::fs::create_dir_all(&graph.out_dir).map_err(|e| {
+                    RunError::new(
+                        id,
+                        None,
+                        format!(
+                            "cannot create the output directory {}: {e}",
+                            graph.out_dir.display()
+                        ),
+                    )
+                })?;
+                start(opts, id, 1);
+                let sink_inputs: Vec<SinkInput<'_>> = graph.input_index[i]
+                    .iter()
+                    .zip(&inputs)
+                    .map(|(&j, items)| SinkInput {
+                        stage_id: &graph.nodes[j].id,
+                        items,
+                    })
+                    .collect();
+                let ctx = SinkContext {
+                    stage_id: id,
+                    out_dir: &graph.out_dir,
+                };
+                let report = sink
+                    .consume(&sink_inputs, &ctx)
+                    .map_err(|e| RunError::new(id, None, e.message))?;
+                tick(opts);
+                result.reports.push((node.id.clone(), report));
+                None
+            }
+        };
+        timing.total = t_stage.elapsed();
+        if let Some(p) = opts.progress {
+            p.finish(id);
+        }
+        result.timings.push(timing);
+        if let Some(items) = produced {
+            let items = Arc::new(items);
+            if opts.keep_outputs {
+                result.outputs.insert(node.id.clone(), items.clone());
+            }
+            outputs[i] = Some(items);
+        }
+        for &j in &graph.input_index[i] {
+            readers[j] -= 1;
+            if readers[j] == 0 {
+                outputs[j] = None;
+            }
+        }
+    }
+    Ok(result)
+}
+
+fn start(opts: &RunOptions<'_>, id: &str, total: usize) {
+    if let Some(p) = opts.progress {
+        p.start(id, total);
+    }
+}
+
+fn tick(opts: &RunOptions<'_>) {
+    if let Some(p) = opts.progress {
+        p.tick();
+    }
+}
+
+fn with_provenance(meta: &TrialMeta, prov: &Provenance, payload: Payload) -> Item {
+    let mut m = meta.clone();
+    m.provenance.push(prov.clone());
+    Item {
+        meta: Arc::new(m),
+        payload,
+    }
+}
+
+fn unzip_timed(
+    done: Vec<Result<Timed<Item>, RunError>>,
+    times: &mut Vec<Duration>,
+) -> Result<Vec<Item>, RunError> {
+    let mut items = Vec::with_capacity(done.len());
+    for r in done {
+        let (item, dt) = r?;
+        items.push(item);
+        times.push(dt);
+    }
+    Ok(items)
+}
+
+fn check_unique_ids(id: &str, metas: &[TrialMeta]) -> Result<(), RunError> {
+    let mut seen = std::collections::HashSet::new();
+    for m in metas {
+        if !seen.insert(m.trial_id.as_str()) {
+            return Err(RunError::new(
+                id,
+                Some(&m.trial_id),
+                "two trials share this id; trial ids must be unique",
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// Every input of a per-trial stage must carry the same trials in the same order.
+fn aligned_len(id: &str, graph: &Graph, i: usize, inputs: &[Arc<Vec<Item>>]) -> Result<usize, RunError> {
+    let first = &inputs[0];
+    for (k, other) in inputs.iter().enumerate().skip(1) {
+        let same = other.len() == first.len()
+            && other
+                .iter()
+                .zip(first.iter())
+                .all(|(a, b)| a.meta.trial_id == b.meta.trial_id);
+        if !same {
+            return Err(RunError::new(
+                id,
+                None,
+                format!(
+                    "inputs `{}` and `{}` carry different trials; a per-trial stage needs inputs from the same source",
+                    graph.nodes[graph.input_index[i][0]].id,
+                    graph.nodes[graph.input_index[i][k]].id
+                ),
+            ));
+        }
+    }
+    Ok(first.len())
+}
+
+/// (train, test) index lists per fold.
+fn folds(trained: bool, protocol: Protocol, items: &[Item]) -> Vec<(Vec<usize>, Vec<usize>)> {
+    if !trained {
+        return vec![(Vec::new(), (0..items.len()).collect())];
+    }
+    match protocol {
+        Protocol::LeaveOneTrialOut => {
+            let mut groups: Vec<usize> = items.iter().map(|it| it.meta.group).collect();
+            groups.sort_unstable();
+            groups.dedup();
+            groups
+                .iter()
+                .map(|&g| {
+                    let (test, train): (Vec<usize>, Vec<usize>) =
+                        (0..items.len()).partition(|&t| items[t].meta.group == g);
+                    (train, test)
+                })
+                .collect()
+        }
+    }
+}
+
+/// Per-stage timing summary: (median, p95) of per-trial times.
+pub fn median_p95(times: &[Duration]) -> (Duration, Duration) {
+    if times.is_empty() {
+        return (Duration::ZERO, Duration::ZERO);
+    }
+    let mut v = times.to_vec();
+    v.sort_unstable();
+    let q = |p: f64| v[((v.len() - 1) as f64 * p).round() as usize];
+    (q(0.5), q(0.95))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn item(group: usize, id: &str) -> Item {
+        Item {
+            meta: Arc::new(TrialMeta {
+                trial_id: id.into(),
+                group,
+                ..TrialMeta::default()
+            }),
+            payload: Payload::from(crate::payload::Estimate::default()),
+        }
+    }
+
+    #[test]
+    fn leave_one_trial_out_never_trains_on_a_test_trial() {
+        let items: Vec<Item> = (0..12).map(|t| item(t % 4, &format!("t{t}"))).collect();
+        let f = folds(true, Protocol::LeaveOneTrialOut, &items);
+        assert_eq!(f.len(), 4);
+        let mut tested = vec![0; items.len()];
+        for (train, test) in &f {
+            assert_eq!(test.len(), 3);
+            for t in test {
+                assert!(!train.contains(t));
+                tested[*t] += 1;
+            }
+            assert_eq!(train.len() + test.len(), items.len());
+        }
+        assert!(tested.iter().all(|&c| c == 1));
+        let m = folds(false, Protocol::LeaveOneTrialOut, &items);
+        assert_eq!(m.len(), 1);
+        assert!(m[0].0.is_empty());
+    }
+
+    #[test]
+    fn quantiles() {
+        let t: Vec<Duration> = (1..=100).map(Duration::from_millis).collect();
+        let (m, p) = median_p95(&t);
+        assert!(m >= Duration::from_millis(50) && m <= Duration::from_millis(51));
+        assert_eq!(p, Duration::from_millis(95));
+        assert_eq!(median_p95(&[]), (Duration::ZERO, Duration::ZERO));
+    }
+}

@@ -1,0 +1,359 @@
+//! Stage configs and runtime stages.
+//!
+//! A stage is declared in a graph file as a table whose `type` names a registered
+//! config struct. The config is plain data ([`StageConfig`], registered with
+//! `#[typetag::serde(name = "...")]` plus [`crate::register_stage!`]); `build()`
+//! checks it and turns it into a runtime [`Stage`], or returns a [`ConfigError`]
+//! naming the key that is wrong (linfa's param-guard idea).
+//!
+//! Runtime stages come in four roles:
+//!
+//! * [`Source`]: lists its trials, then produces each one's payload;
+//! * [`Map`]: a pure per-trial function of its inputs (same trial on every input);
+//! * [`Estimator`]: sees all trials under the run's evaluation protocol; `fit`
+//!   returns a separate fitted [`Model`] (linfa's `Fit` idea), which `predict`s
+//!   one trial at a time;
+//! * [`Sink`]: receives every trial of every input at the end and reports.
+//!
+//! Randomness: every stage gets its seed from [`derive_seed`] over (graph seed,
+//! stage id, trial id or fold), so results never depend on thread scheduling.
+
+use crate::payload::{Estimate, Item, Payload, PayloadKind, TrialMeta};
+use rand_chacha::rand_core::SeedableRng;
+use std::fmt;
+use std::path::PathBuf;
+use std::sync::Arc;
+
+/// What a stage accepts on its inputs.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct InputSpec {
+    /// Payload kinds accepted on every input.
+    pub kinds: Vec<PayloadKind>,
+    /// Fewest inputs.
+    pub min: usize,
+    /// Most inputs; `None` for any number.
+    pub max: Option<usize>,
+}
+
+impl InputSpec {
+    /// A source: no inputs.
+    pub fn none() -> Self {
+        InputSpec {
+            kinds: vec![],
+            min: 0,
+            max: Some(0),
+        }
+    }
+
+    /// Exactly one input of `kind`.
+    pub fn one(kind: PayloadKind) -> Self {
+        InputSpec {
+            kinds: vec![kind],
+            min: 1,
+            max: Some(1),
+        }
+    }
+
+    /// One or more inputs of `kind`.
+    pub fn many(kind: PayloadKind) -> Self {
+        InputSpec {
+            kinds: vec![kind],
+            min: 1,
+            max: None,
+        }
+    }
+
+    /// Describes the accepted kinds for error messages, e.g. "spike images".
+    pub fn describe_kinds(&self) -> String {
+        let names: Vec<String> = self.kinds.iter().map(|k| k.to_string()).collect();
+        names.join(" or ")
+    }
+}
+
+/// A problem with a stage's config, naming the key when there is one.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+#[error("{}{message}", key.as_ref().map(|k| format!("key `{k}`: ")).unwrap_or_default())]
+pub struct ConfigError {
+    /// The offending key (a dotted path for nested keys), if any.
+    pub key: Option<String>,
+    /// What is wrong and what would be right.
+    pub message: String,
+}
+
+impl ConfigError {
+    /// A problem with `key`.
+    pub fn key(key: impl Into<String>, message: impl Into<String>) -> Self {
+        ConfigError {
+            key: Some(key.into()),
+            message: message.into(),
+        }
+    }
+
+    /// A problem with the config as a whole.
+    pub fn general(message: impl Into<String>) -> Self {
+        ConfigError {
+            key: None,
+            message: message.into(),
+        }
+    }
+}
+
+/// Checks a number against a range, naming the key on failure. Used by configs'
+/// `build` to turn out-of-range values into [`ConfigError`]s.
+pub fn check_range(key: &str, value: f64, min: f64, max: f64, unit: &str) -> Result<f64, ConfigError> {
+    if value.is_finite() && value >= min && value <= max {
+        Ok(value)
+    } else {
+        Err(ConfigError::key(
+            key,
+            format!("must lie in [{min}, {max}] {unit}, got {value}").replace("  ", " "),
+        ))
+    }
+}
+
+/// Checks that a number is finite and strictly positive, naming the key on failure.
+pub fn check_positive(key: &str, value: f64, unit: &str) -> Result<f64, ConfigError> {
+    if value.is_finite() && value > 0.0 {
+        Ok(value)
+    } else {
+        Err(ConfigError::key(
+            key,
+            format!("must be a positive number of {unit}, got {value}"),
+        ))
+    }
+}
+
+/// An error while a stage runs on data.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+#[error("{message}")]
+pub struct StageError {
+    /// What went wrong, naming the file, key or position where there is one.
+    pub message: String,
+}
+
+impl StageError {
+    /// An error with a message.
+    pub fn new(message: impl Into<String>) -> Self {
+        StageError {
+            message: message.into(),
+        }
+    }
+
+    pub(crate) fn wrong_kind(expected: PayloadKind, got: PayloadKind) -> Self {
+        StageError::new(format!("expected {expected}, got {got}"))
+    }
+}
+
+impl From<ConfigError> for StageError {
+    fn from(e: ConfigError) -> Self {
+        StageError::new(e.to_string())
+    }
+}
+
+impl From<std::io::Error> for StageError {
+    fn from(e: std::io::Error) -> Self {
+        StageError::new(e.to_string())
+    }
+}
+
+/// What a config's `build` may know about the graph it is in.
+#[derive(Clone, Debug)]
+pub struct BuildContext {
+    /// The stage's id.
+    pub stage_id: String,
+    /// The run's seed.
+    pub seed: u64,
+    /// Where the run writes its reports.
+    pub out_dir: PathBuf,
+}
+
+/// A stage's config: plain data deserialized from its graph table.
+///
+/// Register an implementation with `#[typetag::serde(name = "my_type")]` on the
+/// `impl` and [`crate::register_stage!`]`("my_type", MyConfig)` beside it; the
+/// struct's doc comments are the documentation `palpate stages my_type` shows.
+#[typetag::serde]
+pub trait StageConfig: Send + Sync + fmt::Debug {
+    /// Payload kinds and number of inputs this stage accepts.
+    fn inputs(&self) -> InputSpec;
+    /// The payload kind this stage gives; `None` for a sink.
+    fn output(&self) -> Option<PayloadKind>;
+    /// Checks the config and builds the runtime stage. Must be cheap: heavy
+    /// precomputation belongs in the first use, cached.
+    fn build(&self, ctx: &BuildContext) -> Result<Stage, ConfigError>;
+}
+
+/// A runtime stage, by role.
+pub enum Stage {
+    /// Produces trials.
+    Source(Box<dyn Source>),
+    /// Transforms one trial at a time.
+    Map(Box<dyn Map>),
+    /// Fits on training trials and estimates test trials.
+    Estimator(Box<dyn Estimator>),
+    /// Receives every trial at the end.
+    Sink(Box<dyn Sink>),
+}
+
+impl Stage {
+    /// The role's name, for messages.
+    pub fn role(&self) -> &'static str {
+        match self {
+            Stage::Source(_) => "source",
+            Stage::Map(_) => "map",
+            Stage::Estimator(_) => "estimator",
+            Stage::Sink(_) => "sink",
+        }
+    }
+}
+
+/// Per-trial context: which stage and trial, and the seed for that pair.
+#[derive(Clone, Debug)]
+pub struct TrialContext<'a> {
+    /// The stage's id.
+    pub stage_id: &'a str,
+    /// The trial's metadata.
+    pub meta: &'a TrialMeta,
+    /// Seed derived from (graph seed, stage id, trial id).
+    pub seed: u64,
+}
+
+impl TrialContext<'_> {
+    /// A fresh generator seeded for this (stage, trial).
+    pub fn rng(&self) -> rand_chacha::ChaCha8Rng {
+        rand_chacha::ChaCha8Rng::seed_from_u64(self.seed)
+    }
+}
+
+/// A source of trials.
+pub trait Source: Send + Sync {
+    /// Every trial's metadata, in order; `index` is filled in by the runtime.
+    fn trials(&self) -> Result<Vec<TrialMeta>, StageError>;
+    /// The payload of one trial: a pure function of (config, metadata, seed).
+    fn produce(&self, ctx: &TrialContext<'_>) -> Result<Payload, StageError>;
+}
+
+/// A per-trial transformation.
+pub trait Map: Send + Sync {
+    /// Transforms one trial; `inputs` are this trial's items, one per declared
+    /// input, in declaration order.
+    fn process(&self, inputs: &[&Item], ctx: &TrialContext<'_>) -> Result<Payload, StageError>;
+}
+
+/// Context for fitting an estimator on one fold.
+#[derive(Clone, Debug)]
+pub struct FitContext<'a> {
+    /// The stage's id.
+    pub stage_id: &'a str,
+    /// The fold's number (0 for a model-based estimator's single fit).
+    pub fold: usize,
+    /// Seed derived from (graph seed, stage id, fold).
+    pub seed: u64,
+}
+
+impl FitContext<'_> {
+    /// A fresh generator seeded for this (stage, fold).
+    pub fn rng(&self) -> rand_chacha::ChaCha8Rng {
+        rand_chacha::ChaCha8Rng::seed_from_u64(self.seed)
+    }
+}
+
+/// An estimator: trained (fits on the training trials of each fold) or
+/// model-based (fits once, on nothing, and estimates every trial).
+pub trait Estimator: Send + Sync {
+    /// True when the estimator learns from training trials.
+    fn trained(&self) -> bool;
+    /// Fits a model. A model-based estimator gets no training items.
+    fn fit(&self, train: &[&Item], ctx: &FitContext<'_>) -> Result<Box<dyn Model>, StageError>;
+}
+
+/// A fitted model.
+pub trait Model: Send + Sync {
+    /// Estimates one trial.
+    fn predict(&self, item: &Item, ctx: &TrialContext<'_>) -> Result<Estimate, StageError>;
+}
+
+/// Every trial of one input of a sink.
+#[derive(Clone, Copy, Debug)]
+pub struct SinkInput<'a> {
+    /// The id of the stage that made these items.
+    pub stage_id: &'a str,
+    /// The items, in trial order.
+    pub items: &'a [Item],
+}
+
+/// Context for a sink.
+#[derive(Clone, Debug)]
+pub struct SinkContext<'a> {
+    /// The sink's id.
+    pub stage_id: &'a str,
+    /// Where the run writes its reports (created by the runtime).
+    pub out_dir: &'a std::path::Path,
+}
+
+/// What a sink reports.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct SinkReport {
+    /// Text for the terminal (a table, usually).
+    pub text: String,
+    /// Files the sink wrote.
+    pub files: Vec<PathBuf>,
+    /// Named numbers the sink measured (e.g. `wss.mae_deg`), for tests, sweeps
+    /// and the run record.
+    pub metrics: Vec<(String, f64)>,
+}
+
+/// A sink: receives every trial of every input once all trials are done.
+pub trait Sink: Send + Sync {
+    /// Consumes the inputs, in declaration order.
+    fn consume(&self, inputs: &[SinkInput<'_>], ctx: &SinkContext<'_>) -> Result<SinkReport, StageError>;
+}
+
+/// Derives a 64-bit seed from the graph's seed and a list of labels (stage id,
+/// trial id, fold). FNV-1a over the bytes, finished by SplitMix64, so that the
+/// value is stable across Rust versions and platforms (unlike `DefaultHasher`).
+pub fn derive_seed(seed: u64, labels: &[&str]) -> u64 {
+    let mut h: u64 = 0xcbf2_9ce4_8422_2325 ^ seed;
+    for label in labels {
+        for b in label.bytes().chain(std::iter::once(0xff)) {
+            h ^= u64::from(b);
+            h = h.wrapping_mul(0x0000_0100_0000_01b3);
+        }
+    }
+    splitmix64(h ^ seed.rotate_left(17))
+}
+
+fn splitmix64(mut z: u64) -> u64 {
+    z = z.wrapping_add(0x9e37_79b9_7f4a_7c15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+    z ^ (z >> 31)
+}
+
+/// Shared, immutable settings JSON of a stage, for provenance.
+pub(crate) fn settings_json(config: &dyn StageConfig) -> Arc<serde_json::Value> {
+    Arc::new(serde_json::to_value(config).unwrap_or(serde_json::Value::Null))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn seeds_differ_by_every_label_and_are_stable() {
+        let a = derive_seed(1, &["enc", "t1"]);
+        assert_eq!(a, derive_seed(1, &["enc", "t1"]));
+        assert_ne!(a, derive_seed(2, &["enc", "t1"]));
+        assert_ne!(a, derive_seed(1, &["enc", "t2"]));
+        assert_ne!(a, derive_seed(1, &["enct", "1"]));
+    }
+
+    #[test]
+    fn range_checks_name_the_key() {
+        let e = check_range("share", 1.5, 0.0, 1.0, "").unwrap_err();
+        assert_eq!(e.key.as_deref(), Some("share"));
+        assert!(check_positive("window_ms", 0.0, "ms").is_err());
+        assert!(check_positive("window_ms", f64::NAN, "ms").is_err());
+        assert_eq!(check_positive("window_ms", 3.0, "ms"), Ok(3.0));
+    }
+}

@@ -1,0 +1,1 @@
+pub use palpate_core;

@@ -1,0 +1,4 @@
+//! Evaluation sinks: metrics over every trial's estimate, shown as tables and
+//! written as report files.
+
+pub mod mae;

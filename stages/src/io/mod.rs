@@ -1,0 +1,1 @@
+//! Real inputs and outputs: file sources and sinks, and the DAQ.

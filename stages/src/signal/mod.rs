@@ -1,0 +1,1 @@
+//! Signal stages: normalization, filters, derivatives and drives (SPEC.md section 2).
