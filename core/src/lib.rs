@@ -14,6 +14,7 @@
 //! `core` knows no stage by name: stages register themselves, and the CLI finds
 //! them through the registry.
 
+pub mod geometry;
 pub mod graph;
 pub mod output;
 pub mod payload;
