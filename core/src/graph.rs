@@ -148,6 +148,9 @@ pub struct LoadOptions {
     pub overrides: Vec<(String, String)>,
     /// Output directory, overriding `[run] out`.
     pub out: Option<PathBuf>,
+    /// Directory relative paths in the graph resolve against; default the graph
+    /// file's directory ([`load_file`]) or the working directory ([`load_str`]).
+    pub base_dir: Option<PathBuf>,
 }
 
 impl LoadOptions {
@@ -291,7 +294,11 @@ pub fn load_file(path: &Path, opts: &LoadOptions) -> Result<Graph, LoadErrors> {
         }])
     })?;
     let stem = path.file_stem().and_then(|s| s.to_str()).unwrap_or("graph");
-    load_str(&text, &file, stem, opts)
+    let mut opts = opts.clone();
+    if opts.base_dir.is_none() {
+        opts.base_dir = Some(path.parent().map(Path::to_path_buf).unwrap_or_default());
+    }
+    load_str(&text, &file, stem, &opts)
 }
 
 /// Loads and validates a graph from text. `file` names it in messages; `stem`
@@ -418,6 +425,7 @@ impl<'t> Loader<'t> {
             .or_else(|| run.out.clone())
             .unwrap_or_else(|| PathBuf::from("out").join(stem));
 
+        let base_dir = opts.base_dir.clone().unwrap_or_default();
         let mut pending = Vec::new();
         match doc.get("stages") {
             None => self.error(
@@ -428,7 +436,7 @@ impl<'t> Loader<'t> {
             ),
             Some(toml::Value::Table(stages)) => {
                 for (id, value) in stages {
-                    if let Some(p) = self.load_stage(id, value, &lines, &run, &out_dir) {
+                    if let Some(p) = self.load_stage(id, value, &lines, &run, &out_dir, &base_dir) {
                         pending.push(p);
                     }
                 }
@@ -547,6 +555,7 @@ impl<'t> Loader<'t> {
         lines: &Lines,
         run: &RunSettings,
         out_dir: &Path,
+        base_dir: &Path,
     ) -> Option<Pending> {
         let line = lines.stages.get(id).copied();
         let key_line = |k: &str| lines.keys.get(&(id.to_string(), k.to_string())).copied().or(line);
@@ -725,6 +734,7 @@ impl<'t> Loader<'t> {
             stage_id: id.to_string(),
             seed: run.seed,
             out_dir: out_dir.to_path_buf(),
+            base_dir: base_dir.to_path_buf(),
         };
         match config.build(&ctx) {
             Ok(stage) => Some(Pending {

@@ -165,6 +165,20 @@ pub struct BuildContext {
     pub seed: u64,
     /// Where the run writes its reports.
     pub out_dir: PathBuf,
+    /// Directory that relative paths in the graph (scene files, recordings)
+    /// resolve against: the graph file's directory.
+    pub base_dir: PathBuf,
+}
+
+impl BuildContext {
+    /// Resolves a path from the graph against [`BuildContext::base_dir`].
+    pub fn resolve(&self, path: &std::path::Path) -> PathBuf {
+        if path.is_absolute() {
+            path.to_path_buf()
+        } else {
+            self.base_dir.join(path)
+        }
+    }
 }
 
 /// A stage's config: plain data deserialized from its graph table.

@@ -1,0 +1,1 @@
+//! WSS: weighted spatiotemporal similarity against simulated edge templates (SPEC.md section 4).
