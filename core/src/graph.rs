@@ -541,7 +541,7 @@ impl<'t> Loader<'t> {
                     .and_then(|k| lines.run.get(k))
                     .copied()
                     .or(lines.top.get("run").copied());
-                let msg = format!("in [run]: {}", e.inner().message());
+                let msg = format!("in [run]: {}", first_line(e.inner().message()));
                 self.error(line, None, key.as_deref(), msg);
                 RunSettings::default()
             }
@@ -663,7 +663,7 @@ impl<'t> Loader<'t> {
             let close: Vec<&str> = known
                 .iter()
                 .copied()
-                .filter(|k| strsim::jaro_winkler(k, key) > 0.85)
+                .filter(|k| registry::is_close(key, k))
                 .collect();
             let hint = match close.first() {
                 Some(c) => format!("; did you mean `{c}`?"),
@@ -723,8 +723,8 @@ impl<'t> Loader<'t> {
                     .map(|k| k.split(['.', '[']).next().unwrap_or(k).to_string());
                 let l = first.as_deref().map(key_line).unwrap_or(line);
                 let msg = match &key {
-                    Some(k) => format!("key `{k}`: {}", e.inner().message()),
-                    None => e.inner().message().to_string(),
+                    Some(k) => format!("key `{k}`: {}", first_line(e.inner().message())),
+                    None => first_line(e.inner().message()).to_string(),
                 };
                 self.error(l, Some(id), key.as_deref(), msg);
                 return None;
@@ -817,7 +817,7 @@ impl<'t> Loader<'t> {
                         .iter()
                         .map(|m| m.id.clone())
                         .chain(declared.iter().cloned())
-                        .filter(|m| strsim::jaro_winkler(m, input) > 0.8)
+                        .filter(|m| registry::is_close(input, m))
                         .take(1)
                         .collect();
                     let hint = close
@@ -878,8 +878,9 @@ impl<'t> Loader<'t> {
             }
         }
 
+        // Only when every declared stage loaded can we tell there is no source.
         let has_source = nodes.iter().any(|n| n.config.inputs().max == Some(0));
-        if !has_source && !nodes.is_empty() {
+        if !has_source && !nodes.is_empty() && nodes.len() == declared.len() {
             self.error(
                 None,
                 None,
@@ -911,6 +912,11 @@ impl<'t> Loader<'t> {
         };
         (order, input_index)
     }
+}
+
+/// toml's messages append a location ("in `key`") after a blank line; we give our own.
+fn first_line(message: &str) -> &str {
+    message.lines().next().unwrap_or(message).trim_end()
 }
 
 fn stages_declared(doc: &toml::Table) -> Vec<String> {

@@ -27,7 +27,7 @@ inventory::collect!(StageRegistration);
 /// Registers a stage config's schema under its graph `type` name. Put it beside
 /// the `#[typetag::serde(name = "...")]` impl, with the same name.
 ///
-/// ```ignore
+/// ```text
 /// palpate_core::register_stage!("izhikevich", IzhikevichConfig);
 /// ```
 #[macro_export]
@@ -56,12 +56,20 @@ pub fn find(type_name: &str) -> Option<&'static StageRegistration> {
         .find(|r| r.type_name == type_name)
 }
 
+/// True when `candidate` is a plausible misspelling of `name` (or the reverse):
+/// similar by Jaro-Winkler, or at most a couple of edits apart (transpositions
+/// count as one), as in `scr` for `src`.
+pub fn is_close(name: &str, candidate: &str) -> bool {
+    strsim::jaro_winkler(name, candidate) > 0.8
+        || strsim::damerau_levenshtein(name, candidate) <= (name.len().min(candidate.len()) / 3).clamp(1, 2)
+}
+
 /// Registered names close to `name` (edit distance or shared prefix), best first.
 pub fn close_matches(name: &str) -> Vec<&'static str> {
     let mut scored: Vec<(f64, &'static str)> = registrations()
         .into_iter()
         .map(|r| (strsim::jaro_winkler(name, r.type_name), r.type_name))
-        .filter(|(s, n)| *s > 0.8 || n.contains(name) || (name.len() >= 3 && name.contains(*n)))
+        .filter(|(_, n)| is_close(name, n) || n.contains(name) || (name.len() >= 3 && name.contains(*n)))
         .collect();
     scored.sort_by(|a, b| b.0.total_cmp(&a.0));
     scored.into_iter().map(|(_, n)| n).take(3).collect()

@@ -97,6 +97,8 @@ impl RunError {
 }
 
 type Timed<T> = (T, Duration);
+/// A fold's fit time and its (trial index, estimate, predict time) list.
+type FoldOutcome = Result<(Duration, Vec<(usize, Timed<Item>)>), RunError>;
 
 fn timed<T>(f: impl FnOnce() -> T) -> Timed<T> {
     let t0 = Instant::now();
@@ -207,7 +209,7 @@ pub fn run(graph: &Graph, opts: &RunOptions<'_>) -> Result<RunResult, RunError> 
                 start(opts, id, items.len());
                 let mut per_trial = vec![Duration::ZERO; items.len()];
                 let mut estimates: Vec<Option<Item>> = vec![None; items.len()];
-                let fold_results: Vec<Result<(Duration, Vec<(usize, Timed<Item>)>), RunError>> = folds
+                let fold_results: Vec<FoldOutcome> = folds
                     .par_iter()
                     .enumerate()
                     .map(|(f, (train, test))| {

@@ -1,0 +1,290 @@
+//! Every error class of graph loading names its stage and line, and all errors
+//! are gathered before failing.
+
+mod common;
+use common::load;
+use palpate_core::{Diagnostic, Severity};
+
+fn errors(text: &str) -> Vec<Diagnostic> {
+    match load(text) {
+        Ok(_) => panic!("graph loaded but should not have"),
+        Err(e) => {
+            e.0.into_iter()
+                .filter(|d| d.severity == Severity::Error)
+                .collect()
+        }
+    }
+}
+
+fn only(text: &str) -> Diagnostic {
+    let e = errors(text);
+    assert_eq!(e.len(), 1, "{e:#?}");
+    e.into_iter().next().unwrap()
+}
+
+const GOOD: &str = r#"
+[run]
+seed = 3
+
+[stages.src]
+type = "t_source"
+samples = 10
+
+[stages.est]
+type = "t_estimator"
+inputs = ["src"]
+
+[stages.sink]
+type = "t_sink"
+inputs = ["est"]
+"#;
+
+#[test]
+fn a_good_graph_loads_in_order() {
+    let g = load(GOOD).unwrap();
+    assert!(g.warnings.is_empty(), "{:?}", g.warnings);
+    let order: Vec<&str> = g.order.iter().map(|&i| g.nodes[i].id.as_str()).collect();
+    assert_eq!(order, ["src", "est", "sink"]);
+    assert_eq!(g.run.seed, 3);
+    assert!(g.to_dot().contains("\"src\" -> \"est\""));
+    assert!(g.to_mermaid().contains("src -->|analog signals| est"));
+}
+
+#[test]
+fn unknown_type_lists_close_matches() {
+    let d = only(&GOOD.replace("type = \"t_estimator\"", "type = \"t_estimater\""));
+    assert_eq!(d.stage.as_deref(), Some("est"));
+    assert_eq!(d.line, Some(10));
+    assert!(
+        d.message.contains("unknown stage type `t_estimater`"),
+        "{}",
+        d.message
+    );
+    assert!(d.message.contains("`t_estimator`"), "{}", d.message);
+}
+
+#[test]
+fn unknown_key_names_key_and_line() {
+    let d = only(&GOOD.replace("samples = 10", "samples = 10\nsampels = 3"));
+    assert_eq!(
+        (d.stage.as_deref(), d.key.as_deref(), d.line),
+        (Some("src"), Some("sampels"), Some(8))
+    );
+    assert!(d.message.contains("did you mean `samples`"), "{}", d.message);
+}
+
+#[test]
+fn missing_key_names_key_and_stage_line() {
+    let d = only(&GOOD.replace("samples = 10\n", ""));
+    assert_eq!(
+        (d.stage.as_deref(), d.key.as_deref(), d.line),
+        (Some("src"), Some("samples"), Some(5))
+    );
+    assert!(d.message.contains("missing key `samples`"), "{}", d.message);
+}
+
+#[test]
+fn mistyped_key_names_key_and_line() {
+    let d = only(&GOOD.replace("samples = 10", "samples = \"ten\""));
+    assert_eq!(
+        (d.stage.as_deref(), d.key.as_deref(), d.line),
+        (Some("src"), Some("samples"), Some(7))
+    );
+    assert!(d.message.contains("invalid type"), "{}", d.message);
+}
+
+#[test]
+fn out_of_range_value_names_key_and_line() {
+    let d = only(&GOOD.replace("samples = 10", "samples = 0"));
+    assert_eq!(
+        (d.stage.as_deref(), d.key.as_deref(), d.line),
+        (Some("src"), Some("samples"), Some(7))
+    );
+}
+
+#[test]
+fn unknown_input_names_stage_and_suggests() {
+    let d = only(&GOOD.replace("inputs = [\"src\"]", "inputs = [\"scr\"]"));
+    assert_eq!((d.stage.as_deref(), d.line), (Some("est"), Some(11)));
+    assert!(
+        d.message.contains("unknown input `scr`") && d.message.contains("`src`"),
+        "{}",
+        d.message
+    );
+}
+
+#[test]
+fn kind_mismatch_names_both_stages() {
+    let text = GOOD.replace(
+        "[stages.est]\ntype = \"t_estimator\"\ninputs = [\"src\"]",
+        "[stages.spk]\ntype = \"t_spikes\"\ninputs = [\"src\"]\n\n[stages.est]\ntype = \"t_estimator\"\ninputs = [\"spk\"]",
+    );
+    let d = only(&text);
+    assert_eq!((d.stage.as_deref(), d.line), (Some("est"), Some(15)));
+    assert_eq!(
+        d.message,
+        "stage `est` takes analog signals but `spk` gives spike events"
+    );
+}
+
+#[test]
+fn cycle_names_its_stages() {
+    let text = r#"
+[stages.src]
+type = "t_source"
+samples = 4
+
+[stages.a]
+type = "t_scale"
+inputs = ["b"]
+
+[stages.b]
+type = "t_scale"
+inputs = ["a"]
+
+[stages.est]
+type = "t_estimator"
+inputs = ["b"]
+
+[stages.sink]
+type = "t_sink"
+inputs = ["est"]
+"#;
+    let d = only(text);
+    assert_eq!((d.stage.as_deref(), d.line), (Some("a"), Some(6)));
+    assert!(
+        d.message.contains("cycle through stages `a` -> `b`"),
+        "{}",
+        d.message
+    );
+}
+
+#[test]
+fn no_source_is_an_error() {
+    let text = r#"
+[stages.a]
+type = "t_scale"
+inputs = ["a"]
+"#;
+    let e = errors(text);
+    assert!(e.iter().any(|d| d.message.contains("no source")), "{e:#?}");
+}
+
+#[test]
+fn unread_output_is_a_warning() {
+    let g = load(&format!(
+        "{GOOD}\n[stages.extra]\ntype = \"t_scale\"\ninputs = [\"src\"]\n"
+    ))
+    .unwrap();
+    assert_eq!(g.warnings.len(), 1);
+    let w = &g.warnings[0];
+    assert_eq!(
+        (w.severity, w.stage.as_deref(), w.line),
+        (Severity::Warning, Some("extra"), Some(17))
+    );
+    assert!(w.message.contains("read by no stage"));
+}
+
+#[test]
+fn five_mistakes_give_five_errors_each_with_stage_and_line() {
+    let text = r#"
+[run]
+seed = 1
+
+[stages.src]
+type = "t_source"
+samples = 10
+colour = "red"
+
+[stages.scale]
+type = "t_scale"
+inputs = ["src"]
+factor = "big"
+
+[stages.spk]
+type = "t_spikes"
+inputs = ["src"]
+
+[stages.est]
+type = "t_estimator"
+inputs = ["spk"]
+
+[stages.oops]
+type = "t_sinc"
+inputs = ["est"]
+
+[stages.sink]
+type = "t_sink"
+inputs = ["estimate"]
+"#;
+    let e = errors(text);
+    assert_eq!(e.len(), 5, "{e:#?}");
+    for d in &e {
+        assert!(d.stage.is_some() && d.line.is_some(), "{d:?}");
+        let shown = d.to_string();
+        assert!(shown.starts_with("test.toml:"), "{shown}");
+        assert!(
+            shown.contains(&format!("stage `{}`", d.stage.as_ref().unwrap())),
+            "{shown}"
+        );
+    }
+    let lines: Vec<usize> = e.iter().map(|d| d.line.unwrap()).collect();
+    for want in [8, 13, 21, 24, 29] {
+        assert!(lines.contains(&want), "line {want} missing from {lines:?}");
+    }
+}
+
+#[test]
+fn invalid_toml_reports_the_line() {
+    let e = errors("[stages.src]\ntype = \"t_source\"\nsamples = = 3\n");
+    assert_eq!(e[0].line, Some(3), "{e:?}");
+}
+
+#[test]
+fn run_table_keys_are_checked() {
+    let d = only(&GOOD.replace("seed = 3", "sead = 3"));
+    assert_eq!((d.key.as_deref(), d.line), (Some("sead"), Some(3)));
+    let d = only(&GOOD.replace("seed = 3", "seed = -3"));
+    assert_eq!((d.key.as_deref(), d.line), (Some("seed"), Some(3)));
+}
+
+#[test]
+fn set_overrides_keys_and_rejects_unknown_stages() {
+    let opts = palpate_core::LoadOptions {
+        overrides: vec![
+            ("stages.src.samples".into(), "42".into()),
+            ("run.seed".into(), "9".into()),
+        ],
+        ..Default::default()
+    };
+    let g = palpate_core::load_str(GOOD, "t.toml", "t", &opts).unwrap();
+    assert_eq!(g.run.seed, 9);
+    let json = serde_json::to_value(&g.nodes[0].config).unwrap();
+    assert_eq!(json["t_source"]["samples"], 42);
+    let opts = palpate_core::LoadOptions {
+        overrides: vec![("stages.nope.samples".into(), "1".into())],
+        ..Default::default()
+    };
+    let e = palpate_core::load_str(GOOD, "t.toml", "t", &opts).unwrap_err();
+    assert!(e.0[0].message.contains("does not declare"), "{e}");
+}
+
+#[test]
+fn typetag_and_schema_registries_agree() {
+    let schema: Vec<&str> = palpate_core::registry::registrations()
+        .iter()
+        .map(|r| r.type_name)
+        .collect();
+    let typetag = palpate_core::registry::typetag_names();
+    assert_eq!(schema, typetag);
+    for t in ["t_source", "t_scale", "t_spikes", "t_estimator", "t_sink"] {
+        assert!(schema.contains(&t), "{t} not registered: {schema:?}");
+    }
+    let doc = palpate_core::registry::stage_doc(palpate_core::registry::find("t_scale").unwrap());
+    assert_eq!(doc.keys[0].name, "factor");
+    assert_eq!(doc.keys[0].default.as_deref(), Some("2.0"));
+    assert!(doc.keys[0].doc.contains("Default 2"));
+    let src = palpate_core::registry::stage_doc(palpate_core::registry::find("t_source").unwrap());
+    let samples = src.keys.iter().find(|k| k.name == "samples").unwrap();
+    assert_eq!(samples.default, None);
+}
