@@ -100,9 +100,10 @@ pub struct StageDoc {
 }
 
 impl StageDoc {
-    /// First line of the doc, for one-line listings.
-    pub fn summary(&self) -> &str {
-        self.doc.lines().next().unwrap_or("")
+    /// First paragraph of the doc on one line, for listings.
+    pub fn summary(&self) -> String {
+        let para = self.doc.split("\n\n").next().unwrap_or("");
+        para.split_whitespace().collect::<Vec<_>>().join(" ")
     }
 
     /// The names of every key.
@@ -144,13 +145,18 @@ pub fn stage_doc(reg: &StageRegistration) -> StageDoc {
             });
         }
     }
+    // schemars' `title` is the type's name unless the doc comment gave a heading
+    // (a first paragraph of one line followed by more); keep only such headings.
+    let text = |k: &str| root.get(k).and_then(|d| d.as_str()).unwrap_or("").to_string();
+    let (title, description) = (text("title"), text("description"));
+    let doc = if title.contains(' ') {
+        format!("{title}\n\n{description}")
+    } else {
+        description
+    };
     StageDoc {
         type_name: reg.type_name.to_string(),
-        doc: root
-            .get("description")
-            .and_then(|d| d.as_str())
-            .unwrap_or("")
-            .to_string(),
+        doc,
         keys,
     }
 }
