@@ -52,6 +52,9 @@ enum Command {
         #[arg(long, value_enum, default_value_t = Format::Dot)]
         format: Format,
     },
+    /// Print the JSON schema of graph files (generated from every registered
+    /// stage), for editors that validate and complete TOML.
+    Schema,
     /// List every registered stage type, or show one type's keys.
     Stages {
         /// A stage type: show its keys with defaults, units and docs.
@@ -116,6 +119,16 @@ fn main() -> ExitCode {
             None => ExitCode::FAILURE,
         },
         Command::Stages { r#type } => cmd_stages(r#type),
+        Command::Schema => match serde_json::to_string_pretty(&registry::graph_schema()) {
+            Ok(s) => {
+                println!("{s}");
+                ExitCode::SUCCESS
+            }
+            Err(e) => {
+                eprintln!("cannot encode the schema: {e}");
+                ExitCode::FAILURE
+            }
+        },
     }
 }
 

@@ -300,3 +300,91 @@ impl<'de> MapAccess<'de> for ProbeMap {
         Err(ProbeError(Vec::new()))
     }
 }
+
+/// A JSON schema (draft 2020-12) for graph files, generated from every registered
+/// stage config and [`RunSettings`](crate::RunSettings), so editors (e.g. taplo /
+/// Even Better TOML, via a `#:schema` directive) validate and complete graph TOML.
+/// Each type's `$defs` are renamed `<type>.<Name>` so types never collide.
+pub fn graph_schema() -> serde_json::Value {
+    use serde_json::{json, Map, Value};
+    let mut defs = Map::new();
+    let mut variants = Vec::new();
+    for reg in registrations() {
+        let mut schema = (reg.schema)().to_value();
+        rename_refs(&mut schema, reg.type_name);
+        if let Some(Value::Object(d)) = schema.get_mut("$defs").map(Value::take) {
+            for (k, v) in d {
+                defs.insert(format!("{}.{k}", reg.type_name), v);
+            }
+        }
+        let doc = stage_doc(reg);
+        let mut props = schema
+            .get("properties")
+            .and_then(Value::as_object)
+            .cloned()
+            .unwrap_or_default();
+        props.insert(
+            "type".into(),
+            json!({ "const": reg.type_name, "description": doc.summary() }),
+        );
+        props.insert(
+            "inputs".into(),
+            json!({ "type": "array", "items": { "type": "string" }, "description": "Ids of the stages this stage reads, in order." }),
+        );
+        let mut required = vec![json!("type")];
+        if let Some(Value::Array(r)) = schema.get("required") {
+            required.extend(r.iter().cloned());
+        }
+        variants.push(json!({
+            "type": "object",
+            "description": doc.doc,
+            "properties": props,
+            "required": required,
+            "additionalProperties": false,
+        }));
+    }
+    let mut run = schemars::schema_for!(crate::RunSettings).to_value();
+    rename_refs(&mut run, "run");
+    if let Some(Value::Object(d)) = run.get_mut("$defs").map(Value::take) {
+        for (k, v) in d {
+            defs.insert(format!("run.{k}"), v);
+        }
+    }
+    if let Some(o) = run.as_object_mut() {
+        o.remove("$schema");
+    }
+    json!({
+        "$schema": "https://json-schema.org/draft/2020-12/schema",
+        "title": "palpate experiment graph",
+        "description": "A `[run]` table of run-wide settings and one `[stages.<id>]` table per stage.",
+        "type": "object",
+        "properties": {
+            "run": run,
+            "stages": {
+                "type": "object",
+                "description": "The stages, by id.",
+                "additionalProperties": { "oneOf": variants },
+            },
+        },
+        "additionalProperties": false,
+        "$defs": defs,
+    })
+}
+
+fn rename_refs(v: &mut serde_json::Value, prefix: &str) {
+    match v {
+        serde_json::Value::Object(o) => {
+            for (k, x) in o.iter_mut() {
+                if k == "$ref" {
+                    if let Some(name) = x.as_str().and_then(|s| s.strip_prefix("#/$defs/")) {
+                        *x = serde_json::Value::String(format!("#/$defs/{prefix}.{name}"));
+                    }
+                } else {
+                    rename_refs(x, prefix);
+                }
+            }
+        }
+        serde_json::Value::Array(a) => a.iter_mut().for_each(|x| rename_refs(x, prefix)),
+        _ => {}
+    }
+}

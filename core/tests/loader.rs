@@ -288,3 +288,45 @@ fn typetag_and_schema_registries_agree() {
     let samples = src.keys.iter().find(|k| k.name == "samples").unwrap();
     assert_eq!(samples.default, None);
 }
+
+#[test]
+fn graph_schema_describes_every_type_and_the_run_table() {
+    let s = palpate_core::registry::graph_schema();
+    let variants = s["properties"]["stages"]["additionalProperties"]["oneOf"]
+        .as_array()
+        .unwrap();
+    let consts: Vec<&str> = variants
+        .iter()
+        .map(|v| v["properties"]["type"]["const"].as_str().unwrap())
+        .collect();
+    assert!(
+        consts.contains(&"t_source") && consts.contains(&"t_sink"),
+        "{consts:?}"
+    );
+    let src = variants
+        .iter()
+        .find(|v| v["properties"]["type"]["const"] == "t_source")
+        .unwrap();
+    assert_eq!(src["required"], serde_json::json!(["type", "samples"]));
+    assert_eq!(src["additionalProperties"], false);
+    assert!(s["properties"]["run"]["properties"]["seed"].is_object());
+    // Every $ref resolves inside the document.
+    fn refs(v: &serde_json::Value, out: &mut Vec<String>) {
+        match v {
+            serde_json::Value::Object(o) => o.iter().for_each(|(k, x)| {
+                if k == "$ref" {
+                    out.push(x.as_str().unwrap().to_string());
+                } else {
+                    refs(x, out)
+                }
+            }),
+            serde_json::Value::Array(a) => a.iter().for_each(|x| refs(x, out)),
+            _ => {}
+        }
+    }
+    let mut all = Vec::new();
+    refs(&s, &mut all);
+    for r in all {
+        assert!(s.pointer(r.trim_start_matches('#')).is_some(), "dangling {r}");
+    }
+}
