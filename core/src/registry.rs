@@ -312,7 +312,7 @@ pub fn graph_schema() -> serde_json::Value {
     for reg in registrations() {
         let mut schema = (reg.schema)().to_value();
         rename_refs(&mut schema, reg.type_name);
-        if let Some(Value::Object(d)) = schema.get_mut("$defs").map(Value::take) {
+        if let Some(Value::Object(d)) = schema.as_object_mut().and_then(|o| o.remove("$defs")) {
             for (k, v) in d {
                 defs.insert(format!("{}.{k}", reg.type_name), v);
             }
@@ -345,7 +345,7 @@ pub fn graph_schema() -> serde_json::Value {
     }
     let mut run = schemars::schema_for!(crate::RunSettings).to_value();
     rename_refs(&mut run, "run");
-    if let Some(Value::Object(d)) = run.get_mut("$defs").map(Value::take) {
+    if let Some(Value::Object(d)) = run.as_object_mut().and_then(|o| o.remove("$defs")) {
         for (k, v) in d {
             defs.insert(format!("run.{k}"), v);
         }
