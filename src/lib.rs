@@ -5,6 +5,7 @@
 //! in [`stages`]. [`report`] formats a run's results for the terminal and the run
 //! record.
 
+pub mod cli;
 pub mod report;
 
 pub use palpate_core as core;

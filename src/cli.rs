@@ -1,0 +1,311 @@
+//! The `palpate` command line: run, check and draw experiment graphs, and list
+//! the registered stage types.
+//!
+//! It lives in the library so that a plugin crate can ship its own binary with
+//! its stages linked: `fn main() -> ExitCode { my_plugin::link(); palpate::cli::main() }`.
+
+use crate::core::{self, registry, Graph, LoadOptions, Progress, RunOptions};
+use clap::{Parser, Subcommand, ValueEnum};
+use indicatif::{MultiProgress, ProgressBar, ProgressStyle};
+use std::io::IsTerminal;
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::sync::Mutex;
+
+#[derive(Parser)]
+#[command(
+    name = "palpate",
+    version,
+    about = "Tactile-sensing experiments as TOML graphs of typed, pluggable stages"
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Run a graph and print its reports and timing.
+    Run {
+        /// The graph file.
+        graph: PathBuf,
+        /// Override a key: `stages.<id>.<key>=<value>` or `run.<key>=<value>` (TOML value).
+        #[arg(long = "set", value_name = "PATH=VALUE", value_parser = LoadOptions::parse_set)]
+        set: Vec<(String, String)>,
+        /// Output directory (default: `[run] out`, else out/<graph name>).
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Worker threads (default: all cores). Results do not depend on it.
+        #[arg(long)]
+        threads: Option<usize>,
+    },
+    /// Check a graph: print every error and warning; exit non-zero on an error.
+    Check {
+        /// The graph file.
+        graph: PathBuf,
+        /// Override a key, as for `run`.
+        #[arg(long = "set", value_name = "PATH=VALUE", value_parser = LoadOptions::parse_set)]
+        set: Vec<(String, String)>,
+    },
+    /// Print a graph as Graphviz dot or a Mermaid flowchart.
+    Graph {
+        /// The graph file.
+        graph: PathBuf,
+        /// Output format.
+        #[arg(long, value_enum, default_value_t = Format::Dot)]
+        format: Format,
+    },
+    /// Print the JSON schema of graph files (generated from every registered
+    /// stage), for editors that validate and complete TOML.
+    Schema,
+    /// List every registered stage type, or show one type's keys.
+    Stages {
+        /// A stage type: show its keys with defaults, units and docs.
+        r#type: Option<String>,
+    },
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum Format {
+    Dot,
+    Mermaid,
+}
+
+/// Parses the command line and runs it.
+pub fn main() -> ExitCode {
+    // Printing into a closed pipe (`palpate stages | head`) ends quietly, as
+    // command-line tools do, instead of panicking.
+    let default_hook = std::panic::take_hook();
+    std::panic::set_hook(Box::new(move |info| {
+        let msg = info
+            .payload()
+            .downcast_ref::<String>()
+            .map(String::as_str)
+            .unwrap_or("");
+        if msg.contains("Broken pipe") {
+            std::process::exit(0);
+        }
+        default_hook(info);
+    }));
+    crate::link();
+    let cli = Cli::parse();
+    match cli.command {
+        Command::Run {
+            graph,
+            set,
+            out,
+            threads,
+        } => cmd_run(graph, set, out, threads),
+        Command::Check { graph, set } => match load(&graph, set, None) {
+            Some(g) => {
+                println!(
+                    "{}: ok ({} stages, {} warning{})",
+                    graph.display(),
+                    g.nodes.len(),
+                    g.warnings.len(),
+                    if g.warnings.len() == 1 { "" } else { "s" }
+                );
+                ExitCode::SUCCESS
+            }
+            None => ExitCode::FAILURE,
+        },
+        Command::Graph { graph, format } => match load(&graph, Vec::new(), None) {
+            Some(g) => {
+                print!(
+                    "{}",
+                    match format {
+                        Format::Dot => g.to_dot(),
+                        Format::Mermaid => g.to_mermaid(),
+                    }
+                );
+                ExitCode::SUCCESS
+            }
+            None => ExitCode::FAILURE,
+        },
+        Command::Stages { r#type } => cmd_stages(r#type),
+        Command::Schema => match serde_json::to_string_pretty(&registry::graph_schema()) {
+            Ok(s) => {
+                println!("{s}");
+                ExitCode::SUCCESS
+            }
+            Err(e) => {
+                eprintln!("cannot encode the schema: {e}");
+                ExitCode::FAILURE
+            }
+        },
+    }
+}
+
+/// Loads a graph, printing warnings and errors to stderr.
+fn load(path: &std::path::Path, set: Vec<(String, String)>, out: Option<PathBuf>) -> Option<Graph> {
+    let opts = LoadOptions {
+        overrides: set,
+        out,
+        base_dir: None,
+    };
+    match core::load_file(path, &opts) {
+        Ok(g) => {
+            for w in &g.warnings {
+                eprintln!("{w}");
+            }
+            Some(g)
+        }
+        Err(e) => {
+            eprintln!("{e}");
+            None
+        }
+    }
+}
+
+fn cmd_run(
+    path: PathBuf,
+    set: Vec<(String, String)>,
+    out: Option<PathBuf>,
+    threads: Option<usize>,
+) -> ExitCode {
+    let Some(graph) = load(&path, set, out) else {
+        return ExitCode::FAILURE;
+    };
+    let pool = match rayon::ThreadPoolBuilder::new()
+        .num_threads(threads.unwrap_or(0))
+        .build()
+    {
+        Ok(p) => p,
+        Err(e) => {
+            eprintln!("cannot start worker threads: {e}");
+            return ExitCode::FAILURE;
+        }
+    };
+    let interactive = std::io::stdout().is_terminal() && std::io::stderr().is_terminal();
+    let bars = interactive.then(Bars::new);
+    let opts = RunOptions {
+        progress: bars.as_ref().map(|b| b as &dyn Progress),
+        keep_outputs: false,
+    };
+    let t0 = std::time::Instant::now();
+    let result = pool.install(|| core::run(&graph, &opts));
+    drop(bars);
+    let result = match result {
+        Ok(r) => r,
+        Err(e) => {
+            eprintln!("{}: run failed: {e}", graph.file);
+            return ExitCode::FAILURE;
+        }
+    };
+    for (id, report) in &result.reports {
+        println!("== {id}");
+        print!("{}", report.text);
+    }
+    let rows = crate::report::timing_rows(&result);
+    println!(
+        "== timing (wall time; {:.2} s in all)",
+        t0.elapsed().as_secs_f64()
+    );
+    print!("{}", crate::report::timing_table(&rows));
+    let record = crate::report::run_record(&graph, &result);
+    let run_json = graph.out_dir.join("run.json");
+    match serde_json::to_vec_pretty(&record) {
+        Ok(bytes) => {
+            if let Err(e) = core::output::write_atomic(&run_json, &bytes) {
+                eprintln!("cannot write {}: {e}", run_json.display());
+                return ExitCode::FAILURE;
+            }
+        }
+        Err(e) => {
+            eprintln!("cannot encode the run record: {e}");
+            return ExitCode::FAILURE;
+        }
+    }
+    println!("reports in {}", graph.out_dir.display());
+    ExitCode::SUCCESS
+}
+
+fn cmd_stages(type_name: Option<String>) -> ExitCode {
+    match type_name {
+        None => {
+            for reg in registry::registrations() {
+                let doc = registry::stage_doc(reg);
+                println!("{:<18} {}", doc.type_name, doc.summary());
+            }
+            ExitCode::SUCCESS
+        }
+        Some(t) => {
+            let Some(reg) = registry::find(&t) else {
+                let close = registry::close_matches(&t);
+                eprintln!(
+                    "unknown stage type `{t}`{}",
+                    if close.is_empty() {
+                        String::new()
+                    } else {
+                        format!("; did you mean {}?", close.join(" or "))
+                    }
+                );
+                return ExitCode::FAILURE;
+            };
+            let doc = registry::stage_doc(reg);
+            println!("{}\n", doc.type_name);
+            println!("{}\n", doc.doc);
+            if doc.keys.is_empty() {
+                println!("(no keys)");
+            }
+            for k in &doc.keys {
+                println!(
+                    "  {} ({}){}",
+                    k.name,
+                    k.type_desc,
+                    k.default
+                        .as_ref()
+                        .map_or(" [required]".to_string(), |d| format!(" = {d}"))
+                );
+                for line in k.doc.lines() {
+                    println!("      {line}");
+                }
+            }
+            ExitCode::SUCCESS
+        }
+    }
+}
+
+/// Progress bars: one per running stage, drawn to stderr.
+struct Bars {
+    multi: MultiProgress,
+    current: Mutex<Option<ProgressBar>>,
+}
+
+impl Bars {
+    fn new() -> Self {
+        Bars {
+            multi: MultiProgress::new(),
+            current: Mutex::new(None),
+        }
+    }
+}
+
+impl Progress for Bars {
+    fn start(&self, stage: &str, total: usize) {
+        let bar = self.multi.add(ProgressBar::new(total as u64));
+        if let Ok(style) =
+            ProgressStyle::with_template("{prefix:>14} [{bar:30}] {pos}/{len} {elapsed_precise} eta {eta}")
+        {
+            bar.set_style(style.progress_chars("=> "));
+        }
+        bar.set_prefix(stage.to_string());
+        if let Ok(mut c) = self.current.lock() {
+            *c = Some(bar);
+        }
+    }
+    fn tick(&self) {
+        if let Ok(c) = self.current.lock() {
+            if let Some(b) = c.as_ref() {
+                b.inc(1);
+            }
+        }
+    }
+    fn finish(&self, _stage: &str) {
+        if let Ok(mut c) = self.current.lock() {
+            if let Some(b) = c.take() {
+                b.finish_and_clear();
+            }
+        }
+    }
+}
