@@ -31,7 +31,7 @@ enum Command {
         graph: PathBuf,
         /// Override a key: `stages.<id>.<key>=<value>` or `run.<key>=<value>` (TOML value).
         #[arg(long = "set", value_name = "PATH=VALUE", value_parser = LoadOptions::parse_set)]
-        set: Vec<(String, String)>,
+        set: Vec<(String, toml::Value)>,
         /// Output directory (default: `[run] out`, else out/<graph name>).
         #[arg(long)]
         out: Option<PathBuf>,
@@ -45,7 +45,7 @@ enum Command {
         graph: PathBuf,
         /// Override a key, as for `run`.
         #[arg(long = "set", value_name = "PATH=VALUE", value_parser = LoadOptions::parse_set)]
-        set: Vec<(String, String)>,
+        set: Vec<(String, toml::Value)>,
     },
     /// Print a graph as Graphviz dot or a Mermaid flowchart.
     Graph {
@@ -96,7 +96,8 @@ pub fn main() -> ExitCode {
             out,
             threads,
         } => cmd_run(graph, set, out, threads),
-        Command::Check { graph, set } => match load(&graph, set, None) {
+        Command::Check { graph, set } => match load(&graph, set.clone(), None) {
+            Some(g) if g.sweep.is_some() && load_sweep_points(&graph, set, &g).is_none() => ExitCode::FAILURE,
             Some(g) => {
                 println!(
                     "{}: ok ({} stages, {} warning{})",
@@ -136,8 +137,31 @@ pub fn main() -> ExitCode {
     }
 }
 
+/// Loads every point of a graph's sweep (checking them), printing errors.
+fn load_sweep_points(path: &std::path::Path, set: Vec<(String, toml::Value)>, base: &Graph) -> Option<usize> {
+    let text = std::fs::read_to_string(path).ok()?;
+    let opts = LoadOptions {
+        overrides: set,
+        out: Some(base.out_dir.clone()),
+        base_dir: Some(
+            path.parent()
+                .map(std::path::Path::to_path_buf)
+                .unwrap_or_default(),
+        ),
+    };
+    let stem = path.file_stem().and_then(|s| s.to_str()).unwrap_or("graph");
+    let sweep = base.sweep.as_ref()?;
+    match core::sweep::load_points(&text, &base.file, stem, &opts, base, sweep) {
+        Ok(points) => Some(points.len()),
+        Err(e) => {
+            eprintln!("{e}");
+            None
+        }
+    }
+}
+
 /// Loads a graph, printing warnings and errors to stderr.
-fn load(path: &std::path::Path, set: Vec<(String, String)>, out: Option<PathBuf>) -> Option<Graph> {
+fn load(path: &std::path::Path, set: Vec<(String, toml::Value)>, out: Option<PathBuf>) -> Option<Graph> {
     let opts = LoadOptions {
         overrides: set,
         out,
@@ -159,11 +183,11 @@ fn load(path: &std::path::Path, set: Vec<(String, String)>, out: Option<PathBuf>
 
 fn cmd_run(
     path: PathBuf,
-    set: Vec<(String, String)>,
+    set: Vec<(String, toml::Value)>,
     out: Option<PathBuf>,
     threads: Option<usize>,
 ) -> ExitCode {
-    let Some(graph) = load(&path, set, out) else {
+    let Some(graph) = load(&path, set.clone(), out) else {
         return ExitCode::FAILURE;
     };
     let pool = match rayon::ThreadPoolBuilder::new()
@@ -181,7 +205,24 @@ fn cmd_run(
     let opts = RunOptions {
         progress: bars.as_ref().map(|b| b as &dyn Progress),
         keep_outputs: false,
+        cache: None,
     };
+    if graph.sweep.is_some() {
+        let load_opts = LoadOptions {
+            overrides: set,
+            out: Some(graph.out_dir.clone()),
+            base_dir: None,
+        };
+        let runs = pool.install(|| core::sweep::run_file(&path, &load_opts, &graph, &opts));
+        drop(bars);
+        return match runs {
+            Ok(runs) => crate::report::sweep_report(&graph, &runs),
+            Err(e) => {
+                eprintln!("{}: sweep failed: {e}", graph.file);
+                ExitCode::FAILURE
+            }
+        };
+    }
     let t0 = std::time::Instant::now();
     let result = pool.install(|| core::run(&graph, &opts));
     drop(bars);

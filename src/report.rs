@@ -132,3 +132,86 @@ pub fn run_record<'a>(graph: &'a Graph, result: &RunResult) -> RunRecord<'a> {
             .collect(),
     }
 }
+
+/// Prints a sweep's reports and summary, and writes `sweep.json`, `sweep.csv`
+/// and one SVG curve per metric (when the swept values are numbers) into the
+/// graph's output directory.
+pub fn sweep_report(graph: &Graph, runs: &[palpate_core::sweep::SweepRun]) -> std::process::ExitCode {
+    use palpate_core::output::write_atomic;
+    let Some(sweep) = &graph.sweep else {
+        return std::process::ExitCode::FAILURE;
+    };
+    for r in runs {
+        println!(
+            "== {} = {} (repeat {}, seed {})",
+            sweep.key, r.label, r.repeat, r.seed
+        );
+        for (id, rep) in &r.result.reports {
+            println!("-- {id}");
+            print!("{}", rep.text);
+        }
+    }
+    let rows = palpate_core::sweep::summarize(runs, &sweep.metrics);
+    println!(
+        "== sweep over {} ({} values x {} repeats)",
+        sweep.key,
+        sweep.values.len(),
+        sweep.repeats
+    );
+    print!("{}", palpate_core::sweep::render(&sweep.key, &rows));
+    let out = &graph.out_dir;
+    let mut csv = String::from("value,metric,mean,sd,runs\n");
+    for r in &rows {
+        for (m, mean, sd, n) in &r.metrics {
+            let _ = writeln!(csv, "{},{m},{mean},{sd},{n}", r.label);
+        }
+    }
+    let mut failed = false;
+    let mut write = |name: &str, bytes: &[u8]| {
+        if let Err(e) = write_atomic(&out.join(name), bytes) {
+            eprintln!("cannot write {}: {e}", out.join(name).display());
+            failed = true;
+        }
+    };
+    write("sweep.csv", csv.as_bytes());
+    if let Ok(json) = serde_json::to_vec_pretty(&rows) {
+        write("sweep.json", &json);
+    }
+    if rows.iter().all(|r| r.x.is_some()) {
+        let mut names: Vec<&str> = Vec::new();
+        for r in &rows {
+            for (n, ..) in &r.metrics {
+                if !names.contains(&n.as_str()) {
+                    names.push(n);
+                }
+            }
+        }
+        for name in names {
+            let points: Vec<(f64, f64)> = rows
+                .iter()
+                .filter_map(|r| Some((r.x?, r.metrics.iter().find(|m| m.0 == name)?.1)))
+                .collect();
+            let file = out.join(format!(
+                "sweep_{}.svg",
+                name.replace(|c: char| !c.is_ascii_alphanumeric(), "_")
+            ));
+            let series = [palpate_stages::plot::Series { name, points }];
+            if let Err(e) = palpate_stages::plot::line_chart(
+                &file,
+                &format!("{name} across {}", sweep.key),
+                &sweep.key,
+                name,
+                &series,
+            ) {
+                eprintln!("{e}");
+                failed = true;
+            }
+        }
+    }
+    println!("reports in {}", out.display());
+    if failed {
+        std::process::ExitCode::FAILURE
+    } else {
+        std::process::ExitCode::SUCCESS
+    }
+}

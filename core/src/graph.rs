@@ -69,6 +69,31 @@ impl Default for RunSettings {
     }
 }
 
+/// A sweep: the graph's `[sweep]` table. The graph runs once per value (and per
+/// repeat), with `key` set to the value; stages whose config and inputs did not
+/// change are not run again (see [`crate::sweep`]).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct SweepSettings {
+    /// What to vary: `stages.<id>.<key>`, `run.<key>`, or `stages.<id>` with table
+    /// values whose keys are merged into the stage (to vary several keys at once).
+    pub key: String,
+    /// The values, in order; TOML values of the key's type.
+    #[schemars(with = "Vec<serde_json::Value>")]
+    pub values: Vec<toml::Value>,
+    /// Runs per value, repeat `r` with seed `[run] seed + r`. Default 1.
+    #[serde(default = "one")]
+    pub repeats: usize,
+    /// Metrics to tabulate and plot across the sweep (names as sinks report them,
+    /// e.g. `wss.mae_deg`); default every metric.
+    #[serde(default)]
+    pub metrics: Vec<String>,
+}
+
+fn one() -> usize {
+    1
+}
+
 /// How bad a diagnostic is.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Severity {
@@ -143,9 +168,9 @@ impl std::error::Error for LoadErrors {}
 /// Options applied while loading.
 #[derive(Clone, Debug, Default)]
 pub struct LoadOptions {
-    /// `--set` overrides: (`stages.<id>.<key>` or `run.<key>`, TOML value text).
-    /// A value that does not parse as TOML is taken as a string.
-    pub overrides: Vec<(String, String)>,
+    /// Overrides: (`stages.<id>.<key>`, `stages.<id>` with a table value merged
+    /// into the stage's keys, or `run.<key>`; value). Applied in order.
+    pub overrides: Vec<(String, toml::Value)>,
     /// Output directory, overriding `[run] out`.
     pub out: Option<PathBuf>,
     /// Directory relative paths in the graph resolve against; default the graph
@@ -154,12 +179,13 @@ pub struct LoadOptions {
 }
 
 impl LoadOptions {
-    /// Parses `path=value` into an override.
-    pub fn parse_set(arg: &str) -> Result<(String, String), String> {
+    /// Parses `path=value` (from `--set`) into an override; a value that does not
+    /// parse as a TOML value is taken as a string, so `--set stages.s.mode=trial` works.
+    pub fn parse_set(arg: &str) -> Result<(String, toml::Value), String> {
         let (k, v) = arg
             .split_once('=')
             .ok_or_else(|| format!("`--set {arg}` needs the form stages.<id>.<key>=<value>"))?;
-        Ok((k.trim().to_string(), v.trim().to_string()))
+        Ok((k.trim().to_string(), parse_value(v.trim())))
     }
 }
 
@@ -207,6 +233,8 @@ pub struct Graph {
     pub input_index: Vec<Vec<usize>>,
     /// Warnings found while loading.
     pub warnings: Vec<Diagnostic>,
+    /// The `[sweep]` table, if any.
+    pub sweep: Option<SweepSettings>,
 }
 
 impl Graph {
@@ -405,7 +433,7 @@ impl<'t> Loader<'t> {
         self.apply_overrides(&mut doc, &opts.overrides);
 
         for key in doc.keys() {
-            if key != "run" && key != "stages" {
+            if key != "run" && key != "stages" && key != "sweep" {
                 let line = lines.top.get(key).copied();
                 self.error(
                     line,
@@ -419,6 +447,7 @@ impl<'t> Loader<'t> {
         }
 
         let run = self.load_run(doc.get("run"), &lines);
+        let sweep = self.load_sweep(doc.get("sweep"), &lines, &doc);
         let out_dir = opts
             .out
             .clone()
@@ -475,14 +504,91 @@ impl<'t> Loader<'t> {
             order,
             input_index,
             warnings: self.diags,
+            sweep,
         })
     }
 
-    fn apply_overrides(&mut self, doc: &mut toml::Table, overrides: &[(String, String)]) {
-        for (path, raw) in overrides {
-            let value = parse_value(raw);
+    fn load_sweep(
+        &mut self,
+        value: Option<&toml::Value>,
+        lines: &Lines,
+        doc: &toml::Table,
+    ) -> Option<SweepSettings> {
+        let value = value?;
+        let line = lines.top.get("sweep").copied();
+        let sweep: SweepSettings = match serde_path_to_error::deserialize(value.clone()) {
+            Ok(s) => s,
+            Err(e) => {
+                let key = e
+                    .path()
+                    .iter()
+                    .next()
+                    .map(|s| s.to_string())
+                    .or_else(|| unknown_field(e.inner().message()));
+                self.error(
+                    line,
+                    None,
+                    key.as_deref(),
+                    format!("in [sweep]: {}", first_line(e.inner().message())),
+                );
+                return None;
+            }
+        };
+        let parts: Vec<&str> = sweep.key.split('.').collect();
+        let ok = match parts.as_slice() {
+            ["run", _, ..] => true,
+            ["stages", id, ..] => doc.get("stages").and_then(|s| s.get(*id)).is_some(),
+            _ => false,
+        };
+        if !ok {
+            self.error(
+                line,
+                None,
+                Some("key"),
+                format!(
+                    "in [sweep]: `key = \"{}\"` must name run.<key> or a declared stage: stages.<id>[.<key>]",
+                    sweep.key
+                ),
+            );
+        }
+        if sweep.values.is_empty() {
+            self.error(
+                line,
+                None,
+                Some("values"),
+                "in [sweep]: `values` lists no value".into(),
+            );
+        }
+        if sweep.repeats == 0 {
+            self.error(
+                line,
+                None,
+                Some("repeats"),
+                "in [sweep]: `repeats` must be at least 1".into(),
+            );
+        }
+        Some(sweep)
+    }
+
+    fn apply_overrides(&mut self, doc: &mut toml::Table, overrides: &[(String, toml::Value)]) {
+        for (path, value) in overrides {
+            let value = value.clone();
             let parts: Vec<&str> = path.split('.').collect();
             let target = match parts.as_slice() {
+                ["stages", id] if value.is_table() => {
+                    match doc.get_mut("stages").and_then(|s| s.as_table_mut()) {
+                        Some(t) if t.contains_key(*id) => Some((t, vec![*id])),
+                        _ => {
+                            self.error(
+                                None,
+                                Some(id),
+                                None,
+                                format!("`{path}` names a stage the graph does not declare"),
+                            );
+                            None
+                        }
+                    }
+                }
                 ["stages", id, key @ ..] if !key.is_empty() => {
                     match doc
                         .get_mut("stages")
@@ -495,7 +601,7 @@ impl<'t> Loader<'t> {
                                 None,
                                 Some(id),
                                 None,
-                                format!("`--set {path}` names a stage the graph does not declare"),
+                                format!("`{path}` names a stage the graph does not declare"),
                             );
                             None
                         }
@@ -512,7 +618,7 @@ impl<'t> Loader<'t> {
                         None,
                         None,
                         None,
-                        format!("`--set {path}=...`: the path must be stages.<id>.<key> or run.<key>"),
+                        format!("override `{path}`: the path must be stages.<id>.<key> or run.<key>"),
                     );
                     None
                 }
@@ -934,7 +1040,8 @@ fn unknown_field(message: &str) -> Option<String> {
     rest.split('`').next().map(str::to_string)
 }
 
-fn parse_value(raw: &str) -> toml::Value {
+/// Parses a TOML value from text; text that is not a TOML value is a string.
+pub fn parse_value(raw: &str) -> toml::Value {
     match toml::from_str::<toml::Table>(&format!("v = {raw}")) {
         Ok(mut t) => t
             .remove("v")
@@ -943,12 +1050,20 @@ fn parse_value(raw: &str) -> toml::Value {
     }
 }
 
+/// Sets `keys` to `value`; a table value is merged into an existing table.
 fn set_path(table: &mut toml::Table, keys: &[&str], value: toml::Value) {
     match keys {
         [] => {}
-        [last] => {
-            table.insert((*last).to_string(), value);
-        }
+        [last] => match (table.get_mut(*last), value) {
+            (Some(toml::Value::Table(existing)), toml::Value::Table(new)) => {
+                for (k, v) in new {
+                    set_path(existing, &[k.as_str()], v);
+                }
+            }
+            (_, value) => {
+                table.insert((*last).to_string(), value);
+            }
+        },
         [first, rest @ ..] => {
             let entry = table
                 .entry((*first).to_string())

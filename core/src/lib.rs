@@ -9,6 +9,7 @@
 //!   units, docs);
 //! * [`graph`]: loading a TOML graph, gathering every error with its line;
 //! * [`runtime`]: running a graph, in parallel and deterministically;
+//! * [`sweep`]: running a graph across the values of one key, with a cache;
 //! * [`output`]: atomic report files.
 //!
 //! `core` knows no stage by name: stages register themselves, and the CLI finds
@@ -21,15 +22,17 @@ pub mod payload;
 pub mod registry;
 pub mod runtime;
 pub mod stage;
+pub mod sweep;
 
 pub use graph::{
     load_file, load_str, Diagnostic, Graph, LoadErrors, LoadOptions, Protocol, RunSettings, Severity,
+    SweepSettings,
 };
 pub use payload::{
     ClassScore, Estimate, Item, Label, Payload, PayloadKind, Provenance, Signals, SpikeEvent, SpikeImages,
     SpikeTrain, Stimulus, TaxelLayout, TrialMeta,
 };
-pub use runtime::{run, Progress, RunError, RunOptions, RunResult, StageTiming};
+pub use runtime::{run, Cache, Progress, RunError, RunOptions, RunResult, StageTiming};
 pub use stage::{
     check_positive, check_range, derive_seed, BuildContext, ConfigError, Estimator, FitContext, InputSpec,
     Map, Model, Sink, SinkContext, SinkInput, SinkReport, Source, Stage, StageConfig, StageError,

@@ -353,6 +353,10 @@ pub fn graph_schema() -> serde_json::Value {
     if let Some(o) = run.as_object_mut() {
         o.remove("$schema");
     }
+    let mut sweep = schemars::schema_for!(crate::SweepSettings).to_value();
+    if let Some(o) = sweep.as_object_mut() {
+        o.remove("$schema");
+    }
     json!({
         "$schema": "https://json-schema.org/draft/2020-12/schema",
         "title": "palpate experiment graph",
@@ -360,6 +364,7 @@ pub fn graph_schema() -> serde_json::Value {
         "type": "object",
         "properties": {
             "run": run,
+            "sweep": sweep,
             "stages": {
                 "type": "object",
                 "description": "The stages, by id.",

@@ -36,11 +36,47 @@ pub trait Progress: Sync {
     fn finish(&self, stage: &str);
 }
 
+/// Outputs kept across runs (the points of a sweep), keyed by a hash of each
+/// stage's type, settings, seed and its inputs' keys: a stage whose config and
+/// inputs did not change is not run again. Sinks always run. Valid for graphs
+/// loaded from the same directory (relative paths in settings are not resolved
+/// into the key).
+#[derive(Default)]
+pub struct Cache {
+    map: std::sync::Mutex<HashMap<u64, Arc<Vec<Item>>>>,
+    hits: std::sync::atomic::AtomicUsize,
+    misses: std::sync::atomic::AtomicUsize,
+}
+
+impl Cache {
+    /// Stage runs served from the cache.
+    pub fn hits(&self) -> usize {
+        self.hits.load(std::sync::atomic::Ordering::Relaxed)
+    }
+    /// Stage runs computed and stored.
+    pub fn misses(&self) -> usize {
+        self.misses.load(std::sync::atomic::Ordering::Relaxed)
+    }
+    fn get(&self, key: u64) -> Option<Arc<Vec<Item>>> {
+        let hit = self.map.lock().ok()?.get(&key).cloned();
+        let counter = if hit.is_some() { &self.hits } else { &self.misses };
+        counter.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        hit
+    }
+    fn put(&self, key: u64, items: Arc<Vec<Item>>) {
+        if let Ok(mut m) = self.map.lock() {
+            m.insert(key, items);
+        }
+    }
+}
+
 /// Options for [`run`].
 #[derive(Default)]
 pub struct RunOptions<'a> {
     /// Progress receiver.
     pub progress: Option<&'a dyn Progress>,
+    /// Outputs shared across runs (sweeps); `None` computes everything.
+    pub cache: Option<&'a Cache>,
     /// Keep every stage's output in the result (tests and tools use it);
     /// otherwise outputs are dropped once read.
     pub keep_outputs: bool,
@@ -61,6 +97,8 @@ pub struct StageTiming {
     pub fits: Vec<Duration>,
     /// Wall time of the whole stage.
     pub total: Duration,
+    /// True when the output came from the sweep cache (nothing was computed).
+    pub cached: bool,
 }
 
 /// What a run produced.
@@ -118,6 +156,7 @@ pub fn run(graph: &Graph, opts: &RunOptions<'_>) -> Result<RunResult, RunError> 
     let mut outputs: Vec<Option<Arc<Vec<Item>>>> = vec![None; n];
     let mut result = RunResult::default();
     let seed = graph.run.seed;
+    let mut keys = vec![0u64; n];
 
     for &i in &graph.order {
         let node = &graph.nodes[i];
@@ -127,6 +166,30 @@ pub fn run(graph: &Graph, opts: &RunOptions<'_>) -> Result<RunResult, RunError> 
             type_name: node.type_name.clone(),
             settings: settings_json(node.config.as_ref()),
         };
+        let input_keys: Vec<String> = graph.input_index[i]
+            .iter()
+            .map(|&j| keys[j].to_string())
+            .collect();
+        let settings = prov.settings.to_string();
+        let mut labels: Vec<&str> = vec![&node.type_name, &settings];
+        labels.extend(input_keys.iter().map(String::as_str));
+        keys[i] = derive_seed(seed, &labels);
+        let cacheable = !matches!(node.stage, Stage::Sink(_));
+        if let (true, Some(items)) = (cacheable, opts.cache.and_then(|c| c.get(keys[i]))) {
+            result.timings.push(StageTiming {
+                id: node.id.clone(),
+                type_name: node.type_name.clone(),
+                role: node.stage.role(),
+                cached: true,
+                ..StageTiming::default()
+            });
+            if opts.keep_outputs {
+                result.outputs.insert(node.id.clone(), items.clone());
+            }
+            outputs[i] = Some(items);
+            release_inputs(graph, i, &mut readers, &mut outputs);
+            continue;
+        }
         let inputs: Vec<Arc<Vec<Item>>> = graph.input_index[i]
             .iter()
             .map(|&j| {
@@ -307,16 +370,24 @@ pub fn run(graph: &Graph, opts: &RunOptions<'_>) -> Result<RunResult, RunError> 
             if opts.keep_outputs {
                 result.outputs.insert(node.id.clone(), items.clone());
             }
+            if let Some(c) = opts.cache {
+                c.put(keys[i], items.clone());
+            }
             outputs[i] = Some(items);
         }
-        for &j in &graph.input_index[i] {
-            readers[j] -= 1;
-            if readers[j] == 0 {
-                outputs[j] = None;
-            }
-        }
+        release_inputs(graph, i, &mut readers, &mut outputs);
     }
     Ok(result)
+}
+
+/// Drops an input's output once its last reader is done.
+fn release_inputs(graph: &Graph, i: usize, readers: &mut [usize], outputs: &mut [Option<Arc<Vec<Item>>>]) {
+    for &j in &graph.input_index[i] {
+        readers[j] -= 1;
+        if readers[j] == 0 {
+            outputs[j] = None;
+        }
+    }
 }
 
 fn start(opts: &RunOptions<'_>, id: &str, total: usize) {

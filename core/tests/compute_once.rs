@@ -1,7 +1,7 @@
 //! An output read by several stages is computed once.
 
 mod common;
-use common::{load, SCALE_CALLS};
+use common::{load, SCALE_CALLS, SERIAL};
 use std::sync::atomic::Ordering;
 
 #[test]
@@ -30,6 +30,7 @@ type = "t_sink"
 inputs = ["est", "est2"]
 "#;
     let g = load(text).unwrap();
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     SCALE_CALLS.store(0, Ordering::SeqCst);
     let r = palpate_core::run(&g, &Default::default()).unwrap();
     assert_eq!(
@@ -38,4 +39,95 @@ inputs = ["est", "est2"]
         "one call per trial, not per reader"
     );
     assert_eq!(r.reports[0].1.metrics.len(), 2);
+}
+
+#[test]
+fn a_sweep_over_a_downstream_key_does_not_rerun_upstream_stages() {
+    let text = r#"
+[stages.src]
+type = "t_source"
+classes = 2
+reps = 3
+samples = 20
+
+[stages.a]
+type = "t_scale"
+inputs = ["src"]
+
+[stages.b]
+type = "t_scale"
+inputs = ["a"]
+
+[stages.est]
+type = "t_estimator"
+inputs = ["b"]
+
+[stages.sink]
+type = "t_sink"
+inputs = ["est"]
+
+[sweep]
+key = "stages.b.factor"
+values = [1.0, 2.0, 3.0]
+"#;
+    let g = load(text).unwrap();
+    let sweep = g.sweep.clone().unwrap();
+    assert_eq!(sweep.values.len(), 3);
+    let cache = palpate_core::Cache::default();
+    let opts = palpate_core::RunOptions {
+        cache: Some(&cache),
+        ..Default::default()
+    };
+    let load_opts = palpate_core::LoadOptions {
+        out: Some(g.out_dir.clone()),
+        ..Default::default()
+    };
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    SCALE_CALLS.store(0, Ordering::SeqCst);
+    let runs = palpate_core::sweep::run_text(text, "t.toml", "t", &load_opts, &g, &opts).unwrap();
+    assert_eq!(runs.len(), 3);
+    // `a` runs for the first point only (6 trials); `b` for every point (3 x 6).
+    assert_eq!(SCALE_CALLS.load(Ordering::SeqCst), 6 + 18);
+    // src and a hit the cache at points 2 and 3.
+    assert_eq!(cache.hits(), 4);
+    let cached: Vec<bool> = runs[1].result.timings.iter().map(|t| t.cached).collect();
+    assert_eq!(cached, [true, true, false, false, false]);
+    let rows = palpate_core::sweep::summarize(&runs, &[]);
+    assert_eq!(rows.len(), 3);
+    assert_eq!(rows[0].x, Some(1.0));
+    assert_eq!(rows[0].metrics[0].0, "est.n");
+    let table = palpate_core::sweep::render(&sweep.key, &rows);
+    assert!(
+        table.contains("stages.b.factor") && table.lines().count() == 4,
+        "{table}"
+    );
+}
+
+#[test]
+fn a_bad_sweep_value_is_a_load_error_naming_the_value() {
+    let text = r#"
+[stages.src]
+type = "t_source"
+samples = 20
+
+[stages.est]
+type = "t_estimator"
+inputs = ["src"]
+
+[stages.sink]
+type = "t_sink"
+inputs = ["est"]
+
+[sweep]
+key = "stages.src.samples"
+values = [10, 0]
+"#;
+    let g = load(text).unwrap();
+    let e = palpate_core::sweep::run_text(text, "t.toml", "t", &Default::default(), &g, &Default::default())
+        .unwrap_err();
+    let msg = e.to_string();
+    assert!(
+        msg.contains("with sweep value stages.src.samples = 0") && msg.contains("key `samples`"),
+        "{msg}"
+    );
 }

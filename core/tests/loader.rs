@@ -252,8 +252,8 @@ fn run_table_keys_are_checked() {
 fn set_overrides_keys_and_rejects_unknown_stages() {
     let opts = palpate_core::LoadOptions {
         overrides: vec![
-            ("stages.src.samples".into(), "42".into()),
-            ("run.seed".into(), "9".into()),
+            palpate_core::LoadOptions::parse_set("stages.src.samples=42").unwrap(),
+            palpate_core::LoadOptions::parse_set("run.seed=9").unwrap(),
         ],
         ..Default::default()
     };
@@ -262,7 +262,7 @@ fn set_overrides_keys_and_rejects_unknown_stages() {
     let json = serde_json::to_value(&g.nodes[0].config).unwrap();
     assert_eq!(json["t_source"]["samples"], 42);
     let opts = palpate_core::LoadOptions {
-        overrides: vec![("stages.nope.samples".into(), "1".into())],
+        overrides: vec![("stages.nope.samples".into(), toml::Value::Integer(1))],
         ..Default::default()
     };
     let e = palpate_core::load_str(GOOD, "t.toml", "t", &opts).unwrap_err();

@@ -2,7 +2,7 @@
 //! not depend on the number of threads, and failures name the stage and trial.
 
 mod common;
-use common::{load, outputs, TRAINED_ON};
+use common::{load, outputs, SERIAL, TRAINED_ON};
 use std::collections::HashSet;
 
 const GRAPH: &str = r#"
@@ -27,6 +27,7 @@ inputs = ["est"]
 #[test]
 fn leave_one_trial_out_never_sees_a_test_trial_and_tests_each_once() {
     let g = load(GRAPH).unwrap();
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     TRAINED_ON.lock().unwrap().clear();
     let est = outputs(&g);
     assert_eq!(est.len(), 20);
@@ -49,6 +50,7 @@ fn leave_one_trial_out_never_sees_a_test_trial_and_tests_each_once() {
 
 fn run_on(threads: usize) -> Vec<(String, Option<f64>, Vec<u64>)> {
     let g = load(GRAPH).unwrap();
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(threads)
         .build()

@@ -93,6 +93,8 @@ impl Default for TScale {
         TScale { factor: 2.0 }
     }
 }
+/// Tests that read the counters take this lock: tests of one binary run in parallel.
+pub static SERIAL: Mutex<()> = Mutex::new(());
 pub static SCALE_CALLS: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
 
 #[typetag::serde(name = "t_scale")]

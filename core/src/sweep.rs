@@ -1,0 +1,293 @@
+//! Sweeps: running a graph once per value of one key (and per repeat), with one
+//! table across the sweep.
+//!
+//! A graph's `[sweep]` table ([`SweepSettings`]) names a key and its values. Point
+//! `p`, repeat `r` is the graph with `key = values[p]` and `[run] seed = seed + r`,
+//! writing its reports to `<out>/<label>/` (`<out>/<label>/r<r>/` with repeats).
+//! Every point is loaded (and so checked) before any runs. All points share one
+//! [`Cache`]: a stage whose type, settings, seed and inputs did not change is not
+//! run again, so sweeping a downstream key (a WSS weighting, a jitter width)
+//! does not re-simulate or re-encode.
+//!
+//! The summary gives, per value, each metric's mean and population SD over the
+//! repeats.
+
+use crate::graph::{load_str, Diagnostic, Graph, LoadErrors, LoadOptions, Severity, SweepSettings};
+use crate::runtime::{run, Cache, RunError, RunOptions, RunResult};
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+
+/// One run of a sweep.
+#[derive(Debug)]
+pub struct SweepRun {
+    /// Index of the value.
+    pub point: usize,
+    /// The value.
+    pub value: toml::Value,
+    /// The value as a short label (also the report sub-directory).
+    pub label: String,
+    /// Repeat number.
+    pub repeat: usize,
+    /// The seed the run used.
+    pub seed: u64,
+    /// What it produced.
+    pub result: RunResult,
+}
+
+/// A failed sweep.
+#[derive(Debug, thiserror::Error)]
+pub enum SweepError {
+    /// A point's graph did not load.
+    #[error("{0}")]
+    Load(LoadErrors),
+    /// A point's run failed.
+    #[error("sweep value {label}: {error}")]
+    Run {
+        /// The value's label.
+        label: String,
+        /// The failure.
+        error: RunError,
+    },
+}
+
+/// A short, file-name-safe label of a sweep value.
+pub fn label(value: &toml::Value) -> String {
+    let raw = match value {
+        toml::Value::String(s) => s.clone(),
+        toml::Value::Table(t) => t
+            .iter()
+            .map(|(k, v)| format!("{k}={}", label(v)))
+            .collect::<Vec<_>>()
+            .join(","),
+        other => other.to_string(),
+    };
+    raw.chars()
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || "-_.=,".contains(c) {
+                c
+            } else {
+                '_'
+            }
+        })
+        .collect()
+}
+
+/// Loads every (point, repeat) graph of a sweep, gathering every error.
+pub fn load_points(
+    text: &str,
+    file: &str,
+    stem: &str,
+    opts: &LoadOptions,
+    base: &Graph,
+    sweep: &SweepSettings,
+) -> Result<Vec<(usize, usize, Graph)>, LoadErrors> {
+    let mut graphs = Vec::new();
+    let mut errors = Vec::new();
+    for (p, value) in sweep.values.iter().enumerate() {
+        let lbl = label(value);
+        for r in 0..sweep.repeats {
+            let mut o = opts.clone();
+            o.overrides.push((sweep.key.clone(), value.clone()));
+            o.overrides.push((
+                "run.seed".into(),
+                toml::Value::Integer(base.run.seed.wrapping_add(r as u64) as i64),
+            ));
+            o.out = Some(point_dir(&base.out_dir, &lbl, (sweep.repeats > 1).then_some(r)));
+            match load_str(text, file, stem, &o) {
+                Ok(g) => graphs.push((p, r, g)),
+                Err(e) => {
+                    for mut d in e.0.into_iter().filter(|d| d.severity == Severity::Error) {
+                        d.message = format!("with sweep value {} = {value}: {}", sweep.key, d.message);
+                        if !errors.contains(&d) {
+                            errors.push(d);
+                        }
+                    }
+                }
+            }
+        }
+    }
+    if errors.is_empty() {
+        Ok(graphs)
+    } else {
+        Err(LoadErrors(errors))
+    }
+}
+
+/// Runs a sweep of the graph in `path` (whose `[sweep]` is `base.sweep`).
+pub fn run_file(
+    path: &Path,
+    opts: &LoadOptions,
+    base: &Graph,
+    run_opts: &RunOptions<'_>,
+) -> Result<Vec<SweepRun>, SweepError> {
+    let text = std::fs::read_to_string(path).map_err(|e| {
+        SweepError::Load(LoadErrors(vec![Diagnostic {
+            severity: Severity::Error,
+            file: path.display().to_string(),
+            line: None,
+            stage: None,
+            key: None,
+            message: format!("cannot read the graph file: {e}"),
+        }]))
+    })?;
+    let mut opts = opts.clone();
+    if opts.base_dir.is_none() {
+        opts.base_dir = Some(path.parent().map(Path::to_path_buf).unwrap_or_default());
+    }
+    let stem = path.file_stem().and_then(|s| s.to_str()).unwrap_or("graph");
+    run_text(&text, &path.display().to_string(), stem, &opts, base, run_opts)
+}
+
+/// Runs a sweep of the graph text.
+pub fn run_text(
+    text: &str,
+    file: &str,
+    stem: &str,
+    opts: &LoadOptions,
+    base: &Graph,
+    run_opts: &RunOptions<'_>,
+) -> Result<Vec<SweepRun>, SweepError> {
+    let Some(sweep) = &base.sweep else {
+        return Err(SweepError::Load(LoadErrors(vec![Diagnostic {
+            severity: Severity::Error,
+            file: file.to_string(),
+            line: None,
+            stage: None,
+            key: None,
+            message: "the graph has no [sweep] table".into(),
+        }])));
+    };
+    let graphs = load_points(text, file, stem, opts, base, sweep).map_err(SweepError::Load)?;
+    let own_cache = Cache::default();
+    let cache = run_opts.cache.unwrap_or(&own_cache);
+    let mut runs = Vec::with_capacity(graphs.len());
+    for (p, r, g) in graphs {
+        let value = sweep.values[p].clone();
+        let lbl = label(&value);
+        let o = RunOptions {
+            progress: run_opts.progress,
+            cache: Some(cache),
+            keep_outputs: run_opts.keep_outputs,
+        };
+        let result = run(&g, &o).map_err(|error| SweepError::Run {
+            label: lbl.clone(),
+            error,
+        })?;
+        runs.push(SweepRun {
+            point: p,
+            value,
+            label: lbl,
+            repeat: r,
+            seed: g.run.seed,
+            result,
+        });
+    }
+    Ok(runs)
+}
+
+/// One row of a sweep's summary: a value and each metric's statistics.
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct SummaryRow {
+    /// The value's label.
+    pub label: String,
+    /// The value as a number, when it is one (for plots).
+    pub x: Option<f64>,
+    /// (metric, mean, population SD, runs) per metric.
+    pub metrics: Vec<(String, f64, f64, usize)>,
+}
+
+/// Mean and SD of each metric per sweep value, over repeats. `wanted` filters
+/// metric names (empty: all).
+pub fn summarize(runs: &[SweepRun], wanted: &[String]) -> Vec<SummaryRow> {
+    let mut rows: Vec<SummaryRow> = Vec::new();
+    let points = runs.iter().map(|r| r.point).max().map_or(0, |m| m + 1);
+    for p in 0..points {
+        let of_point: Vec<&SweepRun> = runs.iter().filter(|r| r.point == p).collect();
+        let Some(first) = of_point.first() else { continue };
+        let mut names: Vec<String> = Vec::new();
+        for r in &of_point {
+            for (name, _) in r.result.reports.iter().flat_map(|(_, rep)| rep.metrics.iter()) {
+                if (wanted.is_empty() || wanted.contains(name)) && !names.contains(name) {
+                    names.push(name.clone());
+                }
+            }
+        }
+        let metrics = names
+            .into_iter()
+            .map(|name| {
+                let vals: Vec<f64> = of_point
+                    .iter()
+                    .filter_map(|r| {
+                        r.result
+                            .reports
+                            .iter()
+                            .flat_map(|(_, rep)| rep.metrics.iter())
+                            .find(|(n, _)| *n == name)
+                            .map(|(_, v)| *v)
+                    })
+                    .collect();
+                let n = vals.len().max(1) as f64;
+                let mean = vals.iter().sum::<f64>() / n;
+                let sd = (vals.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / n).sqrt();
+                (name, mean, sd, vals.len())
+            })
+            .collect();
+        let x = match &first.value {
+            toml::Value::Integer(i) => Some(*i as f64),
+            toml::Value::Float(f) => Some(*f),
+            _ => None,
+        };
+        rows.push(SummaryRow {
+            label: first.label.clone(),
+            x,
+            metrics,
+        });
+    }
+    rows
+}
+
+/// The summary as a terminal table: one row per value, one column per metric
+/// (`mean ± sd` when there are repeats).
+pub fn render(key: &str, rows: &[SummaryRow]) -> String {
+    let mut names: Vec<&str> = Vec::new();
+    for r in rows {
+        for (n, ..) in &r.metrics {
+            if !names.contains(&n.as_str()) {
+                names.push(n);
+            }
+        }
+    }
+    let width = rows
+        .iter()
+        .map(|r| r.label.len())
+        .chain([key.len()])
+        .max()
+        .unwrap_or(8);
+    let mut s = String::new();
+    let _ = write!(s, "{key:<width$}");
+    for n in &names {
+        let _ = write!(s, "  {n:>20}");
+    }
+    s.push('\n');
+    for r in rows {
+        let _ = write!(s, "{:<width$}", r.label);
+        for n in &names {
+            let cell = match r.metrics.iter().find(|m| m.0 == *n) {
+                Some((_, mean, sd, k)) if *k > 1 => format!("{mean:.3} ± {sd:.3}"),
+                Some((_, mean, ..)) => format!("{mean:.3}"),
+                None => "-".into(),
+            };
+            let _ = write!(s, "  {cell:>20}");
+        }
+        s.push('\n');
+    }
+    s
+}
+
+/// Where a point's reports go, as [`load_points`] sets it.
+pub fn point_dir(base_out: &Path, label: &str, repeat: Option<usize>) -> PathBuf {
+    match repeat {
+        Some(r) => base_out.join(label).join(format!("r{r}")),
+        None => base_out.join(label),
+    }
+}
