@@ -10,9 +10,19 @@
 //! * "no edge" answers: counted, and left out of the MAE (an estimator that says
 //!   "no edge" makes no angle error, but it did not answer, so the count stands
 //!   beside the MAE in every table rather than being silently folded into it);
-//! * trials without a true angle: counted, left out.
+//! * trials without a true angle: counted, left out;
+//! * MAE at a coarser acuity `A` (key `acuity_deg`, default `[10]`): truth and
+//!   estimate are both binned into classes `floor((θ - θ_min) / A)` of width `A`
+//!   from the smallest true angle `θ_min`, and the error is the distance between
+//!   the bins' lower edges; confusing 40° with 45° then costs nothing at 10°
+//!   acuity, confusing 40° with 35° costs 10°. (The paper's "0 MAE at 10° acuity"
+//!   is the other reading, a 9-class WSS on the 9 matching classes: that is a
+//!   graph, graphs/paper/acuity.toml, not a metric.)
 //!
-//! Files: `<sink id>.json` in the run's output directory, written atomically.
+//! Files, in the run's output directory, written atomically: `<sink id>.json`,
+//! `<sink id>.csv` (one row per estimator and class), `<sink id>.md` (the table
+//! as Markdown) and `<sink id>_per_class.svg` (per-class MAE bars, one series per
+//! estimator).
 
 use palpate_core::output::write_atomic;
 use palpate_core::{
@@ -26,12 +36,20 @@ use std::fmt::Write as _;
 
 /// Mean absolute error of orientation estimates, overall and per true angle; one
 /// table per input estimator.
-#[derive(Clone, Debug, Default, Serialize, Deserialize, JsonSchema)]
-#[serde(deny_unknown_fields, default)]
+#[derive(Clone, Debug, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
 pub struct MaeConfig {
     /// Print the per-class table (not only the summary line). Default true.
     #[serde(default = "yes")]
     pub per_class: bool,
+    /// Coarser acuities to report the MAE at, degrees (see the module docs).
+    /// Default [10].
+    #[serde(default = "ten")]
+    pub acuity_deg: Vec<f64>,
+}
+
+fn ten() -> Vec<f64> {
+    vec![10.0]
 }
 
 fn yes() -> bool {
@@ -47,8 +65,12 @@ impl StageConfig for MaeConfig {
         None
     }
     fn build(&self, _ctx: &BuildContext) -> Result<Stage, ConfigError> {
+        for a in &self.acuity_deg {
+            palpate_core::check_positive("acuity_deg", *a, "degrees")?;
+        }
         Ok(Stage::Sink(Box::new(MaeSink {
             per_class: self.per_class,
+            acuity_deg: self.acuity_deg.clone(),
         })))
     }
 }
@@ -56,6 +78,7 @@ register_stage!("mae", MaeConfig);
 
 struct MaeSink {
     per_class: bool,
+    acuity_deg: Vec<f64>,
 }
 
 /// Per-class statistics of one estimator.
@@ -92,6 +115,18 @@ pub struct MaeStats {
     pub trials: usize,
     /// Per class, by true angle.
     pub classes: Vec<ClassStats>,
+    /// (acuity, MAE at that acuity), degrees.
+    pub coarse: Vec<(f64, Option<f64>)>,
+}
+
+/// MAE after binning truth and estimate into classes of width `acuity` from `origin`.
+pub fn coarse_mae(pairs: &[(Option<f64>, Option<f64>)], acuity: f64, origin: f64) -> Option<f64> {
+    let bin = |a: f64| ((a - origin) / acuity + 1e-9).floor();
+    let errs: Vec<f64> = pairs
+        .iter()
+        .filter_map(|&(t, e)| Some((bin(t?) - bin(e?)).abs() * acuity))
+        .collect();
+    (!errs.is_empty()).then(|| errs.iter().sum::<f64>() / errs.len() as f64)
 }
 
 /// Computes MAE statistics over `(true angle, estimate)` pairs.
@@ -137,6 +172,101 @@ pub fn mae_stats(estimator: &str, pairs: &[(Option<f64>, Option<f64>)]) -> MaeSt
     }
     stats.max_class_mae_deg = stats.classes.iter().filter_map(|c| c.mae_deg).reduce(f64::max);
     stats
+}
+
+/// Adds the MAE at each coarser acuity.
+pub fn with_coarse(mut stats: MaeStats, pairs: &[(Option<f64>, Option<f64>)], acuities: &[f64]) -> MaeStats {
+    let origin = pairs.iter().filter_map(|p| p.0).fold(f64::INFINITY, f64::min);
+    if origin.is_finite() {
+        stats.coarse = acuities
+            .iter()
+            .map(|&a| (a, coarse_mae(pairs, a, origin)))
+            .collect();
+    }
+    stats
+}
+
+/// The statistics of several estimators as CSV: one row per estimator and class,
+/// then one `all` row per estimator.
+pub fn to_csv(all: &[MaeStats]) -> String {
+    let mut s = String::from("estimator,angle_deg,trials,no_edge,mean_estimate_deg,mae_deg,sd_deg\n");
+    let f = |v: Option<f64>| v.map_or(String::new(), |x| format!("{x}"));
+    for st in all {
+        for c in &st.classes {
+            let _ = writeln!(
+                s,
+                "{},{},{},{},{},{},",
+                st.estimator,
+                c.angle_deg,
+                c.trials,
+                c.no_edge,
+                f(c.mean_estimate_deg),
+                f(c.mae_deg)
+            );
+        }
+        let _ = writeln!(
+            s,
+            "{},all,{},{},,{},{}",
+            st.estimator,
+            st.trials,
+            st.no_edge,
+            f(st.mae_deg),
+            f(st.sd_deg)
+        );
+    }
+    s
+}
+
+/// The per-class MAE of several estimators side by side as a Markdown table, with
+/// summary rows.
+pub fn to_markdown(all: &[MaeStats]) -> String {
+    let mut angles: Vec<f64> = all
+        .iter()
+        .flat_map(|s| s.classes.iter().map(|c| c.angle_deg))
+        .collect();
+    angles.sort_by(f64::total_cmp);
+    angles.dedup_by(|a, b| (*a - *b).abs() < 1e-9);
+    let mut s = String::from("| angle |");
+    for st in all {
+        let _ = write!(s, " {} MAE (°) |", st.estimator);
+    }
+    s.push_str("\n|---|");
+    s.push_str(&"---|".repeat(all.len()));
+    s.push('\n');
+    for a in &angles {
+        let _ = write!(s, "| {a}° |");
+        for st in all {
+            let v = st
+                .classes
+                .iter()
+                .find(|c| (c.angle_deg - a).abs() < 1e-9)
+                .and_then(|c| c.mae_deg);
+            let _ = write!(s, " {} |", fmt_opt(v, 2));
+        }
+        s.push('\n');
+    }
+    let rows: [(&str, fn(&MaeStats) -> String); 4] = [
+        ("overall MAE (SD)", |st| {
+            format!("{} ({})", fmt_opt(st.mae_deg, 2), fmt_opt(st.sd_deg, 2))
+        }),
+        ("largest per-class MAE", |st| fmt_opt(st.max_class_mae_deg, 2)),
+        ("no edge", |st| st.no_edge.to_string()),
+        ("coarse acuity MAE", |st| {
+            st.coarse
+                .iter()
+                .map(|(a, m)| format!("{}: {a}°", fmt_opt(*m, 2)))
+                .collect::<Vec<_>>()
+                .join(", ")
+        }),
+    ];
+    for (name, f) in rows {
+        let _ = write!(s, "| **{name}** |");
+        for st in all {
+            let _ = write!(s, " {} |", f(st));
+        }
+        s.push('\n');
+    }
+    s
 }
 
 fn fmt_opt(v: Option<f64>, prec: usize) -> String {
@@ -191,7 +321,7 @@ impl Sink for MaeSink {
                 let est = item.payload.estimate()?;
                 pairs.push((item.meta.label.angle_deg, est.angle_deg));
             }
-            let stats = mae_stats(input.stage_id, &pairs);
+            let stats = with_coarse(mae_stats(input.stage_id, &pairs), &pairs, &self.acuity_deg);
             report.text.push_str(&render(&stats, self.per_class));
             let id = input.stage_id;
             if let Some(m) = stats.mae_deg {
@@ -243,6 +373,24 @@ mod tests {
         assert_eq!(s.max_class_mae_deg, Some(2.5));
         let text = render(&s, true);
         assert!(text.contains("MAE 1.67°"), "{text}");
+    }
+
+    #[test]
+    fn coarse_acuity_forgives_confusions_within_a_bin() {
+        let pairs = vec![
+            (Some(40.0), Some(45.0)),
+            (Some(40.0), Some(35.0)),
+            (Some(10.0), Some(10.0)),
+        ];
+        // Bins of 10 from 10: 40 and 45 share [40, 50); 35 lies in [30, 40).
+        assert_eq!(coarse_mae(&pairs, 10.0, 10.0), Some(10.0 / 3.0));
+        assert_eq!(coarse_mae(&pairs, 5.0, 10.0), Some(10.0 / 3.0));
+        assert_eq!(coarse_mae(&[(Some(1.0), None)], 10.0, 1.0), None);
+        let s = with_coarse(mae_stats("w", &pairs), &pairs, &[10.0]);
+        assert_eq!(s.coarse, vec![(10.0, Some(10.0 / 3.0))]);
+        let md = to_markdown(&[s.clone(), s.clone()]);
+        assert!(md.contains("| 40° | 5.00 | 5.00 |"), "{md}");
+        assert!(to_csv(&[s]).lines().count() == 4);
     }
 
     #[test]

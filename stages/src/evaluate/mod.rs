@@ -1,4 +1,5 @@
 //! Evaluation sinks: metrics over every trial's estimate, shown as tables and
 //! written as report files.
 
+pub mod confusion;
 pub mod mae;
