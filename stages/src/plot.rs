@@ -140,54 +140,6 @@ pub fn heatmap(
     write_atomic(path, svg.as_bytes())
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn line_chart_and_heatmap_write_svg() {
-        let dir = std::env::temp_dir().join(format!("palpate-plot-{}", std::process::id()));
-        let p = dir.join("line.svg");
-        line_chart(
-            &p,
-            "t",
-            "x",
-            "y",
-            &[
-                Series {
-                    name: "a",
-                    points: vec![(0.0, 1.0), (1.0, 2.0)],
-                },
-                Series {
-                    name: "b",
-                    points: vec![(0.0, 0.0), (1.0, f64::NAN)],
-                },
-            ],
-        )
-        .unwrap();
-        let s = std::fs::read_to_string(&p).unwrap();
-        assert!(
-            s.starts_with("<svg") && s.contains("polyline"),
-            "{}",
-            &s[..200.min(s.len())]
-        );
-        let h = dir.join("heat.svg");
-        heatmap(
-            &h,
-            "c",
-            &["a".into(), "b".into()],
-            &["x".into(), "y".into()],
-            &[vec![1.0, 0.0], vec![0.0, 0.0]],
-        )
-        .unwrap();
-        assert!(std::fs::read_to_string(&h).unwrap().contains("<rect"));
-        // Empty and constant data must not panic.
-        line_chart(&p, "t", "x", "y", &[]).unwrap();
-        heatmap(&h, "c", &[], &[], &[]).unwrap();
-        std::fs::remove_dir_all(&dir).unwrap();
-    }
-}
-
 /// Writes a grouped bar chart as SVG: one group per category, one bar per series.
 pub fn bar_chart(
     path: &Path,
@@ -261,4 +213,52 @@ pub fn bar_chart(
         root.present().map_err(err(path))?;
     }
     write_atomic(path, svg.as_bytes())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn line_chart_and_heatmap_write_svg() {
+        let dir = std::env::temp_dir().join(format!("palpate-plot-{}", std::process::id()));
+        let p = dir.join("line.svg");
+        line_chart(
+            &p,
+            "t",
+            "x",
+            "y",
+            &[
+                Series {
+                    name: "a",
+                    points: vec![(0.0, 1.0), (1.0, 2.0)],
+                },
+                Series {
+                    name: "b",
+                    points: vec![(0.0, 0.0), (1.0, f64::NAN)],
+                },
+            ],
+        )
+        .unwrap();
+        let s = std::fs::read_to_string(&p).unwrap();
+        assert!(
+            s.starts_with("<svg") && s.contains("polyline"),
+            "{}",
+            &s[..200.min(s.len())]
+        );
+        let h = dir.join("heat.svg");
+        heatmap(
+            &h,
+            "c",
+            &["a".into(), "b".into()],
+            &["x".into(), "y".into()],
+            &[vec![1.0, 0.0], vec![0.0, 0.0]],
+        )
+        .unwrap();
+        assert!(std::fs::read_to_string(&h).unwrap().contains("<rect"));
+        // Empty and constant data must not panic.
+        line_chart(&p, "t", "x", "y", &[]).unwrap();
+        heatmap(&h, "c", &[], &[], &[]).unwrap();
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
 }

@@ -217,6 +217,9 @@ pub fn to_csv(all: &[MaeStats]) -> String {
     s
 }
 
+/// A summary row's name and how to fill its cell for one estimator.
+type SummaryCell = (&'static str, fn(&MaeStats) -> String);
+
 /// The per-class MAE of several estimators side by side as a Markdown table, with
 /// summary rows.
 pub fn to_markdown(all: &[MaeStats]) -> String {
@@ -245,7 +248,7 @@ pub fn to_markdown(all: &[MaeStats]) -> String {
         }
         s.push('\n');
     }
-    let rows: [(&str, fn(&MaeStats) -> String); 4] = [
+    let rows: [SummaryCell; 4] = [
         ("overall MAE (SD)", |st| {
             format!("{} ({})", fmt_opt(st.mae_deg, 2), fmt_opt(st.sd_deg, 2))
         }),
