@@ -161,12 +161,12 @@ mod tests {
             ))
             .unwrap();
         assert_eq!(im.n_frames, 100);
-        // t = 0 is only in frame 0; t = 100 in frames 1..=10; t = 99.999 in frame 0..=9.
+        // t = 0 is only in frame 0; t = 100 in frames 1..=10; t = 99.999 in frames 0..=9.
         assert_eq!(im.frame(0)[0], 1.0);
         assert_eq!(im.frame(1)[0], 0.0);
         let f5: Vec<f64> = (0..100).map(|k| im.frame(k)[5]).collect();
         assert_eq!(f5[0], 1.0);
-        assert_eq!(f5[9], 1.0);
+        assert_eq!(f5[9], 2.0);
         assert_eq!(f5[10], 1.0); // only the spike at 100
         assert_eq!(f5[1..10].iter().sum::<f64>(), 18.0);
         assert_eq!(f5[11], 0.0);
