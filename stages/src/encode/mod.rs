@@ -1,1 +1,190 @@
 //! Spiking encoders: analog taxel signals to spike events (SPEC.md section 2).
+//!
+//! An encoder reads [`Signals`] whose values are the input current of one
+//! neuron per taxel (usually made by the `drive` stage) and gives a
+//! [`SpikeTrain`] of time-sorted `(taxel, t_ms)` events whose `duration_ms` is
+//! the trial's duration.
+//!
+//! | type | neuron |
+//! |---|---|
+//! | `izhikevich` | Izhikevich 2003 (paper eqs. 1-3), presets `fa_i`, `regular_spiking`, ... |
+//! | `lif` | leaky integrate-and-fire with a refractory period |
+//!
+//! Shared conventions (this module):
+//!
+//! * The neuron is integrated at its own step `dt_ms`; step `n` covers
+//!   `[n dt, (n+1) dt)` and the simulation runs while `n dt < duration`.
+//! * The input current is sampled at the signal's rate. At step `n` the neuron
+//!   sees `I(n dt)`, by default held from the last sample at or before `n dt`
+//!   (`input = "hold"`: zero-order hold, causal, what a DAQ delivers), or
+//!   linearly interpolated between the two samples around it
+//!   (`input = "linear"`; looks ahead by less than one sample).
+//! * Currents are clamped to `±1e12` before integration: far beyond any value at
+//!   which a neuron already fires on every step, and it keeps every product
+//!   finite (SPEC.md section 6).
+//! * A spike's time is interpolated linearly within the step (or half-step) in
+//!   which the membrane crossed threshold, so spike times are not quantized to
+//!   `dt`. A spike whose time would fall at or after the trial's end (possible
+//!   only when `dt` does not divide the duration) is dropped.
+//! * Encoders run the taxels in blocks of [`LANES`] neurons in lock step so that
+//!   the independent membranes fill the CPU's pipelines (and SIMD lanes); one
+//!   trial runs on one core (trials run in parallel at the graph level).
+
+pub mod izhikevich;
+pub mod lif;
+
+use palpate_core::{Signals, SpikeEvent, StageError};
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
+
+/// Neurons integrated together in lock step.
+pub const LANES: usize = 8;
+
+/// Largest input current magnitude an encoder uses; larger values are clamped.
+pub const MAX_CURRENT: f64 = 1e12;
+
+/// How the input current is sampled at the neuron's step.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, JsonSchema, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum InputMode {
+    /// Zero-order hold: the last sample at or before the step's start (causal).
+    #[default]
+    Hold,
+    /// Linear interpolation between the samples around the step's start.
+    Linear,
+}
+
+/// Per-step input lookup for one trial: sample index and interpolation weight.
+pub struct StepInput {
+    /// Number of neuron steps.
+    pub n_steps: usize,
+    /// Step length, ms.
+    pub dt_ms: f64,
+    /// Trial duration, ms.
+    pub duration_ms: f64,
+    /// `idx[n]`: the sample at or before step `n`'s start.
+    pub idx: Vec<u32>,
+    /// `frac[n]`: weight of sample `idx[n] + 1` (empty for hold).
+    pub frac: Vec<f64>,
+}
+
+impl StepInput {
+    /// Plans the steps for `n_samples` samples at `fs` Hz.
+    pub fn new(n_samples: usize, fs: f64, dt_ms: f64, mode: InputMode) -> Self {
+        let duration_ms = n_samples as f64 * 1000.0 / fs;
+        // Steps while n dt < duration; the 1e-9 guards 1000/0.5-style quotients
+        // that land a hair above an integer.
+        let n_steps = if n_samples == 0 {
+            0
+        } else {
+            (duration_ms / dt_ms - 1e-9).ceil().max(1.0) as usize
+        };
+        let samples_per_step = dt_ms * fs / 1000.0;
+        let last = n_samples.saturating_sub(1);
+        let mut idx = Vec::with_capacity(n_steps);
+        let mut frac = Vec::with_capacity(if mode == InputMode::Linear { n_steps } else { 0 });
+        for n in 0..n_steps {
+            let pos = n as f64 * samples_per_step;
+            let i = ((pos + 1e-9).floor() as usize).min(last);
+            idx.push(i as u32);
+            if mode == InputMode::Linear {
+                frac.push(if i < last {
+                    (pos - i as f64).clamp(0.0, 1.0)
+                } else {
+                    0.0
+                });
+            }
+        }
+        StepInput {
+            n_steps,
+            dt_ms,
+            duration_ms,
+            idx,
+            frac,
+        }
+    }
+
+    /// The current of `xs` at step `n`.
+    #[inline(always)]
+    pub fn at(&self, xs: &[f64], n: usize) -> f64 {
+        let i = self.idx[n] as usize;
+        let x = if self.frac.is_empty() {
+            xs[i]
+        } else {
+            let f = self.frac[n];
+            if f > 0.0 {
+                xs[i] + f * (xs[i + 1] - xs[i])
+            } else {
+                xs[i]
+            }
+        };
+        x.clamp(-MAX_CURRENT, MAX_CURRENT)
+    }
+}
+
+/// The current of every lane at step `n`, clamped to [`MAX_CURRENT`].
+#[inline(always)]
+pub fn lane_inputs(plan: &StepInput, lanes: &[&[f64]; LANES], n: usize) -> [f64; LANES] {
+    let mut out = [0.0; LANES];
+    let i = plan.idx[n] as usize;
+    if plan.frac.is_empty() {
+        for l in 0..LANES {
+            out[l] = lanes[l][i];
+        }
+    } else {
+        let f = plan.frac[n];
+        let j = if f > 0.0 { i + 1 } else { i };
+        for l in 0..LANES {
+            out[l] = lanes[l][i] + f * (lanes[l][j] - lanes[l][i]);
+        }
+    }
+    for x in &mut out {
+        *x = x.clamp(-MAX_CURRENT, MAX_CURRENT);
+    }
+    out
+}
+
+/// Checks an encoder's input: finite samples, one vector per taxel.
+pub fn check_input(what: &str, s: &Signals) -> Result<(), StageError> {
+    crate::signal::check_signals(what, s)?;
+    if s.layout.len() > u32::MAX as usize {
+        return Err(StageError::new(format!("{what}: too many taxels")));
+    }
+    Ok(())
+}
+
+/// Sorts events by time, then taxel.
+pub fn sort_events(events: &mut [SpikeEvent]) {
+    events.sort_by(|a, b| a.t_ms.total_cmp(&b.t_ms).then(a.taxel.cmp(&b.taxel)));
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn steps_cover_the_trial_and_hold_the_last_sample() {
+        let p = StepInput::new(1000, 1000.0, 0.5, InputMode::Hold);
+        assert_eq!(p.n_steps, 2000);
+        assert_eq!((p.idx[0], p.idx[1], p.idx[2], p.idx[1999]), (0, 0, 1, 999));
+        let p = StepInput::new(1000, 1000.0, 2.0, InputMode::Hold);
+        assert_eq!(p.n_steps, 500);
+        assert_eq!(p.idx[499], 998);
+        // dt that does not divide the duration: one partial step at the end.
+        let p = StepInput::new(10, 1000.0, 3.0, InputMode::Hold);
+        assert_eq!(p.n_steps, 4);
+        assert_eq!(StepInput::new(0, 1000.0, 0.5, InputMode::Hold).n_steps, 0);
+    }
+
+    #[test]
+    fn linear_interpolates_between_samples() {
+        let xs = [0.0, 10.0, 20.0];
+        let p = StepInput::new(3, 1000.0, 0.25, InputMode::Linear);
+        assert_eq!(p.at(&xs, 1), 2.5);
+        assert_eq!(p.at(&xs, 4), 10.0);
+        assert_eq!(p.at(&xs, 11), 20.0); // past the last sample: held
+        let h = StepInput::new(3, 1000.0, 0.25, InputMode::Hold);
+        assert_eq!(h.at(&xs, 3), 0.0);
+        assert_eq!(h.at(&[1e300], 0), MAX_CURRENT);
+    }
+}

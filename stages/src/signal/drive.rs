@@ -1,0 +1,265 @@
+//! `drive`: the input current of the spiking encoder, from a taxel's signal.
+//!
+//! * `fa_i` (fast-adapting, paper eq. 4): `I = G · |dV/dt|`, `dV/dt` per second
+//!   by central differences (see [`super::derivative`]). Responds only while the
+//!   signal changes, as FA-I afferents respond to changing indentation.
+//! * `sa_i` (slowly adapting): `I = G · V`. Responds to sustained pressure.
+//! * `direct`: the input signal is the current, unchanged (no gain), so the
+//!   encoder can be compared with other simulators on identical input.
+//!
+//! The gain `G` is either fixed (`gain`) or set per trial from a target peak
+//! current (`target_peak_current`): `G = target / max_{taxel, t} D(t)` where
+//! `D` is the drive before gain (`|dV/dt|` or `V`). A trial whose drive is 0
+//! everywhere (nothing changes) gives `I = 0`, never NaN.
+//!
+//! Default, when neither key is set: `target_peak_current = 20`. Why: on the
+//! ideal edge crossing (a taxel's normalized signal ramps 1 -> 0 over 1 s at
+//! 2 mm/s) the FA-I current is a 20-unit plateau for that second and 0 before
+//! and after. The FA-I neuron (a = 0.02, b = 0.2, c = -65, d = 2) is silent at
+//! 0 and, at 20, fires tonically at about 120 Hz (Izhikevich scheme, dt =
+//! 0.5 ms; tonic firing needs I > ~3.78, see the encoder's tests), i.e. about
+//! 12 spikes per 100 ms image while the edge crosses the taxel and none
+//! otherwise: a clear count image per frame, as in the paper's Fig. 3(c), with
+//! enough counts per frame for the Pearson correlation of WSS to resolve the
+//! crossing's time course. A per-trial target rather than a
+//! fixed `G` keeps that true at every edge angle: the time a 2 mm taxel takes to
+//! be crossed grows from 1 s at 90° to ~6.6 s at 10°, so the slope, and with a
+//! fixed `G` the current, falls ~7-fold and would drop below the neuron's
+//! rheobase (~3.8) at shallow angles. A fixed `gain` is the biologically
+//! literal choice (faster indentation, more spikes) and is available.
+
+use super::{check_signals, derivative::differentiate, derivative::DiffScheme};
+use palpate_core::{
+    check_positive, register_stage, BuildContext, ConfigError, InputSpec, Item, Map, Payload, PayloadKind,
+    Stage, StageConfig, StageError, TrialContext,
+};
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
+
+/// Default target peak current when neither `gain` nor `target_peak_current` is set.
+pub const DEFAULT_TARGET_PEAK_CURRENT: f64 = 20.0;
+
+/// Which receptor's drive to compute.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, JsonSchema, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum DriveKind {
+    /// Fast adapting: `I = G |dV/dt|` (paper eq. 4).
+    #[default]
+    FaI,
+    /// Slowly adapting: `I = G V`.
+    SaI,
+    /// The input is the current, unchanged.
+    Direct,
+}
+
+/// Input current of the encoder: FA-I G*|dV/dt| (paper eq. 4), SA-I G*V, or the signal itself.
+///
+/// `G` is fixed (`gain`) or set per trial so that the largest current over the
+/// trial's taxels equals `target_peak_current` (default 20 when neither is set).
+/// A trial with no change gives zero current.
+#[derive(Clone, Debug, Default, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields, default)]
+pub struct DriveConfig {
+    /// `fa_i` (G*|dV/dt|, dV/dt per second), `sa_i` (G*V) or `direct` (input unchanged). Default `fa_i`.
+    pub kind: DriveKind,
+    /// Fixed gain G, current units per (signal unit per second) for `fa_i`, per signal unit for `sa_i`. Unset by default.
+    pub gain: Option<f64>,
+    /// Sets G per trial so the trial's largest current equals this, current units.
+    /// Default 20 when `gain` is unset too.
+    pub target_peak_current: Option<f64>,
+}
+
+/// How the gain is chosen.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Gain {
+    Fixed(f64),
+    TargetPeak(f64),
+    None,
+}
+
+#[typetag::serde(name = "drive")]
+impl StageConfig for DriveConfig {
+    fn inputs(&self) -> InputSpec {
+        InputSpec::one(PayloadKind::Signals)
+    }
+    fn output(&self) -> Option<PayloadKind> {
+        Some(PayloadKind::Signals)
+    }
+    fn build(&self, _ctx: &BuildContext) -> Result<Stage, ConfigError> {
+        let gain = match (self.kind, self.gain, self.target_peak_current) {
+            (DriveKind::Direct, Some(_), _) => {
+                return Err(ConfigError::key(
+                    "gain",
+                    "kind `direct` passes the signal unchanged; remove `gain`",
+                ))
+            }
+            (DriveKind::Direct, None, Some(_)) => {
+                return Err(ConfigError::key(
+                    "target_peak_current",
+                    "kind `direct` passes the signal unchanged; remove `target_peak_current`",
+                ))
+            }
+            (DriveKind::Direct, None, None) => Gain::None,
+            (_, Some(_), Some(_)) => {
+                return Err(ConfigError::key(
+                    "gain",
+                    "set either `gain` (fixed) or `target_peak_current` (per trial), not both",
+                ))
+            }
+            (_, Some(g), None) => {
+                if !g.is_finite() || g < 0.0 {
+                    return Err(ConfigError::key(
+                        "gain",
+                        format!("must be a finite number >= 0, got {g}"),
+                    ));
+                }
+                Gain::Fixed(g)
+            }
+            (_, None, t) => Gain::TargetPeak(check_positive(
+                "target_peak_current",
+                t.unwrap_or(DEFAULT_TARGET_PEAK_CURRENT),
+                "current units",
+            )?),
+        };
+        Ok(Stage::Map(Box::new(Drive {
+            kind: self.kind,
+            gain,
+        })))
+    }
+}
+register_stage!("drive", DriveConfig);
+
+/// The runtime `drive` stage.
+pub struct Drive {
+    kind: DriveKind,
+    gain: Gain,
+}
+
+impl Drive {
+    /// Computes the current of every taxel of one trial.
+    fn currents(&self, data: &[Vec<f64>], fs: f64) -> Vec<Vec<f64>> {
+        let mut raw: Vec<Vec<f64>> = match self.kind {
+            DriveKind::Direct => return data.to_vec(),
+            DriveKind::FaI => data
+                .iter()
+                .map(|xs| {
+                    let mut d = differentiate(xs, fs, DiffScheme::Central);
+                    d.iter_mut().for_each(|v| *v = v.abs());
+                    d
+                })
+                .collect(),
+            DriveKind::SaI => data.to_vec(),
+        };
+        let g = match self.gain {
+            Gain::Fixed(g) => g,
+            Gain::TargetPeak(target) => {
+                let peak = raw.iter().flatten().fold(0.0_f64, |m, &v| m.max(v.abs()));
+                // No change anywhere: zero current (not target/0).
+                if peak > 0.0 && peak.is_finite() {
+                    target / peak
+                } else {
+                    0.0
+                }
+            }
+            Gain::None => 1.0,
+        };
+        for v in raw.iter_mut().flatten() {
+            // 0 * anything finite is 0; the product of finite values may still
+            // overflow for an absurd fixed gain, so guard it.
+            let x = *v * g;
+            *v = if x.is_finite() { x } else { f64::MAX.copysign(x) };
+        }
+        raw
+    }
+}
+
+impl Map for Drive {
+    fn process(&self, inputs: &[&Item], _ctx: &TrialContext<'_>) -> Result<Payload, StageError> {
+        let s = inputs[0].payload.signals()?;
+        check_signals("drive", s)?;
+        let unit = match self.kind {
+            DriveKind::Direct => s.unit.clone(),
+            _ => "current".to_string(),
+        };
+        Ok(s.with_data(unit, self.currents(&s.data, s.sample_rate_hz)).into())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::signal::testdata::ramps;
+
+    fn drive(kind: DriveKind, gain: Gain) -> Drive {
+        Drive { kind, gain }
+    }
+
+    #[test]
+    fn fa_i_is_gain_times_abs_slope() {
+        let s = ramps(1000.0, 0.5, 1.0, 0.0, 2.0);
+        let i = drive(DriveKind::FaI, Gain::Fixed(7.0)).currents(&s.data, 1000.0);
+        // Mid-ramp the slope is -1/s, so I = 7; on the holds I = 0.
+        assert!((i[0][1000] - 7.0).abs() < 1e-9);
+        assert_eq!(i[0][100], 0.0);
+        assert_eq!(i[0][1800], 0.0);
+    }
+
+    #[test]
+    fn target_peak_sets_the_largest_current() {
+        let mut s = ramps(1000.0, 0.5, 1.0, 0.0, 2.0);
+        // Taxel 1 ramps twice as fast: it sets the peak.
+        s.data[1] = s.data[1].iter().map(|v| (2.0 * v - 1.0).max(0.0)).collect();
+        let i = drive(DriveKind::FaI, Gain::TargetPeak(20.0)).currents(&s.data, 1000.0);
+        let peak = i.iter().flatten().fold(0.0_f64, |m, &v| m.max(v));
+        assert!((peak - 20.0).abs() < 1e-9);
+        assert!((i[0][1000] - 10.0).abs() < 1e-6, "{}", i[0][1000]);
+        let sa = drive(DriveKind::SaI, Gain::TargetPeak(4.0)).currents(&s.data, 1000.0);
+        assert!((sa[0][0] - 4.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn no_change_gives_zero_current_not_nan() {
+        let data = vec![vec![1.75; 100]; 16];
+        let i = drive(DriveKind::FaI, Gain::TargetPeak(20.0)).currents(&data, 1000.0);
+        assert!(i.iter().flatten().all(|&v| v == 0.0));
+        let zeros = vec![vec![0.0; 100]; 16];
+        let i = drive(DriveKind::SaI, Gain::TargetPeak(20.0)).currents(&zeros, 1000.0);
+        assert!(i.iter().flatten().all(|&v| v == 0.0));
+    }
+
+    #[test]
+    fn direct_is_unchanged() {
+        let data = vec![vec![1.0, -2.0, 3.5]];
+        assert_eq!(drive(DriveKind::Direct, Gain::None).currents(&data, 10.0), data);
+    }
+
+    #[test]
+    fn config_rejects_conflicting_keys() {
+        let ctx = BuildContext {
+            stage_id: "d".into(),
+            seed: 0,
+            out_dir: ".".into(),
+            base_dir: ".".into(),
+        };
+        let both = DriveConfig {
+            gain: Some(1.0),
+            target_peak_current: Some(2.0),
+            ..Default::default()
+        };
+        assert_eq!(both.build(&ctx).err().unwrap().key.as_deref(), Some("gain"));
+        let direct = DriveConfig {
+            kind: DriveKind::Direct,
+            target_peak_current: Some(2.0),
+            ..Default::default()
+        };
+        assert_eq!(
+            direct.build(&ctx).err().unwrap().key.as_deref(),
+            Some("target_peak_current")
+        );
+        let neg = DriveConfig {
+            target_peak_current: Some(-1.0),
+            ..Default::default()
+        };
+        assert!(neg.build(&ctx).is_err());
+    }
+}

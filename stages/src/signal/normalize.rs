@@ -1,0 +1,234 @@
+//! `normalize`: each taxel's signal to `[0, 1]` (paper section 2.4, SPEC.md 2.1).
+//!
+//! Two modes:
+//!
+//! * `trial` (offline, the paper's): `V(t) = (x(t) - min x) / (max x - min x)`
+//!   over the whole trial, so the taxel's lowest value maps to 0 and its highest
+//!   to 1. The piezoresistive output rises as pressure falls, so an edge scene
+//!   gives 0 in contact and 1 off the object.
+//! * `causal` (live data): the rest level `r` is the mean of the first
+//!   `baseline_ms` of the trial and `span` is the expected full-scale change in
+//!   input units (a calibration value: live data cannot know its future
+//!   maximum). `V(t) = clamp(|x(t) - r| / span, 0, 1)`: the deviation from rest,
+//!   whichever way the sensor moves. During the baseline window itself the
+//!   output is 0 (the rest level is not yet known), so the output at `t` depends
+//!   only on samples up to `t`.
+//!
+//! A taxel whose signal never changes (its span `max - min` is at most
+//! `min_span`, or below `1e-12` of its magnitude, where only rounding noise
+//! could live) normalizes to 0 everywhere, never NaN, so it fires nothing
+//! downstream. `min_span` doubles as a noise floor: a taxel that only sees noise
+//! smaller than it stays at 0 rather than having its noise stretched to `[0, 1]`.
+
+use super::check_signals;
+use palpate_core::{
+    check_positive, check_range, register_stage, BuildContext, ConfigError, InputSpec, Item, Map, Payload,
+    PayloadKind, Stage, StageConfig, StageError, TrialContext,
+};
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
+
+/// How the range of each taxel is found.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, JsonSchema, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum NormalizeMode {
+    /// Over the whole trial: min maps to 0, max to 1 (offline, the paper's).
+    #[default]
+    Trial,
+    /// From a baseline window at the start and a known span (live data).
+    Causal,
+}
+
+/// Normalizes each taxel's signal to [0, 1], over the trial or causally from a baseline.
+///
+/// `trial`: `V = (x - min) / (max - min)` per taxel over the whole trial.
+/// `causal`: `V = clamp(|x - r| / span, 0, 1)` with `r` the mean of the first
+/// `baseline_ms` (output 0 during that window). A taxel whose signal never
+/// changes normalizes to 0, never NaN.
+#[derive(Clone, Debug, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields, default)]
+pub struct NormalizeConfig {
+    /// `trial` (whole-trial min..max, offline) or `causal` (baseline + span, live). Default `trial`.
+    pub mode: NormalizeMode,
+    /// Causal mode: length of the baseline window at the start of the trial, ms. Default 500.
+    pub baseline_ms: f64,
+    /// Causal mode: expected full-scale change of the signal from rest, in input
+    /// units (e.g. V); required in causal mode.
+    pub span: Option<f64>,
+    /// Noise floor, input units: a taxel whose change never exceeds it normalizes to 0. Default 0.
+    pub min_span: f64,
+}
+
+impl Default for NormalizeConfig {
+    fn default() -> Self {
+        NormalizeConfig {
+            mode: NormalizeMode::Trial,
+            baseline_ms: 500.0,
+            span: None,
+            min_span: 0.0,
+        }
+    }
+}
+
+#[typetag::serde(name = "normalize")]
+impl StageConfig for NormalizeConfig {
+    fn inputs(&self) -> InputSpec {
+        InputSpec::one(PayloadKind::Signals)
+    }
+    fn output(&self) -> Option<PayloadKind> {
+        Some(PayloadKind::Signals)
+    }
+    fn build(&self, _ctx: &BuildContext) -> Result<Stage, ConfigError> {
+        check_range("min_span", self.min_span, 0.0, f64::MAX, "input units")?;
+        let span = match self.mode {
+            NormalizeMode::Trial => 0.0,
+            NormalizeMode::Causal => {
+                check_positive("baseline_ms", self.baseline_ms, "ms")?;
+                match self.span {
+                    Some(s) => check_positive("span", s, "input units")?,
+                    None => {
+                        return Err(ConfigError::key(
+                            "span",
+                            "causal mode needs the expected full-scale change of the signal \
+                             (input units, from calibration); live data cannot know its maximum",
+                        ))
+                    }
+                }
+            }
+        };
+        Ok(Stage::Map(Box::new(Normalizer {
+            mode: self.mode,
+            baseline_ms: self.baseline_ms,
+            span,
+            min_span: self.min_span,
+        })))
+    }
+}
+register_stage!("normalize", NormalizeConfig);
+
+/// The runtime `normalize` stage.
+pub struct Normalizer {
+    mode: NormalizeMode,
+    baseline_ms: f64,
+    span: f64,
+    min_span: f64,
+}
+
+/// True when a range `[lo, hi]` holds no real change: at most `min_span`, or
+/// within rounding of the values' magnitude.
+fn is_flat(lo: f64, hi: f64, min_span: f64) -> bool {
+    let d = hi - lo;
+    !(d > min_span && d > 1e-12 * lo.abs().max(hi.abs()))
+}
+
+/// Normalizes one taxel over the whole trial: min -> 0, max -> 1; flat -> 0.
+pub fn normalize_trial(xs: &[f64], min_span: f64) -> Vec<f64> {
+    let (lo, hi) = xs
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &x| {
+            (lo.min(x), hi.max(x))
+        });
+    if xs.is_empty() || is_flat(lo, hi, min_span) {
+        return vec![0.0; xs.len()];
+    }
+    let inv = 1.0 / (hi - lo);
+    xs.iter().map(|&x| ((x - lo) * inv).clamp(0.0, 1.0)).collect()
+}
+
+/// Normalizes one taxel causally: deviation from the mean of the first
+/// `n_baseline` samples, over `span`, clamped to [0, 1]; 0 during the baseline.
+pub fn normalize_causal(xs: &[f64], n_baseline: usize, span: f64, min_span: f64) -> Vec<f64> {
+    let nb = n_baseline.clamp(1, xs.len().max(1)).min(xs.len());
+    if nb == 0 {
+        return Vec::new();
+    }
+    let rest = xs[..nb].iter().sum::<f64>() / nb as f64;
+    let mut out = vec![0.0; xs.len()];
+    for (o, &x) in out.iter_mut().zip(xs).skip(nb) {
+        let dev = (x - rest).abs();
+        if dev > min_span {
+            *o = (dev / span).clamp(0.0, 1.0);
+        }
+    }
+    out
+}
+
+impl Map for Normalizer {
+    fn process(&self, inputs: &[&Item], _ctx: &TrialContext<'_>) -> Result<Payload, StageError> {
+        let s = inputs[0].payload.signals()?;
+        check_signals("normalize", s)?;
+        let data = match self.mode {
+            NormalizeMode::Trial => s
+                .data
+                .iter()
+                .map(|xs| normalize_trial(xs, self.min_span))
+                .collect(),
+            NormalizeMode::Causal => {
+                let nb = (self.baseline_ms * s.sample_rate_hz / 1000.0).round() as usize;
+                if nb >= s.n_samples() && s.n_samples() > 0 {
+                    return Err(StageError::new(format!(
+                        "normalize: key `baseline_ms` = {} ms covers the whole trial ({:.1} ms)",
+                        self.baseline_ms,
+                        s.duration_ms()
+                    )));
+                }
+                s.data
+                    .iter()
+                    .map(|xs| normalize_causal(xs, nb, self.span, self.min_span))
+                    .collect()
+            }
+        };
+        Ok(s.with_data("normalized", data).into())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    #[test]
+    fn trial_mode_maps_min_to_0_and_max_to_1() {
+        let v = normalize_trial(&[1.75, 2.0, 2.5, 1.75], 0.0);
+        assert_eq!(v, vec![0.0, 1.0 / 3.0, 1.0, 0.0]);
+    }
+
+    #[test]
+    fn flat_taxel_is_zero_not_nan() {
+        assert_eq!(normalize_trial(&[1.75; 10], 0.0), vec![0.0; 10]);
+        // Rounding-level wobble on a large value is still flat.
+        let wobble: Vec<f64> = (0..10).map(|i| 1.75 + (i % 2) as f64 * 1e-15).collect();
+        assert_eq!(normalize_trial(&wobble, 0.0), vec![0.0; 10]);
+        // Noise below the floor stays 0; above it, it is stretched.
+        let noisy: Vec<f64> = (0..10).map(|i| 1.0 + (i % 2) as f64 * 1e-3).collect();
+        assert_eq!(normalize_trial(&noisy, 1e-2), vec![0.0; 10]);
+        assert_eq!(normalize_trial(&noisy, 0.0)[1], 1.0);
+        assert!(normalize_trial(&[], 0.0).is_empty());
+    }
+
+    #[test]
+    fn causal_mode_uses_only_the_past() {
+        let xs: Vec<f64> = (0..100)
+            .map(|i| if i < 50 { 2.0 } else { 2.0 - (i - 50) as f64 * 0.01 })
+            .collect();
+        let v = normalize_causal(&xs, 20, 0.25, 0.0);
+        assert!(v[..50].iter().all(|&x| x == 0.0));
+        assert!((v[75] - 0.25 / 0.25).abs() < 1e-12);
+        assert_eq!(v[99], 1.0); // clamped
+                                // Causality: changing the future never changes the past.
+        let mut ys = xs.clone();
+        ys[80] = 100.0;
+        let w = normalize_causal(&ys, 20, 0.25, 0.0);
+        assert_eq!(v[..80], w[..80]);
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(64))]
+        #[test]
+        fn always_in_unit_interval(xs in proptest::collection::vec(-1e12f64..1e12, 0..64), floor in 0.0f64..1.0) {
+            for v in normalize_trial(&xs, floor).into_iter().chain(normalize_causal(&xs, 5, 3.0, floor)) {
+                prop_assert!((0.0..=1.0).contains(&v));
+            }
+        }
+    }
+}
