@@ -148,10 +148,28 @@ pub struct Profile {
 }
 
 impl Profile {
-    /// True when the profile is a sum of unblurred steps, evaluated exactly and
-    /// cheaply, without a table.
-    pub fn is_exact_steps(&self) -> bool {
-        self.sigma == 0.0 && self.terms.iter().all(|t| matches!(t, Term::Step { .. }))
+    /// Splits the profile into a part evaluated exactly (the base and, when
+    /// unblurred, the steps) and a smooth part to tabulate (`None` if empty).
+    pub fn split(&self) -> (Profile, Option<Profile>) {
+        let (exact, smooth): (Vec<Term>, Vec<Term>) = self
+            .terms
+            .iter()
+            .partition(|t| self.sigma == 0.0 && matches!(t, Term::Step { .. }));
+        let smooth = (!smooth.is_empty()).then_some(Profile {
+            base: 0.0,
+            terms: smooth,
+            sigma: self.sigma,
+            shape: self.shape,
+        });
+        (
+            Profile {
+                base: self.base,
+                terms: exact,
+                sigma: self.sigma,
+                shape: self.shape,
+            },
+            smooth,
+        )
     }
 
     /// The taxel's average pressure when the edge's offset exceeds the taxel's
@@ -245,11 +263,13 @@ pub struct Table {
     slopes: Vec<f64>,
     left: f64,
     right: f64,
+    /// Index of the last grid point, as f64.
+    last: f64,
 }
 
 impl Table {
-    /// Tabulates a smooth profile (`sigma > 0` or only bumps). Internal
-    /// invariant: not for [`Profile::is_exact_steps`] profiles.
+    /// Tabulates a smooth profile: every step blurred (`sigma > 0`) or only
+    /// bumps (see [`Profile::split`]). Internal invariant: no unblurred step.
     pub fn new(profile: &Profile) -> Table {
         let (lo, hi) = profile.support();
         let du = profile.finest_scale() / TABLE_POINTS_PER_SCALE;
@@ -262,6 +282,7 @@ impl Table {
             du,
             left: profile.value(lo - 1.0),
             right: profile.value(hi + 1.0),
+            last: (n - 1) as f64,
             values,
             slopes,
         }
@@ -279,10 +300,10 @@ impl Table {
         if x.is_nan() || x < 0.0 {
             return self.left;
         }
-        let i = x as usize;
-        if i + 1 >= self.values.len() {
+        if x >= self.last {
             return self.right;
         }
+        let i = x as usize;
         let t = x - i as f64;
         let (p0, p1, m0, m1) = (
             self.values[i],

@@ -42,6 +42,9 @@ pub mod field;
 pub mod sim;
 pub mod special;
 
+#[cfg(test)]
+mod tests;
+
 pub use config::{SceneConfig, StimulusKind};
 pub use sim::Simulator;
 

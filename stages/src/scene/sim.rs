@@ -246,7 +246,10 @@ impl Simulator {
         let n_taxels = centres.len();
         let shape = TaxelShape::new(&actual, sc.layout.taxel_mm());
         let profile = self.profile(shape);
-        let table = (!profile.is_exact_steps()).then(|| Table::new(&profile));
+        // Unblurred steps are evaluated exactly (the ideal path); smooth terms
+        // through a table of exact values and slopes (error bound in `field`).
+        let (exact, smooth) = profile.split();
+        let table = smooth.as_ref().map(Table::new);
         let force = draw.force;
         let offset_at = |k: usize| {
             let t = k as f64 / fs;
@@ -276,15 +279,21 @@ impl Simulator {
             }
             let block = &mut buf[..n_taxels * len];
             for (row, &c) in block.chunks_exact_mut(len).zip(&centres) {
-                match &table {
-                    Some(t) => {
+                match (&table, exact.terms.is_empty()) {
+                    (Some(t), true) => {
+                        let base = exact.base;
                         for (x, &s) in row.iter_mut().zip(&s_buf[..len]) {
-                            *x = force * t.eval(s - c);
+                            *x = force * (base + t.eval(s - c));
                         }
                     }
-                    None => {
+                    (Some(t), false) => {
                         for (x, &s) in row.iter_mut().zip(&s_buf[..len]) {
-                            *x = force * profile.value(s - c);
+                            *x = force * (exact.value(s - c) + t.eval(s - c));
+                        }
+                    }
+                    (None, _) => {
+                        for (x, &s) in row.iter_mut().zip(&s_buf[..len]) {
+                            *x = force * exact.value(s - c);
                         }
                     }
                 }
