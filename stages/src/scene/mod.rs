@@ -1,1 +1,290 @@
-//! Simulated scenes: an edge or ridge crossing a taxel array (SPEC.md sections 1 and 8).
+//! Simulated scenes: an edge or a ridge crossing a taxel array (SPEC.md
+//! sections 1 and 8). No recordings of the paper's sensor are public, so most
+//! experiments draw their data from here; the simulator is exact where it can
+//! be, and says what it models where it cannot.
+//!
+//! # What is simulated
+//!
+//! * **Geometry** ([`sim`]): core's edge convention; the array rests on the
+//!   object, slides `+x` at constant speed until the stimulus is fully past, and
+//!   rests again. Trials are listed angle by angle, `trials_per_angle` each:
+//!   trial id `edge-45deg-r03`, label `{stimulus, angle}`, group = repetition
+//!   (0-based; the cross-validation key), `crossing_ms` = when the stimulus
+//!   touches some taxel, from the geometry.
+//! * **Ideal response** ([`field`]): each taxel reports the contact pressure
+//!   averaged over its square area, in closed form (never a point sample at the
+//!   centre). For an edge that is the contact fraction in `[0, 1]`; for a ridge,
+//!   `1` (the flat surface) plus the bar's extra pressure `height / indent`
+//!   times the fraction of the taxel over it. Unit "pressure".
+//! * **Effects** ([`effects`]): skin spreading, stress concentration,
+//!   piezoresistive read-out, gain/offset mismatch, row/column crosstalk,
+//!   viscoelastic creep, white noise, mains hum, ADC quantization, trial
+//!   variation and dead taxels — each a separate component, constructed and
+//!   computed only when a scene lists it, applied in the listed order.
+//!
+//! # Reproducibility
+//!
+//! A trial is a pure function of (scene, graph seed, stage id, trial id): per
+//! trial draws come from `ctx.seed`, the array's fixed properties from
+//! `derive_seed(graph seed, [stage id, "array"])`. Same seed, same bits, on any
+//! number of threads.
+//!
+//! # Scene files
+//!
+//! `file = "scenes/lab.toml"` takes a scene's keys as defaults (see
+//! [`config`]); `graphs/scenes/ideal.toml` and `graphs/scenes/lab.toml` are the
+//! shipped scenes. [`simulate_to_dir`] writes a scene's trials as NPY and CSV
+//! files with a plot, for `palpate simulate`.
+
+pub mod config;
+pub mod effects;
+pub mod field;
+pub mod sim;
+pub mod special;
+
+#[cfg(test)]
+mod tests;
+
+pub use config::{SceneConfig, StimulusKind};
+pub use sim::Simulator;
+
+use palpate_core::output::write_atomic;
+use palpate_core::{
+    derive_seed, register_stage, BuildContext, ConfigError, InputSpec, Label, Payload, PayloadKind, Signals,
+    Source, Stage, StageConfig, StageError, Stimulus, TrialContext, TrialMeta,
+};
+use rayon::prelude::*;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+#[typetag::serde(name = "scene")]
+impl StageConfig for SceneConfig {
+    fn inputs(&self) -> InputSpec {
+        InputSpec::none()
+    }
+    fn output(&self) -> Option<PayloadKind> {
+        Some(PayloadKind::Signals)
+    }
+    fn build(&self, ctx: &BuildContext) -> Result<Stage, ConfigError> {
+        let scene = self.resolve(ctx)?;
+        let array_seed = derive_seed(ctx.seed, &[&ctx.stage_id, "array"]);
+        let sim = Simulator::new(scene, array_seed)?;
+        Ok(Stage::Source(Box::new(SceneSource { sim: Arc::new(sim) })))
+    }
+}
+register_stage!("scene", SceneConfig);
+
+/// The runtime `scene` source.
+pub struct SceneSource {
+    sim: Arc<Simulator>,
+}
+
+impl SceneSource {
+    /// The simulator behind the source.
+    pub fn simulator(&self) -> &Simulator {
+        &self.sim
+    }
+}
+
+/// The trial id of repetition `rep` at `angle`: `edge-45deg-r03`.
+pub fn trial_id(stimulus: StimulusKind, angle: f64, rep: usize) -> String {
+    let s = match stimulus {
+        StimulusKind::Edge => "edge",
+        StimulusKind::Ridge => "ridge",
+    };
+    format!("{s}-{}deg-r{rep:02}", config::angle_id(angle))
+}
+
+impl Source for SceneSource {
+    fn trials(&self) -> Result<Vec<TrialMeta>, StageError> {
+        let sc = &self.sim.scene;
+        let mut out = Vec::with_capacity(sc.angles.len() * sc.trials_per_angle);
+        for &angle in &sc.angles {
+            let plan = self.sim.plan(angle)?;
+            let crossing = self.sim.crossing_ms(&plan);
+            for rep in 0..sc.trials_per_angle {
+                out.push(TrialMeta {
+                    trial_id: trial_id(sc.stimulus, angle, rep),
+                    index: out.len(),
+                    label: Label {
+                        stimulus: match sc.stimulus {
+                            StimulusKind::Edge => Stimulus::Edge,
+                            StimulusKind::Ridge => Stimulus::Ridge,
+                        },
+                        angle_deg: Some(angle),
+                    },
+                    group: rep,
+                    crossing_ms: Some(crossing),
+                    provenance: Vec::new(),
+                });
+            }
+        }
+        Ok(out)
+    }
+
+    fn produce(&self, ctx: &TrialContext<'_>) -> Result<Payload, StageError> {
+        let angle = ctx.meta.label.angle_deg.ok_or_else(|| {
+            StageError::new(format!(
+                "trial `{}` has no angle: not a trial of this scene",
+                ctx.meta.trial_id
+            ))
+        })?;
+        Ok(self.sim.simulate(angle, ctx.seed)?.into())
+    }
+}
+
+/// Simulates every trial of a scene file and writes, into `out` (created):
+///
+/// * `<trial_id>.npy`: float64, shape `[taxels, samples]`, C order;
+/// * `<trial_id>.csv`: header `time_ms,<taxel names>`, one row per sample
+///   (taxel names `r0c0`... for a grid, `t0`... otherwise);
+/// * `trials.json`: every trial's metadata, sample rate, unit and layout;
+/// * `<first trial>-<taxel>.svg`: one taxel's signal over the first trial, like
+///   the paper's Fig. 3(a) (taxel `r1c1` of a grid: an inner taxel; else taxel 0).
+///
+/// Trials are exactly those a graph with a `scene` stage of id `"scene"`,
+/// `file = <scene_file>` and `[run] seed = <seed>` produces. Returns the paths
+/// written, in that order (per trial NPY then CSV, then the JSON and the plot).
+pub fn simulate_to_dir(scene_file: &Path, out: &Path, seed: u64) -> Result<Vec<PathBuf>, StageError> {
+    let config = SceneConfig {
+        file: Some(scene_file.to_path_buf()),
+        ..SceneConfig::default()
+    };
+    let ctx = BuildContext {
+        stage_id: "scene".into(),
+        seed,
+        out_dir: out.to_path_buf(),
+        base_dir: PathBuf::from("."),
+    };
+    let scene = config.resolve(&ctx).map_err(|e| StageError::new(e.message))?;
+    let sim = Simulator::new(scene, derive_seed(seed, &["scene", "array"]))
+        .map_err(|e| StageError::new(format!("scene file {}: {e}", scene_file.display())))?;
+    let source = SceneSource { sim: Arc::new(sim) };
+    let metas = source.trials()?;
+    std::fs::create_dir_all(out).map_err(|e| StageError::new(format!("creating {}: {e}", out.display())))?;
+    let names = taxel_names(&source.sim.scene.layout);
+    let written: Vec<Vec<PathBuf>> = metas
+        .par_iter()
+        .map(|meta| {
+            let ctx = TrialContext {
+                stage_id: "scene",
+                meta,
+                seed: derive_seed(seed, &["scene", &meta.trial_id]),
+            };
+            let payload = source.produce(&ctx)?;
+            let sig = payload.signals()?;
+            let npy = out.join(format!("{}.npy", meta.trial_id));
+            write_file(&npy, &npy_bytes(sig)?)?;
+            let csv = out.join(format!("{}.csv", meta.trial_id));
+            write_file(&csv, csv_text(sig, &names).as_bytes())?;
+            Ok(vec![npy, csv])
+        })
+        .collect::<Result<_, StageError>>()?;
+    let mut files: Vec<PathBuf> = written.into_iter().flatten().collect();
+
+    let sc = &source.sim.scene;
+    let json = serde_json::json!({
+        "scene_file": scene_file.display().to_string(),
+        "seed": seed,
+        "sample_rate_hz": sc.motion.sample_rate_hz,
+        "unit": source.sim.unit,
+        "layout": sc.layout,
+        "taxels": names,
+        "trials": metas,
+    });
+    let path = out.join("trials.json");
+    let text = serde_json::to_vec_pretty(&json).map_err(|e| StageError::new(e.to_string()))?;
+    write_file(&path, &text)?;
+    files.push(path);
+
+    if let Some(meta) = metas.first() {
+        let ctx = TrialContext {
+            stage_id: "scene",
+            meta,
+            seed: derive_seed(seed, &["scene", &meta.trial_id]),
+        };
+        let payload = source.produce(&ctx)?;
+        let sig = payload.signals()?;
+        let taxel = if sc.layout.grid().is_some_and(|(r, c)| r > 1 && c > 1) {
+            sc.layout.grid().map_or(0, |(_, c)| c + 1)
+        } else {
+            0
+        };
+        let dt = 1000.0 / sig.sample_rate_hz;
+        let points = sig.data[taxel]
+            .iter()
+            .enumerate()
+            .map(|(k, &v)| (k as f64 * dt / 1000.0, v))
+            .collect();
+        let path = out.join(format!("{}-{}.svg", meta.trial_id, names[taxel]));
+        crate::plot::line_chart(
+            &path,
+            &format!("{}: taxel {}", meta.trial_id, names[taxel]),
+            "time (s)",
+            &format!("taxel output ({})", sig.unit),
+            &[crate::plot::Series {
+                name: &names[taxel],
+                points,
+            }],
+        )
+        .map_err(|e| StageError::new(format!("writing {}: {e}", path.display())))?;
+        files.push(path);
+    }
+    Ok(files)
+}
+
+fn write_file(path: &Path, bytes: &[u8]) -> Result<(), StageError> {
+    write_atomic(path, bytes).map_err(|e| StageError::new(format!("writing {}: {e}", path.display())))
+}
+
+/// Column names of the taxels: `r0c0`, `r0c1`, ... for a grid, `t0`, ... otherwise.
+pub fn taxel_names(layout: &palpate_core::TaxelLayout) -> Vec<String> {
+    (0..layout.len())
+        .map(|i| match layout.row_col(i) {
+            Some((r, c)) => format!("r{r}c{c}"),
+            None => format!("t{i}"),
+        })
+        .collect()
+}
+
+/// The signals as an NPY file: float64, shape `[taxels, samples]`.
+pub fn npy_bytes(sig: &Signals) -> Result<Vec<u8>, StageError> {
+    use npyz::WriterBuilder;
+    let err = |e: std::io::Error| StageError::new(format!("encoding NPY: {e}"));
+    let mut cursor = std::io::Cursor::new(Vec::new());
+    {
+        let mut w = npyz::WriteOptions::<f64>::new()
+            .default_dtype()
+            .shape(&[sig.data.len() as u64, sig.n_samples() as u64])
+            .writer(&mut cursor)
+            .begin_nd()
+            .map_err(err)?;
+        for row in &sig.data {
+            w.extend(row.iter().copied()).map_err(err)?;
+        }
+        w.finish().map_err(err)?;
+    }
+    Ok(cursor.into_inner())
+}
+
+/// The signals as CSV: `time_ms` then one column per taxel, values printed in
+/// Rust's shortest round-trip form.
+pub fn csv_text(sig: &Signals, names: &[String]) -> String {
+    use std::fmt::Write as _;
+    let n = sig.n_samples();
+    let mut s = String::with_capacity(n * (sig.data.len() + 1) * 12);
+    s.push_str("time_ms");
+    for name in names {
+        s.push(',');
+        s.push_str(name);
+    }
+    s.push('\n');
+    for k in 0..n {
+        let _ = write!(s, "{}", k as f64 * 1000.0 / sig.sample_rate_hz);
+        for row in &sig.data {
+            let _ = write!(s, ",{}", row[k]);
+        }
+        s.push('\n');
+    }
+    s
+}

@@ -1,0 +1,494 @@
+//! The `scene` stage's keys, scene files, and their resolution into a checked
+//! [`Scene`].
+//!
+//! Every key is optional in the config struct so that a scene file's keys can act
+//! as defaults that inline keys override *key by key*: a graph may say
+//! `file = "scenes/lab.toml"` and `motion = { speed_mm_s = 4 }` and keep the
+//! file's holds and sample rate. Tables merge recursively; lists (`angles` as a
+//! list, `effects`, `layout.positions_mm`) are replaced as a whole. Keys given
+//! nowhere take the paper's values, stated in each key's doc comment.
+
+use super::effects::EffectConfig;
+use palpate_core::{check_positive, check_range, BuildContext, ConfigError, TaxelLayout};
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+
+/// Largest number of samples (taxels x samples) one trial may hold: 10^8
+/// values, 800 MB of f64. An angle so close to 0 or 180 degrees that the edge
+/// would take longer than this to cross is a config error, not an allocation
+/// failure.
+pub const MAX_TRIAL_VALUES: f64 = 1e8;
+
+/// A simulated scene: a straight edge (or a ridge) at each listed angle crossing
+/// a taxel array that slides over it, with optional physical effects.
+///
+/// The array is held on the object for `motion.hold_before_s`, slides `+x` at
+/// `motion.speed_mm_s` until the stimulus is fully past (a margin beyond the
+/// array's footprint), and holds for `motion.hold_after_s`. Each taxel reports
+/// the contact pressure averaged exactly over its square area (unit
+/// "pressure": 1 = full contact with a flat surface); the listed `effects` then
+/// turn that ideal response into a plausible sensor signal. With no effects the
+/// output is exactly the ideal contact fraction. See the module docs of
+/// `palpate_stages::scene` for the geometry and every effect's physics.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields, default)]
+pub struct SceneConfig {
+    /// Path of a scene TOML file (e.g. "scenes/lab.toml") whose keys are the
+    /// defaults of this stage; keys given inline override it, tables key by key.
+    /// Relative to the graph file's directory. Default: none.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub file: Option<PathBuf>,
+    /// What the array crosses: "edge" (an object's boundary; the array starts on
+    /// the object and slides off it) or "ridge" (a raised bar on a flat surface).
+    /// Default "edge".
+    #[serde(skip_serializing_if = "Option::is_none")]
+    #[schemars(extend("default" = "edge"))]
+    pub stimulus: Option<StimulusKind>,
+    /// The ridge's shape (used when `stimulus = "ridge"`): `width_mm` (default 2),
+    /// `height_mm` (default 2), `indent_mm` (default 1).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    #[schemars(extend("default" = {"width_mm": 2.0, "height_mm": 2.0, "indent_mm": 1.0}))]
+    pub ridge: Option<RidgeKeys>,
+    /// Edge orientations, degrees from the array's horizontal axis, each in
+    /// (0, 180): a list (`[30, 45]`) or a range (`{ start = 10, stop = 90, step = 5 }`,
+    /// stop included). Default: the paper's 17 classes, 10 to 90 by 5.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    #[schemars(extend("default" = {"start": 10.0, "stop": 90.0, "step": 5.0}))]
+    pub angles: Option<Angles>,
+    /// Repetitions of every angle (the cross-validation groups). Default 10.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    #[schemars(extend("default" = 10))]
+    pub trials_per_angle: Option<usize>,
+    /// A regular grid of square taxels: `rows` (default 4), `cols` (default 4),
+    /// `pitch_mm` centre to centre (default 3), `taxel_mm` side (default 2): the
+    /// paper's 13 x 13 mm array. Ignored when `layout` is given.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    #[schemars(extend("default" = {"rows": 4, "cols": 4, "pitch_mm": 3.0, "taxel_mm": 2.0}))]
+    pub array: Option<ArrayKeys>,
+    /// An explicit layout instead of a grid: `positions_mm` (taxel centres
+    /// `[x, y]`, mm, origin at the array centre, x along the sliding direction)
+    /// and `taxel_mm` (side of each square taxel, default 2). Default: none.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub layout: Option<LayoutKeys>,
+    /// The palpation: `speed_mm_s` (default 2), `hold_before_s` (default 2),
+    /// `hold_after_s` (default 2), `sample_rate_hz` (default 1000), `margin_mm`
+    /// (how far beyond the array's footprint the stimulus starts and ends,
+    /// default 1; the spatial reach of the listed effects is added to it).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    #[schemars(extend("default" = {"speed_mm_s": 2.0, "hold_before_s": 2.0, "hold_after_s": 2.0, "sample_rate_hz": 1000.0, "margin_mm": 1.0}))]
+    pub motion: Option<MotionKeys>,
+    /// Physical effects, applied in the listed order, each a table with a `kind`
+    /// (`variation`, `skin`, `stress`, `creep`, `piezo`, `mismatch`, `crosstalk`,
+    /// `noise`, `hum`, `adc`, `dead`) and its own keys. Effects not listed are
+    /// never simulated. Default: none (the ideal response).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    #[schemars(extend("default" = []))]
+    pub effects: Option<Vec<EffectConfig>>,
+}
+
+/// The kind of stimulus a scene presents.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum StimulusKind {
+    /// The boundary edge of a flat object: contact on one side, none on the other.
+    #[default]
+    Edge,
+    /// A raised bar on a flat surface (paper section 3.6).
+    Ridge,
+}
+
+/// A ridge's shape.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields, default)]
+pub struct RidgeKeys {
+    /// Width of the bar across its length, mm. Default 2 (the paper's ridges).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub width_mm: Option<f64>,
+    /// Height of the bar above the surface, mm. Default 2 (the paper's ridges).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub height_mm: Option<f64>,
+    /// How deep the skin is pressed into the flat surface, mm. With the skin as a
+    /// Winkler bed (pressure proportional to indentation), the bar's top carries
+    /// `(indent + height) / indent` times the flat's pressure. Default 1.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub indent_mm: Option<f64>,
+}
+
+/// Angles as a list or a range.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(untagged)]
+pub enum Angles {
+    /// Explicit angles, degrees.
+    List(Vec<f64>),
+    /// `start`, `start + step`, ... up to and including `stop`, degrees.
+    Range(AngleRange),
+}
+
+/// A range of angles.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields, default)]
+pub struct AngleRange {
+    /// First angle, degrees. Default 10.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub start: Option<f64>,
+    /// Last angle (included when the steps land on it), degrees. Default 90.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub stop: Option<f64>,
+    /// Step, degrees. Default 5.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub step: Option<f64>,
+}
+
+/// A regular grid array.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields, default)]
+pub struct ArrayKeys {
+    /// Rows of taxels (along y). Default 4.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub rows: Option<usize>,
+    /// Columns of taxels (along x, the sliding direction). Default 4.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub cols: Option<usize>,
+    /// Centre-to-centre spacing, mm. Default 3 (2 mm traces, 1 mm gaps).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub pitch_mm: Option<f64>,
+    /// Side of a square taxel, mm. Default 2.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub taxel_mm: Option<f64>,
+}
+
+/// An explicit layout.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields, default)]
+pub struct LayoutKeys {
+    /// Taxel centres `[x, y]`, mm. Required when `layout` is given.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub positions_mm: Option<Vec<[f64; 2]>>,
+    /// Side of each square taxel, mm. Default 2.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub taxel_mm: Option<f64>,
+}
+
+/// The palpation's motion and sampling.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields, default)]
+pub struct MotionKeys {
+    /// Sliding speed along +x, mm/s. Default 2.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub speed_mm_s: Option<f64>,
+    /// Time held still on the object before sliding, s. Default 2.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub hold_before_s: Option<f64>,
+    /// Time held still after sliding, s. Default 2.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub hold_after_s: Option<f64>,
+    /// Samples per second of every taxel, Hz. Default 1000.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub sample_rate_hz: Option<f64>,
+    /// Distance between the array's footprint and the stimulus at the start and
+    /// at the end of the slide, mm, before the effects' reach is added. Default 1.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub margin_mm: Option<f64>,
+}
+
+/// The palpation, resolved.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Motion {
+    /// mm/s.
+    pub speed_mm_s: f64,
+    /// s.
+    pub hold_before_s: f64,
+    /// s.
+    pub hold_after_s: f64,
+    /// Hz.
+    pub sample_rate_hz: f64,
+    /// mm.
+    pub margin_mm: f64,
+}
+
+/// A ridge, resolved.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Ridge {
+    /// mm.
+    pub width_mm: f64,
+    /// mm.
+    pub height_mm: f64,
+    /// mm.
+    pub indent_mm: f64,
+}
+
+impl Ridge {
+    /// Extra pressure on the bar's top relative to the flat (Winkler bed).
+    pub fn extra_pressure(&self) -> f64 {
+        self.height_mm / self.indent_mm
+    }
+}
+
+/// A checked scene: every key resolved.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Scene {
+    /// Edge or ridge.
+    pub stimulus: StimulusKind,
+    /// The ridge's shape (unused for edges).
+    pub ridge: Ridge,
+    /// Angles, degrees, in order.
+    pub angles: Vec<f64>,
+    /// Repetitions per angle.
+    pub trials_per_angle: usize,
+    /// The array.
+    pub layout: TaxelLayout,
+    /// The palpation.
+    pub motion: Motion,
+    /// Effects, in order.
+    pub effects: Vec<EffectConfig>,
+}
+
+/// Deep-merges `over` into `base`: tables merge key by key, anything else in
+/// `over` replaces `base`.
+fn merge_json(base: &mut serde_json::Value, over: serde_json::Value) {
+    match (base, over) {
+        (serde_json::Value::Object(b), serde_json::Value::Object(o)) => {
+            for (k, v) in o {
+                match b.get_mut(&k) {
+                    Some(slot) => merge_json(slot, v),
+                    None => {
+                        b.insert(k, v);
+                    }
+                }
+            }
+        }
+        (slot, v) => *slot = v,
+    }
+}
+
+impl SceneConfig {
+    /// Reads a scene file: the same keys as the stage, without `type`, `inputs`
+    /// or `file`. Errors name the file and the offending key.
+    pub fn from_file(path: &Path) -> Result<SceneConfig, ConfigError> {
+        let text = std::fs::read_to_string(path).map_err(|e| {
+            ConfigError::key("file", format!("cannot read scene file {}: {e}", path.display()))
+        })?;
+        Self::from_toml_str(&text, path)
+    }
+
+    /// Parses scene-file text; `path` names it in errors.
+    pub fn from_toml_str(text: &str, path: &Path) -> Result<SceneConfig, ConfigError> {
+        let cfg: SceneConfig = toml::from_str(text).map_err(|e| {
+            let msg = e.message().trim().to_string();
+            // serde names an unknown key in the message; a mistyped value's key is
+            // the text at the start of the offending line.
+            let line_no = e
+                .span()
+                .map(|s| text[..s.start.min(text.len())].lines().count().max(1));
+            let line_text = e
+                .span()
+                .and_then(|s| {
+                    text[..s.start.min(text.len())]
+                        .rsplit('\n')
+                        .next()
+                        .map(|h| (h, s))
+                })
+                .map(|(head, s)| {
+                    format!(
+                        "{head}{}",
+                        text[s.start.min(text.len())..].lines().next().unwrap_or("")
+                    )
+                })
+                .map(|l| l.trim().to_string())
+                .unwrap_or_default();
+            let key = if msg.starts_with("unknown field") {
+                msg.split('`').nth(1).map(str::to_string)
+            } else {
+                line_text
+                    .split('=')
+                    .next()
+                    .map(|k| k.trim().trim_matches(['[', ']', '{', ' ']).to_string())
+                    .filter(|k| !k.is_empty() && !k.contains(' '))
+            };
+            ConfigError::key(
+                "file",
+                format!(
+                    "scene file {}{}: {}{msg}{}",
+                    path.display(),
+                    line_no.map(|l| format!(", line {l}")).unwrap_or_default(),
+                    key.map(|k| format!("key `{k}`: ")).unwrap_or_default(),
+                    if line_text.is_empty() {
+                        String::new()
+                    } else {
+                        format!(" (in `{line_text}`)")
+                    },
+                ),
+            )
+        })?;
+        if cfg.file.is_some() {
+            return Err(ConfigError::key(
+                "file",
+                format!(
+                    "scene file {}: a scene file cannot name another `file`",
+                    path.display()
+                ),
+            ));
+        }
+        Ok(cfg)
+    }
+
+    /// This config with `base`'s keys as defaults (this config's keys win,
+    /// tables merged key by key).
+    pub fn over(&self, base: &SceneConfig) -> Result<SceneConfig, ConfigError> {
+        let to = |c: &SceneConfig| serde_json::to_value(c).map_err(|e| ConfigError::general(e.to_string()));
+        let mut merged = to(base)?;
+        merge_json(&mut merged, to(self)?);
+        serde_json::from_value(merged).map_err(|e| ConfigError::general(format!("merging scene keys: {e}")))
+    }
+
+    /// Resolves the file (if any) and every default, and checks every value.
+    pub fn resolve(&self, ctx: &BuildContext) -> Result<Scene, ConfigError> {
+        let merged = match &self.file {
+            Some(f) => {
+                let path = ctx.resolve(f);
+                let base = SceneConfig::from_file(&path)?;
+                let mut inline = self.clone();
+                inline.file = None;
+                inline.over(&base)?
+            }
+            None => self.clone(),
+        };
+        merged.check()
+    }
+
+    /// Fills defaults and checks values (no file handling).
+    pub fn check(&self) -> Result<Scene, ConfigError> {
+        let stimulus = self.stimulus.unwrap_or_default();
+        let r = self.ridge.clone().unwrap_or_default();
+        let ridge = Ridge {
+            width_mm: check_positive("ridge.width_mm", r.width_mm.unwrap_or(2.0), "mm")?,
+            height_mm: check_range("ridge.height_mm", r.height_mm.unwrap_or(2.0), 0.0, 1e3, "mm")?,
+            indent_mm: check_positive("ridge.indent_mm", r.indent_mm.unwrap_or(1.0), "mm")?,
+        };
+        let angles = resolve_angles(self.angles.as_ref())?;
+        let trials_per_angle = self.trials_per_angle.unwrap_or(10);
+        if trials_per_angle == 0 {
+            return Err(ConfigError::key("trials_per_angle", "must be at least 1"));
+        }
+        let layout = match &self.layout {
+            Some(l) => {
+                let positions_mm = l.positions_mm.clone().ok_or_else(|| {
+                    ConfigError::key(
+                        "layout.positions_mm",
+                        "an explicit layout needs its taxel positions",
+                    )
+                })?;
+                let layout = TaxelLayout::Positions {
+                    positions_mm,
+                    taxel_mm: l.taxel_mm.unwrap_or(2.0),
+                };
+                layout.validate().map_err(|e| ConfigError::key("layout", e))?;
+                layout
+            }
+            None => {
+                let a = self.array.clone().unwrap_or_default();
+                let layout = TaxelLayout::Grid {
+                    rows: a.rows.unwrap_or(4),
+                    cols: a.cols.unwrap_or(4),
+                    pitch_mm: a.pitch_mm.unwrap_or(3.0),
+                    taxel_mm: a.taxel_mm.unwrap_or(2.0),
+                };
+                layout.validate().map_err(|e| ConfigError::key("array", e))?;
+                layout
+            }
+        };
+        let m = self.motion.clone().unwrap_or_default();
+        let motion = Motion {
+            speed_mm_s: check_positive("motion.speed_mm_s", m.speed_mm_s.unwrap_or(2.0), "mm/s")?,
+            hold_before_s: check_range(
+                "motion.hold_before_s",
+                m.hold_before_s.unwrap_or(2.0),
+                0.0,
+                3600.0,
+                "s",
+            )?,
+            hold_after_s: check_range(
+                "motion.hold_after_s",
+                m.hold_after_s.unwrap_or(2.0),
+                0.0,
+                3600.0,
+                "s",
+            )?,
+            sample_rate_hz: check_range(
+                "motion.sample_rate_hz",
+                m.sample_rate_hz.unwrap_or(1000.0),
+                1e-3,
+                1e7,
+                "Hz",
+            )?,
+            margin_mm: check_range("motion.margin_mm", m.margin_mm.unwrap_or(1.0), 0.0, 1e3, "mm")?,
+        };
+        Ok(Scene {
+            stimulus,
+            ridge,
+            angles,
+            trials_per_angle,
+            layout,
+            motion,
+            effects: self.effects.clone().unwrap_or_default(),
+        })
+    }
+}
+
+/// Expands and checks the angles: each in (0, 180), no repeats.
+fn resolve_angles(angles: Option<&Angles>) -> Result<Vec<f64>, ConfigError> {
+    let list = match angles {
+        Some(Angles::List(v)) => v.clone(),
+        None => range(10.0, 90.0, 5.0)?,
+        Some(Angles::Range(r)) => range(
+            r.start.unwrap_or(10.0),
+            r.stop.unwrap_or(90.0),
+            r.step.unwrap_or(5.0),
+        )?,
+    };
+    if list.is_empty() {
+        return Err(ConfigError::key("angles", "needs at least one angle"));
+    }
+    for (i, &a) in list.iter().enumerate() {
+        if !(a.is_finite() && a > 0.0 && a < 180.0) {
+            return Err(ConfigError::key(
+                "angles",
+                format!("every angle must lie strictly between 0 and 180 degrees (0 and 180 are parallel to the motion and never crossed), got {a}"),
+            ));
+        }
+        if list[..i].iter().any(|&b| angle_id(b) == angle_id(a)) {
+            return Err(ConfigError::key("angles", format!("angle {a} is listed twice")));
+        }
+    }
+    Ok(list)
+}
+
+fn range(start: f64, stop: f64, step: f64) -> Result<Vec<f64>, ConfigError> {
+    check_positive("angles.step", step, "degrees")?;
+    if !(start.is_finite() && stop.is_finite()) || stop < start {
+        return Err(ConfigError::key(
+            "angles",
+            format!("a range needs finite start <= stop, got start {start}, stop {stop}"),
+        ));
+    }
+    let n = ((stop - start) / step + 1e-9).floor();
+    if n > 1e5 {
+        return Err(ConfigError::key(
+            "angles.step",
+            format!("{n} angles is too many; use a larger step"),
+        ));
+    }
+    // Multiply rather than accumulate, and round to 1e-9 degree, so that
+    // `10 + 3 * 0.1` gives the angle 10.3 and not 10.300000000000001.
+    Ok((0..=n as usize)
+        .map(|i| ((start + i as f64 * step) * 1e9).round() / 1e9)
+        .collect())
+}
+
+/// The angle as it appears in trial ids: `45`, `22.5`, `10.125`.
+pub fn angle_id(a: f64) -> String {
+    let s = format!("{:.6}", a);
+    let s = s.trim_end_matches('0').trim_end_matches('.');
+    s.to_string()
+}

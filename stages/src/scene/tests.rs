@@ -1,0 +1,167 @@
+//! Unit tests that need the crate's internals: the effect construction log.
+
+use super::effects::LOG;
+use super::*;
+use palpate_core::{Source, Stage, TrialContext};
+use proptest::prelude::*;
+
+fn build(toml_keys: &str) -> Box<dyn Source> {
+    let cfg: SceneConfig = toml::from_str(toml_keys).unwrap();
+    let ctx = BuildContext {
+        stage_id: "scene".into(),
+        seed: 3,
+        out_dir: std::env::temp_dir(),
+        base_dir: std::path::PathBuf::from("."),
+    };
+    match cfg.build(&ctx).unwrap() {
+        Stage::Source(s) => s,
+        other => panic!("scene built a {}", other.role()),
+    }
+}
+
+fn produce(src: &dyn Source, i: usize) -> Signals {
+    let metas = src.trials().unwrap();
+    let ctx = TrialContext {
+        stage_id: "scene",
+        meta: &metas[i],
+        seed: 99,
+    };
+    let p = src.produce(&ctx).unwrap();
+    (**p.signals().unwrap()).clone()
+}
+
+fn take_log() -> Vec<String> {
+    LOG.with(|l| std::mem::take(&mut *l.borrow_mut()))
+}
+
+#[test]
+fn unlisted_effects_are_never_constructed_nor_computed() {
+    take_log();
+    let src = build("angles = [45]\ntrials_per_angle = 1\neffects = [{ kind = \"noise\", sigma = 0.1 }]");
+    produce(src.as_ref(), 0);
+    assert_eq!(take_log(), vec!["build:noise", "run:noise"]);
+
+    let src = build("angles = [45]\ntrials_per_angle = 1");
+    produce(src.as_ref(), 0);
+    assert!(take_log().is_empty(), "the ideal scene touches no effect");
+
+    // The lab scene constructs and runs every kind it lists, once each.
+    let lab =
+        std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../graphs/scenes/lab.toml")).unwrap();
+    let src = build(&format!("{lab}\n").replace("trials_per_angle = 10", "trials_per_angle = 1"));
+    let built = take_log();
+    let kinds = [
+        "variation",
+        "skin",
+        "stress",
+        "creep",
+        "dead",
+        "piezo",
+        "mismatch",
+        "crosstalk",
+        "hum",
+        "noise",
+        "adc",
+    ];
+    assert_eq!(
+        built,
+        kinds.iter().map(|k| format!("build:{k}")).collect::<Vec<_>>()
+    );
+    produce(src.as_ref(), 0);
+    let ran = take_log();
+    // Field effects shape the profile at build; the rest run in every trial.
+    for k in [
+        "variation",
+        "creep",
+        "dead",
+        "piezo",
+        "mismatch",
+        "crosstalk",
+        "hum",
+        "noise",
+        "adc",
+    ] {
+        assert_eq!(
+            ran.iter().filter(|e| **e == format!("run:{k}")).count(),
+            1,
+            "{k}: {ran:?}"
+        );
+    }
+}
+
+#[test]
+fn trials_are_listed_angle_by_angle_with_groups_and_ids() {
+    let src = build("angles = { start = 10, stop = 20, step = 2.5 }\ntrials_per_angle = 2");
+    let t = src.trials().unwrap();
+    let ids: Vec<&str> = t.iter().map(|m| m.trial_id.as_str()).collect();
+    assert_eq!(
+        ids[..4],
+        [
+            "edge-10deg-r00",
+            "edge-10deg-r01",
+            "edge-12.5deg-r00",
+            "edge-12.5deg-r01"
+        ]
+    );
+    assert_eq!(t.len(), 10);
+    assert_eq!(
+        t.iter().map(|m| m.group).collect::<Vec<_>>(),
+        [0, 1, 0, 1, 0, 1, 0, 1, 0, 1]
+    );
+    assert!(t
+        .iter()
+        .all(|m| m.crossing_ms.is_some() && m.label.angle_deg.is_some()));
+}
+
+#[test]
+fn default_angles_are_the_papers_17_classes() {
+    let src = build("");
+    let t = src.trials().unwrap();
+    assert_eq!(t.len(), 170);
+    let angles: std::collections::BTreeSet<i64> =
+        t.iter().map(|m| m.label.angle_deg.unwrap() as i64).collect();
+    assert_eq!(
+        angles.into_iter().collect::<Vec<_>>(),
+        (10..=90).step_by(5).collect::<Vec<_>>()
+    );
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(24))]
+    /// Any angle and any effect strengths give finite signals of the stated
+    /// shape, never a panic.
+    #[test]
+    fn any_scene_gives_finite_signals(
+        theta in 5.0f64..175.0,
+        sigma in 0.0f64..2.0,
+        peak in 0.0f64..2.0,
+        noise in 0.0f64..0.1,
+        ridge in any::<bool>(),
+    ) {
+        let keys = format!(
+            "stimulus = \"{}\"\nangles = [{theta}]\ntrials_per_angle = 1\nmotion = {{ sample_rate_hz = 50, speed_mm_s = 10 }}\neffects = [{{ kind = \"variation\" }}, {{ kind = \"skin\", sigma_mm = {sigma} }}, {{ kind = \"stress\", peak = {peak} }}, {{ kind = \"creep\" }}, {{ kind = \"piezo\" }}, {{ kind = \"noise\", sigma = {noise} }}, {{ kind = \"adc\" }}]",
+            if ridge { "ridge" } else { "edge" }
+        );
+        let src = build(&keys);
+        let s = produce(src.as_ref(), 0);
+        prop_assert_eq!(s.data.len(), 16);
+        prop_assert!(s.n_samples() > 0);
+        prop_assert!(s.data.iter().all(|r| r.len() == s.n_samples()));
+        prop_assert!(s.data.iter().flatten().all(|v| v.is_finite() && (0.0..=3.3 + 1e-9).contains(v)));
+    }
+}
+
+#[test]
+fn placement_variation_too_large_for_a_grazing_angle_is_a_config_error() {
+    let cfg: SceneConfig =
+        toml::from_str("angles = [2]\neffects = [{ kind = \"variation\", angle_sd_deg = 1.0 }]").unwrap();
+    let ctx = BuildContext {
+        stage_id: "scene".into(),
+        seed: 3,
+        out_dir: std::env::temp_dir(),
+        base_dir: std::path::PathBuf::from("."),
+    };
+    let e = cfg.build(&ctx).err().expect("an error");
+    assert_eq!(e.key.as_deref(), Some("effects"));
+    assert!(e.message.contains("too large for the angle 2"), "{e}");
+}
