@@ -1,1 +1,0 @@
-//! WSS: weighted spatiotemporal similarity against simulated edge templates (SPEC.md section 4).

@@ -1,0 +1,642 @@
+//! Batch WSS: eq. 5 for every class and alignment `k`, eq. 7, the "no edge"
+//! threshold and the continuous-angle refinement.
+//!
+//! Fast path. With `Ĩ_m` the centred unit-norm frame `m` (zero when its variance
+//! is nil) and `S̃_i` the centred unit-norm template, Pearson's
+//! `R(I_m, S_i) = <Ĩ_m, S̃_i>`, so the numerator of eq. 5,
+//! `N_θ(k) = Σ_i w_{k−i} <Ĩ_{k−i}, S̃_i>`, is a sum over taxels of linear
+//! convolutions of the sequences `a_m[t] = w_m Ĩ_m[t]` with the template
+//! sequences `S̃_i[t]`. It is computed by overlap-save FFT convolution: per FFT
+//! length `L` the input spectra (one per taxel and block) are made once per trial
+//! and shared by every class; per class the taxel sum is done in the frequency
+//! domain (`Σ_t A_t(f)·Ŝ_t(f)`), so there is one inverse FFT per class and block.
+//! Template spectra are cached in [`Templates`]. The denominator is a windowed
+//! sum of weights, from prefix sums. Cost per trial:
+//! `O(n_taxels·K·log L)` for the inputs plus `O(classes·(n_taxels·K + K·log L))`.
+//!
+//! Exact fallbacks (the stability rules of SPEC section 4):
+//! * a window whose weights are all 0 (only `one_minus_sr`, when every frame in
+//!   it has the trial's largest count) uses constant weights: the plain mean of
+//!   its correlations (from a second, unweighted convolution, or direct sums
+//!   when few windows need it);
+//! * a window whose weights sum to less than 1e-3 per term is summed directly
+//!   (FFT rounding, ~1e-13 absolute, would otherwise be amplified by the small
+//!   denominator); this is rare outside contrived trials whose every frame is
+//!   within 0.1 % of the largest count, where it degrades to direct cost.
+//!
+//! [`wss_reference`] is the straightforward direct evaluation (Pearson from raw
+//! frames and raw templates) that tests compare the fast path with.
+
+use super::params::{BeforeStart, Refine, WssParams};
+use super::templates::{normalize, raw_template, ClassTemplates, Templates};
+use palpate_core::{ClassScore, Estimate, SpikeImages, StageError};
+use realfft::num_complex::Complex;
+use std::collections::HashMap;
+
+/// Frames prepared for WSS: centred unit-norm images and per-frame counts.
+#[derive(Clone, Debug)]
+pub(crate) struct Prepared {
+    pub n: usize,
+    pub k: usize,
+    /// `Ĩ_m[t]` at `m * n + t`.
+    pub norm: Vec<f64>,
+    /// Whether frame `m` has spatial variance (else `Ĩ_m = 0`).
+    pub active: Vec<bool>,
+    /// Total count `C_m` of frame `m`.
+    pub count: Vec<f64>,
+    /// `max_m C_m`.
+    pub max_count: f64,
+    pub hop_ms: f64,
+    pub window_ms: f64,
+}
+
+/// Checks one frame's counts: finite and non-negative.
+pub(crate) fn check_frame(frame: &[f64], k: usize) -> Result<(), StageError> {
+    for (t, &c) in frame.iter().enumerate() {
+        if !(c.is_finite() && c >= 0.0) {
+            return Err(StageError::new(format!(
+                "wss: spike count {c} of frame {k}, taxel {t} is not a finite non-negative number"
+            )));
+        }
+    }
+    Ok(())
+}
+
+/// Prepares `images` for templates built for `tpl`'s layout and hop.
+pub(crate) fn prepare(images: &SpikeImages, tpl: &Templates) -> Result<Prepared, StageError> {
+    let n = tpl.n_taxels();
+    if images.layout.len() != n {
+        return Err(StageError::new(format!(
+            "wss: images have {} taxels but the templates were built for {n}",
+            images.layout.len()
+        )));
+    }
+    if images.counts.len() != images.n_frames * n {
+        return Err(StageError::new(format!(
+            "wss: images hold {} counts, expected {} frames x {n} taxels",
+            images.counts.len(),
+            images.n_frames
+        )));
+    }
+    let mut p = Prepared {
+        n,
+        k: 0,
+        norm: Vec::with_capacity(images.counts.len()),
+        active: Vec::with_capacity(images.n_frames),
+        count: Vec::with_capacity(images.n_frames),
+        max_count: 0.0,
+        hop_ms: images.hop_ms,
+        window_ms: images.window_ms,
+    };
+    for k in 0..images.n_frames {
+        p.push(images.frame(k))?;
+    }
+    Ok(p)
+}
+
+impl Prepared {
+    pub(crate) fn empty(n: usize, hop_ms: f64, window_ms: f64) -> Self {
+        Prepared {
+            n,
+            k: 0,
+            norm: Vec::new(),
+            active: Vec::new(),
+            count: Vec::new(),
+            max_count: 0.0,
+            hop_ms,
+            window_ms,
+        }
+    }
+
+    /// Appends one frame.
+    pub(crate) fn push(&mut self, frame: &[f64]) -> Result<(), StageError> {
+        if frame.len() != self.n {
+            return Err(StageError::new(format!(
+                "wss: frame {} has {} counts, expected {}",
+                self.k,
+                frame.len(),
+                self.n
+            )));
+        }
+        check_frame(frame, self.k)?;
+        let c: f64 = frame.iter().sum();
+        let start = self.norm.len();
+        self.norm.extend_from_slice(frame);
+        let active = normalize(&mut self.norm[start..]);
+        self.active.push(active);
+        self.count.push(c);
+        self.max_count = self.max_count.max(c);
+        self.k += 1;
+        Ok(())
+    }
+
+    /// `Ĩ_m`.
+    pub(crate) fn frame(&self, m: usize) -> &[f64] {
+        &self.norm[m * self.n..(m + 1) * self.n]
+    }
+
+    /// The weight of frame `m` under `params.weighting`, with largest count `max`.
+    pub(crate) fn weights(&self, params: &WssParams, max: f64) -> Vec<f64> {
+        self.count.iter().map(|&c| weight(params, c, max)).collect()
+    }
+
+    /// End of frame `k`, ms from the trial's start.
+    pub(crate) fn frame_end_ms(&self, k: usize) -> f64 {
+        k as f64 * self.hop_ms + self.window_ms
+    }
+}
+
+/// `w` of a frame with total count `c` when the trial's largest count is `max`.
+pub(crate) fn weight(params: &WssParams, c: f64, max: f64) -> f64 {
+    use super::params::Weighting::*;
+    let sr = if max > 0.0 { (c / max).clamp(0.0, 1.0) } else { 0.0 };
+    match params.weighting {
+        Constant => 1.0,
+        OneMinusSr => 1.0 - sr,
+        OnePlusSr => 1.0 + sr,
+    }
+}
+
+/// The window of eq. 5 at alignment `k` for a class with `len` templates:
+/// `(first frame, frames in the window, silent pre-start terms)`.
+pub(crate) fn window(k: usize, len: usize, before: BeforeStart) -> (usize, usize, usize) {
+    let nw = (k + 1).min(len);
+    let extra = match before {
+        BeforeStart::Exclude => 0,
+        BeforeStart::Silent => len - nw,
+    };
+    (k + 1 - nw, nw, extra)
+}
+
+/// Direct evaluation of eq. 5 at `k` from prepared frames, with weights for a
+/// largest count `max`: `(weighted numerator, denominator including silent
+/// terms, unweighted numerator)`.
+pub(crate) fn direct_k(
+    prep: &Prepared,
+    params: &WssParams,
+    max: f64,
+    cls: &ClassTemplates,
+    k: usize,
+) -> (f64, f64, f64) {
+    let (_, nw, extra) = window(k, cls.len, params.before_start);
+    let (mut num, mut den, mut p) = (0.0, extra as f64, 0.0);
+    for i in 0..nw {
+        let m = k - i;
+        let w = weight(params, prep.count[m], max);
+        den += w;
+        if prep.active[m] {
+            let r: f64 = prep
+                .frame(m)
+                .iter()
+                .zip(cls.template(i))
+                .map(|(a, b)| a * b)
+                .sum();
+            num += w * r;
+            p += r;
+        }
+    }
+    (num, den, p)
+}
+
+/// [`direct_k`] finished into `WSS_θ(k)` (with the constant-weight fallback).
+pub(crate) fn direct_value(
+    prep: &Prepared,
+    params: &WssParams,
+    max: f64,
+    cls: &ClassTemplates,
+    k: usize,
+) -> f64 {
+    let (num, den, p) = direct_k(prep, params, max, cls, k);
+    let (_, nw, _) = window(k, cls.len, params.before_start);
+    combine(num, den, p, nw, den == 0.0)
+}
+
+/// `WSS` from its parts, with the constant-weight fallback: `num / den`, or the
+/// plain mean `p / terms` when every weight of the window is 0.
+pub(crate) fn combine(num: f64, den: f64, p: f64, nw: usize, all_zero: bool) -> f64 {
+    if all_zero {
+        p / nw as f64
+    } else {
+        num / den
+    }
+}
+
+/// Input spectra `[block][taxel][bin]` and, per block, whether it is non-zero.
+type InputSpectra = (Vec<Complex<f64>>, Vec<bool>);
+
+/// Per-trial FFT workspace: input spectra per (sequence, FFT length).
+struct Fft<'a> {
+    tpl: &'a Templates,
+    n: usize,
+    k: usize,
+    /// Taxel-major input sequences: 0 = weighted, 1 = unweighted.
+    seqs: [Vec<f64>; 2],
+    inputs: HashMap<(usize, usize), InputSpectra>,
+}
+
+impl Fft<'_> {
+    /// Spectra `[block][taxel][bin]` of sequence `s` for FFT length `len`, blocks
+    /// of `len/2` outputs, and whether each block's segment holds any non-zero.
+    fn input(&mut self, s: usize, len: usize) -> &InputSpectra {
+        let (n, k) = (self.n, self.k);
+        let (tpl, seqs) = (self.tpl, &self.seqs);
+        self.inputs.entry((s, len)).or_insert_with(|| {
+            let half = len / 2;
+            let bins = half + 1;
+            let blocks = k.div_ceil(half);
+            let pair = tpl.plan(len);
+            let mut scratch = pair.fwd.make_scratch_vec();
+            let mut out = vec![Complex::new(0.0, 0.0); blocks * n * bins];
+            let mut nonzero = vec![false; blocks];
+            let mut buf = vec![0.0; len];
+            for (b, nz) in nonzero.iter_mut().enumerate() {
+                for t in 0..n {
+                    let x = &seqs[s][t * k..(t + 1) * k];
+                    // Segment x[b·half − half, b·half + half).
+                    let start = b as isize * half as isize - half as isize;
+                    let mut any = false;
+                    for (j, v) in buf.iter_mut().enumerate() {
+                        let m = start + j as isize;
+                        *v = if m >= 0 && (m as usize) < k {
+                            x[m as usize]
+                        } else {
+                            0.0
+                        };
+                        any |= *v != 0.0;
+                    }
+                    *nz |= any;
+                    if any {
+                        let o = (b * n + t) * bins;
+                        let _ = pair
+                            .fwd
+                            .process_with_scratch(&mut buf, &mut out[o..o + bins], &mut scratch);
+                    }
+                }
+            }
+            (out, nonzero)
+        })
+    }
+
+    /// `Σ_t Σ_i x_{k−i}[t] S̃_i[t]` for every `k < K`, for class `c`, sequence `s`.
+    fn conv(&mut self, c: usize, s: usize) -> Vec<f64> {
+        let (n, k) = (self.n, self.k);
+        let tpl = self.tpl;
+        let h = tpl.classes()[c].len.min(k);
+        let len = (2 * h).next_power_of_two().max(64);
+        let half = len / 2;
+        let bins = half + 1;
+        let spec = tpl.batch_spectra(c, len);
+        let pair = tpl.plan(len);
+        let (x, nonzero) = self.input(s, len);
+        let mut y = vec![0.0; k];
+        let mut acc = vec![Complex::new(0.0, 0.0); bins];
+        let mut out = vec![0.0; len];
+        let mut scratch = pair.inv.make_scratch_vec();
+        for (b, &nz) in nonzero.iter().enumerate() {
+            if !nz {
+                continue;
+            }
+            acc.iter_mut().for_each(|a| *a = Complex::new(0.0, 0.0));
+            for t in 0..n {
+                let xs = &x[(b * n + t) * bins..(b * n + t + 1) * bins];
+                let hs = &spec[t * bins..(t + 1) * bins];
+                cmac(&mut acc, xs, hs);
+            }
+            // Real inputs: DC and Nyquist are real up to rounding.
+            acc[0].im = 0.0;
+            acc[bins - 1].im = 0.0;
+            let _ = pair.inv.process_with_scratch(&mut acc, &mut out, &mut scratch);
+            for r in 0..half {
+                let kk = b * half + r;
+                if kk >= k {
+                    break;
+                }
+                y[kk] = out[half + r];
+            }
+        }
+        y
+    }
+}
+
+/// `acc += x ⊙ h` over complex bins.
+#[inline]
+pub(crate) fn cmac(acc: &mut [Complex<f64>], x: &[Complex<f64>], h: &[Complex<f64>]) {
+    for ((a, x), h) in acc.iter_mut().zip(x).zip(h) {
+        a.re += x.re * h.re - x.im * h.im;
+        a.im += x.re * h.im + x.im * h.re;
+    }
+}
+
+/// Windows whose weights average less than this per term are summed directly.
+pub(crate) const GUARD: f64 = 1e-3;
+
+/// Fewest fallback windows for which the unweighted numerator is convolved
+/// rather than summed directly.
+const FALLBACK_FFT_MIN: usize = 32;
+
+/// `WSS_θ(k)` for every class of `tpl` and every `k`, by the fast path.
+pub(crate) fn fast_series(prep: &Prepared, tpl: &Templates, params: &WssParams) -> Vec<Vec<f64>> {
+    let (n, k) = (prep.n, prep.k);
+    if k == 0 {
+        return vec![Vec::new(); tpl.classes().len()];
+    }
+    let w = prep.weights(params, prep.max_count);
+    let mut wp = vec![0.0; k + 1];
+    let mut nzp = vec![0usize; k + 1];
+    for m in 0..k {
+        wp[m + 1] = wp[m] + w[m];
+        nzp[m + 1] = nzp[m] + usize::from(w[m] != 0.0);
+    }
+    let mut seqs = [vec![0.0; n * k], Vec::new()];
+    for m in 0..k {
+        if prep.active[m] {
+            for t in 0..n {
+                seqs[0][t * k + m] = w[m] * prep.norm[m * n + t];
+            }
+        }
+    }
+    let mut fft = Fft {
+        tpl,
+        n,
+        k,
+        seqs,
+        inputs: HashMap::new(),
+    };
+    let before = params.before_start;
+    let mut all = Vec::with_capacity(tpl.classes().len());
+    for (c, cls) in tpl.classes().iter().enumerate() {
+        let num = fft.conv(c, 0);
+        let mut out = vec![0.0; k];
+        let mut fallback = Vec::new();
+        for kk in 0..k {
+            let (lo, nw, extra) = window(kk, cls.len, before);
+            let nz = nzp[kk + 1] - nzp[lo] + extra;
+            if nz == 0 {
+                fallback.push(kk);
+                continue;
+            }
+            let den = wp[kk + 1] - wp[lo] + extra as f64;
+            out[kk] = if den < GUARD * (nw + extra) as f64 {
+                direct_value(prep, params, prep.max_count, cls, kk)
+            } else {
+                num[kk] / den
+            };
+        }
+        if fallback.len() >= FALLBACK_FFT_MIN {
+            if fft.seqs[1].is_empty() {
+                let mut u = vec![0.0; n * k];
+                for m in 0..k {
+                    for t in 0..n {
+                        u[t * k + m] = prep.norm[m * n + t];
+                    }
+                }
+                fft.seqs[1] = u;
+            }
+            let p = fft.conv(c, 1);
+            for kk in fallback {
+                let (_, nw, _) = window(kk, cls.len, before);
+                out[kk] = p[kk] / nw as f64;
+            }
+        } else {
+            for kk in fallback {
+                let (_, nw, _) = window(kk, cls.len, before);
+                let (_, _, p) = direct_k(prep, params, prep.max_count, cls, kk);
+                out[kk] = p / nw as f64;
+            }
+        }
+        all.push(out);
+    }
+    all
+}
+
+/// Pearson's correlation with the zero-variance rule (0 when either image has
+/// negligible variance), computed directly from raw values.
+pub fn pearson(x: &[f64], y: &[f64]) -> f64 {
+    let n = x.len() as f64;
+    let (mx, my) = (x.iter().sum::<f64>() / n, y.iter().sum::<f64>() / n);
+    let (mut sxy, mut sxx, mut syy, mut ex, mut ey) = (0.0, 0.0, 0.0, 0.0, 0.0);
+    for (a, b) in x.iter().zip(y) {
+        sxy += (a - mx) * (b - my);
+        sxx += (a - mx) * (a - mx);
+        syy += (b - my) * (b - my);
+        ex += a * a;
+        ey += b * b;
+    }
+    if sxx.is_nan() || syy.is_nan() || sxx <= 1e-20 * ex || syy <= 1e-20 * ey {
+        return 0.0;
+    }
+    sxy / (sxx * syy).sqrt()
+}
+
+/// `WSS_θ(k)` for every class and `k` by direct sums over raw frames and raw
+/// templates (paper eq. 5 as written): the reference the fast path is tested
+/// against. Cost `O(classes·K·k(θ)·n_taxels)`.
+pub fn wss_reference_series(
+    images: &SpikeImages,
+    tpl: &Templates,
+    params: &WssParams,
+) -> Result<Vec<Vec<f64>>, StageError> {
+    let prep = prepare(images, tpl)?;
+    let k = images.n_frames;
+    let w = prep.weights(params, prep.max_count);
+    let mut all = Vec::new();
+    for cls in tpl.classes() {
+        let raws: Vec<Vec<f64>> = (0..cls.len)
+            .map(|i| raw_template(tpl.layout(), tpl.hop_ms(), params, cls.angle_deg, i))
+            .collect();
+        let mut out = Vec::with_capacity(k);
+        for kk in 0..k {
+            let (_, nw, extra) = window(kk, cls.len, params.before_start);
+            let (mut num, mut den, mut p) = (0.0, extra as f64, 0.0);
+            let mut all_zero = extra == 0;
+            for (i, raw) in raws.iter().enumerate().take(nw) {
+                let m = kk - i;
+                let r = pearson(images.frame(m), raw);
+                num += w[m] * r;
+                den += w[m];
+                p += r;
+                all_zero &= w[m] == 0.0;
+            }
+            out.push(combine(num, den, p, nw, all_zero));
+        }
+        all.push(out);
+    }
+    Ok(all)
+}
+
+/// Best score and frame of one series (first maximum; `(0, 0)` when empty).
+pub(crate) fn best_of(series: &[f64]) -> (f64, usize) {
+    let mut best = (f64::NEG_INFINITY, 0);
+    for (k, &v) in series.iter().enumerate() {
+        if v > best.0 {
+            best = (v, k);
+        }
+    }
+    if best.0 == f64::NEG_INFINITY {
+        (0.0, 0)
+    } else {
+        best
+    }
+}
+
+/// Vertex of the parabola through three points, if it opens downwards, clamped
+/// to `[x0, x2]`.
+pub fn parabola_peak(x: [f64; 3], y: [f64; 3]) -> Option<f64> {
+    let d1 = (y[1] - y[0]) / (x[1] - x[0]);
+    let d2 = (y[2] - y[1]) / (x[2] - x[1]);
+    let a = (d2 - d1) / (x[2] - x[0]);
+    if a.is_nan() || a >= 0.0 {
+        return None;
+    }
+    let b = d1 - a * (x[0] + x[1]);
+    let v = -b / (2.0 * a);
+    v.is_finite().then(|| v.clamp(x[0], x[2]))
+}
+
+/// Builds the estimate from each class's best `(score, frame)`. `search`
+/// evaluates `max_k WSS` at an arbitrary angle for [`Refine::Search`].
+pub(crate) fn finish(
+    angles: &[f64],
+    best: &[(f64, usize)],
+    prep: &Prepared,
+    upto: usize,
+    params: &WssParams,
+    search: Option<&mut dyn FnMut(f64) -> f64>,
+) -> Estimate {
+    let scores: Vec<ClassScore> = angles
+        .iter()
+        .zip(best)
+        .map(|(&a, &(s, _))| ClassScore {
+            angle_deg: a,
+            score: s,
+        })
+        .collect();
+    let mut b = 0;
+    for (c, &(s, _)) in best.iter().enumerate() {
+        if s > best[b].0 {
+            b = c;
+        }
+    }
+    let decision_time_ms = (upto > 0).then(|| prep.frame_end_ms(upto - 1));
+    let any_spikes = prep.count[..upto].iter().any(|&c| c > 0.0);
+    if upto == 0 || !any_spikes || best[b].0 < params.threshold {
+        return Estimate {
+            angle_deg: None,
+            class_deg: None,
+            scores,
+            best_frame: (upto > 0 && any_spikes).then_some(best[b].1),
+            decision_time_ms,
+        };
+    }
+    let class = angles[b];
+    let mut angle = class;
+    let neighbours = (b > 0 && b + 1 < angles.len()).then(|| {
+        (
+            [angles[b - 1], angles[b], angles[b + 1]],
+            [best[b - 1].0, best[b].0, best[b + 1].0],
+        )
+    });
+    match params.refine {
+        Refine::None => {}
+        Refine::Parabola => {
+            if let Some(v) = neighbours.and_then(|(x, y)| parabola_peak(x, y)) {
+                angle = v;
+            }
+        }
+        Refine::Search => {
+            if let Some(f) = search {
+                let lo = if b > 0 { angles[b - 1] } else { class / 2.0 };
+                let hi = if b + 1 < angles.len() {
+                    angles[b + 1]
+                } else {
+                    (class + 180.0) / 2.0
+                };
+                let (x, fx) = golden_max(f, lo, hi, params.refine_tol_deg);
+                if fx > best[b].0 {
+                    angle = x;
+                }
+            }
+        }
+    }
+    Estimate {
+        angle_deg: Some(angle),
+        class_deg: Some(class),
+        scores,
+        best_frame: Some(best[b].1),
+        decision_time_ms,
+    }
+}
+
+/// Golden-section search for the maximum of `f` on `[a, b]` to width `tol`.
+pub(crate) fn golden_max(f: &mut dyn FnMut(f64) -> f64, mut a: f64, mut b: f64, tol: f64) -> (f64, f64) {
+    let g = (5f64.sqrt() - 1.0) / 2.0;
+    let mut c = b - g * (b - a);
+    let mut d = a + g * (b - a);
+    let (mut fc, mut fd) = (f(c), f(d));
+    while b - a > tol {
+        if fc >= fd {
+            b = d;
+            d = c;
+            fd = fc;
+            c = b - g * (b - a);
+            fc = f(c);
+        } else {
+            a = c;
+            c = d;
+            fc = fd;
+            d = a + g * (b - a);
+            fd = f(d);
+        }
+    }
+    if fc >= fd {
+        (c, fc)
+    } else {
+        (d, fd)
+    }
+}
+
+/// The estimate for one trial's images: eq. 5 for every class and alignment by
+/// the fast path, eq. 7, threshold and refinement. The templates must have been
+/// built for the images' layout and hop ([`Templates::new`]).
+pub fn wss_batch(images: &SpikeImages, tpl: &Templates, params: &WssParams) -> Result<Estimate, StageError> {
+    let prep = prepare(images, tpl)?;
+    let series = fast_series(&prep, tpl, params);
+    let best: Vec<(f64, usize)> = series.iter().map(|s| best_of(s)).collect();
+    let mut search = |theta: f64| -> f64 {
+        match Templates::for_angles(tpl.layout(), tpl.hop_ms(), params, &[theta]) {
+            Ok(one) => best_of(&fast_series(&prep, &one, params)[0]).0,
+            Err(_) => f64::NEG_INFINITY,
+        }
+    };
+    Ok(finish(
+        &tpl.angles(),
+        &best,
+        &prep,
+        prep.k,
+        params,
+        Some(&mut search),
+    ))
+}
+
+/// The same estimate as [`wss_batch`] computed by direct sums
+/// ([`wss_reference_series`]); refinement by search is not applied.
+pub fn wss_reference(
+    images: &SpikeImages,
+    tpl: &Templates,
+    params: &WssParams,
+) -> Result<Estimate, StageError> {
+    let prep = prepare(images, tpl)?;
+    let series = wss_reference_series(images, tpl, params)?;
+    let best: Vec<(f64, usize)> = series.iter().map(|s| best_of(s)).collect();
+    Ok(finish(&tpl.angles(), &best, &prep, prep.k, params, None))
+}
+
+/// `WSS_θ(k)` for every class and `k` by the fast path (for plots and tests).
+pub fn wss_series(
+    images: &SpikeImages,
+    tpl: &Templates,
+    params: &WssParams,
+) -> Result<Vec<Vec<f64>>, StageError> {
+    let prep = prepare(images, tpl)?;
+    Ok(fast_series(&prep, tpl, params))
+}

@@ -1,0 +1,201 @@
+//! WSS parameters: the checked, plain-data form of the `wss` stage's keys, shared
+//! by the stage, the pure-Rust API ([`super::wss_batch`], [`super::WssStream`])
+//! and the benches.
+
+use palpate_core::{check_positive, ConfigError};
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
+
+/// The weight `w` of each observed frame in eq. 5, from its spike rate
+/// `SR = frame count / max frame count of the trial` (`SR` in `[0, 1]`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize, JsonSchema, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum Weighting {
+    /// `w = 1`: a plain mean of the correlations.
+    Constant,
+    /// `w = 1 - SR`: the paper's best; the busiest frames count least.
+    #[default]
+    OneMinusSr,
+    /// `w = 1 + SR`: the busiest frames count most.
+    OnePlusSr,
+}
+
+/// How to turn the best grid class into a continuous angle.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize, JsonSchema, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum Refine {
+    /// The answer is the best class of the grid (the paper's behaviour).
+    #[default]
+    None,
+    /// Vertex of the parabola through the best class's score and its two
+    /// neighbours' (clamped to the neighbours; the grid's end classes stay put).
+    /// Free: it uses scores already computed.
+    Parabola,
+    /// Golden-section search of `max_k WSS_θ(k)` over `θ` between the best
+    /// class's neighbours, with templates built for each probed angle, to
+    /// `refine_tol_deg`. Costs about 12 extra classes per trial.
+    Search,
+}
+
+/// What the sum of eq. 5 does with template indices `i` that would pair with a
+/// frame before the trial's start (`k - i < 0`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize, JsonSchema, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum BeforeStart {
+    /// Left out of both sums: `WSS_θ(k)` is the weighted mean over the
+    /// `min(k, k(θ)) + 1` frames that exist. Early `k` then average few frames.
+    #[default]
+    Exclude,
+    /// Counted as spike-free frames: correlation 0 (zero variance) with the
+    /// weight of a spike-free frame (`SR = 0`: 1 for every weighting), so a short
+    /// run of frames at the trial's start cannot reach a high score alone.
+    Silent,
+}
+
+/// The class grid: a list of angles or an inclusive range.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(untagged)]
+pub enum AngleGrid {
+    /// Explicit angles, degrees, strictly increasing, each in (0, 180).
+    List(Vec<f64>),
+    /// `from, from + step, ...` up to `to` (inclusive, within 1e-9 of a step).
+    Range {
+        /// First angle, degrees.
+        from: f64,
+        /// Last angle, degrees.
+        to: f64,
+        /// Spacing, degrees.
+        step: f64,
+    },
+}
+
+impl Default for AngleGrid {
+    /// The paper's 17 classes: 10, 15, ..., 90 degrees.
+    fn default() -> Self {
+        AngleGrid::Range {
+            from: 10.0,
+            to: 90.0,
+            step: 5.0,
+        }
+    }
+}
+
+impl AngleGrid {
+    /// The angles, checked: non-empty, finite, strictly increasing, each in
+    /// (0, 180). Errors name the key `angles`.
+    pub fn resolve(&self) -> Result<Vec<f64>, ConfigError> {
+        let bad = |m: String| ConfigError::key("angles", m);
+        let v = match self {
+            AngleGrid::List(v) => v.clone(),
+            AngleGrid::Range { from, to, step } => {
+                if !(step.is_finite() && *step > 0.0) {
+                    return Err(ConfigError::key(
+                        "angles.step",
+                        format!("must be a positive number of degrees, got {step}"),
+                    ));
+                }
+                if !(from.is_finite() && to.is_finite() && from <= to) {
+                    return Err(bad(format!("range needs finite from <= to, got {from}..{to}")));
+                }
+                let n = ((to - from) / step + 1e-9).floor() + 1.0;
+                if n > 100_000.0 {
+                    return Err(bad(format!("range gives {n} classes; at most 100000")));
+                }
+                (0..n as usize).map(|j| from + j as f64 * step).collect()
+            }
+        };
+        if v.is_empty() {
+            return Err(bad("needs at least one angle".into()));
+        }
+        for (j, a) in v.iter().enumerate() {
+            if !(a.is_finite() && *a > 0.0 && *a < 180.0) {
+                return Err(bad(format!(
+                    "angle {a} (entry {j}) must lie strictly between 0 and 180 degrees: 0 and 180 \
+                     are parallel to the motion and never cross the array"
+                )));
+            }
+            if j > 0 && *a <= v[j - 1] {
+                return Err(bad(format!(
+                    "angles must be strictly increasing, got {} then {a}",
+                    v[j - 1]
+                )));
+            }
+        }
+        Ok(v)
+    }
+}
+
+/// Checked WSS parameters (see the `wss` stage's keys for meanings and defaults).
+#[derive(Clone, Debug, PartialEq)]
+pub struct WssParams {
+    /// Sliding speed, mm/s.
+    pub speed_mm_s: f64,
+    /// Gaussian spread of eq. 6, mm.
+    pub sigma_mm: f64,
+    /// Width of the simulated line, mm.
+    pub line_width_mm: f64,
+    /// Class angles, degrees, strictly increasing in (0, 180).
+    pub angles: Vec<f64>,
+    /// Frame weighting of eq. 5.
+    pub weighting: Weighting,
+    /// Best score under which the answer is "no edge".
+    pub threshold: f64,
+    /// Continuous-angle refinement.
+    pub refine: Refine,
+    /// Search tolerance for [`Refine::Search`], degrees.
+    pub refine_tol_deg: f64,
+    /// Longest template, s of palpation; longer crossings keep their last part.
+    pub max_template_s: f64,
+    /// Handling of frames before the trial's start.
+    pub before_start: BeforeStart,
+}
+
+impl Default for WssParams {
+    fn default() -> Self {
+        WssParams {
+            speed_mm_s: 2.0,
+            sigma_mm: 1.5,
+            line_width_mm: 0.2,
+            angles: AngleGrid::default().resolve().unwrap_or_default(),
+            weighting: Weighting::OneMinusSr,
+            threshold: 0.1,
+            refine: Refine::None,
+            refine_tol_deg: 0.05,
+            max_template_s: 120.0,
+            before_start: BeforeStart::Exclude,
+        }
+    }
+}
+
+impl WssParams {
+    /// Checks every value, naming the key of the first bad one.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        check_positive("speed_mm_s", self.speed_mm_s, "mm/s")?;
+        check_positive("sigma_mm", self.sigma_mm, "mm")?;
+        if !(self.line_width_mm.is_finite() && self.line_width_mm >= 0.0) {
+            return Err(ConfigError::key(
+                "line_width_mm",
+                format!("must be a non-negative number of mm, got {}", self.line_width_mm),
+            ));
+        }
+        AngleGrid::List(self.angles.clone()).resolve()?;
+        if !(self.threshold.is_finite() && (-1.0..=1.0).contains(&self.threshold)) {
+            return Err(ConfigError::key(
+                "threshold",
+                format!(
+                    "must lie in [-1, 1] (WSS is a weighted mean of correlations), got {}",
+                    self.threshold
+                ),
+            ));
+        }
+        check_positive("refine_tol_deg", self.refine_tol_deg, "degrees")?;
+        check_positive("max_template_s", self.max_template_s, "s")?;
+        if self.max_template_s > 3600.0 {
+            return Err(ConfigError::key(
+                "max_template_s",
+                format!("at most 3600 s, got {}", self.max_template_s),
+            ));
+        }
+        Ok(())
+    }
+}

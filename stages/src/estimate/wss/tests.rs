@@ -1,0 +1,441 @@
+//! Tests of the WSS estimator: ideal trials, fast = reference, batch =
+//! streaming, scale invariance, the numerical hard cases and config errors.
+
+use super::*;
+use palpate_core::geometry::Edge;
+use palpate_core::{SpikeImages, TaxelLayout};
+use proptest::prelude::*;
+
+/// Ideal spike images of an edge at `theta` crossing `layout` at `speed` mm/s
+/// after a hold of `hold_ms`, followed by the same hold: each taxel's count in
+/// a frame is proportional (0.2 spikes/ms) to the time the edge spends over the
+/// taxel's area within the frame's window.
+pub(crate) fn ideal(
+    layout: &TaxelLayout,
+    theta: f64,
+    speed: f64,
+    hold_ms: f64,
+    hop: f64,
+    window: f64,
+) -> SpikeImages {
+    let edge = Edge::new(theta);
+    let (lo, hi) = edge.footprint(layout);
+    let vn = edge.normal_speed(speed) / 1000.0; // mm/ms
+    let cross_ms = (hi - lo) / vn;
+    let duration = 2.0 * hold_ms + cross_ms;
+    let n_frames = ((duration - window) / hop).floor() as usize + 1;
+    let h = layout.taxel_mm() / 2.0 * (edge.normal[0].abs() + edge.normal[1].abs());
+    let n = layout.len();
+    let mut counts = vec![0.0; n_frames * n];
+    for t in 0..n {
+        let o = edge.offset(layout.position(t));
+        // s(τ) = hi − vn (τ − hold): over the taxel while s ∈ [o − h, o + h].
+        let t_in = hold_ms + (hi - (o + h)) / vn;
+        let t_out = hold_ms + (hi - (o - h)) / vn;
+        for k in 0..n_frames {
+            let (a, b) = (k as f64 * hop, k as f64 * hop + window);
+            let overlap = (b.min(t_out) - a.max(t_in)).max(0.0);
+            counts[k * n + t] = 0.2 * overlap;
+        }
+    }
+    SpikeImages {
+        layout: layout.clone(),
+        window_ms: window,
+        hop_ms: hop,
+        n_frames,
+        counts,
+    }
+}
+
+fn paper_trial(theta: f64) -> SpikeImages {
+    ideal(&TaxelLayout::paper(), theta, 2.0, 2000.0, 10.0, 100.0)
+}
+
+/// A small, fast trial for the direct reference: 10 mm/s, 0.5 s holds.
+fn small_trial(theta: f64) -> SpikeImages {
+    ideal(&TaxelLayout::paper(), theta, 10.0, 500.0, 10.0, 100.0)
+}
+
+fn small_params() -> WssParams {
+    WssParams {
+        speed_mm_s: 10.0,
+        angles: vec![20.0, 45.0, 70.0, 90.0, 120.0],
+        ..WssParams::default()
+    }
+}
+
+/// Deterministic pseudo-random noise in [0, 1).
+fn noise(seed: u64, i: usize) -> f64 {
+    let mut z = seed.wrapping_add((i as u64).wrapping_mul(0x9e37_79b9_7f4a_7c15));
+    z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+    ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
+}
+
+fn noisy(mut im: SpikeImages, seed: u64, amount: f64) -> SpikeImages {
+    for (i, c) in im.counts.iter_mut().enumerate() {
+        *c += (amount * noise(seed, i)).floor();
+    }
+    im
+}
+
+fn assert_close(a: &[Vec<f64>], b: &[Vec<f64>], tol: f64, what: &str) {
+    assert_eq!(a.len(), b.len());
+    for (c, (x, y)) in a.iter().zip(b).enumerate() {
+        assert_eq!(x.len(), y.len());
+        for (k, (u, v)) in x.iter().zip(y).enumerate() {
+            assert!(
+                u.is_finite() && v.is_finite(),
+                "{what}: class {c}, k {k}: {u} vs {v}"
+            );
+            assert!((u - v).abs() <= tol, "{what}: class {c}, k {k}: {u} vs {v}");
+        }
+    }
+}
+
+#[test]
+fn every_paper_class_of_an_ideal_trial_is_exact() {
+    let params = WssParams::default();
+    let tpl = Templates::new(&TaxelLayout::paper(), 10.0, &params).unwrap();
+    for &theta in &params.angles {
+        let im = paper_trial(theta);
+        let e = wss_batch(&im, &tpl, &params).unwrap();
+        assert_eq!(e.class_deg, Some(theta), "trial at {theta}: {:?}", e.scores);
+        assert_eq!(e.angle_deg, Some(theta));
+        assert_eq!(e.scores.len(), 17);
+        assert!(e.decision_time_ms.unwrap() > 0.0);
+    }
+}
+
+#[test]
+fn every_weighting_and_start_rule_gets_ideal_classes() {
+    let tpl_params = small_params();
+    let tpl = Templates::new(&TaxelLayout::paper(), 10.0, &tpl_params).unwrap();
+    for weighting in [Weighting::Constant, Weighting::OneMinusSr, Weighting::OnePlusSr] {
+        for before_start in [BeforeStart::Exclude, BeforeStart::Silent] {
+            let params = WssParams {
+                weighting,
+                before_start,
+                ..small_params()
+            };
+            for &theta in &params.angles {
+                let e = wss_batch(&small_trial(theta), &tpl, &params).unwrap();
+                assert_eq!(
+                    e.class_deg,
+                    Some(theta),
+                    "{weighting:?} {before_start:?}: {:?}",
+                    e.scores
+                );
+            }
+        }
+    }
+}
+
+#[test]
+fn fast_equals_reference() {
+    let tpl = Templates::new(&TaxelLayout::paper(), 10.0, &small_params()).unwrap();
+    for weighting in [Weighting::Constant, Weighting::OneMinusSr, Weighting::OnePlusSr] {
+        for before_start in [BeforeStart::Exclude, BeforeStart::Silent] {
+            let params = WssParams {
+                weighting,
+                before_start,
+                ..small_params()
+            };
+            for (j, theta) in [33.0, 90.0, 140.0].into_iter().enumerate() {
+                let im = noisy(small_trial(theta), j as u64, 3.0);
+                let fast = wss_series(&im, &tpl, &params).unwrap();
+                let slow = wss_reference_series(&im, &tpl, &params).unwrap();
+                assert_close(&fast, &slow, 1e-9, "fast vs reference");
+                let (a, b) = (
+                    wss_batch(&im, &tpl, &params).unwrap(),
+                    wss_reference(&im, &tpl, &params).unwrap(),
+                );
+                assert_eq!(a.class_deg, b.class_deg);
+                assert_eq!(a.best_frame, b.best_frame);
+            }
+        }
+    }
+}
+
+fn stream_all(im: &SpikeImages, tpl: &Arc<Templates>, params: &WssParams) -> (WssStream, Vec<Estimate>) {
+    let mut s = WssStream::new(tpl.clone(), params.clone(), im.window_ms).unwrap();
+    let ests = (0..im.n_frames).map(|k| s.push(im.frame(k)).unwrap()).collect();
+    (s, ests)
+}
+
+#[test]
+fn batch_equals_streaming() {
+    let tpl = Arc::new(Templates::new(&TaxelLayout::paper(), 10.0, &small_params()).unwrap());
+    for weighting in [Weighting::Constant, Weighting::OneMinusSr, Weighting::OnePlusSr] {
+        for before_start in [BeforeStart::Exclude, BeforeStart::Silent] {
+            let params = WssParams {
+                weighting,
+                before_start,
+                ..small_params()
+            };
+            let im = noisy(small_trial(63.0), 7, 4.0);
+            let (s, ests) = stream_all(&im, &tpl, &params);
+            assert_close(
+                &s.series(),
+                &wss_series(&im, &tpl, &params).unwrap(),
+                1e-9,
+                "stream vs batch",
+            );
+            let b = wss_batch(&im, &tpl, &params).unwrap();
+            let last = ests.last().unwrap();
+            assert_eq!(last.class_deg, b.class_deg);
+            assert_eq!(last.best_frame, b.best_frame);
+            assert_eq!(last.decision_time_ms, b.decision_time_ms);
+            for (x, y) in last.scores.iter().zip(&b.scores) {
+                assert!((x.score - y.score).abs() < 1e-9);
+            }
+            // The running estimate after frame k is the batch estimate of the
+            // trial cut after frame k.
+            for cut in [5, 60, 64, 65, 130, im.n_frames / 2] {
+                let mut part = im.clone();
+                part.n_frames = cut;
+                part.counts.truncate(cut * im.layout.len());
+                let b = wss_batch(&part, &tpl, &params).unwrap();
+                let e = &ests[cut - 1];
+                assert_eq!(e.class_deg, b.class_deg, "cut {cut}");
+                assert_eq!(e.decision_time_ms, b.decision_time_ms);
+                for (x, y) in e.scores.iter().zip(&b.scores) {
+                    assert!((x.score - y.score).abs() < 1e-9, "cut {cut}: {x:?} {y:?}");
+                }
+            }
+        }
+    }
+}
+
+#[test]
+fn silent_trial_is_no_edge_without_nan() {
+    let params = WssParams::default();
+    let tpl = Arc::new(Templates::new(&TaxelLayout::paper(), 10.0, &params).unwrap());
+    let mut im = paper_trial(45.0);
+    im.counts.iter_mut().for_each(|c| *c = 0.0);
+    let e = wss_batch(&im, &tpl, &params).unwrap();
+    assert_eq!(e.angle_deg, None);
+    assert_eq!(e.class_deg, None);
+    assert!(e.scores.iter().all(|s| s.score == 0.0));
+    let (s, _) = stream_all(&im, &tpl, &params);
+    assert_eq!(s.estimate().angle_deg, None);
+    // No frames at all.
+    im.n_frames = 0;
+    im.counts.clear();
+    let e = wss_batch(&im, &tpl, &params).unwrap();
+    assert_eq!(e.angle_deg, None);
+    assert_eq!(e.decision_time_ms, None);
+}
+
+#[test]
+fn constant_frames_score_zero() {
+    // Every taxel equal in every frame: no spatial variance, R = 0 everywhere.
+    let params = small_params();
+    let tpl = Templates::new(&TaxelLayout::paper(), 10.0, &params).unwrap();
+    let mut im = small_trial(45.0);
+    for (i, c) in im.counts.iter_mut().enumerate() {
+        *c = 0.1 * (1 + (i / 16) % 5) as f64;
+    }
+    let e = wss_batch(&im, &tpl, &params).unwrap();
+    assert!(e.scores.iter().all(|s| s.score == 0.0), "{:?}", e.scores);
+    assert_eq!(e.angle_deg, None);
+}
+
+#[test]
+fn all_weights_zero_falls_back_to_constant() {
+    // Every frame identical (and not constant across taxels): every frame has
+    // SR = 1, so every `1 − SR` weight is 0 and eq. 5 falls back to the mean.
+    let tpl_params = small_params();
+    let tpl = Arc::new(Templates::new(&TaxelLayout::paper(), 10.0, &tpl_params).unwrap());
+    let mut im = small_trial(45.0);
+    let pattern: Vec<f64> = (0..16).map(|t| (t % 4 + t / 4) as f64).collect();
+    for k in 0..im.n_frames {
+        im.counts[k * 16..(k + 1) * 16].copy_from_slice(&pattern);
+    }
+    let zero = wss_series(&im, &tpl, &tpl_params).unwrap();
+    let constant = WssParams {
+        weighting: Weighting::Constant,
+        ..small_params()
+    };
+    let mean = wss_series(&im, &tpl, &constant).unwrap();
+    assert_close(&zero, &mean, 1e-9, "fallback vs constant");
+    assert_close(
+        &zero,
+        &wss_reference_series(&im, &tpl, &tpl_params).unwrap(),
+        1e-9,
+        "fallback vs reference",
+    );
+    let (s, _) = stream_all(&im, &tpl, &tpl_params);
+    assert_close(&s.series(), &zero, 1e-9, "fallback stream");
+}
+
+#[test]
+fn grid_near_0_and_180_is_finite() {
+    let params = WssParams {
+        speed_mm_s: 10.0,
+        angles: AngleGrid::Range {
+            from: 1.0,
+            to: 179.0,
+            step: 2.0,
+        }
+        .resolve()
+        .unwrap(),
+        max_template_s: 20.0,
+        ..WssParams::default()
+    };
+    let tpl = Arc::new(Templates::new(&TaxelLayout::paper(), 10.0, &params).unwrap());
+    // Near 0 the crossing is capped at max_template_s.
+    assert_eq!(tpl.classes()[0].len, 2001);
+    assert!(tpl.classes()[0].crossing_frames > 2001.0);
+    for theta in [3.0, 91.0, 177.0] {
+        let im = small_trial(theta);
+        let e = wss_batch(&im, &tpl, &params).unwrap();
+        assert!(e.scores.iter().all(|s| s.score.is_finite()));
+        assert_eq!(e.class_deg, Some(theta), "{theta}");
+    }
+}
+
+#[test]
+fn off_grid_angles_are_refined() {
+    let tpl_params = WssParams::default();
+    let tpl = Templates::new(&TaxelLayout::paper(), 10.0, &tpl_params).unwrap();
+    for (refine, tol) in [(Refine::Parabola, 1.0), (Refine::Search, 0.5)] {
+        let params = WssParams {
+            refine,
+            ..WssParams::default()
+        };
+        for theta in [37.3, 52.6, 71.1] {
+            let e = wss_batch(&paper_trial(theta), &tpl, &params).unwrap();
+            let a = e.angle_deg.unwrap();
+            let class = e.class_deg.unwrap();
+            assert!((class - theta).abs() <= 2.5, "{refine:?} {theta}: class {class}");
+            assert!((a - theta).abs() < tol, "{refine:?} {theta}: {a}");
+        }
+    }
+}
+
+#[test]
+fn config_errors_name_the_key() {
+    let bad = |c: WssConfig| c.params().unwrap_err().key.unwrap();
+    assert_eq!(
+        bad(WssConfig {
+            sigma_mm: 0.0,
+            ..Default::default()
+        }),
+        "sigma_mm"
+    );
+    assert_eq!(
+        bad(WssConfig {
+            angles: AngleGrid::List(vec![]),
+            ..Default::default()
+        }),
+        "angles"
+    );
+    assert_eq!(
+        bad(WssConfig {
+            angles: AngleGrid::List(vec![10.0, 180.0]),
+            ..Default::default()
+        }),
+        "angles"
+    );
+    assert_eq!(
+        bad(WssConfig {
+            angles: AngleGrid::List(vec![0.0]),
+            ..Default::default()
+        }),
+        "angles"
+    );
+    assert_eq!(
+        bad(WssConfig {
+            angles: AngleGrid::Range {
+                from: 10.0,
+                to: 20.0,
+                step: 0.0
+            },
+            ..Default::default()
+        }),
+        "angles.step"
+    );
+    assert_eq!(
+        bad(WssConfig {
+            speed_mm_s: -1.0,
+            ..Default::default()
+        }),
+        "speed_mm_s"
+    );
+    assert_eq!(
+        bad(WssConfig {
+            threshold: 2.0,
+            ..Default::default()
+        }),
+        "threshold"
+    );
+    assert_eq!(
+        bad(WssConfig {
+            stop_margin: Some(f64::NAN),
+            ..Default::default()
+        }),
+        "stop_margin"
+    );
+    let e = Templates::new(&TaxelLayout::paper(), 0.0, &WssParams::default()).unwrap_err();
+    assert_eq!(e.key.as_deref(), Some("hop_ms"));
+}
+
+#[test]
+fn bad_counts_are_errors_naming_frame_and_taxel() {
+    let params = small_params();
+    let tpl = Templates::new(&TaxelLayout::paper(), 10.0, &params).unwrap();
+    let mut im = small_trial(45.0);
+    im.counts[3 * 16 + 5] = f64::NAN;
+    let e = wss_batch(&im, &tpl, &params).unwrap_err();
+    assert!(
+        e.message.contains("frame 3") && e.message.contains("taxel 5"),
+        "{}",
+        e.message
+    );
+}
+
+#[test]
+fn graph_toml_parses_lists_and_ranges() {
+    let c: WssConfig = toml::from_str("angles = [10, 20.5]\nweighting = \"constant\"").unwrap();
+    assert_eq!(c.params().unwrap().angles, vec![10.0, 20.5]);
+    let c: WssConfig = toml::from_str("angles = { from = 10, to = 170, step = 10 }").unwrap();
+    assert_eq!(c.params().unwrap().angles.len(), 17);
+    assert!(toml::from_str::<WssConfig>("sigma = 1").is_err());
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(24))]
+
+    #[test]
+    fn scaling_counts_leaves_the_estimate(scale in 1e-6f64..1e6, seed in 0u64..1000, theta in 15.0f64..165.0) {
+        let params = small_params();
+        let tpl = Templates::new(&TaxelLayout::paper(), 10.0, &params).unwrap();
+        let im = noisy(small_trial(theta), seed, 2.0);
+        let mut scaled = im.clone();
+        scaled.counts.iter_mut().for_each(|c| *c *= scale);
+        let (a, b) = (wss_batch(&im, &tpl, &params).unwrap(), wss_batch(&scaled, &tpl, &params).unwrap());
+        prop_assert_eq!(a.class_deg, b.class_deg);
+        prop_assert_eq!(a.best_frame, b.best_frame);
+        for (x, y) in a.scores.iter().zip(&b.scores) {
+            prop_assert!((x.score - y.score).abs() < 1e-9);
+        }
+    }
+
+    #[test]
+    fn random_counts_never_give_nan(seed in 0u64..1000, frames in 1usize..200, sparsity in 0.0f64..1.0) {
+        let params = WssParams { weighting: Weighting::OneMinusSr, ..small_params() };
+        let tpl = Arc::new(Templates::new(&TaxelLayout::paper(), 10.0, &params).unwrap());
+        let counts: Vec<f64> = (0..frames * 16)
+            .map(|i| if noise(seed, i) < sparsity { 0.0 } else { (5.0 * noise(seed + 1, i)).floor() })
+            .collect();
+        let im = SpikeImages { layout: TaxelLayout::paper(), window_ms: 100.0, hop_ms: 10.0, n_frames: frames, counts };
+        let fast = wss_series(&im, &tpl, &params).unwrap();
+        let slow = wss_reference_series(&im, &tpl, &params).unwrap();
+        assert_close(&fast, &slow, 1e-9, "random fast vs reference");
+        let (s, _) = stream_all(&im, &tpl, &params);
+        assert_close(&s.series(), &fast, 1e-9, "random stream vs batch");
+        let e = wss_batch(&im, &tpl, &params).unwrap();
+        prop_assert!(e.scores.iter().all(|s| s.score.is_finite() && s.score.abs() <= 1.0 + 1e-9));
+    }
+}
