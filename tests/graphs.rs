@@ -7,7 +7,10 @@ use std::path::{Path, PathBuf};
 /// Graph files (scene description files under graphs/scenes/ are not graphs).
 fn graph_files() -> Vec<PathBuf> {
     fn walk(dir: &Path, out: &mut Vec<PathBuf>) {
-        let mut entries: Vec<PathBuf> = std::fs::read_dir(dir).unwrap().map(|e| e.unwrap().path()).collect();
+        let mut entries: Vec<PathBuf> = std::fs::read_dir(dir)
+            .unwrap()
+            .map(|e| e.unwrap().path())
+            .collect();
         entries.sort();
         for p in entries {
             if p.is_dir() {
@@ -59,7 +62,8 @@ fn every_graph_checks_and_runs_small() {
     let files = graph_files();
     assert!(files.iter().any(|f| f.ends_with("quickstart.toml")), "{files:?}");
     for f in &files {
-        let g = core::load_file(f, &LoadOptions::default()).unwrap_or_else(|e| panic!("{}:\n{e}", f.display()));
+        let g =
+            core::load_file(f, &LoadOptions::default()).unwrap_or_else(|e| panic!("{}:\n{e}", f.display()));
         let name = f.file_stem().unwrap().to_string_lossy().to_string();
         let text = shrink(&std::fs::read_to_string(f).unwrap());
         let opts = LoadOptions {
@@ -74,7 +78,8 @@ fn every_graph_checks_and_runs_small() {
                 .unwrap_or_else(|e| panic!("{}: {e}", f.display()));
             assert_eq!(runs.len(), 2, "{}", f.display());
         } else {
-            let r = core::run(&small, &RunOptions::default()).unwrap_or_else(|e| panic!("{}: {e}", f.display()));
+            let r =
+                core::run(&small, &RunOptions::default()).unwrap_or_else(|e| panic!("{}: {e}", f.display()));
             assert!(!r.reports.is_empty(), "{} has no sink", f.display());
         }
         let _ = std::fs::remove_dir_all(out_dir(&name));
@@ -91,7 +96,10 @@ fn quickstart_estimates(threads: usize) -> Vec<(String, Option<f64>, Vec<u64>)> 
         ..LoadOptions::default()
     };
     let g = core::load_str(&text, "quickstart.toml", "quickstart", &opts).unwrap();
-    let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .unwrap();
     let r = pool
         .install(|| {
             core::run(
@@ -104,12 +112,20 @@ fn quickstart_estimates(threads: usize) -> Vec<(String, Option<f64>, Vec<u64>)> 
         })
         .unwrap();
     let _ = std::fs::remove_dir_all(out_dir(&format!("threads{threads}")));
-    let est = g.nodes.iter().find(|n| matches!(n.stage, core::Stage::Estimator(_))).unwrap();
+    let est = g
+        .nodes
+        .iter()
+        .find(|n| matches!(n.stage, core::Stage::Estimator(_)))
+        .unwrap();
     r.outputs[&est.id]
         .iter()
         .map(|i| {
             let e = i.payload.estimate().unwrap();
-            (i.meta.trial_id.clone(), e.angle_deg, e.scores.iter().map(|s| s.score.to_bits()).collect())
+            (
+                i.meta.trial_id.clone(),
+                e.angle_deg,
+                e.scores.iter().map(|s| s.score.to_bits()).collect(),
+            )
         })
         .collect()
 }
@@ -155,30 +171,70 @@ inputs = ["estimates"]
 "#,
     )
     .unwrap();
-    let out = std::process::Command::new(env!("CARGO_BIN_EXE_palpate")).arg("check").arg(&bad).output().unwrap();
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_palpate"))
+        .arg("check")
+        .arg(&bad)
+        .output()
+        .unwrap();
     assert!(!out.status.success());
     let stderr = String::from_utf8_lossy(&out.stderr);
     let errors: Vec<&str> = stderr.lines().filter(|l| l.contains(": error: ")).collect();
     assert_eq!(errors.len(), 5, "{stderr}");
-    for (line, stage) in [(3, "scene"), (8, "enc"), (12, "bins"), (19, "report"), (23, "report2")] {
+    for (line, stage) in [
+        (3, "scene"),
+        (8, "enc"),
+        (12, "bins"),
+        (19, "report"),
+        (23, "report2"),
+    ] {
         assert!(
-            errors.iter().any(|e| e.contains(&format!("bad.toml:{line}: error: stage `{stage}`"))),
+            errors
+                .iter()
+                .any(|e| e.contains(&format!("bad.toml:{line}: error: stage `{stage}`"))),
             "no error for `{stage}` at line {line}:\n{stderr}"
         );
     }
-    assert!(stderr.contains("5 errors in the graph; nothing was run"), "{stderr}");
+    assert!(
+        stderr.contains("5 errors in the graph; nothing was run"),
+        "{stderr}"
+    );
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
 #[test]
 fn every_builtin_stage_type_is_registered() {
     palpate::link();
-    let names: Vec<&str> = core::registry::registrations().iter().map(|r| r.type_name).collect();
-    assert_eq!(names, core::registry::typetag_names(), "schema and typetag registries disagree");
+    let names: Vec<&str> = core::registry::registrations()
+        .iter()
+        .map(|r| r.type_name)
+        .collect();
+    assert_eq!(
+        names,
+        core::registry::typetag_names(),
+        "schema and typetag registries disagree"
+    );
     for t in [
-        "scene", "normalize", "lowpass", "derivative", "drive", "izhikevich", "lif", "jitter", "crop", "subarea",
-        "dead_taxels", "bin", "raster_plot", "image_strip", "wss", "mae", "confusion",
+        "scene",
+        "normalize",
+        "lowpass",
+        "derivative",
+        "drive",
+        "izhikevich",
+        "lif",
+        "jitter",
+        "crop",
+        "subarea",
+        "dead_taxels",
+        "bin",
+        "raster_plot",
+        "image_strip",
+        "wss",
+        "mae",
+        "confusion",
     ] {
-        assert!(names.contains(&t), "built-in stage `{t}` is not registered: {names:?}");
+        assert!(
+            names.contains(&t),
+            "built-in stage `{t}` is not registered: {names:?}"
+        );
     }
 }
