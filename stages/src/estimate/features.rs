@@ -69,7 +69,7 @@ use serde::{Deserialize, Serialize};
 use std::collections::VecDeque;
 use std::path::Path;
 
-use super::ann;
+use super::{ann, classic, edbn};
 
 /// How per-frame outputs are combined over a trial.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, JsonSchema, Default)]
@@ -478,19 +478,34 @@ impl Standardizer {
 }
 
 /// The fitted per-frame classifier of a baseline.
-#[derive(Clone, Debug, Serialize, Deserialize)]
+#[derive(Debug, Serialize, Deserialize)]
 #[serde(tag = "kind", rename_all = "snake_case")]
 pub enum Classifier {
     /// One-hidden-layer perceptron.
     Ann(ann::Mlp),
+    /// Deep belief network.
+    Edbn(edbn::Dbn),
+    /// One-vs-one RBF SVM.
+    Svm(classic::OvoSvm),
+    /// Random forest.
+    RandomForest(classic::Forest),
+    /// k nearest neighbours.
+    Knn(classic::Knn),
+    /// Multinomial logistic regression.
+    Logistic(classic::Softmax),
 }
 
 impl Classifier {
     /// Per-frame class scores of a normalised feature vector (non-negative,
     /// larger is more likely). `rng` feeds stochastic inference (EDBN spiking).
-    pub fn frame_scores(&self, x: &[f64], _rng: &mut ChaCha8Rng, out: &mut [f64]) {
+    pub fn frame_scores(&self, x: &[f64], rng: &mut ChaCha8Rng, out: &mut [f64]) {
         match self {
             Classifier::Ann(m) => m.frame_scores(x, out),
+            Classifier::Edbn(m) => m.frame_scores(x, rng, out),
+            Classifier::Svm(m) => m.frame_scores(x, out),
+            Classifier::RandomForest(m) => m.frame_scores(x, out),
+            Classifier::Knn(m) => m.frame_scores(x, out),
+            Classifier::Logistic(m) => m.frame_scores(x, out),
         }
     }
 }
@@ -511,7 +526,7 @@ pub struct TrainingLog {
 }
 
 /// A fitted baseline: everything a prediction needs, as plain serde data.
-#[derive(Clone, Debug, Serialize, Deserialize)]
+#[derive(Debug, Serialize, Deserialize)]
 pub struct FittedModel {
     /// Format version of this file.
     pub format: u32,
