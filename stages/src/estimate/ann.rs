@@ -1,1 +1,573 @@
-//! ANN baseline: one hidden layer, spatial or spatiotemporal input (SPEC.md section 5).
+//! ANN baseline (paper section 3.2, SPEC.md section 5): a one-hidden-layer
+//! perceptron over spike images, trained per fold, with the paper's
+//! winner-take-all vote over the trial.
+//!
+//! # Model
+//!
+//! For a feature vector `x` (one image, "ANN (S)", or `frames` stacked images,
+//! "ANN (ST)"; see [`super::features`] for selection and normalisation, then
+//! per-feature standardisation fitted on the training vectors):
+//!
+//! ```text
+//! a = tanh(W1 x + b1)          (hidden = 30 units by default, as in the paper)
+//! p = softmax(W2 a + b2)       (one output per class)
+//! ```
+//!
+//! trained to minimise the mean cross-entropy `-log p_y` plus `l2/2 · ‖W‖²` on
+//! the weights (not the biases), with minibatches (Adam by default, or SGD with
+//! momentum). tanh rather than a ReLU: with 30 units a dead unit costs a lot,
+//! and tanh is smooth, so the gradient check is exact.
+//!
+//! Early stopping: a validation split of whole training *trials* (per class,
+//! `val_fraction` of them; see [`super::features::TrainSet::split_by_trial`])
+//! is held out; training stops when the validation loss has not improved for
+//! `patience` epochs, and the weights of the best epoch are kept.
+//!
+//! Default input: `spatiotemporal` with `frames = 5` images spaced one window
+//! apart (0.5 s of contact). Spatial images are ambiguous on a 4x4 array (the
+//! paper's ANN (S) has ~3x the error of ANN (ST)); 0.5 s spans the crossing of
+//! more than one taxel row or column for angles above ~20° (a row-to-row delay
+//! of `pitch / (v tan θ)`) while keeping the input at 80 values.
+//!
+//! Initialisation: Glorot-uniform weights, zero biases, from the fold's seeded
+//! RNG, which also shuffles the minibatches and draws the validation split, so a
+//! fit is bit-identical for the same seed. Loops run in a fixed order on one
+//! thread (folds run in parallel in the runtime).
+
+use super::features::{
+    maybe_save, Classifier, FeatureKeys, FittedModel, Standardizer, TrainSet, TrainingLog, Vote, MODEL_FORMAT,
+};
+use palpate_core::{
+    check_positive, check_range, register_stage, BuildContext, ConfigError, Estimator, FitContext, InputSpec,
+    Item, Model, PayloadKind, Stage, StageConfig, StageError,
+};
+use rand::Rng;
+use rand_chacha::ChaCha8Rng;
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
+use std::path::PathBuf;
+
+/// Input of the ANN.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum AnnInput {
+    /// One spike image per vector ("ANN (S)").
+    Spatial,
+    /// `frames` stacked images per vector ("ANN (ST)").
+    Spatiotemporal,
+}
+
+/// Minibatch optimiser.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum Optimizer {
+    /// Adam (Kingma & Ba 2015), β1 = 0.9, β2 = 0.999, ε = 1e-8.
+    Adam,
+    /// SGD with (heavy-ball) momentum.
+    Sgd,
+}
+
+/// One-hidden-layer ANN on spike images, trained per fold (paper's ANN (S) / ANN (ST)).
+///
+/// Per-frame softmax outputs are combined over the trial by the paper's
+/// winner-take-all vote. Input: spike images; output: orientation estimates.
+/// See the module docs of `palpate_stages::estimate::ann` for the maths.
+#[derive(Clone, Debug, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields, default)]
+pub struct AnnConfig {
+    /// `spatial` (one image per vector) or `spatiotemporal` (`frames` images). Default `spatiotemporal`.
+    pub input: AnnInput,
+    /// Images stacked per spatiotemporal vector (ignored for `spatial`). Default 5.
+    pub frames: usize,
+    /// Frames between stacked images; 0 = one window (`round(window_ms / hop_ms)`). Default 0.
+    pub step: usize,
+    /// Frames between the frames a trial contributes; 0 = one window. Default 0.
+    pub stride: usize,
+    /// Smallest spike total of a used vector (frames below are skipped). Default 1.
+    pub min_spikes: f64,
+    /// Most vectors a training trial contributes (evenly spaced). Default 100.
+    pub max_train_frames: usize,
+    /// Hidden units. Default 30 (the paper's).
+    pub hidden: usize,
+    /// `adam` or `sgd` (with momentum). Default `adam`.
+    pub optimizer: Optimizer,
+    /// Learning rate. Default 0.005.
+    pub learning_rate: f64,
+    /// Momentum of `sgd` (unused by `adam`). Default 0.9.
+    pub momentum: f64,
+    /// L2 weight decay on the weights. Default 1e-4.
+    pub l2: f64,
+    /// Vectors per minibatch. Default 32.
+    pub batch_size: usize,
+    /// Most training epochs. Default 60.
+    pub max_epochs: usize,
+    /// Epochs without validation improvement before stopping. Default 6.
+    pub patience: usize,
+    /// Share of each class's training trials held out for early stopping (0 = none: train `max_epochs`). Default 0.15.
+    pub val_fraction: f64,
+    /// `winner` (paper: each frame's winning class collects its output) or `sum`. Default `winner`.
+    pub vote: Vote,
+    /// Write each fold's fitted model to `<out>/<stage id>.fold<f>.model.json`. Default false.
+    pub save_model: bool,
+}
+
+impl Default for AnnConfig {
+    fn default() -> Self {
+        AnnConfig {
+            input: AnnInput::Spatiotemporal,
+            frames: 5,
+            step: 0,
+            stride: 0,
+            min_spikes: 1.0,
+            max_train_frames: 100,
+            hidden: 30,
+            optimizer: Optimizer::Adam,
+            learning_rate: 0.005,
+            momentum: 0.9,
+            l2: 1e-4,
+            batch_size: 32,
+            max_epochs: 60,
+            patience: 6,
+            val_fraction: 0.15,
+            vote: Vote::Winner,
+            save_model: false,
+        }
+    }
+}
+
+impl AnnConfig {
+    fn feature_keys(&self) -> FeatureKeys {
+        FeatureKeys {
+            frames: match self.input {
+                AnnInput::Spatial => 1,
+                AnnInput::Spatiotemporal => self.frames,
+            },
+            step: self.step,
+            stride: self.stride,
+            min_spikes: self.min_spikes,
+            max_train_frames: self.max_train_frames,
+        }
+    }
+
+    /// Checks every key, naming the wrong one.
+    pub fn check(&self) -> Result<(), ConfigError> {
+        self.feature_keys().check()?;
+        if self.hidden == 0 || self.hidden > 100_000 {
+            return Err(ConfigError::key(
+                "hidden",
+                format!("must be 1..=100000, got {}", self.hidden),
+            ));
+        }
+        check_positive("learning_rate", self.learning_rate, "")?;
+        check_range("momentum", self.momentum, 0.0, 0.999, "")?;
+        check_range("l2", self.l2, 0.0, 1e3, "")?;
+        if self.batch_size == 0 {
+            return Err(ConfigError::key("batch_size", "must be at least 1"));
+        }
+        if self.max_epochs == 0 {
+            return Err(ConfigError::key("max_epochs", "must be at least 1"));
+        }
+        check_range("val_fraction", self.val_fraction, 0.0, 0.5, "")?;
+        Ok(())
+    }
+
+    /// Fits the ANN on a fold's training trials.
+    pub fn fit_model(&self, train: &[&Item], ctx: &FitContext<'_>) -> Result<FittedModel, StageError> {
+        self.check()?;
+        let set = TrainSet::build(train, &self.feature_keys())?;
+        let mut rng = ctx.rng();
+        let (fit_idx, val_idx) = set.split_by_trial(self.val_fraction, &mut rng);
+        let scaler = Standardizer::fit(&set, &fit_idx);
+        let standardized = |idx: &[usize]| -> (Vec<f64>, Vec<usize>) {
+            let mut x = Vec::with_capacity(idx.len() * set.dim);
+            for &i in idx {
+                let start = x.len();
+                x.extend_from_slice(set.row(i));
+                scaler.apply(&mut x[start..]);
+            }
+            (x, idx.iter().map(|&i| set.y[i]).collect())
+        };
+        let (xf, yf) = standardized(&fit_idx);
+        let (xv, yv) = standardized(&val_idx);
+        let mut mlp = Mlp::new(set.dim, self.hidden, set.classes.len(), scaler, &mut rng);
+        let log = mlp.train(&xf, &yf, &xv, &yv, self, &mut rng);
+        Ok(FittedModel {
+            format: MODEL_FORMAT,
+            stage_type: "ann".into(),
+            classes: set.classes,
+            features: set.spec,
+            vote: self.vote,
+            classifier: Classifier::Ann(mlp),
+            log,
+        })
+    }
+}
+
+#[typetag::serde(name = "ann")]
+impl StageConfig for AnnConfig {
+    fn inputs(&self) -> InputSpec {
+        InputSpec::one(PayloadKind::Images)
+    }
+    fn output(&self) -> Option<PayloadKind> {
+        Some(PayloadKind::Estimates)
+    }
+    fn build(&self, ctx: &BuildContext) -> Result<Stage, ConfigError> {
+        self.check()?;
+        Ok(Stage::Estimator(Box::new(AnnEstimator {
+            config: self.clone(),
+            out_dir: ctx.out_dir.clone(),
+        })))
+    }
+}
+register_stage!("ann", AnnConfig);
+
+struct AnnEstimator {
+    config: AnnConfig,
+    out_dir: PathBuf,
+}
+
+impl Estimator for AnnEstimator {
+    fn trained(&self) -> bool {
+        true
+    }
+    fn fit(&self, train: &[&Item], ctx: &FitContext<'_>) -> Result<Box<dyn Model>, StageError> {
+        let m = self.config.fit_model(train, ctx)?;
+        maybe_save(&m, self.config.save_model, &self.out_dir, ctx)?;
+        Ok(Box::new(m))
+    }
+}
+
+/// A fitted one-hidden-layer perceptron. Parameters are one flat vector,
+/// `[W1 (hidden x dim, row-major) | b1 | W2 (classes x hidden) | b2]`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Mlp {
+    /// Input size.
+    pub dim: usize,
+    /// Hidden units.
+    pub hidden: usize,
+    /// Output classes.
+    pub classes: usize,
+    /// Flat parameters.
+    pub params: Vec<f64>,
+    /// Input standardisation.
+    pub scaler: Standardizer,
+}
+
+/// Working buffers of one forward/backward pass.
+struct Scratch {
+    a: Vec<f64>,
+    p: Vec<f64>,
+    da: Vec<f64>,
+}
+
+impl Mlp {
+    /// A network with Glorot-uniform weights and zero biases.
+    pub fn new(
+        dim: usize,
+        hidden: usize,
+        classes: usize,
+        scaler: Standardizer,
+        rng: &mut ChaCha8Rng,
+    ) -> Self {
+        let mut m = Mlp {
+            dim,
+            hidden,
+            classes,
+            params: vec![0.0; hidden * dim + hidden + classes * hidden + classes],
+            scaler,
+        };
+        let (w1, _, w2, _) = m.offsets();
+        let r1 = (6.0 / (dim + hidden) as f64).sqrt();
+        let r2 = (6.0 / (hidden + classes) as f64).sqrt();
+        for i in 0..hidden * dim {
+            m.params[w1 + i] = rng.random_range(-r1..r1);
+        }
+        for i in 0..classes * hidden {
+            m.params[w2 + i] = rng.random_range(-r2..r2);
+        }
+        m
+    }
+
+    /// Offsets of W1, b1, W2, b2 in `params`.
+    fn offsets(&self) -> (usize, usize, usize, usize) {
+        let w1 = 0;
+        let b1 = self.hidden * self.dim;
+        let w2 = b1 + self.hidden;
+        let b2 = w2 + self.classes * self.hidden;
+        (w1, b1, w2, b2)
+    }
+
+    fn scratch(&self) -> Scratch {
+        Scratch {
+            a: vec![0.0; self.hidden],
+            p: vec![0.0; self.classes],
+            da: vec![0.0; self.hidden],
+        }
+    }
+
+    /// Forward pass of a standardised vector: hidden activations into `s.a`,
+    /// class probabilities into `s.p`.
+    fn forward(&self, x: &[f64], s: &mut Scratch) {
+        let (w1, b1, w2, b2) = self.offsets();
+        let p = &self.params;
+        for j in 0..self.hidden {
+            let row = &p[w1 + j * self.dim..w1 + (j + 1) * self.dim];
+            s.a[j] = (dot(row, x) + p[b1 + j]).tanh();
+        }
+        for c in 0..self.classes {
+            let row = &p[w2 + c * self.hidden..w2 + (c + 1) * self.hidden];
+            s.p[c] = dot(row, &s.a) + p[b2 + c];
+        }
+        softmax(&mut s.p);
+    }
+
+    /// Class probabilities of a normalised (not yet standardised) vector.
+    pub fn frame_scores(&self, x: &[f64], out: &mut [f64]) {
+        let mut z = x.to_vec();
+        self.scaler.apply(&mut z);
+        let mut s = self.scratch();
+        self.forward(&z, &mut s);
+        out.copy_from_slice(&s.p);
+    }
+
+    /// Mean cross-entropy of standardised rows `x` (row-major) with labels `y`,
+    /// plus the L2 term; adds the gradient of that loss to `grad` when given.
+    pub fn loss_grad(&self, x: &[f64], y: &[usize], l2: f64, mut grad: Option<&mut [f64]>) -> f64 {
+        let (w1, b1, w2, b2) = self.offsets();
+        let n = y.len();
+        if n == 0 {
+            return 0.0;
+        }
+        let inv_n = 1.0 / n as f64;
+        let mut s = self.scratch();
+        let mut loss = 0.0;
+        for (i, &yi) in y.iter().enumerate() {
+            let xi = &x[i * self.dim..(i + 1) * self.dim];
+            self.forward(xi, &mut s);
+            loss -= s.p[yi].max(1e-300).ln();
+            let Some(g) = grad.as_deref_mut() else { continue };
+            // dL/dz2 = p - onehot(y), scaled by 1/n for the mean.
+            s.p[yi] -= 1.0;
+            s.p.iter_mut().for_each(|d| *d *= inv_n);
+            s.da.iter_mut().for_each(|d| *d = 0.0);
+            for c in 0..self.classes {
+                let dz = s.p[c];
+                g[b2 + c] += dz;
+                let wrow = &self.params[w2 + c * self.hidden..w2 + (c + 1) * self.hidden];
+                let grow = &mut g[w2 + c * self.hidden..w2 + (c + 1) * self.hidden];
+                for j in 0..self.hidden {
+                    grow[j] += dz * s.a[j];
+                    s.da[j] += dz * wrow[j];
+                }
+            }
+            for j in 0..self.hidden {
+                let dz = s.da[j] * (1.0 - s.a[j] * s.a[j]);
+                g[b1 + j] += dz;
+                let grow = &mut g[w1 + j * self.dim..w1 + (j + 1) * self.dim];
+                grow.iter_mut().zip(xi).for_each(|(g, x)| *g += dz * x);
+            }
+        }
+        loss *= inv_n;
+        if l2 > 0.0 {
+            let mut sq = 0.0;
+            for range in [w1..b1, w2..b2] {
+                for k in range {
+                    let w = self.params[k];
+                    sq += w * w;
+                    if let Some(g) = grad.as_deref_mut() {
+                        g[k] += l2 * w;
+                    }
+                }
+            }
+            loss += 0.5 * l2 * sq;
+        }
+        loss
+    }
+
+    /// Minibatch training with early stopping; returns the log.
+    fn train(
+        &mut self,
+        xf: &[f64],
+        yf: &[usize],
+        xv: &[f64],
+        yv: &[usize],
+        cfg: &AnnConfig,
+        rng: &mut ChaCha8Rng,
+    ) -> TrainingLog {
+        let n_params = self.params.len();
+        let mut grad = vec![0.0; n_params];
+        let mut m1 = vec![0.0; n_params];
+        let mut m2 = vec![0.0; n_params];
+        let mut order: Vec<usize> = (0..yf.len()).collect();
+        let mut bx = Vec::with_capacity(cfg.batch_size * self.dim);
+        let mut by = Vec::with_capacity(cfg.batch_size);
+        let mut log = TrainingLog {
+            n_train: yf.len(),
+            n_val: yv.len(),
+            ..TrainingLog::default()
+        };
+        let mut best = (f64::INFINITY, self.params.clone(), 0usize);
+        let mut t = 0i32;
+        let mut since_best = 0;
+        for epoch in 0..cfg.max_epochs {
+            rand::seq::SliceRandom::shuffle(order.as_mut_slice(), rng);
+            let mut epoch_loss = 0.0;
+            for batch in order.chunks(cfg.batch_size) {
+                bx.clear();
+                by.clear();
+                for &i in batch {
+                    bx.extend_from_slice(&xf[i * self.dim..(i + 1) * self.dim]);
+                    by.push(yf[i]);
+                }
+                grad.iter_mut().for_each(|g| *g = 0.0);
+                let l = self.loss_grad(&bx, &by, cfg.l2, Some(&mut grad));
+                epoch_loss += l * batch.len() as f64;
+                t += 1;
+                match cfg.optimizer {
+                    Optimizer::Adam => {
+                        let (b1, b2, eps) = (0.9f64, 0.999f64, 1e-8);
+                        let c1 = 1.0 / (1.0 - b1.powi(t));
+                        let c2 = 1.0 / (1.0 - b2.powi(t));
+                        for k in 0..n_params {
+                            m1[k] = b1 * m1[k] + (1.0 - b1) * grad[k];
+                            m2[k] = b2 * m2[k] + (1.0 - b2) * grad[k] * grad[k];
+                            self.params[k] -= cfg.learning_rate * (m1[k] * c1) / ((m2[k] * c2).sqrt() + eps);
+                        }
+                    }
+                    Optimizer::Sgd => {
+                        for k in 0..n_params {
+                            m1[k] = cfg.momentum * m1[k] - cfg.learning_rate * grad[k];
+                            self.params[k] += m1[k];
+                        }
+                    }
+                }
+            }
+            let train_loss = epoch_loss / yf.len().max(1) as f64;
+            log.loss.push(train_loss);
+            // Early stopping watches validation loss, or training loss without a split.
+            let watched = if yv.is_empty() {
+                train_loss
+            } else {
+                let v = self.loss_grad(xv, yv, 0.0, None);
+                log.val_loss.push(v);
+                v
+            };
+            if !watched.is_finite() {
+                break;
+            }
+            if !best.0.is_finite() || watched < best.0 - 1e-9 * best.0.abs().max(1.0) {
+                best = (watched, self.params.clone(), epoch);
+                since_best = 0;
+            } else {
+                since_best += 1;
+                if !yv.is_empty() && since_best >= cfg.patience.max(1) {
+                    break;
+                }
+            }
+        }
+        if best.0.is_finite() {
+            self.params = best.1;
+            log.best_epoch = Some(best.2);
+        }
+        log
+    }
+}
+
+/// Dot product; written over fixed-width chunks so that it vectorises, with a
+/// fixed summation order (so the same bits on every run).
+pub(crate) fn dot(a: &[f64], b: &[f64]) -> f64 {
+    let mut acc = [0.0f64; 4];
+    let ca = a.chunks_exact(4);
+    let cb = b.chunks_exact(4);
+    let (ra, rb) = (ca.remainder(), cb.remainder());
+    for (x, y) in ca.zip(cb) {
+        acc[0] += x[0] * y[0];
+        acc[1] += x[1] * y[1];
+        acc[2] += x[2] * y[2];
+        acc[3] += x[3] * y[3];
+    }
+    let mut s = (acc[0] + acc[1]) + (acc[2] + acc[3]);
+    for (x, y) in ra.iter().zip(rb) {
+        s += x * y;
+    }
+    s
+}
+
+/// In-place softmax, shifted by the maximum so it never overflows.
+pub(crate) fn softmax(z: &mut [f64]) {
+    let m = z.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+    let mut sum = 0.0;
+    for v in z.iter_mut() {
+        *v = (*v - m).exp();
+        sum += *v;
+    }
+    z.iter_mut().for_each(|v| *v /= sum);
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand_chacha::rand_core::SeedableRng;
+
+    #[test]
+    fn gradient_matches_finite_differences() {
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let (d, h, k, n) = (7, 5, 4, 9);
+        let scaler = Standardizer {
+            mean: vec![0.0; d],
+            inv_sd: vec![1.0; d],
+        };
+        let mut m = Mlp::new(d, h, k, scaler, &mut rng);
+        // Non-zero biases so their gradients are exercised too.
+        let (_, b1, _, _) = m.offsets();
+        for j in 0..h {
+            m.params[b1 + j] = rng.random_range(-0.5..0.5);
+        }
+        let x: Vec<f64> = (0..n * d).map(|_| rng.random_range(-2.0..2.0)).collect();
+        let y: Vec<usize> = (0..n).map(|i| i % k).collect();
+        let l2 = 0.01;
+        let mut g = vec![0.0; m.params.len()];
+        m.loss_grad(&x, &y, l2, Some(&mut g));
+        let eps = 1e-6;
+        for (p, &gp) in g.iter().enumerate() {
+            let orig = m.params[p];
+            m.params[p] = orig + eps;
+            let lp = m.loss_grad(&x, &y, l2, None);
+            m.params[p] = orig - eps;
+            let lm = m.loss_grad(&x, &y, l2, None);
+            m.params[p] = orig;
+            let num = (lp - lm) / (2.0 * eps);
+            let err = (num - gp).abs() / (num.abs() + gp.abs()).max(1e-8);
+            assert!(err < 1e-5, "param {p}: analytic {gp} vs numeric {num}");
+        }
+    }
+
+    #[test]
+    fn softmax_is_stable_for_huge_logits() {
+        let mut z = vec![1e300, -1e300, 0.0];
+        softmax(&mut z);
+        assert!(z.iter().all(|v| v.is_finite()));
+        assert_eq!(z[0], 1.0);
+        let d = dot(&[1.0, 2.0, 3.0, 4.0, 5.0], &[1.0; 5]);
+        assert_eq!(d, 15.0);
+    }
+
+    #[test]
+    fn bad_keys_are_named() {
+        let c = AnnConfig {
+            hidden: 0,
+            ..AnnConfig::default()
+        };
+        assert_eq!(c.check().unwrap_err().key.as_deref(), Some("hidden"));
+        let c = AnnConfig {
+            val_fraction: 0.9,
+            ..AnnConfig::default()
+        };
+        assert_eq!(c.check().unwrap_err().key.as_deref(), Some("val_fraction"));
+        let c = AnnConfig {
+            frames: 0,
+            ..AnnConfig::default()
+        };
+        assert_eq!(c.check().unwrap_err().key.as_deref(), Some("frames"));
+    }
+}

@@ -1,1 +1,713 @@
-//! Event-based deep belief network after O'Connor et al. 2013 (SPEC.md section 5).
+//! Event-based deep belief network after O'Connor et al. 2013 ("Real-time
+//! classification and sensor fusion with a spiking deep belief network",
+//! Front. Neurosci. 7:178), the paper's EDBN baseline (section 3.2, SPEC.md
+//! section 5).
+//!
+//! # Training (generative, layer by layer)
+//!
+//! A stack of restricted Boltzmann machines over the spatiotemporal feature
+//! vectors `v ∈ [0, 1]^D` (see [`super::features`]; default 5 stacked images).
+//! Each RBM has energy `E(v, h) = -vᵀWh - aᵀv - bᵀh` with Bernoulli units, so
+//! `p(h_j = 1 | v) = σ(b_j + W_j·v)` and `p(v_i = 1 | h) = σ(a_i + Wᵀ_i·h)`.
+//! The top RBM (the "associative" layer, last entry of `layers`) also has a
+//! softmax group of label units `y` on its visible side, trained jointly with
+//! the layer below's activities (a label-augmented RBM, as in Hinton et al. 2006
+//! and O'Connor et al.), `p(y | h) = softmax(c + Uᵀh)`.
+//!
+//! Every RBM is trained with persistent contrastive divergence (PCD, Tieleman
+//! 2008): the positive statistics use the data with `p(h | v)`; the negative
+//! statistics come from `batch_size` persistent Gibbs chains advanced one step
+//! per minibatch (sample `h`, sample `v` (and `y`), recompute `p(h | v)`). The
+//! update is `ΔW = lr (⟨v hᵀ⟩_data - ⟨v hᵀ⟩_chains) - lr·l2·W`, with momentum 0.5
+//! for the first epochs and 0.9 after, and a learning rate decaying linearly to
+//! a tenth over the epochs (PCD needs a decaying rate for its chains to track the
+//! model). The top RBM's update also adds `discriminative ·` the gradient of
+//! `log p(y | h)` (hybrid generative/discriminative training, Larochelle &
+//! Bengio 2008): with a few thousand training vectors, purely generative PCD
+//! left the label units near the class prior in our tests (`discriminative =
+//! 0` restores it). Weights start at `N(0, 1/n_vis)` so hidden units
+//! differentiate within the first epochs. The layer above is trained on the mean-field activities `p(h | v)` of
+//! the layer below. The training log records each layer-epoch's mean squared
+//! reconstruction error `‖v - p(v | p(h | v))‖² / D`.
+//!
+//! # Inference (`inference` key)
+//!
+//! * `rate` (mean-field): `h_1 = σ(W_1 v + b_1)`, ... up to the layer under
+//!   the top; then the top RBM's label posterior, exactly (free energies):
+//!   `p(y | h) ∝ exp(c_y + Σ_j softplus(b_j + W_j·h + U_jy))`. The frame's class
+//!   scores are `p(y | h)`.
+//! * `spiking` (event-driven, as O'Connor et al. run their DBN): each input value
+//!   drives a Poisson spike train at `v_i · input_rate_hz` for `duration_ms`, in
+//!   steps of `dt_ms`; every layer is integrate-and-fire units (reset by
+//!   subtraction, threshold 1, membrane floor -1) receiving, per step, the weights
+//!   of the units that spiked below plus bias current. The drive is scaled so that
+//!   a unit's spike probability per step is `p_in · hardσ(z)` with `p_in =
+//!   input_rate_hz · dt`, `hardσ(z) = clip(0.5 + z/4, 0, 1)` (the piecewise-linear
+//!   sigmoid) and `z` its RBM net input: the firing rates carry the mean-field
+//!   activities, which is the rate-based correspondence O'Connor et al. obtain by
+//!   training with Siegert units (we train with sigmoids and map through hardσ,
+//!   a simplification we state here). Label units integrate `c + Uᵀ s_top` and the
+//!   frame's class scores are their spike counts divided by the total (all zero if
+//!   none fired). Spikes come from the trial's seeded RNG, so spiking inference is
+//!   reproducible.
+//!
+//! In both modes a trial's answer is the winner-take-all vote of the paper.
+
+use super::ann::softmax;
+use super::features::{
+    maybe_save, Classifier, FeatureKeys, FittedModel, TrainSet, TrainingLog, Vote, MODEL_FORMAT,
+};
+use palpate_core::{
+    check_positive, check_range, register_stage, BuildContext, ConfigError, Estimator, FitContext, InputSpec,
+    Item, Model, PayloadKind, Stage, StageConfig, StageError,
+};
+use rand::Rng;
+use rand_chacha::ChaCha8Rng;
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
+use std::path::PathBuf;
+
+/// How the fitted network is run.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum Inference {
+    /// Mean-field rates.
+    Rate,
+    /// Event-driven integrate-and-fire units driven by Poisson input spikes.
+    Spiking,
+}
+
+/// Event-based deep belief network (O'Connor et al. 2013): stacked RBMs trained with PCD, label-augmented top layer.
+///
+/// Rate (mean-field) or event-driven spiking inference per frame, winner-take-all
+/// over the trial. Input: spike images; output: orientation estimates.
+#[derive(Clone, Debug, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields, default)]
+pub struct EdbnConfig {
+    /// Images stacked per vector (EDBN uses spatiotemporal input). Default 5.
+    pub frames: usize,
+    /// Frames between stacked images; 0 = one window (`round(window_ms / hop_ms)`). Default 0.
+    pub step: usize,
+    /// Frames between the frames a trial contributes; 0 = one window. Default 0.
+    pub stride: usize,
+    /// Smallest spike total of a used vector. Default 1.
+    pub min_spikes: f64,
+    /// Most vectors a training trial contributes (evenly spaced). Default 60.
+    pub max_train_frames: usize,
+    /// Hidden layer sizes, bottom to top; the last is the associative layer trained with the labels. Default [120, 40].
+    pub layers: Vec<usize>,
+    /// PCD epochs per layer. Default 30.
+    pub epochs: usize,
+    /// Vectors per minibatch, and persistent chains. Default 10.
+    pub batch_size: usize,
+    /// Initial learning rate (decays linearly to a tenth). Default 0.05.
+    pub learning_rate: f64,
+    /// L2 weight decay. Default 1e-4.
+    pub l2: f64,
+    /// Weight of the discriminative gradient `∇ log p(y | x)` added to the top RBM's PCD update (hybrid training; 0 = purely generative). Default 1.
+    pub discriminative: f64,
+    /// `rate` (mean-field) or `spiking` (event-driven LIF). Default `rate`.
+    pub inference: Inference,
+    /// Spiking: input rate of a unit at value 1, Hz. Default 200.
+    pub input_rate_hz: f64,
+    /// Spiking: simulated time per frame, ms. Default 100.
+    pub duration_ms: f64,
+    /// Spiking: time step, ms. Default 1.
+    pub dt_ms: f64,
+    /// `winner` (paper) or `sum`. Default `winner`.
+    pub vote: Vote,
+    /// Write each fold's fitted model to `<out>/<stage id>.fold<f>.model.json`. Default false.
+    pub save_model: bool,
+}
+
+impl Default for EdbnConfig {
+    fn default() -> Self {
+        EdbnConfig {
+            frames: 5,
+            step: 0,
+            stride: 0,
+            min_spikes: 1.0,
+            max_train_frames: 60,
+            layers: vec![120, 40],
+            epochs: 30,
+            batch_size: 10,
+            learning_rate: 0.05,
+            l2: 1e-4,
+            discriminative: 1.0,
+            inference: Inference::Rate,
+            input_rate_hz: 200.0,
+            duration_ms: 100.0,
+            dt_ms: 1.0,
+            vote: Vote::Winner,
+            save_model: false,
+        }
+    }
+}
+
+/// One RBM: `w` is hidden x visible, row-major. The top RBM's visible side
+/// ends with `labels` softmax units.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Rbm {
+    /// Visible units (including labels).
+    pub n_vis: usize,
+    /// Hidden units.
+    pub n_hid: usize,
+    /// Label units at the end of the visible side (0 below the top).
+    pub labels: usize,
+    /// Weights, hidden x visible.
+    pub w: Vec<f64>,
+    /// Visible biases.
+    pub a: Vec<f64>,
+    /// Hidden biases.
+    pub b: Vec<f64>,
+}
+
+/// Scratch of the label posterior.
+struct Disc {
+    o: Vec<f64>,
+    p: Vec<f64>,
+}
+
+impl Disc {
+    fn new(k: usize, nh: usize) -> Self {
+        Disc {
+            o: vec![0.0; k * nh],
+            p: vec![0.0; k],
+        }
+    }
+}
+
+fn softplus(z: f64) -> f64 {
+    if z > 30.0 {
+        z
+    } else {
+        z.exp().ln_1p()
+    }
+}
+
+fn sigmoid(z: f64) -> f64 {
+    if z >= 0.0 {
+        1.0 / (1.0 + (-z).exp())
+    } else {
+        let e = z.exp();
+        e / (1.0 + e)
+    }
+}
+
+impl Rbm {
+    fn new(n_vis: usize, n_hid: usize, labels: usize, mean_vis: &[f64], rng: &mut ChaCha8Rng) -> Self {
+        let sd = 1.0 / (n_vis as f64).sqrt();
+        let w = (0..n_vis * n_hid)
+            .map(|_| {
+                // N(0, 1/n_vis) by Box–Muller, from the fold's RNG: large enough
+                // that hidden units differ from the first epoch.
+                let u1: f64 = rng.random::<f64>().max(1e-300);
+                let u2: f64 = rng.random();
+                sd * (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
+            })
+            .collect();
+        let a = mean_vis
+            .iter()
+            .map(|&p| {
+                let p = p.clamp(1e-3, 1.0 - 1e-3);
+                (p / (1.0 - p)).ln()
+            })
+            .collect();
+        Rbm {
+            n_vis,
+            n_hid,
+            labels,
+            w,
+            a,
+            b: vec![0.0; n_hid],
+        }
+    }
+
+    /// Hidden net inputs `b + W v`.
+    fn hid_input(&self, v: &[f64], out: &mut [f64]) {
+        for (j, o) in out.iter_mut().enumerate() {
+            *o = self.b[j] + super::ann::dot(&self.w[j * self.n_vis..(j + 1) * self.n_vis], v);
+        }
+    }
+
+    /// `p(h | v)`.
+    fn hid_prob(&self, v: &[f64], out: &mut [f64]) {
+        self.hid_input(v, out);
+        out.iter_mut().for_each(|z| *z = sigmoid(*z));
+    }
+
+    /// Visible net inputs `a + Wᵀ h`.
+    fn vis_input(&self, h: &[f64], out: &mut [f64]) {
+        out.copy_from_slice(&self.a);
+        for (j, &hj) in h.iter().enumerate() {
+            if hj != 0.0 {
+                let row = &self.w[j * self.n_vis..(j + 1) * self.n_vis];
+                out.iter_mut().zip(row).for_each(|(o, w)| *o += hj * w);
+            }
+        }
+    }
+
+    /// `p(v | h)`: Bernoulli units, then the label softmax group.
+    fn vis_prob(&self, h: &[f64], out: &mut [f64]) {
+        self.vis_input(h, out);
+        let nb = self.n_vis - self.labels;
+        out[..nb].iter_mut().for_each(|z| *z = sigmoid(*z));
+        if self.labels > 0 {
+            softmax(&mut out[nb..]);
+        }
+    }
+
+    /// Samples `v` from its probabilities in place (Bernoulli, and one label).
+    fn sample_vis(&self, p: &mut [f64], rng: &mut ChaCha8Rng) {
+        let nb = self.n_vis - self.labels;
+        for x in p[..nb].iter_mut() {
+            *x = f64::from(u8::from(rng.random::<f64>() < *x));
+        }
+        if self.labels > 0 {
+            let u: f64 = rng.random();
+            let mut acc = 0.0;
+            let mut pick = self.labels - 1;
+            for (k, &q) in p[nb..].iter().enumerate() {
+                acc += q;
+                if u < acc {
+                    pick = k;
+                    break;
+                }
+            }
+            p[nb..]
+                .iter_mut()
+                .enumerate()
+                .for_each(|(k, x)| *x = f64::from(u8::from(k == pick)));
+        }
+    }
+
+    /// Label posterior `p(y | x)` of a label-augmented RBM, exactly (free
+    /// energies): `p(y|x) ∝ exp(c_y + Σ_j softplus(b_j + W_j·x + U_jy))`. Fills
+    /// `d.o` with the hidden net inputs `o_yj` (x with label y) and `d.p` with p.
+    fn label_posterior(&self, x: &[f64], d: &mut Disc) {
+        let nb = self.n_vis - self.labels;
+        let k = self.labels;
+        for j in 0..self.n_hid {
+            let row = &self.w[j * self.n_vis..(j + 1) * self.n_vis];
+            let base = self.b[j] + super::ann::dot(&row[..nb], &x[..nb]);
+            for y in 0..k {
+                d.o[y * self.n_hid + j] = base + row[nb + y];
+            }
+        }
+        for y in 0..k {
+            let f: f64 = d.o[y * self.n_hid..(y + 1) * self.n_hid]
+                .iter()
+                .map(|&o| softplus(o))
+                .sum();
+            d.p[y] = self.a[nb + y] + f;
+        }
+        softmax(&mut d.p);
+    }
+
+    /// Adds `weight ·` the gradient of `log p(y | x)` (Larochelle & Bengio 2008)
+    /// for the labelled row `v = [x, onehot(y)]` to the accumulators.
+    fn add_discriminative(
+        &self,
+        v: &[f64],
+        weight: f64,
+        gw: &mut [f64],
+        ga: &mut [f64],
+        gb: &mut [f64],
+        d: &mut Disc,
+    ) {
+        let nb = self.n_vis - self.labels;
+        let k = self.labels;
+        let y = (0..k).position(|c| v[nb + c] > 0.5).unwrap_or(0);
+        self.label_posterior(v, d);
+        for j in 0..self.n_hid {
+            let mut expect = 0.0;
+            for c in 0..k {
+                let s = sigmoid(d.o[c * self.n_hid + j]);
+                expect += d.p[c] * s;
+                let t = f64::from(u8::from(c == y));
+                gw[j * self.n_vis + nb + c] += weight * (t - d.p[c]) * s;
+            }
+            let gj = sigmoid(d.o[y * self.n_hid + j]) - expect;
+            gb[j] += weight * gj;
+            let row = &mut gw[j * self.n_vis..j * self.n_vis + nb];
+            let wg = weight * gj;
+            row.iter_mut().zip(&v[..nb]).for_each(|(g, x)| *g += wg * x);
+        }
+        for c in 0..k {
+            ga[nb + c] += weight * (f64::from(u8::from(c == y)) - d.p[c]);
+        }
+    }
+
+    /// Trains with PCD on rows of `data` (each `n_vis` long); returns the
+    /// reconstruction error per epoch.
+    fn train_pcd(&mut self, data: &[f64], cfg: &EdbnConfig, rng: &mut ChaCha8Rng) -> Vec<f64> {
+        let nv = self.n_vis;
+        let nh = self.n_hid;
+        let n = data.len() / nv;
+        let bs = cfg.batch_size.min(n).max(1);
+        // Persistent chains start at binarised random data vectors.
+        let mut chains: Vec<f64> = Vec::with_capacity(bs * nv);
+        for _ in 0..bs {
+            let i = rng.random_range(0..n);
+            let mut v = data[i * nv..(i + 1) * nv].to_vec();
+            self.sample_vis(&mut v, rng);
+            chains.extend_from_slice(&v);
+        }
+        let mut gw = vec![0.0; nh * nv];
+        let mut ga = vec![0.0; nv];
+        let mut gb = vec![0.0; nh];
+        let (mut vw, mut va, mut vb) = (vec![0.0; nh * nv], vec![0.0; nv], vec![0.0; nh]);
+        let mut h = vec![0.0; nh];
+        let mut vbuf = vec![0.0; nv];
+        let mut disc = Disc::new(self.labels, nh);
+        let mut order: Vec<usize> = (0..n).collect();
+        let mut errors = Vec::with_capacity(cfg.epochs);
+        for epoch in 0..cfg.epochs {
+            let lr = cfg.learning_rate * (1.0 - 0.9 * epoch as f64 / cfg.epochs.max(1) as f64);
+            let mom = if epoch < 5 { 0.5 } else { 0.9 };
+            rand::seq::SliceRandom::shuffle(order.as_mut_slice(), rng);
+            let mut err = 0.0;
+            for batch in order.chunks(bs) {
+                gw.iter_mut().for_each(|g| *g = 0.0);
+                ga.iter_mut().for_each(|g| *g = 0.0);
+                gb.iter_mut().for_each(|g| *g = 0.0);
+                // Positive phase: data with p(h | v).
+                for &i in batch {
+                    let v = &data[i * nv..(i + 1) * nv];
+                    self.hid_prob(v, &mut h);
+                    for j in 0..nh {
+                        let row = &mut gw[j * nv..(j + 1) * nv];
+                        let hj = h[j];
+                        row.iter_mut().zip(v).for_each(|(g, x)| *g += hj * x);
+                        gb[j] += hj;
+                    }
+                    ga.iter_mut().zip(v).for_each(|(g, x)| *g += x);
+                    if self.labels > 0 && cfg.discriminative > 0.0 {
+                        self.add_discriminative(v, cfg.discriminative, &mut gw, &mut ga, &mut gb, &mut disc);
+                    }
+                    // Reconstruction error, for the log.
+                    self.vis_prob(&h, &mut vbuf);
+                    err += v.iter().zip(&vbuf).map(|(a, b)| (a - b) * (a - b)).sum::<f64>() / nv as f64;
+                }
+                // Negative phase: one Gibbs step of each persistent chain.
+                let scale_neg = batch.len() as f64 / bs as f64;
+                for c in 0..bs {
+                    let v = &mut chains[c * nv..(c + 1) * nv];
+                    self.hid_prob(v, &mut h);
+                    h.iter_mut()
+                        .for_each(|p| *p = f64::from(u8::from(rng.random::<f64>() < *p)));
+                    self.vis_prob(&h, v);
+                    self.sample_vis(v, rng);
+                    self.hid_prob(v, &mut h);
+                    for j in 0..nh {
+                        let row = &mut gw[j * nv..(j + 1) * nv];
+                        let hj = h[j] * scale_neg;
+                        row.iter_mut().zip(v.iter()).for_each(|(g, x)| *g -= hj * x);
+                        gb[j] -= hj;
+                    }
+                    ga.iter_mut().zip(v.iter()).for_each(|(g, x)| *g -= scale_neg * x);
+                }
+                let inv = 1.0 / batch.len() as f64;
+                for k in 0..nh * nv {
+                    vw[k] = mom * vw[k] + lr * (gw[k] * inv - cfg.l2 * self.w[k]);
+                    self.w[k] += vw[k];
+                }
+                for k in 0..nv {
+                    va[k] = mom * va[k] + lr * ga[k] * inv;
+                    self.a[k] += va[k];
+                }
+                for k in 0..nh {
+                    vb[k] = mom * vb[k] + lr * gb[k] * inv;
+                    self.b[k] += vb[k];
+                }
+            }
+            errors.push(err / n.max(1) as f64);
+        }
+        errors
+    }
+}
+
+/// A fitted deep belief network.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Dbn {
+    /// RBMs bottom to top; the last has the label units.
+    pub rbms: Vec<Rbm>,
+    /// Number of classes.
+    pub classes: usize,
+    /// Inference mode.
+    pub inference: Inference,
+    /// Spiking: input rate at value 1, Hz.
+    pub input_rate_hz: f64,
+    /// Spiking: simulated time per frame, ms.
+    pub duration_ms: f64,
+    /// Spiking: step, ms.
+    pub dt_ms: f64,
+}
+
+impl Dbn {
+    /// Class scores of one normalised vector.
+    pub fn frame_scores(&self, x: &[f64], rng: &mut ChaCha8Rng, out: &mut [f64]) {
+        match self.inference {
+            Inference::Rate => self.rate_scores(x, out),
+            Inference::Spiking => self.spiking_scores(x, rng, out),
+        }
+    }
+
+    /// Mean-field label posterior.
+    pub fn rate_scores(&self, x: &[f64], out: &mut [f64]) {
+        let mut v = x.to_vec();
+        let Some((top, below)) = self.rbms.split_last() else {
+            out.iter_mut().for_each(|o| *o = 0.0);
+            return;
+        };
+        for r in below {
+            let mut h = vec![0.0; r.n_hid];
+            r.hid_prob(&v, &mut h);
+            v = h;
+        }
+        let k = self.classes;
+        v.extend(std::iter::repeat_n(0.0, k));
+        let mut d = Disc::new(k, top.n_hid);
+        top.label_posterior(&v, &mut d);
+        out[..k].copy_from_slice(&d.p);
+    }
+
+    /// Event-driven inference: spike counts of the label units.
+    pub fn spiking_scores(&self, x: &[f64], rng: &mut ChaCha8Rng, out: &mut [f64]) {
+        let k = self.classes;
+        let p_in = (self.input_rate_hz * self.dt_ms / 1000.0).clamp(0.0, 1.0);
+        let steps = (self.duration_ms / self.dt_ms).round().max(1.0) as usize;
+        let n_layers = self.rbms.len();
+        let mut vm: Vec<Vec<f64>> = self.rbms.iter().map(|r| vec![0.0; r.n_hid]).collect();
+        let mut vlab = vec![0.0; k];
+        let mut counts = vec![0.0; k];
+        let mut spikes_in: Vec<usize> = Vec::with_capacity(x.len());
+        let mut spikes_out: Vec<usize> = Vec::new();
+        for _ in 0..steps {
+            spikes_in.clear();
+            for (i, &xi) in x.iter().enumerate() {
+                if rng.random::<f64>() < xi * p_in {
+                    spikes_in.push(i);
+                }
+            }
+            for (l, r) in self.rbms.iter().enumerate() {
+                // Drive per step: (W s + b p_in)/4 + p_in/2 → rate p_in·hardσ(z).
+                spikes_out.clear();
+                let vmem = &mut vm[l];
+                for (j, vm_j) in vmem.iter_mut().enumerate().take(r.n_hid) {
+                    let row = &r.w[j * r.n_vis..(j + 1) * r.n_vis];
+                    let mut drive = r.b[j] * p_in;
+                    for &i in &spikes_in {
+                        drive += row[i];
+                    }
+                    let v = (*vm_j + drive * 0.25 + 0.5 * p_in).max(-1.0);
+                    if v >= 1.0 {
+                        *vm_j = v - 1.0;
+                        spikes_out.push(j);
+                    } else {
+                        *vm_j = v;
+                    }
+                }
+                if l + 1 == n_layers {
+                    // Label units integrate c + Uᵀ s_top.
+                    let nb = r.n_vis - k;
+                    for (c, vl) in vlab.iter_mut().enumerate() {
+                        let mut drive = r.a[nb + c] * p_in;
+                        for &j in &spikes_out {
+                            drive += r.w[j * r.n_vis + nb + c];
+                        }
+                        let v = (*vl + drive).max(-1.0);
+                        if v >= 1.0 {
+                            *vl = v - 1.0;
+                            counts[c] += 1.0;
+                        } else {
+                            *vl = v;
+                        }
+                    }
+                }
+                std::mem::swap(&mut spikes_in, &mut spikes_out);
+            }
+        }
+        let total: f64 = counts.iter().sum();
+        for c in 0..k {
+            out[c] = if total > 0.0 { counts[c] / total } else { 0.0 };
+        }
+    }
+}
+
+impl EdbnConfig {
+    fn keys(&self) -> FeatureKeys {
+        FeatureKeys {
+            frames: self.frames,
+            step: self.step,
+            stride: self.stride,
+            min_spikes: self.min_spikes,
+            max_train_frames: self.max_train_frames,
+        }
+    }
+
+    /// Checks every key, naming the wrong one.
+    pub fn check(&self) -> Result<(), ConfigError> {
+        self.keys().check()?;
+        if self.layers.is_empty() || self.layers.iter().any(|&n| n == 0 || n > 100_000) {
+            return Err(ConfigError::key(
+                "layers",
+                format!(
+                    "must list one or more layer sizes in 1..=100000, got {:?}",
+                    self.layers
+                ),
+            ));
+        }
+        if self.epochs == 0 {
+            return Err(ConfigError::key("epochs", "must be at least 1"));
+        }
+        if self.batch_size == 0 {
+            return Err(ConfigError::key("batch_size", "must be at least 1"));
+        }
+        check_positive("learning_rate", self.learning_rate, "")?;
+        check_range("l2", self.l2, 0.0, 1e3, "")?;
+        check_range("discriminative", self.discriminative, 0.0, 1e3, "")?;
+        check_positive("input_rate_hz", self.input_rate_hz, "Hz")?;
+        check_positive("duration_ms", self.duration_ms, "ms")?;
+        check_positive("dt_ms", self.dt_ms, "ms")?;
+        if self.input_rate_hz * self.dt_ms / 1000.0 > 1.0 {
+            return Err(ConfigError::key(
+                "dt_ms",
+                format!(
+                    "input_rate_hz x dt_ms must be at most one spike per step, got {}",
+                    self.input_rate_hz * self.dt_ms / 1000.0
+                ),
+            ));
+        }
+        Ok(())
+    }
+
+    /// Fits the DBN on a fold's training trials.
+    pub fn fit_model(&self, train: &[&Item], ctx: &FitContext<'_>) -> Result<FittedModel, StageError> {
+        self.check()?;
+        let set = TrainSet::build(train, &self.keys())?;
+        let mut rng = ctx.rng();
+        let k = set.classes.len();
+        let mut data = set.x.clone();
+        let mut dim = set.dim;
+        let mut rbms = Vec::new();
+        let mut log = TrainingLog {
+            n_train: set.len(),
+            ..TrainingLog::default()
+        };
+        for (l, &nh) in self.layers.iter().enumerate() {
+            let top = l + 1 == self.layers.len();
+            let n = set.len();
+            if top {
+                // Append the one-hot labels to the visible side.
+                let mut aug = Vec::with_capacity(n * (dim + k));
+                for i in 0..n {
+                    aug.extend_from_slice(&data[i * dim..(i + 1) * dim]);
+                    aug.extend((0..k).map(|c| f64::from(u8::from(c == set.y[i]))));
+                }
+                data = aug;
+            }
+            let nv = if top { dim + k } else { dim };
+            let mut mean = vec![0.0; nv];
+            for row in data.chunks_exact(nv) {
+                mean.iter_mut().zip(row).for_each(|(m, x)| *m += x / n as f64);
+            }
+            let mut rbm = Rbm::new(nv, nh, if top { k } else { 0 }, &mean, &mut rng);
+            log.loss.extend(rbm.train_pcd(&data, self, &mut rng));
+            if !top {
+                let mut next = vec![0.0; n * nh];
+                for i in 0..n {
+                    rbm.hid_prob(&data[i * nv..(i + 1) * nv], &mut next[i * nh..(i + 1) * nh]);
+                }
+                data = next;
+                dim = nh;
+            }
+            rbms.push(rbm);
+        }
+        if rbms
+            .iter()
+            .any(|r| r.w.iter().chain(&r.a).chain(&r.b).any(|v| !v.is_finite()))
+        {
+            return Err(StageError::new(
+                "EDBN training diverged (non-finite weights); lower `learning_rate`",
+            ));
+        }
+        Ok(FittedModel {
+            format: MODEL_FORMAT,
+            stage_type: "edbn".into(),
+            classes: set.classes,
+            features: set.spec,
+            vote: self.vote,
+            classifier: Classifier::Edbn(Dbn {
+                rbms,
+                classes: k,
+                inference: self.inference,
+                input_rate_hz: self.input_rate_hz,
+                duration_ms: self.duration_ms,
+                dt_ms: self.dt_ms,
+            }),
+            log,
+        })
+    }
+}
+
+#[typetag::serde(name = "edbn")]
+impl StageConfig for EdbnConfig {
+    fn inputs(&self) -> InputSpec {
+        InputSpec::one(PayloadKind::Images)
+    }
+    fn output(&self) -> Option<PayloadKind> {
+        Some(PayloadKind::Estimates)
+    }
+    fn build(&self, ctx: &BuildContext) -> Result<Stage, ConfigError> {
+        self.check()?;
+        Ok(Stage::Estimator(Box::new(EdbnEstimator {
+            config: self.clone(),
+            out_dir: ctx.out_dir.clone(),
+        })))
+    }
+}
+register_stage!("edbn", EdbnConfig);
+
+struct EdbnEstimator {
+    config: EdbnConfig,
+    out_dir: PathBuf,
+}
+
+impl Estimator for EdbnEstimator {
+    fn trained(&self) -> bool {
+        true
+    }
+    fn fit(&self, train: &[&Item], ctx: &FitContext<'_>) -> Result<Box<dyn Model>, StageError> {
+        let m = self.config.fit_model(train, ctx)?;
+        maybe_save(&m, self.config.save_model, &self.out_dir, ctx)?;
+        Ok(Box::new(m))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn sigmoid_is_finite_everywhere() {
+        for z in [-1e308, -800.0, -1.0, 0.0, 1.0, 800.0, 1e308] {
+            let s = sigmoid(z);
+            assert!((0.0..=1.0).contains(&s), "{z} -> {s}");
+        }
+    }
+
+    #[test]
+    fn bad_keys_are_named() {
+        let c = EdbnConfig {
+            layers: vec![],
+            ..EdbnConfig::default()
+        };
+        assert_eq!(c.check().unwrap_err().key.as_deref(), Some("layers"));
+        let c = EdbnConfig {
+            dt_ms: 10.0,
+            ..EdbnConfig::default()
+        };
+        assert_eq!(c.check().unwrap_err().key.as_deref(), Some("dt_ms"));
+    }
+}

@@ -3,4 +3,5 @@
 pub mod ann;
 pub mod classic;
 pub mod edbn;
+pub mod features;
 pub mod wss;

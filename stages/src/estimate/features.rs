@@ -1,0 +1,879 @@
+//! Shared plumbing of the trained baselines (`ann`, `edbn`, `svm`, `random_forest`,
+//! `knn`, `logistic`): the feature vectors they all see, the paper's
+//! winner-take-all vote over a trial, the serializable fitted model with its
+//! save/load and frame-by-frame streaming, and a synthetic data generator for
+//! their tests and benches.
+//!
+//! # Features (one vector per selected frame)
+//!
+//! A trial's spike images are frames `I_0 .. I_{K-1}` of per-taxel counts. The
+//! vector anchored at frame `k` stacks `N = frames` images spaced `step` frames
+//! apart, oldest first: `x_k = [I_{k-(N-1)step}, ..., I_{k-step}, I_k]`, with
+//! frames before the trial's start taken as empty (zeros). `N = 1` is the
+//! paper's spatial input ("ANN (S)"), `N > 1` its spatiotemporal input.
+//!
+//! * `step = 0` (auto) spaces the stacked images by `round(window_ms / hop_ms)`
+//!   frames, so that they tile time without overlap (100 ms windows at a 10 ms
+//!   hop overlap by 90 %: ten consecutive frames share most of their spikes and
+//!   stacking them would add little temporal information).
+//! * Anchors are taken every `stride` frames (`0` = auto = `round(window/hop)`),
+//!   at absolute frame indices `k ≡ 0 (mod stride)`, so that a stream and a
+//!   batch pick the same frames. Overlapping frames are near-duplicates; a stride
+//!   of one window keeps the information and cuts training and voting cost ~10x.
+//! * Only *active* vectors are used, in training and in the vote: those whose raw
+//!   spike total is at least `min_spikes` (and above zero). A frame without spikes
+//!   says nothing about the edge; counting such frames would only teach the
+//!   classifiers how long the silent holds last (which, with trial duration
+//!   growing like `1/tan θ`, would leak the answer through timing rather than
+//!   through the tactile pattern) and would add a constant bias to every vote.
+//! * Normalisation: each active vector is divided by its largest count, so it lies
+//!   in `[0, 1]` with a maximum of 1. The spatiotemporal *pattern* is kept, the
+//!   overall rate (which varies with force, skin and encoder gain) is not. The
+//!   `[0, 1]` range is what the RBMs' Bernoulli visible units need; the MLP and
+//!   the smartcore classifiers further standardise each feature ([`Standardizer`]).
+//! * Training caps: a trial contributes at most `max_train_frames` active vectors,
+//!   evenly spaced over its active ones (deterministic, no RNG), so that every
+//!   trial weighs about the same whatever its duration (a 10° trial is ~6x longer
+//!   than a 90° one) and training time is bounded.
+//!
+//! # Vote (paper section 3.2)
+//!
+//! Each classifier gives per-frame class scores `p_k(c)` (softmax outputs, label
+//! unit activity, vote shares). `vote = "winner"` is the paper's winner-take-all:
+//! for each frame only the winning class `c*_k = argmax_c p_k(c)` collects its
+//! activation, `S(c) = Σ_k [c = c*_k] p_k(c)`; `vote = "sum"` sums every class's
+//! output, `S(c) = Σ_k p_k(c)`. The trial's answer is `argmax_c S(c)` (ties go to
+//! the first class, i.e. the smallest angle); the reported scores are `S(c)`
+//! divided by the number of frames used. A trial with no active frame is
+//! answered "no edge" (`angle_deg = None`, every score 0), never NaN.
+//!
+//! # Save, load and stream
+//!
+//! [`FittedModel`] holds everything a prediction needs (classes, feature spec,
+//! weights, standardisation) and is plain serde data: [`save_model`] /
+//! [`load_model`] write and read it as JSON (f64 values round-trip exactly, so
+//! a loaded model predicts the same bits). [`FittedModel::stream`] returns a
+//! [`Streamer`] that takes one frame at a time and keeps the running vote; the
+//! batch [`Model::predict`] is implemented by streaming every frame, so the two
+//! cannot disagree.
+
+use palpate_core::output::write_atomic;
+use palpate_core::{
+    ClassScore, Estimate, FitContext, Item, Model, SpikeImages, StageError, TaxelLayout, TrialContext,
+};
+use rand::Rng;
+use rand_chacha::ChaCha8Rng;
+use rand_distr::{Distribution, Poisson};
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
+use std::collections::VecDeque;
+use std::path::Path;
+
+use super::{ann, classic, edbn};
+
+/// How per-frame outputs are combined over a trial.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, JsonSchema, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum Vote {
+    /// The paper's winner-take-all: each frame's winning class collects its output.
+    #[default]
+    Winner,
+    /// Every class collects its output of every frame.
+    Sum,
+}
+
+/// The feature settings a fitted model was trained with (resolved: no "auto").
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct FeatureSpec {
+    /// Images stacked per vector (1 = spatial).
+    pub frames: usize,
+    /// Frames between stacked images.
+    pub step: usize,
+    /// Frames between anchors.
+    pub stride: usize,
+    /// Smallest raw spike total of a used vector.
+    pub min_spikes: f64,
+    /// Taxels per image.
+    pub n_taxels: usize,
+    /// Frame window of the training images, ms.
+    pub window_ms: f64,
+    /// Frame hop of the training images, ms.
+    pub hop_ms: f64,
+}
+
+/// The feature keys as a config states them (0 = auto for `step` and `stride`).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FeatureKeys {
+    /// Images per vector.
+    pub frames: usize,
+    /// Spacing of stacked images, frames; 0 = auto.
+    pub step: usize,
+    /// Spacing of anchors, frames; 0 = auto.
+    pub stride: usize,
+    /// Smallest spike total of a used vector.
+    pub min_spikes: f64,
+    /// Most vectors per training trial.
+    pub max_train_frames: usize,
+}
+
+impl FeatureKeys {
+    /// Checks the keys, naming the wrong one.
+    pub fn check(&self) -> Result<(), palpate_core::ConfigError> {
+        use palpate_core::ConfigError;
+        if self.frames == 0 || self.frames > 1000 {
+            return Err(ConfigError::key(
+                "frames",
+                format!("must be 1..=1000, got {}", self.frames),
+            ));
+        }
+        if !(self.min_spikes.is_finite() && self.min_spikes >= 0.0) {
+            return Err(ConfigError::key(
+                "min_spikes",
+                format!("must be a finite count >= 0, got {}", self.min_spikes),
+            ));
+        }
+        if self.max_train_frames == 0 {
+            return Err(ConfigError::key("max_train_frames", "must be at least 1"));
+        }
+        Ok(())
+    }
+
+    /// Resolves the auto values against the training images.
+    pub fn resolve(&self, images: &SpikeImages) -> FeatureSpec {
+        let auto = (images.window_ms / images.hop_ms).round();
+        let auto = if auto.is_finite() && auto >= 1.0 {
+            auto as usize
+        } else {
+            1
+        };
+        FeatureSpec {
+            frames: self.frames,
+            step: if self.step == 0 { auto } else { self.step },
+            stride: if self.stride == 0 { auto } else { self.stride },
+            min_spikes: self.min_spikes,
+            n_taxels: images.n_taxels(),
+            window_ms: images.window_ms,
+            hop_ms: images.hop_ms,
+        }
+    }
+}
+
+impl FeatureSpec {
+    /// Length of a feature vector.
+    pub fn dim(&self) -> usize {
+        self.frames * self.n_taxels
+    }
+
+    /// Frames a vector spans (the stream's memory).
+    pub fn span(&self) -> usize {
+        (self.frames - 1) * self.step + 1
+    }
+
+    /// Checks that `images` fit a model trained with this spec.
+    pub fn check_images(&self, images: &SpikeImages, what: &str) -> Result<(), StageError> {
+        if images.n_taxels() != self.n_taxels {
+            return Err(StageError::new(format!(
+                "{what}: images have {} taxels, the model was trained on {}",
+                images.n_taxels(),
+                self.n_taxels
+            )));
+        }
+        let close = |a: f64, b: f64| (a - b).abs() <= 1e-9 * a.abs().max(b.abs()).max(1.0);
+        if !close(images.window_ms, self.window_ms) || !close(images.hop_ms, self.hop_ms) {
+            return Err(StageError::new(format!(
+                "{what}: images have window {} ms / hop {} ms, the model was trained on {} ms / {} ms",
+                images.window_ms, images.hop_ms, self.window_ms, self.hop_ms
+            )));
+        }
+        if images.counts.len() != images.n_frames * self.n_taxels {
+            return Err(StageError::new(format!(
+                "{what}: {} counts for {} frames of {} taxels",
+                images.counts.len(),
+                images.n_frames,
+                self.n_taxels
+            )));
+        }
+        Ok(())
+    }
+
+    /// Every active, normalised vector of a trial, with its anchor frame.
+    pub fn trial_vectors(
+        &self,
+        images: &SpikeImages,
+        what: &str,
+    ) -> Result<Vec<(usize, Vec<f64>)>, StageError> {
+        self.check_images(images, what)?;
+        let mut stream = FrameStream::new(self.clone());
+        let mut out = Vec::new();
+        for k in 0..images.n_frames {
+            if let Some(v) = stream
+                .push(images.frame(k))
+                .map_err(|e| StageError::new(format!("{what}: {}", e.message)))?
+            {
+                out.push((k, v));
+            }
+        }
+        Ok(out)
+    }
+}
+
+/// Builds feature vectors from frames pushed one at a time.
+#[derive(Clone, Debug)]
+pub struct FrameStream {
+    spec: FeatureSpec,
+    /// The last `span` frames, newest at the back.
+    ring: VecDeque<Vec<f64>>,
+    /// Index of the next frame.
+    next: usize,
+}
+
+impl FrameStream {
+    /// A stream at frame 0.
+    pub fn new(spec: FeatureSpec) -> Self {
+        FrameStream {
+            ring: VecDeque::with_capacity(spec.span()),
+            spec,
+            next: 0,
+        }
+    }
+
+    /// Index of the next frame to be pushed.
+    pub fn frames_seen(&self) -> usize {
+        self.next
+    }
+
+    /// Pushes frame `frames_seen()`; returns its normalised vector if it is an
+    /// anchor and active. Errors on a wrong taxel count or a non-finite or
+    /// negative count (naming the frame and taxel).
+    pub fn push(&mut self, frame: &[f64]) -> Result<Option<Vec<f64>>, StageError> {
+        let k = self.next;
+        if frame.len() != self.spec.n_taxels {
+            return Err(StageError::new(format!(
+                "frame {k} has {} taxels, the model expects {}",
+                frame.len(),
+                self.spec.n_taxels
+            )));
+        }
+        if let Some(t) = frame.iter().position(|c| !(c.is_finite() && *c >= 0.0)) {
+            return Err(StageError::new(format!(
+                "frame {k}, taxel {t}: spike count {} is not a finite count >= 0",
+                frame[t]
+            )));
+        }
+        if self.ring.len() == self.spec.span() {
+            let mut old = self.ring.pop_front().unwrap_or_default();
+            old.clear();
+            old.extend_from_slice(frame);
+            self.ring.push_back(old);
+        } else {
+            self.ring.push_back(frame.to_vec());
+        }
+        self.next += 1;
+        if k % self.spec.stride != 0 {
+            return Ok(None);
+        }
+        let n = self.spec.n_taxels;
+        let mut v = vec![0.0; self.spec.dim()];
+        let len = self.ring.len();
+        for j in 0..self.spec.frames {
+            // Image j of the stack is `(frames-1-j)*step` frames before the anchor.
+            let back = (self.spec.frames - 1 - j) * self.spec.step;
+            if back < len {
+                v[j * n..(j + 1) * n].copy_from_slice(&self.ring[len - 1 - back]);
+            }
+        }
+        let total: f64 = v.iter().sum();
+        let max = v.iter().copied().fold(0.0, f64::max);
+        if !(total > 0.0 && total >= self.spec.min_spikes) || max <= 0.0 {
+            return Ok(None);
+        }
+        let inv = 1.0 / max;
+        v.iter_mut().for_each(|x| *x *= inv);
+        Ok(Some(v))
+    }
+}
+
+/// The classes of a training set: distinct true angles, sorted. Trials without
+/// an angle are skipped. Fewer than two classes is an error.
+pub fn classes_of(train: &[&Item]) -> Result<Vec<f64>, StageError> {
+    let mut angles: Vec<f64> = train.iter().filter_map(|it| it.meta.label.angle_deg).collect();
+    if let Some(a) = angles.iter().find(|a| !a.is_finite()) {
+        return Err(StageError::new(format!("a training trial's true angle is {a}")));
+    }
+    angles.sort_by(f64::total_cmp);
+    angles.dedup_by(|a, b| (*a - *b).abs() < 1e-9);
+    if angles.len() < 2 {
+        return Err(StageError::new(format!(
+            "a trained estimator needs training trials of at least two classes (distinct `label.angle_deg`), got {} ({})",
+            angles.len(),
+            angles.iter().map(|a| format!("{a}°")).collect::<Vec<_>>().join(", ")
+        )));
+    }
+    Ok(angles)
+}
+
+/// Index of `angle` in `classes`.
+pub fn class_index(classes: &[f64], angle: f64) -> Option<usize> {
+    classes.iter().position(|c| (c - angle).abs() < 1e-9)
+}
+
+/// The training vectors of a fold, row-major.
+#[derive(Clone, Debug, Default)]
+pub struct TrainSet {
+    /// Vector length.
+    pub dim: usize,
+    /// `x[i*dim..(i+1)*dim]` is vector `i`.
+    pub x: Vec<f64>,
+    /// Class index of each vector.
+    pub y: Vec<usize>,
+    /// Training-trial number (position in the fold's labelled trials) of each vector.
+    pub trial: Vec<usize>,
+    /// Class index of each labelled training trial.
+    pub trial_class: Vec<usize>,
+    /// The classes (sorted angles).
+    pub classes: Vec<f64>,
+    /// The resolved feature spec.
+    pub spec: FeatureSpec,
+}
+
+impl TrainSet {
+    /// Number of vectors.
+    pub fn len(&self) -> usize {
+        self.y.len()
+    }
+
+    /// True when there is no vector.
+    pub fn is_empty(&self) -> bool {
+        self.y.is_empty()
+    }
+
+    /// Vector `i`.
+    pub fn row(&self, i: usize) -> &[f64] {
+        &self.x[i * self.dim..(i + 1) * self.dim]
+    }
+
+    /// Builds the training set of a fold. Errors: fewer than two classes, images of
+    /// differing shape, or a class without any active vector.
+    pub fn build(train: &[&Item], keys: &FeatureKeys) -> Result<TrainSet, StageError> {
+        let classes = classes_of(train)?;
+        let labelled: Vec<&Item> = train
+            .iter()
+            .copied()
+            .filter(|it| it.meta.label.angle_deg.is_some())
+            .collect();
+        let first = labelled[0].payload.images()?;
+        let spec = keys.resolve(first);
+        if spec.n_taxels == 0 {
+            return Err(StageError::new("training images have no taxel"));
+        }
+        let mut set = TrainSet {
+            dim: spec.dim(),
+            classes,
+            spec,
+            ..TrainSet::default()
+        };
+        for (t, item) in labelled.iter().enumerate() {
+            let images = item.payload.images()?;
+            let angle = item.meta.label.angle_deg.unwrap_or_default();
+            let c = class_index(&set.classes, angle).unwrap_or_default();
+            set.trial_class.push(c);
+            let what = format!("training trial `{}`", item.meta.trial_id);
+            let vecs = set.spec.trial_vectors(images, &what)?;
+            let n = vecs.len();
+            let take = n.min(keys.max_train_frames);
+            for i in 0..take {
+                // Evenly spaced over the active vectors, first and last included.
+                let j = if take <= 1 {
+                    n / 2
+                } else {
+                    i * (n - 1) / (take - 1)
+                };
+                set.x.extend_from_slice(&vecs[j].1);
+                set.y.push(c);
+                set.trial.push(t);
+            }
+        }
+        let mut seen = vec![false; set.classes.len()];
+        set.y.iter().for_each(|&c| seen[c] = true);
+        if let Some(c) = seen.iter().position(|s| !s) {
+            return Err(StageError::new(format!(
+                "class {}° has no frame with spikes in its training trials; nothing to learn it from",
+                set.classes[c]
+            )));
+        }
+        Ok(set)
+    }
+
+    /// Splits the training *trials* into (fit, validation) for early stopping:
+    /// per class, `round(fraction * trials)` randomly chosen trials (none if the
+    /// class has a single trial) go to validation. Splitting by trial, not by
+    /// frame, keeps near-duplicate overlapping frames of one trial from landing
+    /// on both sides. Returns vector indices.
+    pub fn split_by_trial(&self, fraction: f64, rng: &mut ChaCha8Rng) -> (Vec<usize>, Vec<usize>) {
+        let n_trials = self.trial_class.len();
+        let mut is_val = vec![false; n_trials];
+        if fraction > 0.0 {
+            for c in 0..self.classes.len() {
+                let mut trials: Vec<usize> = (0..n_trials).filter(|&t| self.trial_class[t] == c).collect();
+                if trials.len() < 2 {
+                    continue;
+                }
+                let k = ((fraction * trials.len() as f64).round() as usize).clamp(1, trials.len() - 1);
+                rand::seq::SliceRandom::shuffle(trials.as_mut_slice(), rng);
+                trials[..k].iter().for_each(|&t| is_val[t] = true);
+            }
+        }
+        (0..self.len()).partition(|&i| !is_val[self.trial[i]])
+    }
+}
+
+/// Per-feature standardisation `(x - mean) / sd` fitted on training vectors; a
+/// feature with no spread (a dead taxel) gets `sd = 1`, so it maps to 0, not NaN.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Standardizer {
+    /// Per-feature mean.
+    pub mean: Vec<f64>,
+    /// Per-feature `1 / sd`.
+    pub inv_sd: Vec<f64>,
+}
+
+impl Standardizer {
+    /// Fits on the rows `idx` of `set`.
+    pub fn fit(set: &TrainSet, idx: &[usize]) -> Self {
+        let d = set.dim;
+        let n = idx.len().max(1) as f64;
+        let mut mean = vec![0.0; d];
+        for &i in idx {
+            mean.iter_mut().zip(set.row(i)).for_each(|(m, x)| *m += x);
+        }
+        mean.iter_mut().for_each(|m| *m /= n);
+        let mut var = vec![0.0; d];
+        for &i in idx {
+            var.iter_mut()
+                .zip(set.row(i))
+                .zip(&mean)
+                .for_each(|((v, x), m)| *v += (x - m) * (x - m));
+        }
+        let inv_sd = var
+            .iter()
+            .map(|v| {
+                let sd = (v / n).sqrt();
+                if sd > 1e-9 {
+                    1.0 / sd
+                } else {
+                    1.0
+                }
+            })
+            .collect();
+        Standardizer { mean, inv_sd }
+    }
+
+    /// Standardises `x` in place.
+    pub fn apply(&self, x: &mut [f64]) {
+        x.iter_mut()
+            .zip(&self.mean)
+            .zip(&self.inv_sd)
+            .for_each(|((x, m), s)| *x = (*x - m) * s);
+    }
+}
+
+/// The fitted per-frame classifier of a baseline.
+#[derive(Debug, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+pub enum Classifier {
+    /// One-hidden-layer perceptron.
+    Ann(ann::Mlp),
+    /// Deep belief network.
+    Edbn(edbn::Dbn),
+    /// One-vs-one RBF SVM.
+    Svm(classic::OvoSvm),
+    /// Random forest.
+    RandomForest(classic::Forest),
+    /// k nearest neighbours.
+    Knn(classic::Knn),
+    /// Multinomial logistic regression.
+    Logistic(classic::Softmax),
+}
+
+impl Classifier {
+    /// Per-frame class scores of a normalised feature vector (non-negative,
+    /// larger is more likely). `rng` feeds stochastic inference (EDBN spiking).
+    pub fn frame_scores(&self, x: &[f64], rng: &mut ChaCha8Rng, out: &mut [f64]) {
+        match self {
+            Classifier::Ann(m) => m.frame_scores(x, out),
+            Classifier::Edbn(m) => m.frame_scores(x, rng, out),
+            Classifier::Svm(m) => m.frame_scores(x, out),
+            Classifier::RandomForest(m) => m.frame_scores(x, out),
+            Classifier::Knn(m) => m.frame_scores(x, out),
+            Classifier::Logistic(m) => m.frame_scores(x, out),
+        }
+    }
+}
+
+/// What training recorded, for reports and tests.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct TrainingLog {
+    /// Training loss per epoch (or per layer-epoch), in order.
+    pub loss: Vec<f64>,
+    /// Validation loss per epoch, where there is one.
+    pub val_loss: Vec<f64>,
+    /// Epoch whose weights were kept (early stopping).
+    pub best_epoch: Option<usize>,
+    /// Training vectors used.
+    pub n_train: usize,
+    /// Validation vectors used.
+    pub n_val: usize,
+}
+
+/// A fitted baseline: everything a prediction needs, as plain serde data.
+#[derive(Debug, Serialize, Deserialize)]
+pub struct FittedModel {
+    /// Format version of this file.
+    pub format: u32,
+    /// The stage type that trained it (`ann`, `edbn`, `svm`, ...).
+    pub stage_type: String,
+    /// Class angles, degrees, sorted.
+    pub classes: Vec<f64>,
+    /// Feature settings.
+    pub features: FeatureSpec,
+    /// How frames are combined.
+    pub vote: Vote,
+    /// The per-frame classifier.
+    pub classifier: Classifier,
+    /// Training record.
+    pub log: TrainingLog,
+}
+
+/// Current [`FittedModel::format`].
+pub const MODEL_FORMAT: u32 = 1;
+
+impl FittedModel {
+    /// A streaming estimator over this model; `seed` drives stochastic inference.
+    pub fn stream(&self, seed: u64) -> Streamer<'_> {
+        Streamer {
+            model: self,
+            frames: FrameStream::new(self.features.clone()),
+            acc: Accumulator::new(self.classes.len()),
+            rng: rand_chacha::rand_core::SeedableRng::seed_from_u64(seed),
+            scratch: vec![0.0; self.classes.len()],
+        }
+    }
+
+    /// Estimates a whole trial of images (by streaming every frame).
+    pub fn predict_images(
+        &self,
+        images: &SpikeImages,
+        seed: u64,
+        what: &str,
+    ) -> Result<Estimate, StageError> {
+        self.features.check_images(images, what)?;
+        let mut s = self.stream(seed);
+        for k in 0..images.n_frames {
+            s.push(images.frame(k))
+                .map_err(|e| StageError::new(format!("{what}: {}", e.message)))?;
+        }
+        Ok(s.estimate())
+    }
+}
+
+impl Model for FittedModel {
+    fn predict(&self, item: &Item, ctx: &TrialContext<'_>) -> Result<Estimate, StageError> {
+        let images = item.payload.images()?;
+        self.predict_images(images, ctx.seed, &format!("trial `{}`", item.meta.trial_id))
+    }
+}
+
+/// Writes a fitted model as JSON (atomically).
+pub fn save_model(model: &FittedModel, path: &Path) -> Result<(), StageError> {
+    let json =
+        serde_json::to_vec(model).map_err(|e| StageError::new(format!("serializing the model: {e}")))?;
+    write_atomic(path, &json).map_err(|e| StageError::new(format!("writing {}: {e}", path.display())))
+}
+
+/// Reads a fitted model written by [`save_model`].
+pub fn load_model(path: &Path) -> Result<FittedModel, StageError> {
+    let bytes =
+        std::fs::read(path).map_err(|e| StageError::new(format!("reading {}: {e}", path.display())))?;
+    let m: FittedModel = serde_json::from_slice(&bytes)
+        .map_err(|e| StageError::new(format!("{}: not a palpate baseline model: {e}", path.display())))?;
+    if m.format != MODEL_FORMAT {
+        return Err(StageError::new(format!(
+            "{}: model format {} is not the supported {MODEL_FORMAT}",
+            path.display(),
+            m.format
+        )));
+    }
+    Ok(m)
+}
+
+/// Saves a fold's model beside the run's reports when the config asks for it:
+/// `<out_dir>/<stage>.fold<f>.model.json`.
+pub fn maybe_save(
+    model: &FittedModel,
+    save: bool,
+    out_dir: &Path,
+    ctx: &FitContext<'_>,
+) -> Result<(), StageError> {
+    if !save {
+        return Ok(());
+    }
+    std::fs::create_dir_all(out_dir)
+        .map_err(|e| StageError::new(format!("creating {}: {e}", out_dir.display())))?;
+    save_model(
+        model,
+        &out_dir.join(format!("{}.fold{}.model.json", ctx.stage_id, ctx.fold)),
+    )
+}
+
+/// The running vote of a trial.
+#[derive(Clone, Debug)]
+pub struct Accumulator {
+    totals: Vec<f64>,
+    /// Per class: (largest per-frame score, its frame).
+    peak: Vec<(f64, usize)>,
+    used: usize,
+    last_frame: Option<usize>,
+}
+
+impl Accumulator {
+    /// An empty vote over `n` classes.
+    pub fn new(n: usize) -> Self {
+        Accumulator {
+            totals: vec![0.0; n],
+            peak: vec![(f64::NEG_INFINITY, 0); n],
+            used: 0,
+            last_frame: None,
+        }
+    }
+
+    /// Adds frame `k`'s scores. Non-finite scores (never produced by the
+    /// classifiers here) would poison the sums, so such a frame is skipped.
+    pub fn add(&mut self, k: usize, scores: &[f64], vote: Vote) {
+        if scores.iter().any(|s| !s.is_finite()) {
+            return;
+        }
+        let w = argmax(scores);
+        match vote {
+            Vote::Winner => self.totals[w] += scores[w],
+            Vote::Sum => self.totals.iter_mut().zip(scores).for_each(|(t, s)| *t += s),
+        }
+        for (p, &s) in self.peak.iter_mut().zip(scores) {
+            if s > p.0 {
+                *p = (s, k);
+            }
+        }
+        self.used += 1;
+        self.last_frame = Some(k);
+    }
+
+    /// Frames used so far.
+    pub fn used(&self) -> usize {
+        self.used
+    }
+
+    /// The estimate so far.
+    pub fn estimate(&self, classes: &[f64], spec: &FeatureSpec) -> Estimate {
+        let n = self.used.max(1) as f64;
+        let scores: Vec<ClassScore> = classes
+            .iter()
+            .zip(&self.totals)
+            .map(|(&a, &t)| ClassScore {
+                angle_deg: a,
+                score: t / n,
+            })
+            .collect();
+        if self.used == 0 || self.totals.iter().all(|t| *t <= 0.0) {
+            return Estimate {
+                scores,
+                ..Estimate::default()
+            };
+        }
+        let w = argmax(&self.totals);
+        Estimate {
+            angle_deg: Some(classes[w]),
+            class_deg: Some(classes[w]),
+            scores,
+            best_frame: Some(self.peak[w].1),
+            decision_time_ms: self.last_frame.map(|k| k as f64 * spec.hop_ms + spec.window_ms),
+        }
+    }
+}
+
+/// Index of the largest value (first on ties).
+pub fn argmax(v: &[f64]) -> usize {
+    let mut best = 0;
+    for (i, x) in v.iter().enumerate() {
+        if *x > v[best] {
+            best = i;
+        }
+    }
+    best
+}
+
+/// Frame-by-frame estimation with a fitted model.
+pub struct Streamer<'a> {
+    model: &'a FittedModel,
+    frames: FrameStream,
+    acc: Accumulator,
+    rng: ChaCha8Rng,
+    scratch: Vec<f64>,
+}
+
+impl Streamer<'_> {
+    /// Pushes the next frame (one count per taxel). Returns this frame's class
+    /// scores when it was used in the vote (an active anchor frame).
+    pub fn push(&mut self, frame: &[f64]) -> Result<Option<&[f64]>, StageError> {
+        let k = self.frames.frames_seen();
+        let Some(x) = self.frames.push(frame)? else {
+            return Ok(None);
+        };
+        self.model
+            .classifier
+            .frame_scores(&x, &mut self.rng, &mut self.scratch);
+        self.acc.add(k, &self.scratch, self.model.vote);
+        Ok(Some(&self.scratch))
+    }
+
+    /// Frames used in the vote so far.
+    pub fn frames_used(&self) -> usize {
+        self.acc.used()
+    }
+
+    /// The estimate from every frame pushed so far.
+    pub fn estimate(&self) -> Estimate {
+        self.acc.estimate(&self.model.classes, &self.model.features)
+    }
+}
+
+/// Settings of [`synthetic_images`].
+#[derive(Clone, Debug)]
+pub struct SynthParams {
+    /// Sliding speed, mm/s.
+    pub speed_mm_s: f64,
+    /// Still time before and after the crossing, ms.
+    pub hold_ms: f64,
+    /// Peak firing rate of a taxel on the edge, Hz.
+    pub peak_hz: f64,
+    /// Background firing rate, Hz.
+    pub background_hz: f64,
+    /// Spatial spread of the edge response (Gaussian SD across the edge), mm.
+    pub spread_mm: f64,
+    /// Frame window, ms.
+    pub window_ms: f64,
+    /// Frame hop, ms.
+    pub hop_ms: f64,
+}
+
+impl SynthParams {
+    /// The paper's protocol: 2 mm/s, 2 s holds, 100 ms / 10 ms frames: 1000 to
+    /// 4000 frames per trial over 10..90°.
+    pub fn paper() -> Self {
+        SynthParams {
+            speed_mm_s: 2.0,
+            hold_ms: 2000.0,
+            peak_hz: 60.0,
+            background_hz: 0.5,
+            spread_mm: 1.2,
+            window_ms: 100.0,
+            hop_ms: 10.0,
+        }
+    }
+
+    /// A fast variant for debug tests: 20 mm/s, short holds (a few hundred frames).
+    pub fn small() -> Self {
+        SynthParams {
+            speed_mm_s: 20.0,
+            hold_ms: 200.0,
+            peak_hz: 150.0,
+            ..SynthParams::paper()
+        }
+    }
+}
+
+/// Synthetic spike images of an edge at `angle_deg` sweeping the paper's 4x4
+/// array, for tests and benches of the trained baselines (not a physical model:
+/// the scene and encoder stages do that). It follows the geometry convention of
+/// `palpate_core::geometry`: the edge's offset along its normal falls at
+/// `v·sinθ`; taxel `i` fires at `peak · g_i · exp(-(n·p_i - s(t))² / 2σ²)` plus a
+/// background, with per-trial gains `g_i ∈ [0.6, 1.4]`, ±10 % speed and a random
+/// start delay; spikes are Poisson per hop bin, summed over each window.
+pub fn synthetic_images(angle_deg: f64, p: &SynthParams, rng: &mut ChaCha8Rng) -> SpikeImages {
+    let layout = TaxelLayout::paper();
+    let edge = palpate_core::geometry::Edge::new(angle_deg);
+    let (lo, hi) = edge.footprint(&layout);
+    let speed = p.speed_mm_s * rng.random_range(0.9..1.1);
+    let ds = edge.normal_speed(speed).abs().max(1e-6); // mm/s along the normal
+    let margin = 2.0 * p.spread_mm;
+    let crossing_ms = (hi - lo + 2.0 * margin) / ds * 1000.0;
+    let delay_ms = rng.random_range(0.0..0.25) * p.hold_ms;
+    let total_ms = 2.0 * p.hold_ms + crossing_ms;
+    let n_bins = (total_ms / p.hop_ms).ceil() as usize;
+    let per_window = ((p.window_ms / p.hop_ms).round() as usize).max(1);
+    let n_taxels = layout.len();
+    let gains: Vec<f64> = (0..n_taxels).map(|_| rng.random_range(0.6..1.4)).collect();
+    let offsets: Vec<f64> = layout.positions().iter().map(|&q| edge.offset(q)).collect();
+    let mut bins = vec![0.0; n_bins * n_taxels];
+    for b in 0..n_bins {
+        let t_ms = (b as f64 + 0.5) * p.hop_ms;
+        let moving_ms = (t_ms - p.hold_ms - delay_ms).clamp(0.0, crossing_ms);
+        let s = hi + margin - ds * moving_ms / 1000.0;
+        for i in 0..n_taxels {
+            let d = offsets[i] - s;
+            let rate =
+                p.peak_hz * gains[i] * (-d * d / (2.0 * p.spread_mm * p.spread_mm)).exp() + p.background_hz;
+            let lambda = rate * p.hop_ms / 1000.0;
+            bins[b * n_taxels + i] = match Poisson::new(lambda) {
+                Ok(d) => d.sample(rng),
+                Err(_) => 0.0,
+            };
+        }
+    }
+    let n_frames = n_bins.saturating_sub(per_window - 1);
+    let mut counts = vec![0.0; n_frames * n_taxels];
+    for k in 0..n_frames {
+        for w in 0..per_window {
+            for i in 0..n_taxels {
+                counts[k * n_taxels + i] += bins[(k + w) * n_taxels + i];
+            }
+        }
+    }
+    SpikeImages {
+        layout,
+        window_ms: p.window_ms,
+        hop_ms: p.hop_ms,
+        n_frames,
+        counts,
+    }
+}
+
+/// A labelled synthetic data set: `reps` trials of each angle, as items whose
+/// `group` is the repetition number (the LOOCV key). Trial `r` of angle `a` is
+/// seeded from `(seed, a, r)`, so sets of any size agree on shared trials.
+pub fn synthetic_items(angles: &[f64], reps: usize, p: &SynthParams, seed: u64) -> Vec<Item> {
+    use palpate_core::{Label, Payload, Stimulus, TrialMeta};
+    use std::sync::Arc;
+    let mut items = Vec::new();
+    for r in 0..reps {
+        for &a in angles {
+            let id = format!("edge-{a}deg-r{r:02}");
+            let mut rng: ChaCha8Rng = rand_chacha::rand_core::SeedableRng::seed_from_u64(
+                palpate_core::derive_seed(seed, &["synth", &id]),
+            );
+            let images = synthetic_images(a, p, &mut rng);
+            items.push(Item {
+                meta: Arc::new(TrialMeta {
+                    trial_id: id,
+                    index: items.len(),
+                    label: Label {
+                        stimulus: Stimulus::Edge,
+                        angle_deg: Some(a),
+                    },
+                    group: r,
+                    ..TrialMeta::default()
+                }),
+                payload: Payload::from(images),
+            });
+        }
+    }
+    items
+}
