@@ -374,13 +374,13 @@ fn robustness_chain_runs_deterministically_and_plots() {
 fn subarea_placement_off_the_grid_is_a_run_error_naming_the_key() {
     let toml = "[run]\nseed = 1\n[stages.scene]\ntype = \"encode_test_ramps\"\ntrials = 1\n[stages.enc]\ntype = \"izhikevich\"\ninputs = [\"scene\"]\n[stages.sub]\ntype = \"subarea\"\ninputs = [\"enc\"]\nsize = 3\nrow = 2\n";
     let out = temp_out("sub");
-    let e = run_with_out(toml, &out).err().expect("an error");
+    let e = run_with_out(toml, &out).expect_err("an error");
     assert!(
         e.to_string().contains("`row`") && e.to_string().contains("sub"),
         "{e}"
     );
     let unknown = ROBUST.replace("trials = [\"ramp-2\"]", "trials = [\"nope\"]");
-    let e = run_with_out(&unknown, &out).err().expect("an error");
+    let e = run_with_out(&unknown, &out).expect_err("an error");
     assert!(
         e.to_string().contains("`trials`") && e.to_string().contains("nope"),
         "{e}"

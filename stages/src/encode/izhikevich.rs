@@ -586,6 +586,21 @@ mod tests {
         }
     }
 
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(32))]
+        /// A taxel whose signal never changes normalizes to 0, drives no
+        /// current and fires nothing, whatever its level.
+        #[test]
+        fn unchanging_taxel_fires_nothing(level in -1e9f64..1e9, n in 1usize..3000) {
+            use crate::signal::{derivative::{differentiate, DiffScheme}, normalize::normalize_trial};
+            let v = normalize_trial(&vec![level; n], 0.0);
+            prop_assert!(v.iter().all(|&x| x == 0.0));
+            let i: Vec<f64> = differentiate(&v, 1000.0, DiffScheme::Central).iter().map(|d| 20.0 * d.abs()).collect();
+            let ev = neuron(Preset::FaI, Scheme::Izhikevich, 0.5).encode(&[i], 1000.0);
+            prop_assert!(ev.is_empty());
+        }
+    }
+
     #[test]
     fn config_checks_name_the_key() {
         let ctx = BuildContext {

@@ -27,8 +27,12 @@
 //!   `dt`. A spike whose time would fall at or after the trial's end (possible
 //!   only when `dt` does not divide the duration) is dropped.
 //! * Encoders run the taxels in blocks of [`LANES`] neurons in lock step so that
-//!   the independent membranes fill the CPU's pipelines (and SIMD lanes); one
-//!   trial runs on one core (trials run in parallel at the graph level).
+//!   the independent membranes fill the CPU's pipelines and SIMD lanes: the
+//!   block's currents are first interleaved sample-major ([`interleave`]) so a
+//!   step reads one contiguous `[f64; LANES]`, the per-step update is
+//!   branch-free (min/max/select), and spike bookkeeping runs only on steps
+//!   where some lane crossed threshold. One trial runs on one core (trials run
+//!   in parallel at the graph level). `benches/encode.rs` measures it.
 
 pub mod izhikevich;
 pub mod lif;
