@@ -191,23 +191,242 @@ fn fa_i_fires_only_while_the_edge_crosses() {
     );
 }
 
-/// Errors of `build` carry the key and its line.
+/// Errors of `build` carry the key and its line. The stage under test, `x`,
+/// reads the spikes of an encoder; its key under test is on line 14.
 fn config_error(stage_toml: &str) -> (Option<String>, Option<usize>, String) {
     let text = format!(
-        "[run]\nseed = 1\n\n[stages.scene]\ntype = \"encode_test_ramps\"\n\n[stages.x]\n{stage_toml}\n"
+        "[run]\nseed = 1\n\n[stages.scene]\ntype = \"encode_test_ramps\"\n\n[stages.enc]\ntype = \"izhikevich\"\ninputs = [\"scene\"]\n\n[stages.x]\n{stage_toml}\n"
     );
     palpate_stages::link();
     let errs = palpate_core::load_str(&text, "test.toml", "test", &LoadOptions::default()).unwrap_err();
-    let d = errs.errors().next().expect("an error").clone();
+    let all: Vec<_> = errs.errors().collect();
+    assert_eq!(all.len(), 1, "{errs}");
+    let d = all[0].clone();
     assert_eq!(d.stage.as_deref(), Some("x"), "{errs}");
     (d.key, d.line, d.message)
 }
 
 #[test]
-fn bad_bin_and_share_values_are_config_errors_naming_the_key_and_line() {
-    // Lines: 7 = [stages.x], 8 = type, 9 = inputs, 10 = the key under test.
-    let (key, line, _) = config_error("type = \"bin\"\ninputs = [\"scene\"]\nwindow_ms = 0");
-    assert_eq!((key.as_deref(), line), (Some("window_ms"), Some(10)));
-    let (key, line, _) = config_error("type = \"bin\"\ninputs = [\"scene\"]\nhop_ms = -10");
-    assert_eq!((key.as_deref(), line), (Some("hop_ms"), Some(10)));
+fn bad_window_hop_and_share_are_config_errors_naming_the_key_and_line() {
+    for (toml, key) in [
+        ("type = \"bin\"\ninputs = [\"enc\"]\nwindow_ms = 0", "window_ms"),
+        (
+            "type = \"bin\"\ninputs = [\"enc\"]\nwindow_ms = -5.0",
+            "window_ms",
+        ),
+        ("type = \"bin\"\ninputs = [\"enc\"]\nhop_ms = -10", "hop_ms"),
+        ("type = \"bin\"\ninputs = [\"enc\"]\nhop_ms = 0.0", "hop_ms"),
+        ("type = \"crop\"\ninputs = [\"enc\"]\nshare = 0.0", "share"),
+        ("type = \"crop\"\ninputs = [\"enc\"]\nshare = 1.5", "share"),
+        ("type = \"crop\"\ninputs = [\"enc\"]\nshare = -0.2", "share"),
+        ("type = \"jitter\"\ninputs = [\"enc\"]\ntau_ms = -1.0", "tau_ms"),
+        ("type = \"subarea\"\ninputs = [\"enc\"]\nsize = 0", "size"),
+    ] {
+        let (k, line, msg) = config_error(toml);
+        assert_eq!((k.as_deref(), line), (Some(key), Some(14)), "{toml}: {msg}");
+        assert!(msg.contains(key), "{msg}");
+    }
+    // And a valid share loads.
+    let text = "[run]\nseed = 1\n[stages.scene]\ntype = \"encode_test_ramps\"\n[stages.enc]\ntype = \"izhikevich\"\ninputs = [\"scene\"]\n[stages.x]\ntype = \"crop\"\ninputs = [\"enc\"]\nshare = 0.6\n";
+    load(text);
+}
+
+fn temp_out(name: &str) -> std::path::PathBuf {
+    std::env::temp_dir().join(format!("palpate-encode-{name}-{}", std::process::id()))
+}
+
+const ROBUST: &str = r#"
+[run]
+seed = 7
+
+[stages.scene]
+type = "encode_test_ramps"
+trials = 3
+stagger_s = 0.1
+
+[stages.norm]
+type = "normalize"
+inputs = ["scene"]
+
+[stages.lp]
+type = "lowpass"
+inputs = ["norm"]
+order = 2
+cutoff_hz = 20
+
+[stages.drive]
+type = "drive"
+inputs = ["lp"]
+
+[stages.enc]
+type = "izhikevich"
+inputs = ["drive"]
+
+[stages.jit]
+type = "jitter"
+inputs = ["enc"]
+tau_ms = 10
+
+[stages.crop]
+type = "crop"
+inputs = ["jit"]
+share = 0.5
+
+[stages.sub]
+type = "subarea"
+inputs = ["crop"]
+size = 2
+row = 1
+col = 2
+
+[stages.dead]
+type = "dead_taxels"
+inputs = ["sub"]
+cells = [[0, 0]]
+
+[stages.bin]
+type = "bin"
+inputs = ["dead"]
+
+[stages.raster]
+type = "raster_plot"
+inputs = ["enc"]
+n_trials = 2
+
+[stages.strip]
+type = "image_strip"
+inputs = ["bin"]
+trials = ["ramp-2"]
+"#;
+
+fn run_with_out(
+    toml: &str,
+    out: &std::path::Path,
+) -> Result<palpate_core::RunResult, palpate_core::RunError> {
+    palpate_stages::link();
+    let opts = LoadOptions {
+        out: Some(out.to_path_buf()),
+        ..LoadOptions::default()
+    };
+    let g = palpate_core::load_str(toml, "test.toml", "test", &opts).unwrap_or_else(|e| panic!("{e}"));
+    palpate_core::run(
+        &g,
+        &RunOptions {
+            keep_outputs: true,
+            ..Default::default()
+        },
+    )
+}
+
+/// The robustness chain of the paper's Figs. 7-9 runs end to end, is
+/// deterministic for a seed, and the plot sinks write their SVGs.
+#[test]
+fn robustness_chain_runs_deterministically_and_plots() {
+    let out = temp_out("robust");
+    let r = run_with_out(ROBUST, &out).unwrap();
+    let enc = r.outputs["enc"][0].payload.spikes().unwrap().clone();
+    let jit = r.outputs["jit"][0].payload.spikes().unwrap().clone();
+    assert_eq!(enc.events.len(), jit.events.len());
+    assert_ne!(enc.events, jit.events);
+    // Crossing known from the source: [2000, 2000 + 1000 + 1500] -> cut at 3250.
+    let crop = r.outputs["crop"][0].payload.spikes().unwrap().clone();
+    assert!(crop.events.iter().all(|e| e.t_ms <= 3250.0));
+    assert!(crop.duration_ms > 3250.0 && crop.duration_ms < 3250.001);
+    let sub = r.outputs["sub"][0].payload.spikes().unwrap().clone();
+    assert_eq!(sub.layout.len(), 4);
+    assert!(sub.events.iter().any(|e| e.taxel == 0));
+    let dead = r.outputs["dead"][0].payload.spikes().unwrap().clone();
+    assert!(dead.events.iter().all(|e| e.taxel != 0) && !dead.events.is_empty());
+    let im = r.outputs["bin"][0].payload.images().unwrap().clone();
+    assert_eq!((im.n_taxels(), im.n_frames), (4, 326));
+    // Jitter differs per trial (seeded by trial id) but not per run.
+    let jit1 = r.outputs["jit"][1].payload.spikes().unwrap().clone();
+    let enc1 = r.outputs["enc"][1].payload.spikes().unwrap().clone();
+    assert_eq!(enc.events, enc1.events, "identical trials encode identically");
+    assert_ne!(jit.events, jit1.events);
+    let again = run_with_out(ROBUST, &out).unwrap();
+    for id in ["jit", "crop", "dead", "bin"] {
+        for t in 0..3 {
+            let (a, b) = (&r.outputs[id][t].payload, &again.outputs[id][t].payload);
+            assert_eq!(format!("{a:?}"), format!("{b:?}"), "{id} trial {t}");
+        }
+    }
+    let files: Vec<_> = r.reports.iter().flat_map(|(_, rep)| rep.files.clone()).collect();
+    assert_eq!(files.len(), 3, "{files:?}");
+    for f in &files {
+        let text = std::fs::read_to_string(f).unwrap();
+        assert!(
+            text.starts_with("<svg") && text.contains("</svg>"),
+            "{}",
+            f.display()
+        );
+    }
+    assert!(out.join("strip-ramp-2.svg").exists() && out.join("raster-ramp-0.svg").exists());
+    if let Ok(keep) = std::env::var("PALPATE_KEEP_PLOTS") {
+        for f in &files {
+            let _ = std::fs::copy(f, std::path::Path::new(&keep).join(f.file_name().unwrap()));
+        }
+    }
+    let _ = std::fs::remove_dir_all(&out);
+}
+
+#[test]
+fn subarea_placement_off_the_grid_is_a_run_error_naming_the_key() {
+    let toml = "[run]\nseed = 1\n[stages.scene]\ntype = \"encode_test_ramps\"\ntrials = 1\n[stages.enc]\ntype = \"izhikevich\"\ninputs = [\"scene\"]\n[stages.sub]\ntype = \"subarea\"\ninputs = [\"enc\"]\nsize = 3\nrow = 2\n";
+    let out = temp_out("sub");
+    let e = run_with_out(toml, &out).expect_err("an error");
+    assert!(
+        e.to_string().contains("`row`") && e.to_string().contains("sub"),
+        "{e}"
+    );
+    let unknown = ROBUST.replace("trials = [\"ramp-2\"]", "trials = [\"nope\"]");
+    let e = run_with_out(&unknown, &out).expect_err("an error");
+    assert!(
+        e.to_string().contains("`trials`") && e.to_string().contains("nope"),
+        "{e}"
+    );
+    let _ = std::fs::remove_dir_all(&out);
+}
+
+/// The live variant: causal normalization, causal filter, LIF encoder. Spikes
+/// still come only from the crossing (plus the causal filter's lag).
+#[test]
+fn causal_chain_with_lif_fires_only_during_the_crossing() {
+    let toml = r#"
+[run]
+seed = 1
+[stages.scene]
+type = "encode_test_ramps"
+trials = 1
+flat = [3]
+[stages.norm]
+type = "normalize"
+inputs = ["scene"]
+mode = "causal"
+baseline_ms = 500
+span = 1.0
+[stages.lp]
+type = "lowpass"
+inputs = ["norm"]
+mode = "causal"
+cutoff_hz = 10
+[stages.drive]
+type = "drive"
+inputs = ["lp"]
+[stages.enc]
+type = "lif"
+inputs = ["drive"]
+"#;
+    let r = run(toml);
+    let sp = r.outputs["enc"][0].payload.spikes().unwrap().clone();
+    assert!(sp.events.iter().all(|e| e.taxel != 3));
+    assert!(
+        sp.events.iter().all(|e| (2000.0..3100.0).contains(&e.t_ms)),
+        "{:?}",
+        sp.events.first()
+    );
+    for taxel in [0u32, 15] {
+        let n = sp.events.iter().filter(|e| e.taxel == taxel).count();
+        assert!(n >= 60, "taxel {taxel}: {n}");
+    }
 }

@@ -55,7 +55,7 @@
 //! Speed: taxels run in blocks of [`LANES`] neurons in lock step; the hot loop
 //! is branch-free except for the rare spike (see `benches/encode.rs`).
 
-use super::{check_input, lane_inputs, sort_events, InputMode, StepInput, LANES};
+use super::{block_input, check_input, fmax, fmin, interleave, sort_events, InputMode, StepInput, LANES};
 use palpate_core::{
     check_range, register_stage, BuildContext, ConfigError, InputSpec, Item, Map, Payload, PayloadKind,
     SpikeEvent, SpikeTrain, Stage, StageConfig, StageError, TrialContext,
@@ -275,19 +275,22 @@ impl Izhikevich {
         let n_samples = currents.first().map_or(0, Vec::len);
         let plan = StepInput::new(n_samples, fs, self.dt_ms, self.input);
         let mut events = Vec::new();
-        let zeros = vec![0.0; n_samples];
         for (block, chunk) in currents.chunks(LANES).enumerate() {
-            let mut lanes: [&[f64]; LANES] = [&zeros; LANES];
-            for (l, xs) in chunk.iter().enumerate() {
-                lanes[l] = xs;
-            }
+            let data = interleave(chunk, n_samples);
             let first = (block * LANES) as u32;
-            let (v, u) = match self.scheme {
-                Scheme::Izhikevich => {
-                    run_block::<true>(&self.params, &plan, &lanes, chunk.len(), first, &mut events)
+            let (p, live, ev) = (&self.params, chunk.len(), &mut events);
+            let (v, u) = match (self.scheme, self.input) {
+                (Scheme::Izhikevich, InputMode::Hold) => {
+                    run_block::<true, false>(p, &plan, &data, live, first, ev)
                 }
-                Scheme::Euler => {
-                    run_block::<false>(&self.params, &plan, &lanes, chunk.len(), first, &mut events)
+                (Scheme::Izhikevich, InputMode::Linear) => {
+                    run_block::<true, true>(p, &plan, &data, live, first, ev)
+                }
+                (Scheme::Euler, InputMode::Hold) => {
+                    run_block::<false, false>(p, &plan, &data, live, first, ev)
+                }
+                (Scheme::Euler, InputMode::Linear) => {
+                    run_block::<false, true>(p, &plan, &data, live, first, ev)
                 }
             };
             state.extend((0..chunk.len()).map(|l| (v[l], u[l])));
@@ -298,11 +301,11 @@ impl Izhikevich {
 }
 
 /// Integrates one block of lanes over the whole trial. `HALF`: Izhikevich's
-/// two half-steps; otherwise forward Euler.
-fn run_block<const HALF: bool>(
+/// two half-steps; otherwise forward Euler. `LINEAR`: interpolated input.
+fn run_block<const HALF: bool, const LINEAR: bool>(
     p: &IzhParams,
     plan: &StepInput,
-    lanes: &[&[f64]; LANES],
+    data: &[[f64; LANES]],
     live: usize,
     first_taxel: u32,
     events: &mut Vec<SpikeEvent>,
@@ -315,55 +318,53 @@ fn run_block<const HALF: bool>(
     let floor = c.min(v0) - 1000.0;
     let mut v = [v0; LANES];
     let mut u = [u0; LANES];
-    for n in 0..plan.n_steps {
-        let cur = lane_inputs(plan, lanes, n);
-        let start = v;
-        let mut v1 = [0.0; LANES];
-        let mut v2 = [0.0; LANES];
+    for (n, &i) in plan.idx.iter().enumerate() {
+        let cur = block_input::<LINEAR>(data, plan, n, i as usize);
+        let mut vn = [0.0; LANES];
+        let mut un = [0.0; LANES];
         let mut any = false;
+        // Hot path: branch-free over the lanes (min/max/select only), so it
+        // compiles to packed SIMD. Spike bookkeeping is in the rare path below.
         for l in 0..LANES {
             let (vl, ul, il) = (v[l], u[l], cur[l]);
-            // First (or only) step of v.
-            let a1 = (vl + h * ((0.04 * vl + 5.0) * vl + 140.0 - ul + il)).max(floor);
-            let (vn, un);
+            let a1 = fmax(vl + h * ((0.04 * vl + 5.0) * vl + 140.0 - ul + il), floor);
+            let (x, y);
             if HALF {
-                let m = a1.min(vp);
-                let a2 = (m + h * ((0.04 * m + 5.0) * m + 140.0 - ul + il)).max(floor);
+                let m = fmin(a1, vp);
+                let a2 = fmax(m + h * ((0.04 * m + 5.0) * m + 140.0 - ul + il), floor);
                 // Once v has reached the peak in the first half, it stays there.
-                let a2 = if a1 >= vp { vp.max(a2) } else { a2 };
-                vn = a2.min(vp);
-                un = ul + adt * (b * vn - ul);
-                v2[l] = a2;
+                x = if a1 >= vp { vp } else { fmin(a2, vp) };
+                y = ul + adt * (b * x - ul);
             } else {
-                vn = a1.min(vp);
-                un = ul + adt * (b * vl - ul);
+                x = fmin(a1, vp);
+                y = ul + adt * (b * vl - ul);
             }
-            v1[l] = a1;
-            any |= vn >= vp;
-            v[l] = vn;
-            u[l] = un;
+            any |= x >= vp;
+            vn[l] = x;
+            un[l] = y;
         }
         if any {
             for l in 0..LANES {
-                if v[l] < vp {
+                if vn[l] < vp {
                     continue;
                 }
-                // Reset, then record (padding lanes never count).
-                v[l] = c;
-                u[l] += d;
-                if l >= live {
-                    continue;
-                }
-                // Crossing time, linear within the (half-)step that crossed.
+                // Crossing time, linear within the (half-)step that crossed,
+                // from the unclamped membrane recomputed from the step's start.
+                let (vl, ul, il) = (v[l], u[l], cur[l]);
+                let a1 = fmax(vl + h * ((0.04 * vl + 5.0) * vl + 140.0 - ul + il), floor);
                 let frac = if !HALF {
-                    crossing(start[l], v1[l], vp)
-                } else if v1[l] >= vp {
-                    0.5 * crossing(start[l], v1[l], vp)
+                    crossing(vl, a1, vp)
+                } else if a1 >= vp {
+                    0.5 * crossing(vl, a1, vp)
                 } else {
-                    0.5 + 0.5 * crossing(v1[l], v2[l], vp)
+                    let a2 = fmax(a1 + h * ((0.04 * a1 + 5.0) * a1 + 140.0 - ul + il), floor);
+                    0.5 + 0.5 * crossing(a1, a2, vp)
                 };
+                // Reset, then record (padding lanes never count).
+                vn[l] = c;
+                un[l] += d;
                 let t = (n as f64 + frac) * dt;
-                if t < plan.duration_ms {
+                if l < live && t < plan.duration_ms {
                     events.push(SpikeEvent {
                         taxel: first_taxel + l as u32,
                         t_ms: t,
@@ -371,6 +372,8 @@ fn run_block<const HALF: bool>(
                 }
             }
         }
+        v = vn;
+        u = un;
     }
     (v, u)
 }
@@ -580,6 +583,21 @@ mod tests {
             for w in ev.windows(3) {
                 prop_assert!(w[2].t_ms - w[0].t_ms > dt * (1.0 - 1e-9));
             }
+        }
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(32))]
+        /// A taxel whose signal never changes normalizes to 0, drives no
+        /// current and fires nothing, whatever its level.
+        #[test]
+        fn unchanging_taxel_fires_nothing(level in -1e9f64..1e9, n in 1usize..3000) {
+            use crate::signal::{derivative::{differentiate, DiffScheme}, normalize::normalize_trial};
+            let v = normalize_trial(&vec![level; n], 0.0);
+            prop_assert!(v.iter().all(|&x| x == 0.0));
+            let i: Vec<f64> = differentiate(&v, 1000.0, DiffScheme::Central).iter().map(|d| 20.0 * d.abs()).collect();
+            let ev = neuron(Preset::FaI, Scheme::Izhikevich, 0.5).encode(&[i], 1000.0);
+            prop_assert!(ev.is_empty());
         }
     }
 

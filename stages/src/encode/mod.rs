@@ -27,8 +27,12 @@
 //!   `dt`. A spike whose time would fall at or after the trial's end (possible
 //!   only when `dt` does not divide the duration) is dropped.
 //! * Encoders run the taxels in blocks of [`LANES`] neurons in lock step so that
-//!   the independent membranes fill the CPU's pipelines (and SIMD lanes); one
-//!   trial runs on one core (trials run in parallel at the graph level).
+//!   the independent membranes fill the CPU's pipelines and SIMD lanes: the
+//!   block's currents are first interleaved sample-major ([`interleave`]) so a
+//!   step reads one contiguous `[f64; LANES]`, the per-step update is
+//!   branch-free (min/max/select), and spike bookkeeping runs only on steps
+//!   where some lane crossed threshold. One trial runs on one core (trials run
+//!   in parallel at the graph level). `benches/encode.rs` measures it.
 
 pub mod izhikevich;
 pub mod lif;
@@ -122,26 +126,65 @@ impl StepInput {
     }
 }
 
-/// The current of every lane at step `n`, clamped to [`MAX_CURRENT`].
+/// One block of up to [`LANES`] taxels' currents, interleaved sample-major
+/// (`data[sample][lane]`) and clamped to [`MAX_CURRENT`], so a step reads one
+/// contiguous `[f64; LANES]` (one bounds check, one cache line pair) instead of
+/// `LANES` scattered slices. Missing lanes of the last block hold 0.
+pub fn interleave(chunk: &[Vec<f64>], n_samples: usize) -> Vec<[f64; LANES]> {
+    let mut data = vec![[0.0; LANES]; n_samples];
+    for (l, xs) in chunk.iter().take(LANES).enumerate() {
+        for (row, &x) in data.iter_mut().zip(xs) {
+            row[l] = x.clamp(-MAX_CURRENT, MAX_CURRENT);
+        }
+    }
+    data
+}
+
+/// The currents of a block at step `n` whose sample index is `i`: held, or
+/// (`LINEAR`) interpolated towards the next sample.
 #[inline(always)]
-pub fn lane_inputs(plan: &StepInput, lanes: &[&[f64]; LANES], n: usize) -> [f64; LANES] {
-    let mut out = [0.0; LANES];
-    let i = plan.idx[n] as usize;
-    if plan.frac.is_empty() {
+pub fn block_input<const LINEAR: bool>(
+    data: &[[f64; LANES]],
+    plan: &StepInput,
+    n: usize,
+    i: usize,
+) -> [f64; LANES] {
+    let a = data[i];
+    if !LINEAR {
+        return a;
+    }
+    let f = plan.frac[n];
+    if f > 0.0 {
+        // frac > 0 only when i + 1 is a sample (see StepInput::new).
+        let b = data[i + 1];
+        let mut out = [0.0; LANES];
         for l in 0..LANES {
-            out[l] = lanes[l][i];
+            out[l] = a[l] + f * (b[l] - a[l]);
         }
+        out
     } else {
-        let f = plan.frac[n];
-        let j = if f > 0.0 { i + 1 } else { i };
-        for l in 0..LANES {
-            out[l] = lanes[l][i] + f * (lanes[l][j] - lanes[l][i]);
-        }
+        a
     }
-    for x in &mut out {
-        *x = x.clamp(-MAX_CURRENT, MAX_CURRENT);
+}
+
+/// `max` without NaN handling (a single instruction; inputs are never NaN here).
+#[inline(always)]
+pub(crate) fn fmax(a: f64, b: f64) -> f64 {
+    if a > b {
+        a
+    } else {
+        b
     }
-    out
+}
+
+/// `min` without NaN handling (a single instruction; inputs are never NaN here).
+#[inline(always)]
+pub(crate) fn fmin(a: f64, b: f64) -> f64 {
+    if a < b {
+        a
+    } else {
+        b
+    }
 }
 
 /// Checks an encoder's input: finite samples, one vector per taxel.

@@ -204,9 +204,11 @@ pub fn strip_svg(images: &SpikeImages, meta: &TrialMeta, max_frames: usize, per_
     let cell = (60.0 / rows.max(cols) as f64).clamp(3.0, 14.0);
     let (iw, ih) = (cols as f64 * cell, rows as f64 * cell);
     let per_row = per_row.max(1);
-    let (gap, label_h, top, left) = (10.0, 16.0, 40.0, 15.0);
+    // Room for a "1234 ms" label under small images.
+    let (gap, label_h, top, left) = ((48.0 - iw).max(10.0), 16.0, 40.0, 15.0);
     let lines = frames.len().div_ceil(per_row).max(1);
-    let w = left * 2.0 + per_row.min(frames.len().max(1)) as f64 * (iw + gap);
+    // Wide enough for the title line too.
+    let w = (left * 2.0 + per_row.min(frames.len().max(1)) as f64 * (iw + gap)).max(640.0);
     let h = top + lines as f64 * (ih + label_h + gap) + 10.0;
     let max = frames
         .iter()
@@ -220,7 +222,7 @@ pub fn strip_svg(images: &SpikeImages, meta: &TrialMeta, max_frames: usize, per_
     let _ = writeln!(s, r#"<rect width="100%" height="100%" fill="white"/>"#);
     let _ = writeln!(
         s,
-        r#"<text x="{left}" y="22" font-size="14">Spike images: {} — window {} ms, hop {} ms, max count {}</text>"#,
+        r#"<text x="{left}" y="22" font-size="13">Spike images: {} — window {} ms, hop {} ms, black = {} spikes</text>"#,
         esc(&title(meta)),
         images.window_ms,
         images.hop_ms,
@@ -415,7 +417,7 @@ mod tests {
         assert!(r.contains("edge&lt;45&gt;") && r.contains("edge crossing"));
         let s = strip_svg(&images(30, &[(5, 1, 3.0)]), &meta, 24, 12);
         assert!(s.contains("rgb(0,0,0)"), "the busiest cell is black");
-        assert!(s.contains("max count 3"));
+        assert!(s.contains("black = 3 spikes"));
         // Empty data does not panic and gives no NaN.
         let empty = SpikeTrain {
             events: vec![],
