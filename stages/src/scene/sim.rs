@@ -251,6 +251,8 @@ impl Simulator {
         let (exact, smooth) = profile.split();
         let table = smooth.as_ref().map(Table::new);
         let force = draw.force;
+        let (sup_lo, sup_hi) = profile.support();
+        let (left, right) = (profile.value(sup_lo - 1.0), profile.value(sup_hi + 1.0));
         let offset_at = |k: usize| {
             let t = k as f64 / fs;
             let x = speed * (t - m.hold_before_s).clamp(0.0, slide_s);
@@ -278,21 +280,31 @@ impl Simulator {
                 *s = offset_at(start + j);
             }
             let block = &mut buf[..n_taxels * len];
+            let s_blk = &s_buf[..len];
             for (row, &c) in block.chunks_exact_mut(len).zip(&centres) {
+                // `s` never increases: samples with the stimulus beyond the
+                // profile's support come first (constant `right`), then the
+                // active ones, then those past it (constant `left`). Only the
+                // active ones are evaluated; the constants are the exact limits.
+                let k1 = s_blk.partition_point(|&s| s - c > sup_hi);
+                let k2 = k1 + s_blk[k1..].partition_point(|&s| s - c >= sup_lo);
+                row[..k1].fill(force * right);
+                row[k2..].fill(force * left);
+                let (row, s_act) = (&mut row[k1..k2], &s_blk[k1..k2]);
                 match (&table, exact.terms.is_empty()) {
                     (Some(t), true) => {
                         let base = exact.base;
-                        for (x, &s) in row.iter_mut().zip(&s_buf[..len]) {
+                        for (x, &s) in row.iter_mut().zip(s_act) {
                             *x = force * (base + t.eval(s - c));
                         }
                     }
                     (Some(t), false) => {
-                        for (x, &s) in row.iter_mut().zip(&s_buf[..len]) {
+                        for (x, &s) in row.iter_mut().zip(s_act) {
                             *x = force * (exact.value(s - c) + t.eval(s - c));
                         }
                     }
                     (None, _) => {
-                        for (x, &s) in row.iter_mut().zip(&s_buf[..len]) {
+                        for (x, &s) in row.iter_mut().zip(s_act) {
                             *x = force * exact.value(s - c);
                         }
                     }
