@@ -223,6 +223,7 @@ pub fn read_mat(bytes: &[u8], what: &str) -> Result<Vec<(String, NdArray)>, Stri
             "{what}: not a MATLAB .mat file (truncated, or no `MATLAB` header)"
         ));
     }
+    check_mat_elements(bytes, what)?;
     let mat = matfile::MatFile::parse(bytes)
         .map_err(|e| format!("{what}: not a readable MAT v5/v7 file ({e}); truncated, or saved as v7.3?"))?;
     let mut out = Vec::new();
@@ -257,6 +258,60 @@ pub fn read_mat(bytes: &[u8], what: &str) -> Result<Vec<(String, NdArray)>, Stri
         out.push((a.name().to_string(), NdArray { shape, data }));
     }
     Ok(out)
+}
+
+/// Walks the top-level data elements of a MAT v5 file and fails if the last
+/// one runs past the end of the file: `matfile` silently drops a truncated
+/// trailing variable, which would lose a trial without a word.
+fn check_mat_elements(bytes: &[u8], what: &str) -> Result<(), String> {
+    let big = match &bytes[126..128] {
+        b"IM" => false,
+        b"MI" => true,
+        _ => return Err(format!("{what}: not a MAT v5 file (bad endian indicator)")),
+    };
+    let u32_at = |o: usize| {
+        let b = [bytes[o], bytes[o + 1], bytes[o + 2], bytes[o + 3]];
+        if big {
+            u32::from_be_bytes(b)
+        } else {
+            u32::from_le_bytes(b)
+        }
+    };
+    let mut pos = 128usize;
+    let mut k = 0;
+    while pos < bytes.len() {
+        if bytes.len() - pos < 8 {
+            return Err(format!(
+                "{what}: truncated: {} stray bytes after variable {k}",
+                bytes.len() - pos
+            ));
+        }
+        let ty = u32_at(pos);
+        let len = if ty >> 16 != 0 {
+            // Small data element: 4 bytes of data inside the 8-byte tag.
+            0
+        } else {
+            let n = u32_at(pos + 4) as usize;
+            // miCOMPRESSED (15) is not padded; every other element is padded to 8 bytes.
+            if ty == 15 {
+                n
+            } else {
+                n.div_ceil(8) * 8
+            }
+        };
+        let end = pos + 8 + len;
+        if end > bytes.len() {
+            return Err(format!(
+                "{what}: truncated: variable {} needs {} bytes, the file ends after {}",
+                k + 1,
+                end - pos,
+                bytes.len() - pos
+            ));
+        }
+        pos = end;
+        k += 1;
+    }
+    Ok(())
 }
 
 /// Encodes a C-order `f64` array as NPY bytes (`<f8`).

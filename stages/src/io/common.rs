@@ -495,24 +495,25 @@ pub fn build_metas(
         .collect())
 }
 
-/// Writes the label sidecar (CSV) the sources read: `trial,angle_deg,stimulus,group[,duration_ms]`.
-pub fn sidecar_csv(rows: &[(String, &TrialMeta, Option<f64>)]) -> String {
-    let with_duration = rows.iter().any(|r| r.2.is_some());
-    let mut s = String::from("trial,angle_deg,stimulus,group");
-    if with_duration {
-        s.push_str(",duration_ms");
-    }
-    s.push('\n');
+/// Writes the label sidecar (TOML) the sources read: one `[trials."<id>"]`
+/// table per trial with `angle_deg` (when known), `stimulus`, `group` and, for
+/// spikes, `duration_ms`. TOML rather than CSV so that a `*.csv` glob over the
+/// data files does not pick the sidecar up. Numbers use Rust's round-trip form.
+pub fn sidecar_toml(rows: &[(String, &TrialMeta, Option<f64>)]) -> String {
+    let mut s = String::from("# Labels of the trials in this folder (palpate label sidecar).\n");
     for (id, m, d) in rows {
-        let angle = m.label.angle_deg.map(|a| a.to_string()).unwrap_or_default();
-        s.push_str(&format!("{id},{angle},{},{}", m.label.stimulus, m.group));
-        if with_duration {
-            s.push(',');
-            if let Some(d) = d {
-                s.push_str(&d.to_string());
-            }
+        let id = id.replace('\\', "\\\\").replace('"', "\\\"");
+        s.push_str(&format!("\n[trials.\"{id}\"]\n"));
+        if let Some(a) = m.label.angle_deg {
+            s.push_str(&format!("angle_deg = {a:?}\n"));
         }
-        s.push('\n');
+        s.push_str(&format!(
+            "stimulus = \"{}\"\ngroup = {}\n",
+            m.label.stimulus, m.group
+        ));
+        if let Some(d) = d {
+            s.push_str(&format!("duration_ms = {d:?}\n"));
+        }
     }
     s
 }

@@ -17,7 +17,9 @@
 //! | `trial` | optional trial name: rows with the same value form one trial (many trials per file) |
 //! | `angle_deg`, `stimulus`, `group` | optional labels, constant within a trial |
 //!
-//! Any other column is an error (it would otherwise be silently ignored).
+//! Any other column is an error (it would otherwise be silently ignored). The
+//! file must end with a line end: a last line without one is taken as a file
+//! cut while being written (its last number may have lost digits).
 //! Lines starting with `#` are comments.
 //!
 //! **NPY** (`.npy`): one trial per file, a 2-D array `(samples, taxels)`; a 3-D
@@ -645,6 +647,20 @@ pub fn csv_error(shown: &str, e: &csv::Error) -> String {
     }
 }
 
+/// A CSV whose last line has no line end was most likely cut while being
+/// written: its last number may be short by digits, which no parser can see.
+/// So it is an error (add the newline if the file is complete).
+pub fn check_csv_complete(bytes: &[u8], shown: &str) -> Result<(), String> {
+    if bytes.last().is_some_and(|&b| b != b'\n' && b != b'\r') {
+        let line = bytes.iter().filter(|&&b| b == b'\n').count() + 1;
+        return Err(format!(
+            "{shown}, line {line}: the last line has no line end, so the file looks truncated \
+             (if it is complete, end it with a newline)"
+        ));
+    }
+    Ok(())
+}
+
 struct CsvTrial {
     name: String,
     labels: TrialLabels,
@@ -659,6 +675,7 @@ fn read_csv_signals(
     cfg: &SignalFileConfig,
     n_taxels: usize,
 ) -> Result<Vec<RawTrial>, String> {
+    check_csv_complete(bytes, shown)?;
     let mut rdr = csv::ReaderBuilder::new()
         .trim(csv::Trim::All)
         .comment(Some(b'#'))

@@ -15,9 +15,9 @@
 //! | `write_estimates` | one per run, `estimates.npy`/`.csv` | `(rows, 6 + classes)`, see below | see below |
 //!
 //! Per-trial files are named after the trial id (characters other than
-//! letters, digits, `.`, `-`, `_` become `_`), and beside them `trials.csv`
-//! lists `trial, angle_deg, stimulus, group` (plus `duration_ms` for spikes) in
-//! exactly the label-sidecar format `signal_file` and `spike_file` read, keyed
+//! letters, digits, `.`, `-`, `_` become `_`), and beside them `labels.toml`
+//! gives each trial's `angle_deg`, `stimulus`, `group` (plus `duration_ms` for
+//! spikes) in the label-sidecar format `signal_file` and `spike_file` read, keyed
 //! by the ids those sources will give the files. So writing then reading back
 //! gives the same data and labels. `info.json` records the rest (sample rate,
 //! unit and layout of signals; layout, window and hop of images).
@@ -36,7 +36,7 @@
 //! `estimates_classes.npy` the score columns' angles.
 
 use super::arrays::npy_bytes;
-use super::common::{file_stem_for, sidecar_csv};
+use super::common::{file_stem_for, sidecar_toml};
 use super::spike_file::TimeUnit;
 use palpate_core::output::write_atomic;
 use palpate_core::{
@@ -180,7 +180,7 @@ macro_rules! simple_sink_config {
 
 simple_sink_config!(
     /// Writes analog signals, one NPY `(samples, taxels)` or CSV
-    /// (`time_ms, taxel_0..`) file per trial, with a `trials.csv` label sidecar
+    /// (`time_ms, taxel_0..`) file per trial, with a `labels.toml` label sidecar
     /// that `signal_file` reads back.
     WriteSignalsConfig,
     "write_signals",
@@ -253,7 +253,7 @@ fn finish_with_sidecar(
     info: Option<serde_json::Value>,
     what: &str,
 ) -> Result<SinkReport, StageError> {
-    files.add("trials.csv".into(), sidecar_csv(rows).into_bytes())?;
+    files.add("labels.toml".into(), sidecar_toml(rows).into_bytes())?;
     if let Some(info) = info {
         files.add("info.json".into(), json(&info))?;
     }

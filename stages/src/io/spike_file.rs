@@ -38,7 +38,7 @@ use super::common::{
     apply_sidecar, build_metas, expand_paths, file_ids, merge_consistent, read_sidecar, set_label_cell,
     LayoutConfig, TrialLabels, LABEL_COLUMNS,
 };
-use super::signal_file::csv_error;
+use super::signal_file::{check_csv_complete, csv_error};
 use palpate_core::{
     check_positive, register_stage, BuildContext, ConfigError, InputSpec, Payload, PayloadKind, Source,
     SpikeEvent, SpikeTrain, Stage, StageConfig, StageError, TaxelLayout, TrialContext, TrialMeta,
@@ -455,6 +455,7 @@ fn read_csv_events(
     file_id: &str,
     mapper: &Mapper<'_>,
 ) -> Result<Vec<RawEvents>, String> {
+    check_csv_complete(bytes, shown)?;
     let mut rdr = csv::ReaderBuilder::new()
         .trim(csv::Trim::All)
         .comment(Some(b'#'))
