@@ -350,10 +350,10 @@ fn mat_two_and_three_dimensional_with_fs() {
 
 /// Runs a one-source graph expecting an error; returns its message.
 fn source_error(dir: &Path, keys: &str) -> String {
-    let e = run_graph(dir, &format!("[stages.src]\ntype = \"signal_file\"\n{keys}\n"))
-        .err()
-        .expect("expected an error");
-    e
+    match run_graph(dir, &format!("[stages.src]\ntype = \"signal_file\"\n{keys}\n")) {
+        Ok(_) => panic!("expected an error for {keys}"),
+        Err(e) => e,
+    }
 }
 
 #[test]
