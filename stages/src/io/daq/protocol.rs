@@ -527,4 +527,44 @@ mod tests {
         assert!((f.samples[1] - 65535.0 * 3.3 / 4095.0).abs() < 1e-9);
         assert!((f.samples[2] - 3.3).abs() < 1e-9);
     }
+
+    use proptest::prelude::*;
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(64))]
+
+        /// Any bytes, in any chunks: no panic, and every byte is accounted for
+        /// (in a valid frame, skipped as garbage, or pending).
+        #[test]
+        fn decoder_accounts_for_every_byte(bytes in proptest::collection::vec(any::<u8>(), 0..600),
+                                           chunk in 1usize..64, frames_in in 0usize..4) {
+            let mut s = Vec::new();
+            for k in 0..frames_in {
+                encode_frame(&mut s, SampleFormat::U16, k as u32, 0, &[1.0, 2.0]);
+            }
+            s.extend(&bytes);
+            let mut d = Decoder::new(None, 1.0, 0.0);
+            let mut frame_bytes = 0u64;
+            for c in s.chunks(chunk) {
+                d.feed(c, |e| if let DecodeEvent::Frame(f) = e {
+                    frame_bytes += frame_len(SampleFormat::U16, f.samples.len()) as u64;
+                });
+            }
+            let st = d.stats();
+            prop_assert_eq!(st.garbage_bytes + frame_bytes + d.pending() as u64, s.len() as u64);
+            prop_assert!(st.frames >= frames_in as u64);
+        }
+
+        /// Frames round-trip exactly (f32 values, any sequence and time).
+        #[test]
+        fn frames_round_trip(vals in proptest::collection::vec(-1e6f32..1e6, 1..40), seq in any::<u32>(), ts in any::<u64>()) {
+            let raw: Vec<f64> = vals.iter().map(|&v| f64::from(v)).collect();
+            let mut b = Vec::new();
+            encode_frame(&mut b, SampleFormat::F32, seq, ts, &raw);
+            let mut d = Decoder::new(Some(raw.len()), 1.0, 0.0);
+            let mut got = None;
+            d.feed(&b, |e| if let DecodeEvent::Frame(f) = e { got = Some(f) });
+            prop_assert_eq!(got, Some(Frame { seq, timestamp_us: ts, samples: raw }));
+        }
+    }
 }
