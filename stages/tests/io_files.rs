@@ -849,3 +849,48 @@ fn every_io_stage_is_registered() {
     }
     let _ = load_str; // keeps the import list honest across edits
 }
+
+#[test]
+fn read_signal_files_works_outside_a_graph_and_spikes_on_explicit_layouts() {
+    use palpate_stages::io::signal_file::{read_signal_files, SignalFileConfig};
+    let d = tempfile::tempdir().unwrap();
+    std::fs::write(d.path().join("a.csv"), csv_trial(0, 16, 20, 1000.0)).unwrap();
+    let cfg = SignalFileConfig {
+        path: Some("a.csv".into()),
+        ..Default::default()
+    };
+    let t = read_signal_files(&cfg, d.path()).unwrap();
+    assert_eq!(t.len(), 1);
+    assert_eq!(t[0].0.trial_id, "a");
+    assert_data(&t[0].1, 0, 20);
+    let bad = SignalFileConfig {
+        path: Some("missing.csv".into()),
+        ..Default::default()
+    };
+    assert!(read_signal_files(&bad, d.path())
+        .unwrap_err()
+        .message
+        .contains("missing.csv"));
+    // Spikes on a skin that is not a grid: x is the taxel index, y must be 0.
+    std::fs::write(d.path().join("s.csv"), "x,y,t\n2,0,1000\n0,0,2000\n").unwrap();
+    let pos = r#"layout = { kind = "positions", positions_mm = [[0.0, 0.0], [2.0, 0.0], [1.0, 1.7]], taxel_mm = 1.0 }"#;
+    let r = run_graph(
+        d.path(),
+        &format!("[stages.src]\ntype = \"spike_file\"\npath = \"s.csv\"\n{pos}\n"),
+    )
+    .unwrap();
+    let ev: Vec<(u32, f64)> = spikes(&items(&r, "src")[0])
+        .events
+        .iter()
+        .map(|e| (e.taxel, e.t_ms))
+        .collect();
+    assert_eq!(ev, vec![(2, 1.0), (0, 2.0)]);
+    std::fs::write(d.path().join("s.csv"), "x,y,t\n1,1,1000\n").unwrap();
+    let e = run_graph(
+        d.path(),
+        &format!("[stages.src]\ntype = \"spike_file\"\npath = \"s.csv\"\n{pos}\n"),
+    )
+    .err()
+    .unwrap();
+    assert!(e.contains("y must be 0"), "{e}");
+}

@@ -167,6 +167,14 @@ impl StageConfig for SignalFileConfig {
         Some(PayloadKind::Signals)
     }
     fn build(&self, ctx: &BuildContext) -> Result<Stage, ConfigError> {
+        Ok(Stage::Source(Box::new(self.source(ctx)?)))
+    }
+}
+register_stage!("signal_file", SignalFileConfig);
+
+impl SignalFileConfig {
+    /// Checks the config and makes the (not yet loaded) source.
+    fn source(&self, ctx: &BuildContext) -> Result<SignalFileSource, ConfigError> {
         let layout = self.layout.to_layout("layout")?;
         if let Some(r) = self.sample_rate_hz {
             check_positive("sample_rate_hz", r, "Hz")?;
@@ -202,16 +210,31 @@ impl StageConfig for SignalFileConfig {
                 ));
             }
         }
-        Ok(Stage::Source(Box::new(SignalFileSource {
+        Ok(SignalFileSource {
             cfg: self.clone(),
             layout,
             files,
             labels,
             loaded: OnceLock::new(),
-        })))
+        })
     }
 }
-register_stage!("signal_file", SignalFileConfig);
+
+/// Reads every trial `cfg` names, outside a graph (e.g. the CLI's
+/// `palpate daq emulate <recording>`): relative paths resolve against
+/// `base_dir`. Same checks and errors as the `signal_file` stage.
+pub fn read_signal_files(
+    cfg: &SignalFileConfig,
+    base_dir: &Path,
+) -> Result<Vec<(TrialMeta, Arc<Signals>)>, StageError> {
+    let ctx = BuildContext {
+        stage_id: "signal_file".into(),
+        seed: 0,
+        out_dir: base_dir.to_path_buf(),
+        base_dir: base_dir.to_path_buf(),
+    };
+    cfg.source(&ctx)?.load()
+}
 
 /// The format of `path` under setting `f`.
 pub fn format_of(f: SignalFormat, path: &Path) -> Result<SignalFormat, String> {

@@ -40,8 +40,8 @@ use super::common::{file_stem_for, sidecar_toml};
 use super::spike_file::TimeUnit;
 use palpate_core::output::write_atomic;
 use palpate_core::{
-    register_stage, BuildContext, ConfigError, InputSpec, Item, PayloadKind, Sink, SinkContext, SinkInput,
-    SinkReport, Stage, StageConfig, StageError, TaxelLayout, TrialMeta,
+    register_stage, BuildContext, ConfigError, InputSpec, Item, PayloadKind, Signals, Sink, SinkContext,
+    SinkInput, SinkReport, Stage, StageConfig, StageError, TaxelLayout, TrialMeta,
 };
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
@@ -210,27 +210,10 @@ impl Sink for SignalsSink {
         let mut info = None;
         for it in items {
             let s = it.payload.signals()?;
-            let (n, m) = (s.data.len(), s.n_samples());
             let stem = file_stem_for(&it.meta.trial_id);
             let bytes = match self.format {
-                OutFormat::Npy => {
-                    let mut flat = Vec::with_capacity(n * m);
-                    for k in 0..m {
-                        flat.extend(s.data.iter().map(|col| col[k]));
-                    }
-                    npy(&[m, n], &flat)?
-                }
-                OutFormat::Csv => {
-                    let mut out = format!("time_ms,{}\n", taxel_header(n));
-                    for k in 0..m {
-                        let _ = write!(out, "{}", k as f64 * 1000.0 / s.sample_rate_hz);
-                        for col in &s.data {
-                            let _ = write!(out, ",{}", col[k]);
-                        }
-                        out.push('\n');
-                    }
-                    out.into_bytes()
-                }
+                OutFormat::Npy => signals_npy(s)?,
+                OutFormat::Csv => signals_csv(s).into_bytes(),
             };
             files.add(format!("{stem}.{}", self.format.ext()), bytes)?;
             rows.push((stem, &*it.meta, None));
@@ -245,6 +228,30 @@ impl Sink for SignalsSink {
         }
         finish_with_sidecar(files, &rows, info, "signals")
     }
+}
+
+/// One trial's signals as NPY bytes: float64 `(samples, taxels)`.
+pub fn signals_npy(s: &Signals) -> Result<Vec<u8>, StageError> {
+    let (n, m) = (s.data.len(), s.n_samples());
+    let mut flat = Vec::with_capacity(n * m);
+    for k in 0..m {
+        flat.extend(s.data.iter().map(|col| col[k]));
+    }
+    npy(&[m, n], &flat)
+}
+
+/// One trial's signals as CSV text: `time_ms, taxel_0 .. taxel_{N-1}`, one row
+/// per sample, numbers in round-trip form (what `signal_file` reads).
+pub fn signals_csv(s: &Signals) -> String {
+    let mut out = format!("time_ms,{}\n", taxel_header(s.data.len()));
+    for k in 0..s.n_samples() {
+        let _ = write!(out, "{}", k as f64 * 1000.0 / s.sample_rate_hz);
+        for col in &s.data {
+            let _ = write!(out, ",{}", col[k]);
+        }
+        out.push('\n');
+    }
+    out
 }
 
 fn finish_with_sidecar(
