@@ -1,0 +1,569 @@
+//! Helpers shared by the file sources and sinks: the taxel-layout key, path
+//! expansion (globs and lists), trial ids, label sidecars and the assignment of
+//! cross-validation groups.
+//!
+//! ## Label sidecars
+//!
+//! A sidecar maps trial ids to labels; it is a small TOML or CSV file (chosen by
+//! its extension). Every trial the files hold must appear in it, and every entry
+//! must name a trial the files hold (a typo would otherwise silently unlabel a
+//! trial).
+//!
+//! TOML:
+//!
+//! ```toml
+//! [trials.rec01]
+//! angle_deg = 45.0        # optional
+//! stimulus = "edge"       # optional: edge | ridge | unknown
+//! group = 0               # optional: the cross-validation key
+//! duration_ms = 9500.0    # optional; spike files only: the trial's length
+//! ```
+//!
+//! CSV: a header row with `trial` and any of `angle_deg`, `stimulus`, `group`,
+//! `duration_ms`; one row per trial; an empty cell means "not given".
+//!
+//! ## Precedence and groups
+//!
+//! A sidecar value wins over a value read from the data file. A trial with an
+//! angle but no stimulus is an `edge`; one with neither is `unknown`. When no
+//! `group` is given, a trial's group is its repetition number within its class
+//! (same stimulus and angle), counted in trial order from 0, which is what
+//! leave-one-trial-out cross-validation needs for recordings made as "10 trials
+//! per angle".
+
+use palpate_core::{ConfigError, Label, StageError, Stimulus, TaxelLayout, TrialMeta};
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
+use std::collections::{BTreeMap, HashMap};
+use std::path::{Path, PathBuf};
+
+/// Where the taxels are: a grid, or an explicit list of positions.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
+pub enum LayoutConfig {
+    /// A `rows x cols` grid centred on the origin, row 0 on top; taxel `i` is row
+    /// `i / cols`, column `i % cols`.
+    Grid {
+        /// Rows (along y).
+        rows: usize,
+        /// Columns (along x, the sliding direction).
+        cols: usize,
+        /// Centre-to-centre spacing, mm.
+        pitch_mm: f64,
+        /// Side of a square taxel, mm.
+        taxel_mm: f64,
+    },
+    /// Explicit taxel centres `[x, y]` in mm, for skins that are not grids.
+    Positions {
+        /// Taxel centres `[x, y]`, mm, in taxel order.
+        positions_mm: Vec<[f64; 2]>,
+        /// Side of a square taxel, mm.
+        taxel_mm: f64,
+    },
+}
+
+impl Default for LayoutConfig {
+    fn default() -> Self {
+        LayoutConfig::Grid {
+            rows: 4,
+            cols: 4,
+            pitch_mm: 3.0,
+            taxel_mm: 2.0,
+        }
+    }
+}
+
+impl LayoutConfig {
+    /// The checked layout, or an error naming `key`.
+    pub fn to_layout(&self, key: &str) -> Result<TaxelLayout, ConfigError> {
+        let l = match self.clone() {
+            LayoutConfig::Grid {
+                rows,
+                cols,
+                pitch_mm,
+                taxel_mm,
+            } => TaxelLayout::Grid {
+                rows,
+                cols,
+                pitch_mm,
+                taxel_mm,
+            },
+            LayoutConfig::Positions {
+                positions_mm,
+                taxel_mm,
+            } => TaxelLayout::Positions {
+                positions_mm,
+                taxel_mm,
+            },
+        };
+        l.validate().map_err(|m| ConfigError::key(key, m))?;
+        Ok(l)
+    }
+}
+
+/// Expands a list of paths, each resolved against the graph's directory; an
+/// entry with a glob metacharacter (`*`, `?`, `[`) is a pattern whose matches are
+/// taken in sorted order. Every literal path must exist, every pattern must match.
+pub fn expand_paths(
+    entries: &[String],
+    resolve: impl Fn(&Path) -> PathBuf,
+    key: &str,
+) -> Result<Vec<PathBuf>, ConfigError> {
+    if entries.is_empty() {
+        return Err(ConfigError::key(key, "give at least one file or glob pattern"));
+    }
+    let mut out = Vec::new();
+    for e in entries {
+        let p = resolve(Path::new(e));
+        if e.contains(['*', '?', '[']) {
+            let pattern = p.to_string_lossy().into_owned();
+            let matches = glob::glob(&pattern)
+                .map_err(|err| ConfigError::key(key, format!("bad glob pattern `{e}`: {err}")))?;
+            let mut found: Vec<PathBuf> = matches.filter_map(Result::ok).filter(|p| p.is_file()).collect();
+            if found.is_empty() {
+                return Err(ConfigError::key(
+                    key,
+                    format!("pattern `{pattern}` matched no file"),
+                ));
+            }
+            found.sort();
+            out.extend(found);
+        } else if p.is_file() {
+            out.push(p);
+        } else {
+            return Err(ConfigError::key(key, format!("file {} not found", p.display())));
+        }
+    }
+    let mut seen = std::collections::HashSet::new();
+    out.retain(|p| seen.insert(p.clone()));
+    Ok(out)
+}
+
+/// A short, unique name for each file: its stem, or, when two files share a
+/// stem, its path relative to the files' common directory without extension
+/// (`/` replaced by `_`, so the name is still a file name).
+pub fn file_ids(paths: &[PathBuf]) -> Vec<String> {
+    let stems: Vec<String> = paths
+        .iter()
+        .map(|p| {
+            p.file_stem()
+                .map(|s| s.to_string_lossy().into_owned())
+                .unwrap_or_default()
+        })
+        .collect();
+    let mut counts: HashMap<&str, usize> = HashMap::new();
+    for s in &stems {
+        *counts.entry(s.as_str()).or_default() += 1;
+    }
+    if counts.values().all(|&c| c == 1) {
+        return stems;
+    }
+    let common = common_dir(paths);
+    paths
+        .iter()
+        .map(|p| {
+            let rel = p.strip_prefix(&common).unwrap_or(p).with_extension("");
+            rel.to_string_lossy().replace(['/', '\\'], "_")
+        })
+        .collect()
+}
+
+fn common_dir(paths: &[PathBuf]) -> PathBuf {
+    let mut common: Option<PathBuf> = None;
+    for p in paths {
+        let dir = p.parent().map(Path::to_path_buf).unwrap_or_default();
+        common = Some(match common {
+            None => dir,
+            Some(c) => c
+                .components()
+                .zip(dir.components())
+                .take_while(|(a, b)| a == b)
+                .map(|(a, _)| a)
+                .collect(),
+        });
+    }
+    common.unwrap_or_default()
+}
+
+/// Turns a trial id into a safe file stem: characters other than ASCII
+/// letters, digits, `.`, `-` and `_` become `_`.
+pub fn file_stem_for(trial_id: &str) -> String {
+    let s: String = trial_id
+        .chars()
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || matches!(c, '.' | '-' | '_') {
+                c
+            } else {
+                '_'
+            }
+        })
+        .collect();
+    if s.is_empty() || s.starts_with('.') {
+        format!("trial{s}")
+    } else {
+        s
+    }
+}
+
+/// Labels of one trial as read from a file or a sidecar; `None` = not given.
+#[derive(Clone, Debug, Default, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TrialLabels {
+    /// True edge orientation, degrees.
+    pub angle_deg: Option<f64>,
+    /// Stimulus kind.
+    #[serde(default, deserialize_with = "de_stimulus")]
+    pub stimulus: Option<Stimulus>,
+    /// Cross-validation key.
+    pub group: Option<usize>,
+    /// Trial length, ms (spike files).
+    pub duration_ms: Option<f64>,
+}
+
+fn de_stimulus<'de, D: serde::Deserializer<'de>>(d: D) -> Result<Option<Stimulus>, D::Error> {
+    let s = String::deserialize(d)?;
+    parse_stimulus(&s).map(Some).map_err(serde::de::Error::custom)
+}
+
+impl TrialLabels {
+    /// `self` with every value `other` gives replacing this one.
+    pub fn overridden_by(&self, other: &TrialLabels) -> TrialLabels {
+        TrialLabels {
+            angle_deg: other.angle_deg.or(self.angle_deg),
+            stimulus: other.stimulus.or(self.stimulus),
+            group: other.group.or(self.group),
+            duration_ms: other.duration_ms.or(self.duration_ms),
+        }
+    }
+
+    /// The label these values give (see the module docs for defaults).
+    pub fn label(&self) -> Label {
+        Label {
+            stimulus: self.stimulus.unwrap_or(if self.angle_deg.is_some() {
+                Stimulus::Edge
+            } else {
+                Stimulus::Unknown
+            }),
+            angle_deg: self.angle_deg,
+        }
+    }
+}
+
+/// Reads `edge`, `ridge` or `unknown` (any case).
+pub fn parse_stimulus(s: &str) -> Result<Stimulus, String> {
+    match s.trim().to_ascii_lowercase().as_str() {
+        "edge" => Ok(Stimulus::Edge),
+        "ridge" => Ok(Stimulus::Ridge),
+        "unknown" | "" => Ok(Stimulus::Unknown),
+        other => Err(format!(
+            "unknown stimulus `{other}` (expected edge, ridge or unknown)"
+        )),
+    }
+}
+
+/// The label-column names a data file or sidecar may carry.
+pub const LABEL_COLUMNS: [&str; 4] = ["angle_deg", "stimulus", "group", "duration_ms"];
+
+/// Reads one label cell of a CSV file into `labels`; `what` names the place for
+/// errors. Empty cells are "not given".
+pub fn set_label_cell(labels: &mut TrialLabels, column: &str, cell: &str, what: &str) -> Result<(), String> {
+    let cell = cell.trim();
+    if cell.is_empty() {
+        return Ok(());
+    }
+    match column {
+        "angle_deg" | "duration_ms" => {
+            let v: f64 = cell
+                .parse()
+                .map_err(|_| format!("{what}: cannot read `{cell}` as a number"))?;
+            if !v.is_finite() {
+                return Err(format!("{what}: `{cell}` is not a finite number"));
+            }
+            if column == "angle_deg" {
+                labels.angle_deg = Some(v);
+            } else if v > 0.0 {
+                labels.duration_ms = Some(v);
+            } else {
+                return Err(format!("{what}: duration must be positive, got {v}"));
+            }
+        }
+        "stimulus" => labels.stimulus = Some(parse_stimulus(cell).map_err(|e| format!("{what}: {e}"))?),
+        "group" => {
+            let v: f64 = cell
+                .parse()
+                .map_err(|_| format!("{what}: cannot read `{cell}` as a group number"))?;
+            if !(v.is_finite() && v >= 0.0 && v.fract() == 0.0) {
+                return Err(format!("{what}: group must be a whole number >= 0, got `{cell}`"));
+            }
+            labels.group = Some(v as usize);
+        }
+        _ => return Err(format!("{what}: `{column}` is not a label column")),
+    }
+    Ok(())
+}
+
+/// Merges two label readings of the same trial (e.g. two rows of a CSV trial),
+/// failing when they disagree.
+pub fn merge_consistent(into: &mut TrialLabels, other: &TrialLabels, what: &str) -> Result<(), String> {
+    fn one<T: PartialEq + Copy + std::fmt::Debug>(
+        a: &mut Option<T>,
+        b: Option<T>,
+        name: &str,
+        what: &str,
+    ) -> Result<(), String> {
+        match (*a, b) {
+            (Some(x), Some(y)) if x != y => Err(format!(
+                "{what}: column `{name}` changes within a trial ({x:?} then {y:?})"
+            )),
+            (None, Some(y)) => {
+                *a = Some(y);
+                Ok(())
+            }
+            _ => Ok(()),
+        }
+    }
+    one(&mut into.angle_deg, other.angle_deg, "angle_deg", what)?;
+    one(&mut into.stimulus, other.stimulus, "stimulus", what)?;
+    one(&mut into.group, other.group, "group", what)?;
+    one(&mut into.duration_ms, other.duration_ms, "duration_ms", what)?;
+    Ok(())
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct TomlSidecar {
+    trials: BTreeMap<String, TrialLabels>,
+}
+
+/// Reads a label sidecar (TOML or CSV, by extension): trial id -> labels.
+pub fn read_sidecar(path: &Path) -> Result<BTreeMap<String, TrialLabels>, StageError> {
+    let shown = path.display();
+    let text = std::fs::read_to_string(path)
+        .map_err(|e| StageError::new(format!("cannot read label sidecar {shown}: {e}")))?;
+    let ext = path
+        .extension()
+        .map(|e| e.to_string_lossy().to_ascii_lowercase())
+        .unwrap_or_default();
+    match ext.as_str() {
+        "toml" => {
+            let s: TomlSidecar =
+                toml::from_str(&text).map_err(|e| StageError::new(format!("label sidecar {shown}: {e}")))?;
+            Ok(s.trials)
+        }
+        "csv" => {
+            let mut rdr = csv::ReaderBuilder::new()
+                .trim(csv::Trim::All)
+                .comment(Some(b'#'))
+                .from_reader(text.as_bytes());
+            let headers = rdr
+                .headers()
+                .map_err(|e| StageError::new(format!("label sidecar {shown}: {e}")))?
+                .clone();
+            let mut trial_col = None;
+            for (i, h) in headers.iter().enumerate() {
+                if h == "trial" {
+                    trial_col = Some(i);
+                } else if !LABEL_COLUMNS.contains(&h) {
+                    return Err(StageError::new(format!(
+                        "label sidecar {shown}: unknown column `{h}` (expected trial, {})",
+                        LABEL_COLUMNS.join(", ")
+                    )));
+                }
+            }
+            let trial_col = trial_col
+                .ok_or_else(|| StageError::new(format!("label sidecar {shown}: no `trial` column")))?;
+            let mut out = BTreeMap::new();
+            for (r, rec) in rdr.records().enumerate() {
+                let line = r + 2;
+                let rec =
+                    rec.map_err(|e| StageError::new(format!("label sidecar {shown}, line {line}: {e}")))?;
+                let id = rec.get(trial_col).unwrap_or("").to_string();
+                if id.is_empty() {
+                    return Err(StageError::new(format!(
+                        "label sidecar {shown}, line {line}: empty trial id"
+                    )));
+                }
+                let mut l = TrialLabels::default();
+                for (i, h) in headers.iter().enumerate() {
+                    if i != trial_col {
+                        set_label_cell(
+                            &mut l,
+                            h,
+                            rec.get(i).unwrap_or(""),
+                            &format!("label sidecar {shown}, line {line}"),
+                        )
+                        .map_err(StageError::new)?;
+                    }
+                }
+                if out.insert(id.clone(), l).is_some() {
+                    return Err(StageError::new(format!(
+                        "label sidecar {shown}, line {line}: trial `{id}` appears twice"
+                    )));
+                }
+            }
+            Ok(out)
+        }
+        _ => Err(StageError::new(format!(
+            "label sidecar {shown}: unknown extension (use .toml or .csv)"
+        ))),
+    }
+}
+
+/// Applies a sidecar to trials read from files: every trial must have an entry
+/// and every entry a trial.
+pub fn apply_sidecar(
+    trials: &mut [(String, TrialLabels)],
+    sidecar: &BTreeMap<String, TrialLabels>,
+    path: &Path,
+) -> Result<(), StageError> {
+    let missing: Vec<&str> = trials
+        .iter()
+        .filter(|(id, _)| !sidecar.contains_key(id))
+        .map(|(id, _)| id.as_str())
+        .collect();
+    if !missing.is_empty() {
+        return Err(StageError::new(format!(
+            "label sidecar {} has no entry for trial(s) {}",
+            path.display(),
+            preview(&missing)
+        )));
+    }
+    let known: std::collections::HashSet<&str> = trials.iter().map(|(id, _)| id.as_str()).collect();
+    let extra: Vec<&str> = sidecar
+        .keys()
+        .map(String::as_str)
+        .filter(|k| !known.contains(k))
+        .collect();
+    if !extra.is_empty() {
+        return Err(StageError::new(format!(
+            "label sidecar {} names trial(s) the files do not hold: {} (the files hold {})",
+            path.display(),
+            preview(&extra),
+            preview(&trials.iter().map(|(id, _)| id.as_str()).collect::<Vec<_>>())
+        )));
+    }
+    for (id, labels) in trials.iter_mut() {
+        *labels = labels.overridden_by(&sidecar[id.as_str()]);
+    }
+    Ok(())
+}
+
+/// At most five items of a list, for messages.
+pub fn preview(items: &[&str]) -> String {
+    let mut s: Vec<String> = items.iter().take(5).map(|i| format!("`{i}`")).collect();
+    if items.len() > 5 {
+        s.push(format!("... ({} in all)", items.len()));
+    }
+    s.join(", ")
+}
+
+/// Builds trial metadata: labels, and groups (given, or the repetition number
+/// within the class). Fails on duplicate trial ids, naming where each came from.
+pub fn build_metas(
+    trials: &[(String, TrialLabels)],
+    origins: &[String],
+) -> Result<Vec<TrialMeta>, StageError> {
+    let mut seen: HashMap<&str, usize> = HashMap::new();
+    for (k, (id, _)) in trials.iter().enumerate() {
+        if let Some(&j) = seen.get(id.as_str()) {
+            return Err(StageError::new(format!(
+                "two trials share the id `{id}` ({} and {}); trial ids must be unique",
+                origins[j], origins[k]
+            )));
+        }
+        seen.insert(id, k);
+    }
+    let mut reps: HashMap<(Stimulus, Option<i64>), usize> = HashMap::new();
+    Ok(trials
+        .iter()
+        .enumerate()
+        .map(|(index, (id, l))| {
+            let label = l.label();
+            let key = (label.stimulus, label.angle_deg.map(|a| (a * 1e6).round() as i64));
+            let rep = reps.entry(key).or_default();
+            let group = l.group.unwrap_or(*rep);
+            *rep += 1;
+            TrialMeta {
+                trial_id: id.clone(),
+                index,
+                label,
+                group,
+                crossing_ms: None,
+                provenance: vec![],
+            }
+        })
+        .collect())
+}
+
+/// Writes the label sidecar (TOML) the sources read: one `[trials."<id>"]`
+/// table per trial with `angle_deg` (when known), `stimulus`, `group` and, for
+/// spikes, `duration_ms`. TOML rather than CSV so that a `*.csv` glob over the
+/// data files does not pick the sidecar up. Numbers use Rust's round-trip form.
+pub fn sidecar_toml(rows: &[(String, &TrialMeta, Option<f64>)]) -> String {
+    let mut s = String::from("# Labels of the trials in this folder (palpate label sidecar).\n");
+    for (id, m, d) in rows {
+        let id = id.replace('\\', "\\\\").replace('"', "\\\"");
+        s.push_str(&format!("\n[trials.\"{id}\"]\n"));
+        if let Some(a) = m.label.angle_deg {
+            s.push_str(&format!("angle_deg = {a:?}\n"));
+        }
+        s.push_str(&format!(
+            "stimulus = \"{}\"\ngroup = {}\n",
+            m.label.stimulus, m.group
+        ));
+        if let Some(d) = d {
+            s.push_str(&format!("duration_ms = {d:?}\n"));
+        }
+    }
+    s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn groups_count_repetitions_per_class_unless_given() {
+        let t = |id: &str, a: Option<f64>, g: Option<usize>| {
+            (
+                id.to_string(),
+                TrialLabels {
+                    angle_deg: a,
+                    group: g,
+                    ..Default::default()
+                },
+            )
+        };
+        let trials = vec![
+            t("a", Some(45.0), None),
+            t("b", Some(30.0), None),
+            t("c", Some(45.0), None),
+            t("d", Some(45.0), Some(7)),
+            t("e", None, None),
+        ];
+        let origins = vec!["x".to_string(); 5];
+        let m = build_metas(&trials, &origins).unwrap();
+        let groups: Vec<usize> = m.iter().map(|m| m.group).collect();
+        assert_eq!(groups, vec![0, 0, 1, 7, 0]);
+        assert_eq!(m[4].label.stimulus, Stimulus::Unknown);
+        assert_eq!(m[0].label.stimulus, Stimulus::Edge);
+        let dup = vec![t("a", None, None), t("a", None, None)];
+        let e = build_metas(&dup, &["f1".into(), "f2".into()]).unwrap_err();
+        assert!(e.message.contains("`a`") && e.message.contains("f1") && e.message.contains("f2"));
+    }
+
+    #[test]
+    fn file_ids_disambiguate_equal_stems() {
+        let p = vec![PathBuf::from("/d/s1/rec.csv"), PathBuf::from("/d/s2/rec.csv")];
+        assert_eq!(file_ids(&p), vec!["s1_rec", "s2_rec"]);
+        let p = vec![PathBuf::from("/d/a.csv"), PathBuf::from("/d/b.npy")];
+        assert_eq!(file_ids(&p), vec!["a", "b"]);
+    }
+
+    #[test]
+    fn file_stems_are_safe() {
+        assert_eq!(file_stem_for("edge-45deg-r03"), "edge-45deg-r03");
+        assert_eq!(file_stem_for("a/b c"), "a_b_c");
+        assert_eq!(file_stem_for(".."), "trial..");
+    }
+}

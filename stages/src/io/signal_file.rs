@@ -1,0 +1,850 @@
+//! The `signal_file` source: analog taxel recordings from CSV, NPY, NPZ, MATLAB
+//! `.mat` files and raw DAQ streams.
+//!
+//! Every sample must be finite: a NaN or infinite sample is an error naming the
+//! file and the position (CSV: line and column; NPY/NPZ: the array and its
+//! 0-based `[sample, taxel]` index; MAT: the variable and its 1-based MATLAB
+//! subscripts). Nothing is silently dropped, filled or resampled.
+//!
+//! ## Formats
+//!
+//! **CSV** (`.csv`): a header row, then one row per sample. Columns:
+//!
+//! | column | meaning |
+//! |---|---|
+//! | `taxel_0` ... `taxel_{N-1}` | one per taxel of `layout` (any order); or the names listed in `columns`, in taxel order |
+//! | `time_ms` or `time_s` | optional sample time; gives the sample rate (checked uniform to a quarter sample) |
+//! | `trial` | optional trial name: rows with the same value form one trial (many trials per file) |
+//! | `angle_deg`, `stimulus`, `group` | optional labels, constant within a trial |
+//!
+//! Any other column is an error (it would otherwise be silently ignored). The
+//! file must end with a line end: a last line without one is taken as a file
+//! cut while being written (its last number may have lost digits).
+//! Lines starting with `#` are comments.
+//!
+//! **NPY** (`.npy`): one trial per file, a 2-D array `(samples, taxels)`; a 3-D
+//! array `(trials, samples, taxels)` holds many trials. With
+//! `taxel_major = true` the last two axes swap: `(taxels, samples)`.
+//!
+//! **NPZ** (`.npz`, `np.savez` or `np.savez_compressed`): reserved arrays
+//! `sample_rate_hz` (one value), `angle_deg` and `group` (one value per trial,
+//! in trial order); every other array (or only those named in `variables`) is
+//! data: 2-D = one trial, 3-D = a stack of trials, shaped as for NPY.
+//!
+//! **MAT** (`.mat`, MATLAB v5/v7; v7.3 is HDF5 and not supported): the same
+//! reserved variables (`fs` is accepted for `sample_rate_hz`); data variables
+//! are `data(sample, taxel)` for one trial or `data(sample, taxel, trial)` for a
+//! stack (MATLAB's natural order: trial last), transposed by `taxel_major`
+//! like NPY.
+//!
+//! **DAQ** (`.daq`, `.bin`): a raw byte stream recorded by the DAQ acquisition
+//! (see `docs/daq-protocol.md`), decoded frame by frame; one trial per file.
+//! The sample rate comes from the frames' timestamps (median interval). Lost
+//! frames (sequence gaps) and CRC errors are an error naming their count,
+//! unless `fill_gaps = true`, which holds each lost frame at the previous
+//! frame's values (the gap count is still in the error-free report).
+//!
+//! ## Trials, ids, rates
+//!
+//! A file holding one trial gives the trial id `<file>` (its stem; when two
+//! files share a stem, the path relative to their common folder). A file with
+//! many gives `<file>-<name>`, where `<name>` is the CSV `trial` value, the
+//! NPZ/MAT array name, or, within a stack, the 0-based index (`<file>-<array>-<k>`
+//! when an archive has several stacks). Ids must be unique across all files.
+//!
+//! The sample rate is the `sample_rate_hz` key if given; a file that carries
+//! its own rate (a time column, a `sample_rate_hz` variable, DAQ timestamps)
+//! must agree with it (within 0.1 %). Without the key, every file must carry
+//! a rate and all must agree: mixing rates in one source is an error, since
+//! downstream stages assume one rate.
+
+use super::arrays::{read_mat, read_npy_plain, read_npz, NdArray, NpyContent};
+use super::common::{
+    apply_sidecar, build_metas, expand_paths, file_ids, merge_consistent, read_sidecar, set_label_cell,
+    LayoutConfig, TrialLabels, LABEL_COLUMNS,
+};
+use palpate_core::{
+    check_positive, register_stage, BuildContext, ConfigError, InputSpec, Payload, PayloadKind, Signals,
+    Source, Stage, StageConfig, StageError, TaxelLayout, TrialContext, TrialMeta,
+};
+use rayon::prelude::*;
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, OnceLock};
+
+/// File format of a recording.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum SignalFormat {
+    /// By extension: `.csv`, `.npy`, `.npz`, `.mat`, `.daq`/`.bin`.
+    #[default]
+    Auto,
+    /// Comma-separated values with a header row.
+    Csv,
+    /// A NumPy array.
+    Npy,
+    /// A NumPy archive of arrays.
+    Npz,
+    /// A MATLAB v5/v7 file.
+    Mat,
+    /// A raw DAQ byte stream (docs/daq-protocol.md).
+    Daq,
+}
+
+/// Analog taxel signals read from recordings (CSV, NPY, NPZ, MATLAB .mat, raw
+/// DAQ streams).
+///
+/// One trial per file or many per file; labels from the file or a sidecar; any
+/// taxel layout; the formats are documented in the module docs of
+/// `palpate_stages::io::signal_file`.
+#[derive(Clone, Debug, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields, default)]
+pub struct SignalFileConfig {
+    /// A file or glob pattern (e.g. `recordings/*.csv`), relative to the graph
+    /// file's folder. Default none; give `path`, `paths` or both.
+    pub path: Option<String>,
+    /// More files or glob patterns, read after `path`, in order. Default empty.
+    pub paths: Vec<String>,
+    /// File format: `auto` (by extension), `csv`, `npy`, `npz`, `mat`, `daq`. Default auto.
+    pub format: SignalFormat,
+    /// Sample rate, Hz. Required unless every file carries its own (a time
+    /// column, a `sample_rate_hz` variable, DAQ timestamps). Default none.
+    pub sample_rate_hz: Option<f64>,
+    /// Taxel layout; its taxel count must match the files'. Default: the paper's
+    /// 4 x 4 grid, 3 mm pitch, 2 mm taxels.
+    pub layout: LayoutConfig,
+    /// Unit of the samples, e.g. `V`. Default `V`.
+    pub unit: String,
+    /// Label sidecar (TOML or CSV) mapping trial id to angle, stimulus, group.
+    /// Default none (labels from the files, if any).
+    pub labels: Option<String>,
+    /// CSV: names of the taxel columns in taxel order, instead of `taxel_0..`.
+    /// Default empty.
+    pub columns: Vec<String>,
+    /// NPZ/MAT: names of the data arrays to read; empty = every array that is
+    /// not a reserved label or rate variable. Default empty.
+    pub variables: Vec<String>,
+    /// NPY/NPZ/MAT: data arrays are `(taxels, samples)` rather than `(samples,
+    /// taxels)`. Default false.
+    pub taxel_major: bool,
+    /// DAQ: hold the previous frame's values over lost frames instead of
+    /// failing. Default false.
+    pub fill_gaps: bool,
+    /// DAQ: decoded value = raw * `daq_scale` + `daq_offset` (e.g. volts per ADC
+    /// count). Default 1.
+    pub daq_scale: f64,
+    /// DAQ: see `daq_scale`. Default 0.
+    pub daq_offset: f64,
+}
+
+impl Default for SignalFileConfig {
+    fn default() -> Self {
+        SignalFileConfig {
+            path: None,
+            paths: vec![],
+            format: SignalFormat::Auto,
+            sample_rate_hz: None,
+            layout: LayoutConfig::default(),
+            unit: "V".into(),
+            labels: None,
+            columns: vec![],
+            variables: vec![],
+            taxel_major: false,
+            fill_gaps: false,
+            daq_scale: 1.0,
+            daq_offset: 0.0,
+        }
+    }
+}
+
+#[typetag::serde(name = "signal_file")]
+impl StageConfig for SignalFileConfig {
+    fn inputs(&self) -> InputSpec {
+        InputSpec::none()
+    }
+    fn output(&self) -> Option<PayloadKind> {
+        Some(PayloadKind::Signals)
+    }
+    fn build(&self, ctx: &BuildContext) -> Result<Stage, ConfigError> {
+        Ok(Stage::Source(Box::new(self.source(ctx)?)))
+    }
+}
+register_stage!("signal_file", SignalFileConfig);
+
+impl SignalFileConfig {
+    /// Checks the config and makes the (not yet loaded) source.
+    fn source(&self, ctx: &BuildContext) -> Result<SignalFileSource, ConfigError> {
+        let layout = self.layout.to_layout("layout")?;
+        if let Some(r) = self.sample_rate_hz {
+            check_positive("sample_rate_hz", r, "Hz")?;
+        }
+        if !self.columns.is_empty() && self.columns.len() != layout.len() {
+            return Err(ConfigError::key(
+                "columns",
+                format!(
+                    "lists {} names but the layout has {} taxels",
+                    self.columns.len(),
+                    layout.len()
+                ),
+            ));
+        }
+        if !(self.daq_scale.is_finite() && self.daq_scale != 0.0 && self.daq_offset.is_finite()) {
+            return Err(ConfigError::key(
+                "daq_scale",
+                "scale must be finite and non-zero, offset finite",
+            ));
+        }
+        let entries: Vec<String> = self.path.iter().chain(&self.paths).cloned().collect();
+        let key = if self.path.is_some() { "path" } else { "paths" };
+        let files = expand_paths(&entries, |p| ctx.resolve(p), key)?;
+        for f in &files {
+            format_of(self.format, f).map_err(|m| ConfigError::key("format", m))?;
+        }
+        let labels = self.labels.as_ref().map(|l| ctx.resolve(Path::new(l)));
+        if let Some(l) = &labels {
+            if !l.is_file() {
+                return Err(ConfigError::key(
+                    "labels",
+                    format!("file {} not found", l.display()),
+                ));
+            }
+        }
+        Ok(SignalFileSource {
+            cfg: self.clone(),
+            layout,
+            files,
+            labels,
+            loaded: OnceLock::new(),
+        })
+    }
+}
+
+/// Reads every trial `cfg` names, outside a graph (e.g. the CLI's
+/// `palpate daq emulate <recording>`): relative paths resolve against
+/// `base_dir`. Same checks and errors as the `signal_file` stage.
+pub fn read_signal_files(
+    cfg: &SignalFileConfig,
+    base_dir: &Path,
+) -> Result<Vec<(TrialMeta, Arc<Signals>)>, StageError> {
+    let ctx = BuildContext {
+        stage_id: "signal_file".into(),
+        seed: 0,
+        out_dir: base_dir.to_path_buf(),
+        base_dir: base_dir.to_path_buf(),
+    };
+    cfg.source(&ctx)?.load()
+}
+
+/// The format of `path` under setting `f`.
+pub fn format_of(f: SignalFormat, path: &Path) -> Result<SignalFormat, String> {
+    if f != SignalFormat::Auto {
+        return Ok(f);
+    }
+    let ext = path
+        .extension()
+        .map(|e| e.to_string_lossy().to_ascii_lowercase())
+        .unwrap_or_default();
+    Ok(match ext.as_str() {
+        "csv" | "txt" => SignalFormat::Csv,
+        "npy" => SignalFormat::Npy,
+        "npz" => SignalFormat::Npz,
+        "mat" => SignalFormat::Mat,
+        "daq" | "bin" => SignalFormat::Daq,
+        _ => {
+            return Err(format!(
+                "cannot tell the format of {} from its extension; set `format`",
+                path.display()
+            ))
+        }
+    })
+}
+
+/// Every trial, read once and shared.
+type Loaded = Vec<(TrialMeta, Arc<Signals>)>;
+
+struct SignalFileSource {
+    cfg: SignalFileConfig,
+    layout: TaxelLayout,
+    files: Vec<PathBuf>,
+    labels: Option<PathBuf>,
+    loaded: OnceLock<Result<Loaded, StageError>>,
+}
+
+/// One trial as read from a file, before labels and rates are settled.
+#[derive(Clone, Debug)]
+pub struct RawTrial {
+    /// Trial id.
+    pub id: String,
+    /// Labels the file gives.
+    pub labels: TrialLabels,
+    /// `data[taxel][sample]`.
+    pub data: Vec<Vec<f64>>,
+    /// Sample rate the file carries, Hz.
+    pub rate_hz: Option<f64>,
+    /// Where the trial came from, for messages.
+    pub origin: String,
+}
+
+impl SignalFileSource {
+    fn load(&self) -> Result<Loaded, StageError> {
+        let ids = file_ids(&self.files);
+        let per_file: Vec<Result<Vec<RawTrial>, String>> = self
+            .files
+            .par_iter()
+            .zip(ids.par_iter())
+            .map(|(f, id)| read_signal_file(f, id, &self.cfg, self.layout.len()))
+            .collect();
+        let mut raw = Vec::new();
+        for r in per_file {
+            raw.extend(r.map_err(StageError::new)?);
+        }
+        // Settle the sample rate.
+        let tol = |a: f64, b: f64| (a - b).abs() <= 1e-3 * a.abs().max(b.abs());
+        let rate = match self.cfg.sample_rate_hz {
+            Some(r) => {
+                if let Some(t) = raw.iter().find(|t| t.rate_hz.is_some_and(|fr| !tol(fr, r))) {
+                    return Err(StageError::new(format!(
+                        "{} has a sample rate of {} Hz but `sample_rate_hz` is {r} Hz",
+                        t.origin,
+                        t.rate_hz.unwrap_or(f64::NAN)
+                    )));
+                }
+                r
+            }
+            None => {
+                if let Some(t) = raw.iter().find(|t| t.rate_hz.is_none()) {
+                    return Err(StageError::new(format!(
+                        "{} carries no sample rate; set `sample_rate_hz`",
+                        t.origin
+                    )));
+                }
+                let first = &raw[0];
+                let r0 = first.rate_hz.unwrap_or(f64::NAN);
+                if let Some(t) = raw.iter().find(|t| !tol(t.rate_hz.unwrap_or(f64::NAN), r0)) {
+                    return Err(StageError::new(format!(
+                        "mismatched sample rates: {} is at {r0} Hz but {} is at {} Hz; \
+                         one source must have one rate (resample, or use two sources)",
+                        first.origin,
+                        t.origin,
+                        t.rate_hz.unwrap_or(f64::NAN)
+                    )));
+                }
+                r0
+            }
+        };
+        let mut labelled: Vec<(String, TrialLabels)> =
+            raw.iter().map(|t| (t.id.clone(), t.labels.clone())).collect();
+        if let Some(p) = &self.labels {
+            let side = read_sidecar(p)?;
+            apply_sidecar(&mut labelled, &side, p)?;
+        }
+        let origins: Vec<String> = raw.iter().map(|t| t.origin.clone()).collect();
+        let metas = build_metas(&labelled, &origins)?;
+        Ok(metas
+            .into_iter()
+            .zip(raw)
+            .map(|(m, t)| {
+                let s = Signals {
+                    sample_rate_hz: rate,
+                    layout: self.layout.clone(),
+                    unit: self.cfg.unit.clone(),
+                    data: t.data,
+                };
+                (m, Arc::new(s))
+            })
+            .collect())
+    }
+
+    fn loaded(&self) -> Result<&Loaded, StageError> {
+        self.loaded
+            .get_or_init(|| self.load())
+            .as_ref()
+            .map_err(Clone::clone)
+    }
+}
+
+impl Source for SignalFileSource {
+    fn trials(&self) -> Result<Vec<TrialMeta>, StageError> {
+        Ok(self.loaded()?.iter().map(|(m, _)| m.clone()).collect())
+    }
+    fn produce(&self, ctx: &TrialContext<'_>) -> Result<Payload, StageError> {
+        let all = self.loaded()?;
+        all.get(ctx.meta.index)
+            .filter(|(m, _)| m.trial_id == ctx.meta.trial_id)
+            .or_else(|| all.iter().find(|(m, _)| m.trial_id == ctx.meta.trial_id))
+            .map(|(_, s)| Payload::Signals(s.clone()))
+            .ok_or_else(|| StageError::new(format!("no trial `{}` in the files", ctx.meta.trial_id)))
+    }
+}
+
+/// Reads one recording into trials; `file_id` is the file's short name.
+pub fn read_signal_file(
+    path: &Path,
+    file_id: &str,
+    cfg: &SignalFileConfig,
+    n_taxels: usize,
+) -> Result<Vec<RawTrial>, String> {
+    let shown = path.display().to_string();
+    let fmt = format_of(cfg.format, path)?;
+    let bytes = std::fs::read(path).map_err(|e| format!("cannot read {shown}: {e}"))?;
+    let trials = match fmt {
+        SignalFormat::Csv => read_csv_signals(&bytes, &shown, file_id, cfg, n_taxels)?,
+        SignalFormat::Npy => {
+            let a = read_npy_plain(&bytes, &shown)?;
+            arrays_to_trials(
+                vec![(String::new(), a)],
+                &shown,
+                file_id,
+                cfg,
+                n_taxels,
+                false,
+                TrialLabels::default(),
+                None,
+            )?
+        }
+        SignalFormat::Npz => {
+            let arrays = read_npz(&bytes, &shown)?
+                .into_iter()
+                .map(|(n, c)| match c {
+                    NpyContent::Plain(a) => Ok((n, a)),
+                    NpyContent::Record(_) => Err(format!("{shown}: array `{n}` is structured, not numeric")),
+                })
+                .collect::<Result<Vec<_>, _>>()?;
+            named_arrays_to_trials(arrays, &shown, file_id, cfg, n_taxels, false)?
+        }
+        SignalFormat::Mat => {
+            let arrays = read_mat(&bytes, &shown)?;
+            named_arrays_to_trials(arrays, &shown, file_id, cfg, n_taxels, true)?
+        }
+        SignalFormat::Daq => {
+            let rec = super::daq::decode_recording(&bytes, cfg.daq_scale, cfg.daq_offset, cfg.fill_gaps)
+                .map_err(|e| format!("{shown}: {e}"))?;
+            if rec.data.len() != n_taxels {
+                return Err(format!(
+                    "{shown}: the frames carry {} channels but the layout has {n_taxels} taxels",
+                    rec.data.len()
+                ));
+            }
+            vec![RawTrial {
+                id: file_id.to_string(),
+                labels: TrialLabels::default(),
+                data: rec.data,
+                rate_hz: rec.sample_rate_hz,
+                origin: shown.clone(),
+            }]
+        }
+        SignalFormat::Auto => unreachable!("format_of resolves auto"),
+    };
+    if trials.is_empty() {
+        return Err(format!("{shown} holds no trial"));
+    }
+    for t in &trials {
+        if t.data.first().is_none_or(Vec::is_empty) {
+            return Err(format!("{}: no samples (empty or truncated file?)", t.origin));
+        }
+    }
+    Ok(trials)
+}
+
+const RESERVED: [&str; 4] = ["sample_rate_hz", "fs", "angle_deg", "group"];
+
+fn named_arrays_to_trials(
+    arrays: Vec<(String, NdArray)>,
+    shown: &str,
+    file_id: &str,
+    cfg: &SignalFileConfig,
+    n_taxels: usize,
+    matlab: bool,
+) -> Result<Vec<RawTrial>, String> {
+    let mut rate = None;
+    let mut angles = None;
+    let mut groups = None;
+    let mut data = Vec::new();
+    for (name, a) in arrays {
+        match name.as_str() {
+            "sample_rate_hz" | "fs" => {
+                if a.data.len() != 1 {
+                    return Err(format!(
+                        "{shown}: `{name}` must hold one value, has shape {:?}",
+                        a.shape
+                    ));
+                }
+                let r = a.data[0];
+                if !(r.is_finite() && r > 0.0) {
+                    return Err(format!("{shown}: `{name}` must be a positive rate, got {r}"));
+                }
+                rate = Some(r);
+            }
+            "angle_deg" => angles = Some(a.data),
+            "group" => groups = Some(a.data),
+            _ => {
+                if cfg.variables.is_empty() || cfg.variables.contains(&name) {
+                    data.push((name, a));
+                }
+            }
+        }
+    }
+    for v in &cfg.variables {
+        if !data.iter().any(|(n, _)| n == v) {
+            let have: Vec<&str> = data.iter().map(|(n, _)| n.as_str()).collect();
+            return Err(format!(
+                "{shown}: no data variable `{v}` (found: {})",
+                have.join(", ")
+            ));
+        }
+    }
+    if data.is_empty() {
+        return Err(format!(
+            "{shown}: no data array (only reserved names {} found)",
+            RESERVED.join(", ")
+        ));
+    }
+    let mut trials = arrays_to_trials(
+        data,
+        shown,
+        file_id,
+        cfg,
+        n_taxels,
+        matlab,
+        TrialLabels::default(),
+        rate,
+    )?;
+    for (name, vals) in [("angle_deg", &angles), ("group", &groups)] {
+        if let Some(v) = vals {
+            if v.len() != trials.len() {
+                return Err(format!(
+                    "{shown}: `{name}` has {} values but the file holds {} trials",
+                    v.len(),
+                    trials.len()
+                ));
+            }
+            for (t, &x) in trials.iter_mut().zip(v.iter()) {
+                set_label_cell(&mut t.labels, name, &x.to_string(), &format!("{shown}, `{name}`"))?;
+            }
+        }
+    }
+    Ok(trials)
+}
+
+#[allow(clippy::too_many_arguments)]
+fn arrays_to_trials(
+    arrays: Vec<(String, NdArray)>,
+    shown: &str,
+    file_id: &str,
+    cfg: &SignalFileConfig,
+    n_taxels: usize,
+    matlab: bool,
+    labels: TrialLabels,
+    rate_hz: Option<f64>,
+) -> Result<Vec<RawTrial>, String> {
+    let single = arrays.len() == 1;
+    let mut out = Vec::new();
+    for (name, a) in arrays {
+        let what = if name.is_empty() {
+            shown.to_string()
+        } else {
+            format!("{shown}, array `{name}`")
+        };
+        // (trial axis, sample axis, taxel axis) in the array's C-order shape.
+        let (n_trials, axes) = match (a.shape.len(), matlab) {
+            (1, _) if n_taxels == 1 => (1, None),
+            (2, _) => (1, Some((None, if cfg.taxel_major { (1, 0) } else { (0, 1) }))),
+            (3, false) => (
+                a.shape[0],
+                Some((Some(0), if cfg.taxel_major { (2, 1) } else { (1, 2) })),
+            ),
+            (3, true) => (
+                a.shape[2],
+                Some((Some(2), if cfg.taxel_major { (1, 0) } else { (0, 1) })),
+            ),
+            _ => {
+                return Err(format!(
+                    "{what}: wrong shape {:?}; expected {} with {n_taxels} taxels",
+                    a.shape,
+                    expected_shape(matlab, cfg.taxel_major)
+                ))
+            }
+        };
+        let (n_samples, strides) = match axes {
+            None => (a.shape[0], (0, 1, 0)),
+            Some((trial_ax, (s_ax, x_ax))) => {
+                if a.shape[x_ax] != n_taxels {
+                    return Err(format!(
+                        "{what}: wrong shape {:?}: the taxel axis has {} entries but the layout has {n_taxels} taxels; expected {}",
+                        a.shape,
+                        a.shape[x_ax],
+                        expected_shape(matlab, cfg.taxel_major)
+                    ));
+                }
+                let st = c_strides(&a.shape);
+                (a.shape[s_ax], (trial_ax.map_or(0, |t| st[t]), st[s_ax], st[x_ax]))
+            }
+        };
+        let (st_trial, st_sample, st_taxel) = strides;
+        for k in 0..n_trials {
+            let mut data = vec![Vec::with_capacity(n_samples); n_taxels];
+            for (x, row) in data.iter_mut().enumerate() {
+                for s in 0..n_samples {
+                    let v = a.data[k * st_trial + s * st_sample + x * st_taxel];
+                    if !v.is_finite() {
+                        let mut idx = vec![0; a.shape.len()];
+                        if let Some((t_ax, (s_ax, x_ax))) = axes {
+                            if let Some(t) = t_ax {
+                                idx[t] = k;
+                            }
+                            idx[s_ax] = s;
+                            idx[x_ax] = x;
+                        } else {
+                            idx[0] = s;
+                        }
+                        let pos = if matlab {
+                            let subs: Vec<String> = idx.iter().map(|i| (i + 1).to_string()).collect();
+                            format!(
+                                "{}({})",
+                                if name.is_empty() { "data" } else { &name },
+                                subs.join(", ")
+                            )
+                        } else {
+                            format!("index {idx:?}")
+                        };
+                        return Err(format!(
+                            "{what}: sample {v} at {pos} (sample {s}, taxel {x}) is not finite"
+                        ));
+                    }
+                    row.push(v);
+                }
+            }
+            let id = match (single, n_trials) {
+                (true, 1) => file_id.to_string(),
+                (true, _) => format!("{file_id}-{k}"),
+                (false, 1) => format!("{file_id}-{name}"),
+                (false, _) => format!("{file_id}-{name}-{k}"),
+            };
+            let origin = if n_trials > 1 {
+                format!("{what}, trial {k}")
+            } else {
+                what.clone()
+            };
+            out.push(RawTrial {
+                id,
+                labels: labels.clone(),
+                data,
+                rate_hz,
+                origin,
+            });
+        }
+    }
+    Ok(out)
+}
+
+fn expected_shape(matlab: bool, taxel_major: bool) -> &'static str {
+    match (matlab, taxel_major) {
+        (false, false) => "(samples, taxels) or (trials, samples, taxels)",
+        (false, true) => "(taxels, samples) or (trials, taxels, samples)",
+        (true, false) => "data(sample, taxel) or data(sample, taxel, trial)",
+        (true, true) => "data(taxel, sample) or data(taxel, sample, trial)",
+    }
+}
+
+fn c_strides(shape: &[usize]) -> Vec<usize> {
+    let mut st = vec![1; shape.len()];
+    for d in (0..shape.len().saturating_sub(1)).rev() {
+        st[d] = st[d + 1] * shape[d + 1];
+    }
+    st
+}
+
+/// Maps a csv crate error to a message with the file and line.
+pub fn csv_error(shown: &str, e: &csv::Error) -> String {
+    match e.kind() {
+        csv::ErrorKind::UnequalLengths {
+            pos,
+            expected_len,
+            len,
+        } => format!(
+            "{shown}, line {}: expected {expected_len} fields, found {len} (truncated or malformed row)",
+            pos.as_ref().map_or(0, |p| p.line())
+        ),
+        _ => format!("{shown}: {e}"),
+    }
+}
+
+/// A CSV whose last line has no line end was most likely cut while being
+/// written: its last number may be short by digits, which no parser can see.
+/// So it is an error (add the newline if the file is complete).
+pub fn check_csv_complete(bytes: &[u8], shown: &str) -> Result<(), String> {
+    if bytes.last().is_some_and(|&b| b != b'\n' && b != b'\r') {
+        let line = bytes.iter().filter(|&&b| b == b'\n').count() + 1;
+        return Err(format!(
+            "{shown}, line {line}: the last line has no line end, so the file looks truncated \
+             (if it is complete, end it with a newline)"
+        ));
+    }
+    Ok(())
+}
+
+struct CsvTrial {
+    name: String,
+    labels: TrialLabels,
+    data: Vec<Vec<f64>>,
+    times_ms: Vec<(u64, f64)>,
+}
+
+fn read_csv_signals(
+    bytes: &[u8],
+    shown: &str,
+    file_id: &str,
+    cfg: &SignalFileConfig,
+    n_taxels: usize,
+) -> Result<Vec<RawTrial>, String> {
+    check_csv_complete(bytes, shown)?;
+    let mut rdr = csv::ReaderBuilder::new()
+        .trim(csv::Trim::All)
+        .comment(Some(b'#'))
+        .from_reader(bytes);
+    let headers = rdr.headers().map_err(|e| csv_error(shown, &e))?.clone();
+    let names: Vec<String> = if cfg.columns.is_empty() {
+        (0..n_taxels).map(|i| format!("taxel_{i}")).collect()
+    } else {
+        cfg.columns.clone()
+    };
+    #[derive(Clone, Copy)]
+    enum Col {
+        Taxel(usize),
+        TimeMs(f64),
+        Trial,
+        Label,
+    }
+    let mut cols = Vec::new();
+    for h in headers.iter() {
+        let c = if let Some(i) = names.iter().position(|n| n == h) {
+            Col::Taxel(i)
+        } else {
+            match h {
+                "time_ms" => Col::TimeMs(1.0),
+                "time_s" => Col::TimeMs(1000.0),
+                "trial" => Col::Trial,
+                h if LABEL_COLUMNS[..3].contains(&h) => Col::Label,
+                _ => {
+                    return Err(format!(
+                        "{shown}: unknown column `{h}`; expected {} (the layout has {n_taxels} taxels), \
+                         optionally time_ms or time_s, trial, angle_deg, stimulus, group \
+                         (set `columns` to name the taxel columns)",
+                        if cfg.columns.is_empty() {
+                            format!("taxel_0 .. taxel_{}", n_taxels.saturating_sub(1))
+                        } else {
+                            cfg.columns.join(", ")
+                        }
+                    ))
+                }
+            }
+        };
+        cols.push(c);
+    }
+    for (i, n) in names.iter().enumerate() {
+        if !cols.iter().any(|c| matches!(c, Col::Taxel(j) if *j == i)) {
+            return Err(format!(
+                "{shown}: missing taxel column `{n}` (taxel {i} of {n_taxels})"
+            ));
+        }
+    }
+    let mut trials: Vec<CsvTrial> = Vec::new();
+    for rec in rdr.records() {
+        let rec = rec.map_err(|e| csv_error(shown, &e))?;
+        let line = rec.position().map_or(0, |p| p.line());
+        let trial_name = cols
+            .iter()
+            .position(|c| matches!(c, Col::Trial))
+            .map(|i| rec.get(i).unwrap_or("").to_string())
+            .unwrap_or_default();
+        let k = match trials.iter().position(|t| t.name == trial_name) {
+            Some(k) => k,
+            None => {
+                trials.push(CsvTrial {
+                    name: trial_name,
+                    labels: TrialLabels::default(),
+                    data: vec![Vec::new(); n_taxels],
+                    times_ms: Vec::new(),
+                });
+                trials.len() - 1
+            }
+        };
+        let t = &mut trials[k];
+        let mut row_labels = TrialLabels::default();
+        for (i, (c, cell)) in cols.iter().zip(rec.iter()).enumerate() {
+            let what = || format!("{shown}, line {line}, column `{}`", &headers[i]);
+            match *c {
+                Col::Taxel(x) => {
+                    let v: f64 = cell
+                        .parse()
+                        .map_err(|_| format!("{}: cannot read `{cell}` as a number", what()))?;
+                    if !v.is_finite() {
+                        return Err(format!(
+                            "{}: sample `{cell}` is not finite (NaN or infinite)",
+                            what()
+                        ));
+                    }
+                    t.data[x].push(v);
+                }
+                Col::TimeMs(scale) => {
+                    let v: f64 = cell
+                        .parse()
+                        .map_err(|_| format!("{}: cannot read `{cell}` as a time", what()))?;
+                    if !v.is_finite() {
+                        return Err(format!("{}: time `{cell}` is not finite", what()));
+                    }
+                    t.times_ms.push((line, v * scale));
+                }
+                Col::Trial => {}
+                Col::Label => set_label_cell(&mut row_labels, &headers[i], cell, &what())?,
+            }
+        }
+        merge_consistent(&mut t.labels, &row_labels, &format!("{shown}, line {line}"))?;
+    }
+    let many = trials.len() > 1 || trials.first().is_some_and(|t| !t.name.is_empty());
+    trials
+        .into_iter()
+        .map(|t| {
+            let origin = if many {
+                format!("{shown}, trial `{}`", t.name)
+            } else {
+                shown.to_string()
+            };
+            let rate_hz = rate_from_times(&t.times_ms, &origin)?;
+            Ok(RawTrial {
+                id: if many {
+                    format!("{file_id}-{}", t.name)
+                } else {
+                    file_id.to_string()
+                },
+                labels: t.labels,
+                data: t.data,
+                rate_hz,
+                origin,
+            })
+        })
+        .collect()
+}
+
+/// The sample rate a time column gives, checking that samples are uniformly
+/// spaced (to a quarter sample), so a missing row is caught.
+fn rate_from_times(times: &[(u64, f64)], origin: &str) -> Result<Option<f64>, String> {
+    if times.len() < 2 {
+        return Ok(None);
+    }
+    let n = times.len();
+    let dt = (times[n - 1].1 - times[0].1) / (n - 1) as f64;
+    if !(dt.is_finite() && dt > 0.0) {
+        return Err(format!("{origin}: the time column does not increase"));
+    }
+    for (k, &(line, t)) in times.iter().enumerate() {
+        if (t - times[0].1 - k as f64 * dt).abs() > 0.25 * dt {
+            return Err(format!(
+                "{origin}, line {line}: time {t} ms is off the uniform grid of {dt} ms \
+                 (a missing or repeated row?)"
+            ));
+        }
+    }
+    Ok(Some(1000.0 / dt))
+}

@@ -1,0 +1,514 @@
+//! File sinks: signals, spikes, images and estimates as NPY or CSV, so Python
+//! (`np.load`, `pandas.read_csv`) and MATLAB (`readmatrix`, `readtable`, or
+//! `readNPY` from npy-matlab) load them directly.
+//!
+//! Every file is written atomically (a temporary file renamed over the target)
+//! into `<run out>/<dir>/`, where `dir` defaults to the sink's id. Numbers in
+//! CSV are written in Rust's shortest round-trip form, so reading them back
+//! gives the same `f64` bits; NPY files are `<f8` (float64), C order.
+//!
+//! | sink | files | NPY array | CSV columns |
+//! |---|---|---|---|
+//! | `write_signals` | one per trial, `<trial>.npy`/`.csv` | `(samples, taxels)` | `time_ms, taxel_0 .. taxel_{N-1}` |
+//! | `write_spikes` | one per trial | `(events, 4)`: `x, y, t, p` | `x, y, t, p` |
+//! | `write_images` | one per trial | `(frames, rows, cols)` for a grid, else `(frames, taxels)` | `frame, t_start_ms, taxel_0 ..` |
+//! | `write_estimates` | one per run, `estimates.npy`/`.csv` | `(rows, 6 + classes)`, see below | see below |
+//!
+//! Per-trial files are named after the trial id (characters other than
+//! letters, digits, `.`, `-`, `_` become `_`), and beside them `labels.toml`
+//! gives each trial's `angle_deg`, `stimulus`, `group` (plus `duration_ms` for
+//! spikes) in the label-sidecar format `signal_file` and `spike_file` read, keyed
+//! by the ids those sources will give the files. So writing then reading back
+//! gives the same data and labels. `info.json` records the rest (sample rate,
+//! unit and layout of signals; layout, window and hop of images).
+//!
+//! Spikes are written the way `spike_file` reads them: `x` = column, `y` = row
+//! for a grid (`x` = taxel index, `y` = 0 otherwise), `t` in `time_unit`
+//! (µs by default), `p` = 1.
+//!
+//! Estimates: one row per (input estimator, trial). CSV columns `source, trial,
+//! stimulus, true_angle_deg, group, angle_deg, class_deg, best_frame,
+//! decision_time_ms, score_<angle> ...` (one score column per class angle seen
+//! in any input; an empty cell is "none": "no edge", no score). The NPY array
+//! holds the numeric columns `true_angle_deg, group, angle_deg, class_deg,
+//! best_frame, decision_time_ms, scores...` with NaN for "none";
+//! `estimates_rows.csv` names each row's source and trial, and
+//! `estimates_classes.npy` the score columns' angles.
+
+use super::arrays::npy_bytes;
+use super::common::{file_stem_for, sidecar_toml};
+use super::spike_file::TimeUnit;
+use palpate_core::output::write_atomic;
+use palpate_core::{
+    register_stage, BuildContext, ConfigError, InputSpec, Item, PayloadKind, Signals, Sink, SinkContext,
+    SinkInput, SinkReport, Stage, StageConfig, StageError, TaxelLayout, TrialMeta,
+};
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
+use std::collections::HashMap;
+use std::fmt::Write as _;
+use std::path::PathBuf;
+
+/// Output file format.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum OutFormat {
+    /// Comma-separated values with a header row.
+    #[default]
+    Csv,
+    /// NumPy `.npy` (float64).
+    Npy,
+}
+
+impl OutFormat {
+    fn ext(self) -> &'static str {
+        match self {
+            OutFormat::Csv => "csv",
+            OutFormat::Npy => "npy",
+        }
+    }
+}
+
+fn check_dir(dir: &Option<String>) -> Result<(), ConfigError> {
+    if let Some(d) = dir {
+        let p = std::path::Path::new(d);
+        if d.is_empty()
+            || p.is_absolute()
+            || p.components()
+                .any(|c| matches!(c, std::path::Component::ParentDir))
+        {
+            return Err(ConfigError::key(
+                "dir",
+                format!("must be a folder name inside the run's output folder, got `{d}`"),
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// Files to write, relative to the sink's folder.
+struct Files {
+    dir: PathBuf,
+    list: Vec<(String, Vec<u8>)>,
+}
+
+impl Files {
+    fn new(ctx: &SinkContext<'_>, dir: &Option<String>) -> Self {
+        Files {
+            dir: ctx.out_dir.join(dir.as_deref().unwrap_or(ctx.stage_id)),
+            list: vec![],
+        }
+    }
+
+    fn add(&mut self, name: String, bytes: Vec<u8>) -> Result<(), StageError> {
+        if self.list.iter().any(|(n, _)| *n == name) {
+            return Err(StageError::new(format!(
+                "two trials would be written to the same file `{name}` (their ids differ only in \
+                 characters that are not safe in file names)"
+            )));
+        }
+        self.list.push((name, bytes));
+        Ok(())
+    }
+
+    fn write(self, what: &str) -> Result<SinkReport, StageError> {
+        let mut files = Vec::new();
+        for (name, bytes) in &self.list {
+            let p = self.dir.join(name);
+            write_atomic(&p, bytes)
+                .map_err(|e| StageError::new(format!("cannot write {}: {e}", p.display())))?;
+            files.push(p);
+        }
+        Ok(SinkReport {
+            text: format!("wrote {what} to {} ({} files)", self.dir.display(), files.len()),
+            metrics: vec![("files".into(), files.len() as f64)],
+            files,
+        })
+    }
+}
+
+fn npy(shape: &[usize], data: &[f64]) -> Result<Vec<u8>, StageError> {
+    npy_bytes(shape, data).map_err(|e| StageError::new(format!("cannot encode NPY: {e}")))
+}
+
+fn taxel_header(n: usize) -> String {
+    (0..n).map(|i| format!("taxel_{i}")).collect::<Vec<_>>().join(",")
+}
+
+fn json(v: &serde_json::Value) -> Vec<u8> {
+    serde_json::to_vec_pretty(v).unwrap_or_default()
+}
+
+fn one_input<'a>(inputs: &'a [SinkInput<'a>]) -> Result<&'a [Item], StageError> {
+    inputs
+        .first()
+        .map(|i| i.items)
+        .ok_or_else(|| StageError::new("no input"))
+}
+
+macro_rules! simple_sink_config {
+    ($(#[$doc:meta])* $name:ident, $type:literal, $kind:expr, $sink:ident) => {
+        $(#[$doc])*
+        #[derive(Clone, Debug, Default, Serialize, Deserialize, JsonSchema)]
+        #[serde(deny_unknown_fields, default)]
+        pub struct $name {
+            /// `csv` or `npy`. Default csv.
+            pub format: OutFormat,
+            /// Folder inside the run's output folder. Default: the sink's id.
+            pub dir: Option<String>,
+        }
+
+        #[typetag::serde(name = $type)]
+        impl StageConfig for $name {
+            fn inputs(&self) -> InputSpec {
+                InputSpec::one($kind)
+            }
+            fn output(&self) -> Option<PayloadKind> {
+                None
+            }
+            fn build(&self, _ctx: &BuildContext) -> Result<Stage, ConfigError> {
+                check_dir(&self.dir)?;
+                Ok(Stage::Sink(Box::new($sink {
+                    format: self.format,
+                    dir: self.dir.clone(),
+                })))
+            }
+        }
+        register_stage!($type, $name);
+    };
+}
+
+simple_sink_config!(
+    /// Writes analog signals, one NPY `(samples, taxels)` or CSV
+    /// (`time_ms, taxel_0..`) file per trial, with a `labels.toml` label sidecar
+    /// that `signal_file` reads back.
+    WriteSignalsConfig,
+    "write_signals",
+    PayloadKind::Signals,
+    SignalsSink
+);
+
+simple_sink_config!(
+    /// Writes spike images, one NPY `(frames, rows, cols)` or CSV
+    /// (`frame, t_start_ms, taxel_0..`) file per trial.
+    WriteImagesConfig,
+    "write_images",
+    PayloadKind::Images,
+    ImagesSink
+);
+
+struct SignalsSink {
+    format: OutFormat,
+    dir: Option<String>,
+}
+
+impl Sink for SignalsSink {
+    fn consume(&self, inputs: &[SinkInput<'_>], ctx: &SinkContext<'_>) -> Result<SinkReport, StageError> {
+        let items = one_input(inputs)?;
+        let mut files = Files::new(ctx, &self.dir);
+        let mut rows = Vec::new();
+        let mut info = None;
+        for it in items {
+            let s = it.payload.signals()?;
+            let stem = file_stem_for(&it.meta.trial_id);
+            let bytes = match self.format {
+                OutFormat::Npy => signals_npy(s)?,
+                OutFormat::Csv => signals_csv(s).into_bytes(),
+            };
+            files.add(format!("{stem}.{}", self.format.ext()), bytes)?;
+            rows.push((stem, &*it.meta, None));
+            info.get_or_insert_with(|| {
+                serde_json::json!({
+                    "sample_rate_hz": s.sample_rate_hz,
+                    "unit": s.unit,
+                    "layout": s.layout,
+                    "format": self.format.ext(),
+                })
+            });
+        }
+        finish_with_sidecar(files, &rows, info, "signals")
+    }
+}
+
+/// One trial's signals as NPY bytes: float64 `(samples, taxels)`.
+pub fn signals_npy(s: &Signals) -> Result<Vec<u8>, StageError> {
+    let (n, m) = (s.data.len(), s.n_samples());
+    let mut flat = Vec::with_capacity(n * m);
+    for k in 0..m {
+        flat.extend(s.data.iter().map(|col| col[k]));
+    }
+    npy(&[m, n], &flat)
+}
+
+/// One trial's signals as CSV text: `time_ms, taxel_0 .. taxel_{N-1}`, one row
+/// per sample, numbers in round-trip form (what `signal_file` reads).
+pub fn signals_csv(s: &Signals) -> String {
+    let mut out = format!("time_ms,{}\n", taxel_header(s.data.len()));
+    for k in 0..s.n_samples() {
+        let _ = write!(out, "{}", k as f64 * 1000.0 / s.sample_rate_hz);
+        for col in &s.data {
+            let _ = write!(out, ",{}", col[k]);
+        }
+        out.push('\n');
+    }
+    out
+}
+
+fn finish_with_sidecar(
+    mut files: Files,
+    rows: &[(String, &TrialMeta, Option<f64>)],
+    info: Option<serde_json::Value>,
+    what: &str,
+) -> Result<SinkReport, StageError> {
+    files.add("labels.toml".into(), sidecar_toml(rows).into_bytes())?;
+    if let Some(info) = info {
+        files.add("info.json".into(), json(&info))?;
+    }
+    let n = rows.len();
+    files.write(&format!("{n} trials of {what}"))
+}
+
+struct ImagesSink {
+    format: OutFormat,
+    dir: Option<String>,
+}
+
+impl Sink for ImagesSink {
+    fn consume(&self, inputs: &[SinkInput<'_>], ctx: &SinkContext<'_>) -> Result<SinkReport, StageError> {
+        let items = one_input(inputs)?;
+        let mut files = Files::new(ctx, &self.dir);
+        let mut rows = Vec::new();
+        let mut info = None;
+        for it in items {
+            let im = it.payload.images()?;
+            let n = im.n_taxels();
+            let stem = file_stem_for(&it.meta.trial_id);
+            let bytes = match self.format {
+                OutFormat::Npy => {
+                    let shape = match im.layout.grid() {
+                        Some((r, c)) => vec![im.n_frames, r, c],
+                        None => vec![im.n_frames, n],
+                    };
+                    npy(&shape, &im.counts)?
+                }
+                OutFormat::Csv => {
+                    let mut out = format!("frame,t_start_ms,{}\n", taxel_header(n));
+                    for k in 0..im.n_frames {
+                        let _ = write!(out, "{k},{}", k as f64 * im.hop_ms);
+                        for v in im.frame(k) {
+                            let _ = write!(out, ",{v}");
+                        }
+                        out.push('\n');
+                    }
+                    out.into_bytes()
+                }
+            };
+            files.add(format!("{stem}.{}", self.format.ext()), bytes)?;
+            rows.push((stem, &*it.meta, None));
+            info.get_or_insert_with(|| {
+                serde_json::json!({
+                    "layout": im.layout,
+                    "window_ms": im.window_ms,
+                    "hop_ms": im.hop_ms,
+                    "format": self.format.ext(),
+                })
+            });
+        }
+        finish_with_sidecar(files, &rows, info, "spike images")
+    }
+}
+
+/// Writes spike events, one NPY `(events, 4)` or CSV file per trial with columns
+/// `x, y, t, p` (x = column, y = row, t in `time_unit`), as `spike_file` reads them.
+#[derive(Clone, Debug, Default, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields, default)]
+pub struct WriteSpikesConfig {
+    /// `csv` or `npy`. Default csv.
+    pub format: OutFormat,
+    /// Folder inside the run's output folder. Default: the sink's id.
+    pub dir: Option<String>,
+    /// Unit of `t`: `us`, `ms` or `s`. Default us.
+    pub time_unit: TimeUnit,
+}
+
+#[typetag::serde(name = "write_spikes")]
+impl StageConfig for WriteSpikesConfig {
+    fn inputs(&self) -> InputSpec {
+        InputSpec::one(PayloadKind::Spikes)
+    }
+    fn output(&self) -> Option<PayloadKind> {
+        None
+    }
+    fn build(&self, _ctx: &BuildContext) -> Result<Stage, ConfigError> {
+        check_dir(&self.dir)?;
+        Ok(Stage::Sink(Box::new(SpikesSink { cfg: self.clone() })))
+    }
+}
+register_stage!("write_spikes", WriteSpikesConfig);
+
+struct SpikesSink {
+    cfg: WriteSpikesConfig,
+}
+
+/// `(x, y)` of a taxel as event tools number it.
+fn event_xy(layout: &TaxelLayout, taxel: u32) -> (f64, f64) {
+    match layout.grid() {
+        Some((_, cols)) => ((taxel as usize % cols) as f64, (taxel as usize / cols) as f64),
+        None => (f64::from(taxel), 0.0),
+    }
+}
+
+impl Sink for SpikesSink {
+    fn consume(&self, inputs: &[SinkInput<'_>], ctx: &SinkContext<'_>) -> Result<SinkReport, StageError> {
+        let items = one_input(inputs)?;
+        let mut files = Files::new(ctx, &self.cfg.dir);
+        let mut rows = Vec::new();
+        let per_ms = 1.0 / self.cfg.time_unit.to_ms();
+        for it in items {
+            let s = it.payload.spikes()?;
+            let stem = file_stem_for(&it.meta.trial_id);
+            let bytes = match self.cfg.format {
+                OutFormat::Npy => {
+                    let mut flat = Vec::with_capacity(s.events.len() * 4);
+                    for e in &s.events {
+                        let (x, y) = event_xy(&s.layout, e.taxel);
+                        flat.extend([x, y, e.t_ms * per_ms, 1.0]);
+                    }
+                    npy(&[s.events.len(), 4], &flat)?
+                }
+                OutFormat::Csv => {
+                    let mut out = String::from("x,y,t,p\n");
+                    for e in &s.events {
+                        let (x, y) = event_xy(&s.layout, e.taxel);
+                        let _ = writeln!(out, "{x},{y},{},1", e.t_ms * per_ms);
+                    }
+                    out.into_bytes()
+                }
+            };
+            files.add(format!("{stem}.{}", self.cfg.format.ext()), bytes)?;
+            rows.push((stem, &*it.meta, Some(s.duration_ms)));
+        }
+        let info = items.first().map(|it| {
+            let layout = it.payload.spikes().map(|s| s.layout.clone()).ok();
+            serde_json::json!({ "layout": layout, "time_unit": self.cfg.time_unit, "format": self.cfg.format.ext() })
+        });
+        finish_with_sidecar(files, &rows, info, "spikes")
+    }
+}
+
+/// Writes orientation estimates of every input estimator, one table per run
+/// (`estimates.csv` or `estimates.npy`), with true labels and every class score.
+#[derive(Clone, Debug, Default, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields, default)]
+pub struct WriteEstimatesConfig {
+    /// `csv` or `npy`. Default csv.
+    pub format: OutFormat,
+    /// Folder inside the run's output folder. Default: the sink's id.
+    pub dir: Option<String>,
+}
+
+#[typetag::serde(name = "write_estimates")]
+impl StageConfig for WriteEstimatesConfig {
+    fn inputs(&self) -> InputSpec {
+        InputSpec::many(PayloadKind::Estimates)
+    }
+    fn output(&self) -> Option<PayloadKind> {
+        None
+    }
+    fn build(&self, _ctx: &BuildContext) -> Result<Stage, ConfigError> {
+        check_dir(&self.dir)?;
+        Ok(Stage::Sink(Box::new(EstimatesSink { cfg: self.clone() })))
+    }
+}
+register_stage!("write_estimates", WriteEstimatesConfig);
+
+struct EstimatesSink {
+    cfg: WriteEstimatesConfig,
+}
+
+fn cell(v: Option<f64>) -> String {
+    v.map(|x| x.to_string()).unwrap_or_default()
+}
+
+impl Sink for EstimatesSink {
+    fn consume(&self, inputs: &[SinkInput<'_>], ctx: &SinkContext<'_>) -> Result<SinkReport, StageError> {
+        // Score columns: every class angle any input uses, in order of first use.
+        let mut classes: Vec<f64> = Vec::new();
+        let mut col_of: HashMap<u64, usize> = HashMap::new();
+        for inp in inputs {
+            for it in inp.items {
+                for s in &it.payload.estimate()?.scores {
+                    col_of.entry(s.angle_deg.to_bits()).or_insert_with(|| {
+                        classes.push(s.angle_deg);
+                        classes.len() - 1
+                    });
+                }
+            }
+        }
+        let mut files = Files::new(ctx, &self.cfg.dir);
+        let mut n_rows = 0;
+        let mut csv = String::from(
+            "source,trial,stimulus,true_angle_deg,group,angle_deg,class_deg,best_frame,decision_time_ms",
+        );
+        for c in &classes {
+            let _ = write!(csv, ",score_{c}");
+        }
+        csv.push('\n');
+        let mut rows_csv = String::from("row,source,trial,stimulus\n");
+        let width = 6 + classes.len();
+        let mut flat = Vec::new();
+        for inp in inputs {
+            for it in inp.items {
+                let e = it.payload.estimate()?;
+                let m = &it.meta;
+                let mut scores = vec![None; classes.len()];
+                for s in &e.scores {
+                    scores[col_of[&s.angle_deg.to_bits()]] = Some(s.score);
+                }
+                let best = e.best_frame.map(|b| b as f64);
+                let _ = write!(
+                    csv,
+                    "{},{},{},{},{},{},{},{},{}",
+                    inp.stage_id,
+                    m.trial_id,
+                    m.label.stimulus,
+                    cell(m.label.angle_deg),
+                    m.group,
+                    cell(e.angle_deg),
+                    cell(e.class_deg),
+                    cell(best),
+                    cell(e.decision_time_ms)
+                );
+                for s in &scores {
+                    let _ = write!(csv, ",{}", cell(*s));
+                }
+                csv.push('\n');
+                let _ = writeln!(
+                    rows_csv,
+                    "{n_rows},{},{},{}",
+                    inp.stage_id, m.trial_id, m.label.stimulus
+                );
+                let nan = f64::NAN;
+                flat.extend([
+                    m.label.angle_deg.unwrap_or(nan),
+                    m.group as f64,
+                    e.angle_deg.unwrap_or(nan),
+                    e.class_deg.unwrap_or(nan),
+                    best.unwrap_or(nan),
+                    e.decision_time_ms.unwrap_or(nan),
+                ]);
+                flat.extend(scores.iter().map(|s| s.unwrap_or(nan)));
+                n_rows += 1;
+            }
+        }
+        match self.cfg.format {
+            OutFormat::Csv => files.add("estimates.csv".into(), csv.into_bytes())?,
+            OutFormat::Npy => {
+                files.add("estimates.npy".into(), npy(&[n_rows, width], &flat)?)?;
+                files.add("estimates_rows.csv".into(), rows_csv.into_bytes())?;
+                files.add("estimates_classes.npy".into(), npy(&[classes.len()], &classes)?)?;
+            }
+        }
+        files.write(&format!("{n_rows} estimates"))
+    }
+}

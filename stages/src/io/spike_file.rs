@@ -1,0 +1,541 @@
+//! The `spike_file` source: spike events `(x, y, t[, p])` from CSV or NPY files,
+//! in the layout neuromorphic event tools use, mapped to the taxels of a layout.
+//!
+//! ## Mapping
+//!
+//! For a grid, `x` is the column and `y` the row (row 0 on top), so the event
+//! goes to taxel `y * cols + x`. For an explicit list of positions, `x` is the
+//! taxel index and `y` must be 0. Coordinates must be whole numbers inside the
+//! layout; anything else is an error naming the file and the row (CSV line or
+//! NPY event index). `t` is in `time_unit` (`us` by default, as event cameras
+//! and tonic/AEDAT tools store it; `ms`, `s`), converted to ms; with
+//! `time_origin = "first_event"` times are shifted so the trial's first event
+//! is at 0. Times must be finite and not negative. `p` (polarity) is optional;
+//! `polarity = "on"` keeps events with `p > 0`, `"off"` those with `p <= 0`.
+//!
+//! The trial's duration is, in order of precedence: the sidecar's
+//! `duration_ms`, the `duration_ms` key, or the last event's time plus 1 ms
+//! (so every event lies in `[0, duration)`); an event at or after a given
+//! duration is an error. Events are sorted by time, then taxel.
+//!
+//! ## Formats
+//!
+//! **CSV**: a header row with `x`, `y`, `t`, optionally `p`, `trial` (many
+//! trials per file, rows grouped by value, ids `<file>-<trial>`), `angle_deg`,
+//! `stimulus`, `group`, `duration_ms` (labels, constant within a trial). Other
+//! columns are an error. A header-only file is a trial without spikes (it
+//! needs a duration).
+//!
+//! **NPY**: one trial per file; a 2-D array `(events, 3)` or `(events, 4)`
+//! with columns `x, y, t[, p]`, or a 1-D structured array with numeric fields
+//! `x`, `y`, `t` (or `ts`), optionally `p` (the dtype tonic and other event
+//! tools save); other fields are an error.
+//!
+//! Trial ids, label sidecars and groups work as for `signal_file`.
+
+use super::arrays::{read_npy, NpyContent};
+use super::common::{
+    apply_sidecar, build_metas, expand_paths, file_ids, merge_consistent, read_sidecar, set_label_cell,
+    LayoutConfig, TrialLabels, LABEL_COLUMNS,
+};
+use super::signal_file::{check_csv_complete, csv_error};
+use palpate_core::{
+    check_positive, register_stage, BuildContext, ConfigError, InputSpec, Payload, PayloadKind, Source,
+    SpikeEvent, SpikeTrain, Stage, StageConfig, StageError, TaxelLayout, TrialContext, TrialMeta,
+};
+use rayon::prelude::*;
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, OnceLock};
+
+/// Unit of event times in a file.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum TimeUnit {
+    /// Microseconds.
+    #[default]
+    Us,
+    /// Milliseconds.
+    Ms,
+    /// Seconds.
+    S,
+}
+
+impl TimeUnit {
+    /// Milliseconds per unit.
+    pub fn to_ms(self) -> f64 {
+        match self {
+            TimeUnit::Us => 1e-3,
+            TimeUnit::Ms => 1.0,
+            TimeUnit::S => 1e3,
+        }
+    }
+}
+
+/// Where time 0 is.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum TimeOrigin {
+    /// Times are from the trial's start.
+    #[default]
+    Zero,
+    /// The first event of each trial is at 0.
+    FirstEvent,
+}
+
+/// Which polarities to keep.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum Polarity {
+    /// Every event.
+    #[default]
+    Both,
+    /// Events with `p > 0`.
+    On,
+    /// Events with `p <= 0`.
+    Off,
+}
+
+/// File format of an event file.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum SpikeFormat {
+    /// By extension (`.csv`, `.npy`).
+    #[default]
+    Auto,
+    /// CSV with a header row.
+    Csv,
+    /// NumPy array, plain or structured.
+    Npy,
+}
+
+/// Spike events `(x, y, t[, p])` read from CSV or NPY files, mapped to taxels.
+///
+/// x = column, y = row of a grid (or x = taxel index for an explicit layout);
+/// t in `time_unit`. Formats in the module docs of `palpate_stages::io::spike_file`.
+#[derive(Clone, Debug, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields, default)]
+pub struct SpikeFileConfig {
+    /// A file or glob pattern, relative to the graph file's folder. Default none.
+    pub path: Option<String>,
+    /// More files or glob patterns. Default empty.
+    pub paths: Vec<String>,
+    /// `auto` (by extension), `csv` or `npy`. Default auto.
+    pub format: SpikeFormat,
+    /// Unit of `t`: `us`, `ms` or `s`. Default us.
+    pub time_unit: TimeUnit,
+    /// `zero` (times from the trial start) or `first_event`. Default zero.
+    pub time_origin: TimeOrigin,
+    /// Polarities kept: `both`, `on` (p > 0), `off` (p <= 0). Default both.
+    pub polarity: Polarity,
+    /// Trial length, ms; default none: the last event + 1 ms (a sidecar's
+    /// `duration_ms` wins).
+    pub duration_ms: Option<f64>,
+    /// Taxel layout. Default: the paper's 4 x 4 grid, 3 mm pitch, 2 mm taxels.
+    pub layout: LayoutConfig,
+    /// Label sidecar (TOML or CSV). Default none.
+    pub labels: Option<String>,
+}
+
+impl Default for SpikeFileConfig {
+    fn default() -> Self {
+        SpikeFileConfig {
+            path: None,
+            paths: vec![],
+            format: SpikeFormat::Auto,
+            time_unit: TimeUnit::Us,
+            time_origin: TimeOrigin::Zero,
+            polarity: Polarity::Both,
+            duration_ms: None,
+            layout: LayoutConfig::default(),
+            labels: None,
+        }
+    }
+}
+
+#[typetag::serde(name = "spike_file")]
+impl StageConfig for SpikeFileConfig {
+    fn inputs(&self) -> InputSpec {
+        InputSpec::none()
+    }
+    fn output(&self) -> Option<PayloadKind> {
+        Some(PayloadKind::Spikes)
+    }
+    fn build(&self, ctx: &BuildContext) -> Result<Stage, ConfigError> {
+        let layout = self.layout.to_layout("layout")?;
+        if let Some(d) = self.duration_ms {
+            check_positive("duration_ms", d, "ms")?;
+        }
+        let entries: Vec<String> = self.path.iter().chain(&self.paths).cloned().collect();
+        let key = if self.path.is_some() { "path" } else { "paths" };
+        let files = expand_paths(&entries, |p| ctx.resolve(p), key)?;
+        for f in &files {
+            spike_format_of(self.format, f).map_err(|m| ConfigError::key("format", m))?;
+        }
+        let labels = self.labels.as_ref().map(|l| ctx.resolve(Path::new(l)));
+        if let Some(l) = &labels {
+            if !l.is_file() {
+                return Err(ConfigError::key(
+                    "labels",
+                    format!("file {} not found", l.display()),
+                ));
+            }
+        }
+        Ok(Stage::Source(Box::new(SpikeFileSource {
+            cfg: self.clone(),
+            layout,
+            files,
+            labels,
+            loaded: OnceLock::new(),
+        })))
+    }
+}
+register_stage!("spike_file", SpikeFileConfig);
+
+fn spike_format_of(f: SpikeFormat, path: &Path) -> Result<SpikeFormat, String> {
+    if f != SpikeFormat::Auto {
+        return Ok(f);
+    }
+    match path
+        .extension()
+        .map(|e| e.to_string_lossy().to_ascii_lowercase())
+        .as_deref()
+    {
+        Some("csv" | "txt") => Ok(SpikeFormat::Csv),
+        Some("npy") => Ok(SpikeFormat::Npy),
+        _ => Err(format!(
+            "cannot tell the format of {} from its extension; set `format`",
+            path.display()
+        )),
+    }
+}
+
+/// Every trial, read once and shared.
+type Loaded = Vec<(TrialMeta, Arc<SpikeTrain>)>;
+/// A CSV trial being read: name, labels, `(taxel, t_ms)` events.
+type CsvEvents = (String, TrialLabels, Vec<(u32, f64)>);
+
+struct SpikeFileSource {
+    cfg: SpikeFileConfig,
+    layout: TaxelLayout,
+    files: Vec<PathBuf>,
+    labels: Option<PathBuf>,
+    loaded: OnceLock<Result<Loaded, StageError>>,
+}
+
+/// Events of one trial as read, before durations and labels are settled.
+struct RawEvents {
+    id: String,
+    labels: TrialLabels,
+    /// `(taxel, t_ms)`, unsorted, origin not yet applied.
+    events: Vec<(u32, f64)>,
+    origin: String,
+}
+
+impl SpikeFileSource {
+    fn load(&self) -> Result<Loaded, StageError> {
+        let ids = file_ids(&self.files);
+        let per_file: Vec<Result<Vec<RawEvents>, String>> = self
+            .files
+            .par_iter()
+            .zip(ids.par_iter())
+            .map(|(f, id)| read_spike_file(f, id, &self.cfg, &self.layout))
+            .collect();
+        let mut raw = Vec::new();
+        for r in per_file {
+            raw.extend(r.map_err(StageError::new)?);
+        }
+        let mut labelled: Vec<(String, TrialLabels)> =
+            raw.iter().map(|t| (t.id.clone(), t.labels.clone())).collect();
+        if let Some(p) = &self.labels {
+            let side = read_sidecar(p)?;
+            apply_sidecar(&mut labelled, &side, p)?;
+        }
+        let origins: Vec<String> = raw.iter().map(|t| t.origin.clone()).collect();
+        let metas = build_metas(&labelled, &origins)?;
+        metas
+            .into_iter()
+            .zip(raw)
+            .zip(labelled)
+            .map(|((m, t), (_, l))| {
+                let shift = match self.cfg.time_origin {
+                    TimeOrigin::Zero => 0.0,
+                    TimeOrigin::FirstEvent => t.events.iter().map(|e| e.1).fold(f64::INFINITY, f64::min),
+                };
+                let shift = if shift.is_finite() { shift } else { 0.0 };
+                let mut events: Vec<SpikeEvent> = t
+                    .events
+                    .iter()
+                    .map(|&(taxel, tm)| SpikeEvent { taxel, t_ms: tm - shift })
+                    .collect();
+                let last = events.iter().map(|e| e.t_ms).fold(f64::NEG_INFINITY, f64::max);
+                let duration_ms = match l.duration_ms.or(self.cfg.duration_ms) {
+                    Some(d) => {
+                        if last >= d {
+                            return Err(StageError::new(format!(
+                                "{}: an event at {last} ms lies at or after the trial's duration of {d} ms",
+                                t.origin
+                            )));
+                        }
+                        d
+                    }
+                    None if events.is_empty() => {
+                        return Err(StageError::new(format!(
+                            "{}: no events, so the duration is unknown; set `duration_ms` (or a sidecar's duration_ms)",
+                            t.origin
+                        )))
+                    }
+                    None => last + 1.0,
+                };
+                let mut train = SpikeTrain {
+                    layout: self.layout.clone(),
+                    duration_ms,
+                    events: std::mem::take(&mut events),
+                };
+                train.sort();
+                Ok((m, Arc::new(train)))
+            })
+            .collect()
+    }
+
+    fn loaded(&self) -> Result<&Loaded, StageError> {
+        self.loaded
+            .get_or_init(|| self.load())
+            .as_ref()
+            .map_err(Clone::clone)
+    }
+}
+
+impl Source for SpikeFileSource {
+    fn trials(&self) -> Result<Vec<TrialMeta>, StageError> {
+        Ok(self.loaded()?.iter().map(|(m, _)| m.clone()).collect())
+    }
+    fn produce(&self, ctx: &TrialContext<'_>) -> Result<Payload, StageError> {
+        let all = self.loaded()?;
+        all.get(ctx.meta.index)
+            .filter(|(m, _)| m.trial_id == ctx.meta.trial_id)
+            .or_else(|| all.iter().find(|(m, _)| m.trial_id == ctx.meta.trial_id))
+            .map(|(_, s)| Payload::Spikes(s.clone()))
+            .ok_or_else(|| StageError::new(format!("no trial `{}` in the files", ctx.meta.trial_id)))
+    }
+}
+
+/// Maps one event to a taxel and a time in ms, or explains what is wrong.
+struct Mapper<'a> {
+    layout: &'a TaxelLayout,
+    cfg: &'a SpikeFileConfig,
+}
+
+impl Mapper<'_> {
+    /// `None` when the event's polarity is filtered out.
+    fn map(&self, x: f64, y: f64, t: f64, p: Option<f64>, what: &str) -> Result<Option<(u32, f64)>, String> {
+        for (name, v) in [("x", x), ("y", y), ("t", t)] {
+            if !v.is_finite() {
+                return Err(format!("{what}: `{name}` = {v} is not finite"));
+            }
+        }
+        if x.fract() != 0.0 || y.fract() != 0.0 {
+            return Err(format!(
+                "{what}: coordinates must be whole numbers, got x = {x}, y = {y}"
+            ));
+        }
+        let taxel = match self.layout.grid() {
+            Some((rows, cols)) => {
+                if x < 0.0 || y < 0.0 || x >= cols as f64 || y >= rows as f64 {
+                    return Err(format!(
+                        "{what}: event at x = {x}, y = {y} lies outside the {rows} x {cols} grid \
+                         (x is the column, y the row)"
+                    ));
+                }
+                y as usize * cols + x as usize
+            }
+            None => {
+                let n = self.layout.len();
+                if x < 0.0 || x >= n as f64 || y != 0.0 {
+                    return Err(format!(
+                        "{what}: event at x = {x}, y = {y}: for an explicit layout x is the taxel index \
+                         (0..{n}) and y must be 0"
+                    ));
+                }
+                x as usize
+            }
+        };
+        let t_ms = t * self.cfg.time_unit.to_ms();
+        if t_ms < 0.0 && self.cfg.time_origin == TimeOrigin::Zero {
+            return Err(format!(
+                "{what}: negative time {t} (set time_origin = \"first_event\"?)"
+            ));
+        }
+        let keep = match (self.cfg.polarity, p) {
+            (Polarity::Both, _) => true,
+            (Polarity::On, Some(p)) => p > 0.0,
+            (Polarity::Off, Some(p)) => p <= 0.0,
+            (_, None) => {
+                return Err(format!(
+                    "{what}: `polarity` filters by `p` but the file has no `p`"
+                ))
+            }
+        };
+        if let Some(p) = p.filter(|p| !p.is_finite()) {
+            return Err(format!("{what}: `p` = {p} is not finite"));
+        }
+        Ok(keep.then_some((taxel as u32, t_ms)))
+    }
+}
+
+fn read_spike_file(
+    path: &Path,
+    file_id: &str,
+    cfg: &SpikeFileConfig,
+    layout: &TaxelLayout,
+) -> Result<Vec<RawEvents>, String> {
+    let shown = path.display().to_string();
+    let bytes = std::fs::read(path).map_err(|e| format!("cannot read {shown}: {e}"))?;
+    let mapper = Mapper { layout, cfg };
+    match spike_format_of(cfg.format, path)? {
+        SpikeFormat::Csv => read_csv_events(&bytes, &shown, file_id, &mapper),
+        SpikeFormat::Npy => {
+            let cols: Vec<(String, Vec<f64>)> = match read_npy(&bytes, &shown)? {
+                NpyContent::Plain(a) => {
+                    let ok = a.shape.len() == 2 && (a.shape[1] == 3 || a.shape[1] == 4);
+                    if !ok {
+                        return Err(format!(
+                            "{shown}: wrong shape {:?}; expected (events, 3) or (events, 4) with columns x, y, t[, p], \
+                             or a structured array with fields x, y, t[, p]",
+                            a.shape
+                        ));
+                    }
+                    let (n, w) = (a.shape[0], a.shape[1]);
+                    ["x", "y", "t", "p"][..w]
+                        .iter()
+                        .enumerate()
+                        .map(|(j, name)| (name.to_string(), (0..n).map(|i| a.data[i * w + j]).collect()))
+                        .collect()
+                }
+                NpyContent::Record(fields) => fields
+                    .into_iter()
+                    .map(|(n, v)| (if n == "ts" { "t".to_string() } else { n }, v))
+                    .collect(),
+            };
+            let get = |name: &str| cols.iter().find(|(n, _)| n == name).map(|(_, v)| v);
+            for (n, _) in &cols {
+                if !["x", "y", "t", "p"].contains(&n.as_str()) {
+                    return Err(format!(
+                        "{shown}: unknown field `{n}` (expected x, y, t or ts, p)"
+                    ));
+                }
+            }
+            let (Some(x), Some(y), Some(t)) = (get("x"), get("y"), get("t")) else {
+                return Err(format!("{shown}: needs fields x, y and t (or ts)"));
+            };
+            let p = get("p");
+            let mut events = Vec::with_capacity(x.len());
+            for i in 0..x.len() {
+                if let Some(e) =
+                    mapper.map(x[i], y[i], t[i], p.map(|p| p[i]), &format!("{shown}, event {i}"))?
+                {
+                    events.push(e);
+                }
+            }
+            Ok(vec![RawEvents {
+                id: file_id.to_string(),
+                labels: TrialLabels::default(),
+                events,
+                origin: shown,
+            }])
+        }
+        SpikeFormat::Auto => unreachable!("resolved by spike_format_of"),
+    }
+}
+
+fn read_csv_events(
+    bytes: &[u8],
+    shown: &str,
+    file_id: &str,
+    mapper: &Mapper<'_>,
+) -> Result<Vec<RawEvents>, String> {
+    check_csv_complete(bytes, shown)?;
+    let mut rdr = csv::ReaderBuilder::new()
+        .trim(csv::Trim::All)
+        .comment(Some(b'#'))
+        .from_reader(bytes);
+    let headers = rdr.headers().map_err(|e| csv_error(shown, &e))?.clone();
+    let find = |n: &str| headers.iter().position(|h| h == n);
+    for h in headers.iter() {
+        if !["x", "y", "t", "p", "trial"].contains(&h) && !LABEL_COLUMNS.contains(&h) {
+            return Err(format!(
+                "{shown}: unknown column `{h}` (expected x, y, t, optionally p, trial, {})",
+                LABEL_COLUMNS.join(", ")
+            ));
+        }
+    }
+    let (Some(cx), Some(cy), Some(ct)) = (find("x"), find("y"), find("t")) else {
+        return Err(format!("{shown}: needs columns x, y and t"));
+    };
+    let cp = find("p");
+    let ctrial = find("trial");
+    let mut trials: Vec<CsvEvents> = Vec::new();
+    for rec in rdr.records() {
+        let rec = rec.map_err(|e| csv_error(shown, &e))?;
+        let line = rec.position().map_or(0, |p| p.line());
+        let what = format!("{shown}, line {line}");
+        let num = |i: usize| -> Result<f64, String> {
+            let cell = rec.get(i).unwrap_or("");
+            cell.parse::<f64>().map_err(|_| {
+                format!(
+                    "{what}, column `{}`: cannot read `{cell}` as a number",
+                    &headers[i]
+                )
+            })
+        };
+        let name = ctrial
+            .map(|i| rec.get(i).unwrap_or("").to_string())
+            .unwrap_or_default();
+        let k = match trials.iter().position(|t| t.0 == name) {
+            Some(k) => k,
+            None => {
+                trials.push((name, TrialLabels::default(), Vec::new()));
+                trials.len() - 1
+            }
+        };
+        let mut row_labels = TrialLabels::default();
+        for (i, h) in headers.iter().enumerate() {
+            if LABEL_COLUMNS.contains(&h) {
+                set_label_cell(
+                    &mut row_labels,
+                    h,
+                    rec.get(i).unwrap_or(""),
+                    &format!("{what}, column `{h}`"),
+                )?;
+            }
+        }
+        merge_consistent(&mut trials[k].1, &row_labels, &what)?;
+        let p = cp.map(num).transpose()?;
+        if let Some(e) = mapper.map(num(cx)?, num(cy)?, num(ct)?, p, &what)? {
+            trials[k].2.push(e);
+        }
+    }
+    if trials.is_empty() {
+        // A header-only file: one trial without spikes.
+        trials.push((String::new(), TrialLabels::default(), Vec::new()));
+    }
+    let many = trials.len() > 1 || !trials[0].0.is_empty();
+    Ok(trials
+        .into_iter()
+        .map(|(name, labels, events)| RawEvents {
+            id: if many {
+                format!("{file_id}-{name}")
+            } else {
+                file_id.to_string()
+            },
+            labels,
+            events,
+            origin: if many {
+                format!("{shown}, trial `{name}`")
+            } else {
+                shown.to_string()
+            },
+        })
+        .collect())
+}
