@@ -354,6 +354,7 @@ impl Fft<'_> {
         let mut z = vec![Complex::new(0.0, 0.0); bins];
         let mut out = vec![0.0; len];
         let mut scratch = pair.inv.make_scratch_vec();
+        let fast = super::simd::fast_cpu();
         // Output `b·block + r` sits at `r` (single block) or `h − 1 + r`.
         let offset = if single { 0 } else { h - 1 };
         for (b, &nz) in nonzero.iter().enumerate() {
@@ -366,6 +367,7 @@ impl Fft<'_> {
                 let o = (b * n + t) * bins;
                 let r = t * bins..(t + 1) * bins;
                 cmac(
+                    fast,
                     &mut acc,
                     (&x.re[o..o + bins], &x.im[o..o + bins]),
                     (&spec.re[r.clone()], &spec.im[r]),
@@ -392,13 +394,8 @@ impl Fft<'_> {
 
 /// `acc += x ⊙ h` over complex bins stored as separate parts.
 #[inline]
-pub(crate) fn cmac(acc: &mut Soa, x: (&[f64], &[f64]), h: (&[f64], &[f64])) {
-    let n = acc.re.len();
-    let (xr, xi, hr, hi) = (&x.0[..n], &x.1[..n], &h.0[..n], &h.1[..n]);
-    for f in 0..n {
-        acc.re[f] += xr[f] * hr[f] - xi[f] * hi[f];
-        acc.im[f] += xr[f] * hi[f] + xi[f] * hr[f];
-    }
+pub(crate) fn cmac(fast: bool, acc: &mut Soa, x: (&[f64], &[f64]), h: (&[f64], &[f64])) {
+    super::simd::cmac(fast, &mut acc.re, &mut acc.im, x.0, x.1, h.0, h.1)
 }
 
 /// Windows whose weights average less than this per term are summed directly.

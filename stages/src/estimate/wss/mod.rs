@@ -56,7 +56,14 @@
 //! [`batch`] computes eq. 5 as FFT convolutions (one inverse FFT per class and
 //! block, the taxel sum done in the frequency domain, template spectra cached);
 //! [`stream`] is the frame-by-frame form ([`WssStream`]) by uniformly partitioned
-//! convolution. [`wss_reference`] keeps the direct sums for tests.
+//! convolution. [`wss_reference`] keeps the direct sums for tests. The inner
+//! kernels use AVX2 + FMA when the CPU has them (checked at run time).
+//!
+//! Measured (`cargo bench --bench wss`, one core of a shared AMD EPYC, 17
+//! classes, 4x4 array, 10 ms hop, 2 s holds, 2 mm/s): one trial's estimate
+//! 0.58 ms (90 degrees, 941 frames), 1.3 ms (45, 1491 frames), 3.5 ms (10,
+//! 4060 frames); streaming 5.8, 9.5 and 11.7 µs per frame; the direct
+//! reference 580 ms for a 958-frame trial (the paper's MATLAB: 3.05 s).
 //!
 //! # Example
 //!
@@ -73,6 +80,7 @@
 
 pub mod batch;
 pub mod params;
+mod simd;
 pub mod stream;
 pub mod templates;
 #[cfg(test)]

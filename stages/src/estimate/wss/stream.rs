@@ -67,6 +67,7 @@ pub struct WssStream {
     buf: Vec<f64>,
     out: Vec<f64>,
     scratch: Vec<Complex<f64>>,
+    fast: bool,
 }
 
 impl WssStream {
@@ -109,6 +110,7 @@ impl WssStream {
             buf: vec![0.0; 2 * b],
             out: vec![0.0; 2 * b],
             scratch: vec![Complex::new(0.0, 0.0); scratch],
+            fast: super::simd::fast_cpu(),
         })
     }
 
@@ -262,16 +264,16 @@ impl WssStream {
     fn head(&self, cl: usize, k: usize) -> (f64, f64) {
         let cls = &self.tpl.classes()[cl];
         let h = self.b.min(cls.len).min(k + 1);
-        let (mut p, mut q) = (0.0, 0.0);
-        for i in 0..h {
-            let m = k - i;
-            if self.prep.active[m] {
-                let r = dot(self.prep.frame(m), cls.template(i));
-                p += r;
-                q += self.prep.count[m] * r;
-            }
-        }
-        (p, q)
+        super::simd::head(
+            self.fast,
+            &self.prep.norm,
+            &self.prep.active,
+            &self.prep.count,
+            &cls.data,
+            self.prep.n,
+            k,
+            h,
+        )
     }
 
     /// Block `blk` is complete: add its input spectra to the delay line and
@@ -347,7 +349,7 @@ impl WssStream {
                     for s in 0..2 {
                         let xo = (s * n + t) * bins;
                         let xs = (&x.re[xo..xo + bins], &x.im[xo..xo + bins]);
-                        super::batch::cmac(&mut self.acc[s], xs, h);
+                        super::batch::cmac(self.fast, &mut self.acc[s], xs, h);
                     }
                 }
             }
@@ -376,25 +378,4 @@ fn soa(n: usize) -> Soa {
         re: vec![0.0; n],
         im: vec![0.0; n],
     }
-}
-
-/// `<a, b>` with four partial sums (so that it vectorises).
-#[inline]
-pub(crate) fn dot(a: &[f64], b: &[f64]) -> f64 {
-    let n = a.len().min(b.len());
-    let (a, b) = (&a[..n], &b[..n]);
-    let mut s = [0.0; 4];
-    let mut ca = a.chunks_exact(4);
-    let mut cb = b.chunks_exact(4);
-    for (x, y) in (&mut ca).zip(&mut cb) {
-        s[0] += x[0] * y[0];
-        s[1] += x[1] * y[1];
-        s[2] += x[2] * y[2];
-        s[3] += x[3] * y[3];
-    }
-    let mut r = (s[0] + s[1]) + (s[2] + s[3]);
-    for (x, y) in ca.remainder().iter().zip(cb.remainder()) {
-        r += x * y;
-    }
-    r
 }
