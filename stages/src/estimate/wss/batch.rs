@@ -28,7 +28,7 @@
 //! frames and raw templates) that tests compare the fast path with.
 
 use super::params::{BeforeStart, Refine, WssParams};
-use super::templates::{normalize, raw_template, ClassTemplates, Templates};
+use super::templates::{normalize, raw_template, ClassTemplates, Soa, Templates};
 use palpate_core::{ClassScore, Estimate, SpikeImages, StageError};
 use realfft::num_complex::Complex;
 use std::collections::HashMap;
@@ -222,38 +222,93 @@ pub(crate) fn combine(num: f64, den: f64, p: f64, nw: usize, all_zero: bool) -> 
 }
 
 /// Input spectra `[block][taxel][bin]` and, per block, whether it is non-zero.
-type InputSpectra = (Vec<Complex<f64>>, Vec<bool>);
+type InputSpectra = (Soa, Vec<bool>);
 
-/// Per-trial FFT workspace: input spectra per (sequence, FFT length).
+/// Smallest FFT length `>= n` of the form `2^j`, `5·2^j` or `3·2^j` (even, and
+/// fast for realfft), so that padding wastes at most a third.
+pub(crate) fn nice_len(n: usize) -> usize {
+    let n = n.max(16);
+    let p = n.next_power_of_two();
+    [p, p / 8 * 5, p / 4 * 3, p / 16 * 9]
+        .into_iter()
+        .filter(|&m| m >= n && m % 2 == 0)
+        .min()
+        .unwrap_or(p)
+}
+
+/// Longest single-block FFT; longer trials use overlap-save blocks.
+const SINGLE_BLOCK_MAX: usize = 1 << 14;
+
+/// How one class's convolution is blocked: FFT length, outputs per block and
+/// template length used.
+#[derive(Clone, Copy, PartialEq, Eq, Hash)]
+struct Plan {
+    len: usize,
+    block: usize,
+    h: usize,
+}
+
+impl Plan {
+    /// Single block when the linear convolution fits a modest FFT, otherwise
+    /// overlap-save with an FFT about four template lengths long.
+    fn new(k: usize, h: usize) -> Plan {
+        let single = nice_len(k + h - 1);
+        if single <= SINGLE_BLOCK_MAX.max(4 * h) {
+            Plan {
+                len: single,
+                block: k,
+                h,
+            }
+        } else {
+            let len = nice_len(4 * h);
+            Plan {
+                len,
+                block: len - h + 1,
+                h,
+            }
+        }
+    }
+}
+
+/// Per-trial FFT workspace: input spectra per (sequence, plan).
 struct Fft<'a> {
     tpl: &'a Templates,
     n: usize,
     k: usize,
     /// Taxel-major input sequences: 0 = weighted, 1 = unweighted.
     seqs: [Vec<f64>; 2],
-    inputs: HashMap<(usize, usize), InputSpectra>,
+    inputs: HashMap<(usize, Plan), InputSpectra>,
 }
 
 impl Fft<'_> {
-    /// Spectra `[block][taxel][bin]` of sequence `s` for FFT length `len`, blocks
-    /// of `len/2` outputs, and whether each block's segment holds any non-zero.
-    fn input(&mut self, s: usize, len: usize) -> &InputSpectra {
+    /// Input spectra for `plan`: block `b`'s segment is
+    /// `x[b·block − (h − 1) .. + len)` (zero outside the trial).
+    fn input(&mut self, s: usize, plan: Plan) -> &InputSpectra {
         let (n, k) = (self.n, self.k);
         let (tpl, seqs) = (self.tpl, &self.seqs);
-        self.inputs.entry((s, len)).or_insert_with(|| {
-            let half = len / 2;
-            let bins = half + 1;
-            let blocks = k.div_ceil(half);
+        // A single block needs no overlap: its segment starts at frame 0.
+        let key = if plan.block >= k {
+            Plan { h: 1, ..plan }
+        } else {
+            plan
+        };
+        self.inputs.entry((s, key)).or_insert_with(|| {
+            let Plan { len, block, h } = key;
+            let bins = len / 2 + 1;
+            let blocks = k.div_ceil(block);
             let pair = tpl.plan(len);
             let mut scratch = pair.fwd.make_scratch_vec();
-            let mut out = vec![Complex::new(0.0, 0.0); blocks * n * bins];
+            let mut spec = vec![Complex::new(0.0, 0.0); bins];
+            let mut out = Soa {
+                re: vec![0.0; blocks * n * bins],
+                im: vec![0.0; blocks * n * bins],
+            };
             let mut nonzero = vec![false; blocks];
             let mut buf = vec![0.0; len];
             for (b, nz) in nonzero.iter_mut().enumerate() {
                 for t in 0..n {
                     let x = &seqs[s][t * k..(t + 1) * k];
-                    // Segment x[b·half − half, b·half + half).
-                    let start = b as isize * half as isize - half as isize;
+                    let start = (b * block) as isize - (h as isize - 1);
                     let mut any = false;
                     for (j, v) in buf.iter_mut().enumerate() {
                         let m = start + j as isize;
@@ -267,9 +322,11 @@ impl Fft<'_> {
                     *nz |= any;
                     if any {
                         let o = (b * n + t) * bins;
-                        let _ = pair
-                            .fwd
-                            .process_with_scratch(&mut buf, &mut out[o..o + bins], &mut scratch);
+                        let _ = pair.fwd.process_with_scratch(&mut buf, &mut spec, &mut scratch);
+                        for (f, z) in spec.iter().enumerate() {
+                            out.re[o + f] = z.re;
+                            out.im[o + f] = z.im;
+                        }
                     }
                 }
             }
@@ -282,49 +339,63 @@ impl Fft<'_> {
         let (n, k) = (self.n, self.k);
         let tpl = self.tpl;
         let h = tpl.classes()[c].len.min(k);
-        let len = (2 * h).next_power_of_two().max(64);
-        let half = len / 2;
-        let bins = half + 1;
-        let spec = tpl.batch_spectra(c, len);
+        let plan = Plan::new(k, h);
+        let Plan { len, block, .. } = plan;
+        let bins = len / 2 + 1;
+        let spec = tpl.batch_spectra(c, len, h);
         let pair = tpl.plan(len);
-        let (x, nonzero) = self.input(s, len);
+        let single = block >= k;
+        let (x, nonzero) = self.input(s, plan);
         let mut y = vec![0.0; k];
-        let mut acc = vec![Complex::new(0.0, 0.0); bins];
+        let mut acc = Soa {
+            re: vec![0.0; bins],
+            im: vec![0.0; bins],
+        };
+        let mut z = vec![Complex::new(0.0, 0.0); bins];
         let mut out = vec![0.0; len];
         let mut scratch = pair.inv.make_scratch_vec();
+        let fast = super::simd::fast_cpu();
+        // Output `b·block + r` sits at `r` (single block) or `h − 1 + r`.
+        let offset = if single { 0 } else { h - 1 };
         for (b, &nz) in nonzero.iter().enumerate() {
             if !nz {
                 continue;
             }
-            acc.iter_mut().for_each(|a| *a = Complex::new(0.0, 0.0));
+            acc.re.iter_mut().for_each(|a| *a = 0.0);
+            acc.im.iter_mut().for_each(|a| *a = 0.0);
             for t in 0..n {
-                let xs = &x[(b * n + t) * bins..(b * n + t + 1) * bins];
-                let hs = &spec[t * bins..(t + 1) * bins];
-                cmac(&mut acc, xs, hs);
+                let o = (b * n + t) * bins;
+                let r = t * bins..(t + 1) * bins;
+                cmac(
+                    fast,
+                    &mut acc,
+                    (&x.re[o..o + bins], &x.im[o..o + bins]),
+                    (&spec.re[r.clone()], &spec.im[r]),
+                );
+            }
+            for (f, v) in z.iter_mut().enumerate() {
+                *v = Complex::new(acc.re[f], acc.im[f]);
             }
             // Real inputs: DC and Nyquist are real up to rounding.
-            acc[0].im = 0.0;
-            acc[bins - 1].im = 0.0;
-            let _ = pair.inv.process_with_scratch(&mut acc, &mut out, &mut scratch);
-            for r in 0..half {
-                let kk = b * half + r;
+            z[0].im = 0.0;
+            z[bins - 1].im = 0.0;
+            let _ = pair.inv.process_with_scratch(&mut z, &mut out, &mut scratch);
+            for r in 0..block {
+                let kk = b * block + r;
                 if kk >= k {
                     break;
                 }
-                y[kk] = out[half + r];
+                y[kk] = out[offset + r];
             }
         }
         y
     }
 }
 
-/// `acc += x ⊙ h` over complex bins.
+/// `acc += x ⊙ h` over complex bins stored as separate parts.
 #[inline]
-pub(crate) fn cmac(acc: &mut [Complex<f64>], x: &[Complex<f64>], h: &[Complex<f64>]) {
-    for ((a, x), h) in acc.iter_mut().zip(x).zip(h) {
-        a.re += x.re * h.re - x.im * h.im;
-        a.im += x.re * h.im + x.im * h.re;
-    }
+pub(crate) fn cmac(fast: bool, acc: &mut Soa, x: (&[f64], &[f64]), h: (&[f64], &[f64])) {
+    super::simd::cmac(fast, &mut acc.re, &mut acc.im, x.0, x.1, h.0, h.1)
 }
 
 /// Windows whose weights average less than this per term are summed directly.

@@ -154,7 +154,7 @@ impl Default for WssParams {
     fn default() -> Self {
         WssParams {
             speed_mm_s: 2.0,
-            sigma_mm: 1.5,
+            sigma_mm: 1.0,
             line_width_mm: 0.2,
             angles: AngleGrid::default().resolve().unwrap_or_default(),
             weighting: Weighting::OneMinusSr,

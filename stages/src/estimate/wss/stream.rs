@@ -30,7 +30,7 @@
 
 use super::batch::{best_of, combine, direct_value, fast_series, finish, window, Prepared, GUARD};
 use super::params::{Refine, Weighting, WssParams};
-use super::templates::{FftPair, Spectra, Templates};
+use super::templates::{FftPair, Soa, Spectra, Templates};
 use palpate_core::{Estimate, StageError};
 use realfft::num_complex::Complex;
 use std::collections::VecDeque;
@@ -50,7 +50,7 @@ pub struct WssStream {
     parts: Vec<usize>,
     /// Input spectra `[seq][taxel][bin]` of completed blocks, newest first,
     /// with a flag for "not all zero".
-    fdl: VecDeque<(Vec<Complex<f64>>, bool)>,
+    fdl: VecDeque<(Soa, bool)>,
     max_parts: usize,
     /// Per class, tails of `P` and `Q` for the current block.
     tail: Vec<[Vec<f64>; 2]>,
@@ -61,10 +61,13 @@ pub struct WssStream {
     /// Prefix counts of frames with a non-zero weight under the current maximum.
     nzp: Vec<usize>,
     best: Vec<(f64, usize)>,
-    acc: [Vec<Complex<f64>>; 2],
+    acc: [Soa; 2],
+    z: Vec<Complex<f64>>,
+    spec: Vec<Complex<f64>>,
     buf: Vec<f64>,
     out: Vec<f64>,
     scratch: Vec<Complex<f64>>,
+    fast: bool,
 }
 
 impl WssStream {
@@ -101,13 +104,13 @@ impl WssStream {
             cp: vec![0.0],
             nzp: vec![0],
             best: vec![(f64::NEG_INFINITY, 0); nc],
-            acc: [
-                vec![Complex::new(0.0, 0.0); b + 1],
-                vec![Complex::new(0.0, 0.0); b + 1],
-            ],
+            acc: [soa(b + 1), soa(b + 1)],
+            z: vec![Complex::new(0.0, 0.0); b + 1],
+            spec: vec![Complex::new(0.0, 0.0); b + 1],
             buf: vec![0.0; 2 * b],
             out: vec![0.0; 2 * b],
             scratch: vec![Complex::new(0.0, 0.0); scratch],
+            fast: super::simd::fast_cpu(),
         })
     }
 
@@ -261,22 +264,16 @@ impl WssStream {
     fn head(&self, cl: usize, k: usize) -> (f64, f64) {
         let cls = &self.tpl.classes()[cl];
         let h = self.b.min(cls.len).min(k + 1);
-        let (mut p, mut q) = (0.0, 0.0);
-        for i in 0..h {
-            let m = k - i;
-            if self.prep.active[m] {
-                let r: f64 = self
-                    .prep
-                    .frame(m)
-                    .iter()
-                    .zip(cls.template(i))
-                    .map(|(a, b)| a * b)
-                    .sum();
-                p += r;
-                q += self.prep.count[m] * r;
-            }
-        }
-        (p, q)
+        super::simd::head(
+            self.fast,
+            &self.prep.norm,
+            &self.prep.active,
+            &self.prep.count,
+            &cls.data,
+            self.prep.n,
+            k,
+            h,
+        )
     }
 
     /// Block `blk` is complete: add its input spectra to the delay line and
@@ -284,7 +281,16 @@ impl WssStream {
     fn end_block(&mut self, blk: usize) {
         let (b, n) = (self.b, self.prep.n);
         let bins = b + 1;
-        let mut spec = vec![Complex::new(0.0, 0.0); 2 * n * bins];
+        // Reuse the delay line's oldest entry when it is full.
+        let mut spec = if self.fdl.len() >= self.max_parts {
+            self.fdl.pop_back().map(|(s, _)| s).unwrap_or_default()
+        } else {
+            Soa::default()
+        };
+        spec.re.clear();
+        spec.re.resize(2 * n * bins, 0.0);
+        spec.im.clear();
+        spec.im.resize(2 * n * bins, 0.0);
         let mut any = false;
         for s in 0..2 {
             for t in 0..n {
@@ -309,11 +315,14 @@ impl WssStream {
                 if nz {
                     any = true;
                     let o = (s * n + t) * bins;
-                    let _ = self.pair.fwd.process_with_scratch(
-                        &mut self.buf,
-                        &mut spec[o..o + bins],
-                        &mut self.scratch,
-                    );
+                    let _ =
+                        self.pair
+                            .fwd
+                            .process_with_scratch(&mut self.buf, &mut self.spec, &mut self.scratch);
+                    for (f, z) in self.spec.iter().enumerate() {
+                        spec.re[o + f] = z.re;
+                        spec.im[o + f] = z.im;
+                    }
                 }
             }
         }
@@ -323,7 +332,8 @@ impl WssStream {
             let parts = self.parts[cl];
             let spectra = &self.spectra[cl];
             for a in self.acc.iter_mut() {
-                a.iter_mut().for_each(|z| *z = Complex::new(0.0, 0.0));
+                a.re.iter_mut().for_each(|v| *v = 0.0);
+                a.im.iter_mut().for_each(|v| *v = 0.0);
             }
             let mut used = false;
             // Partition p pairs with the block p − 1 back from the newest.
@@ -334,10 +344,12 @@ impl WssStream {
                 }
                 used = true;
                 for t in 0..n {
-                    let h = &spectra[((p - 1) * n + t) * bins..((p - 1) * n + t + 1) * bins];
+                    let ho = ((p - 1) * n + t) * bins;
+                    let h = (&spectra.re[ho..ho + bins], &spectra.im[ho..ho + bins]);
                     for s in 0..2 {
-                        let xs = &x[(s * n + t) * bins..(s * n + t + 1) * bins];
-                        super::batch::cmac(&mut self.acc[s], xs, h);
+                        let xo = (s * n + t) * bins;
+                        let xs = (&x.re[xo..xo + bins], &x.im[xo..xo + bins]);
+                        super::batch::cmac(self.fast, &mut self.acc[s], xs, h);
                     }
                 }
             }
@@ -346,14 +358,24 @@ impl WssStream {
                     self.tail[cl][s].iter_mut().for_each(|v| *v = 0.0);
                     continue;
                 }
-                self.acc[s][0].im = 0.0;
-                self.acc[s][b].im = 0.0;
-                let _ =
-                    self.pair
-                        .inv
-                        .process_with_scratch(&mut self.acc[s], &mut self.out, &mut self.scratch);
+                for (f, v) in self.z.iter_mut().enumerate() {
+                    *v = Complex::new(self.acc[s].re[f], self.acc[s].im[f]);
+                }
+                self.z[0].im = 0.0;
+                self.z[b].im = 0.0;
+                let _ = self
+                    .pair
+                    .inv
+                    .process_with_scratch(&mut self.z, &mut self.out, &mut self.scratch);
                 self.tail[cl][s].copy_from_slice(&self.out[b..2 * b]);
             }
         }
+    }
+}
+
+fn soa(n: usize) -> Soa {
+    Soa {
+        re: vec![0.0; n],
+        im: vec![0.0; n],
     }
 }

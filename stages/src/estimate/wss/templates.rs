@@ -28,9 +28,30 @@ use realfft::{ComplexToReal, RealFftPlanner, RealToComplex};
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
 
+/// Complex values stored as separate real and imaginary parts, so that the
+/// frequency-domain multiply-accumulate loops vectorise.
+#[derive(Clone, Debug, Default)]
+pub(crate) struct Soa {
+    pub re: Vec<f64>,
+    pub im: Vec<f64>,
+}
+
+impl Soa {
+    pub(crate) fn from_complex(v: &[Complex<f64>]) -> Soa {
+        Soa {
+            re: v.iter().map(|z| z.re).collect(),
+            im: v.iter().map(|z| z.im).collect(),
+        }
+    }
+}
+
 /// A spectrum set: `[taxel][bin]` for one class (batch), or
 /// `[partition][taxel][bin]` (streaming), flattened.
-pub(crate) type Spectra = Arc<Vec<Complex<f64>>>;
+pub(crate) type Spectra = Arc<Soa>;
+
+/// Bytes of batch spectra kept before the cache is emptied (a run over many
+/// trial lengths would otherwise keep one set per length class).
+const BATCH_CACHE_BYTES: usize = 256 << 20;
 
 /// The templates of one class.
 #[derive(Clone, Debug)]
@@ -55,7 +76,8 @@ impl ClassTemplates {
 
 #[derive(Default)]
 struct Caches {
-    batch: HashMap<(usize, usize), Spectra>,
+    batch: HashMap<(usize, usize, usize), Spectra>,
+    batch_bytes: usize,
     stream: HashMap<(usize, usize), Spectra>,
     plans: HashMap<usize, FftPair>,
 }
@@ -231,18 +253,18 @@ impl Templates {
             .clone()
     }
 
-    /// Spectra `[taxel][bin]` of class `c`'s templates (the first
-    /// `min(len, fft_len/2)` of them, zero-padded to `fft_len`), scaled by
-    /// `1/fft_len` so that the inverse FFT of a product is the convolution.
-    pub(crate) fn batch_spectra(&self, c: usize, fft_len: usize) -> Spectra {
-        if let Some(s) = self.lock().batch.get(&(c, fft_len)) {
+    /// Spectra `[taxel][bin]` of class `c`'s first `h` templates, zero-padded to
+    /// `fft_len`, scaled by `1/fft_len` so that the inverse FFT of a product is
+    /// the convolution.
+    pub(crate) fn batch_spectra(&self, c: usize, fft_len: usize, h: usize) -> Spectra {
+        if let Some(s) = self.lock().batch.get(&(c, fft_len, h)) {
             return s.clone();
         }
         let pair = self.plan(fft_len);
         let cls = &self.classes[c];
         let n = self.n_taxels();
         let bins = fft_len / 2 + 1;
-        let h = cls.len.min(fft_len / 2);
+        let h = h.min(cls.len).min(fft_len);
         let scale = 1.0 / fft_len as f64;
         let mut out = vec![Complex::new(0.0, 0.0); n * bins];
         let mut buf = vec![0.0; fft_len];
@@ -254,8 +276,15 @@ impl Templates {
             // Lengths match by construction, so the FFT cannot fail.
             let _ = pair.fwd.process(&mut buf, &mut out[t * bins..(t + 1) * bins]);
         }
-        let s = Arc::new(out);
-        self.lock().batch.insert((c, fft_len), s.clone());
+        let s = Arc::new(Soa::from_complex(&out));
+        let mut cache = self.lock();
+        let bytes = n * bins * 16;
+        if cache.batch_bytes + bytes > BATCH_CACHE_BYTES {
+            cache.batch.clear();
+            cache.batch_bytes = 0;
+        }
+        cache.batch_bytes += bytes;
+        cache.batch.insert((c, fft_len, h), s.clone());
         s
     }
 
@@ -289,7 +318,7 @@ impl Templates {
                 let _ = pair.fwd.process(&mut buf, &mut out[o..o + bins]);
             }
         }
-        let s = Arc::new(out);
+        let s = Arc::new(Soa::from_complex(&out));
         self.lock().stream.insert((c, b), s.clone());
         s
     }
