@@ -82,7 +82,10 @@ impl HexFingertipConfig {
         if positions.len() < 3 {
             return Err(ConfigError::key(
                 "pitch_mm",
-                format!("the patch holds {} taxel(s); make it larger or the pitch smaller", positions.len()),
+                format!(
+                    "the patch holds {} taxel(s); make it larger or the pitch smaller",
+                    positions.len()
+                ),
             ));
         }
         let mut keys = serde_json::json!({
@@ -119,7 +122,10 @@ impl StageConfig for HexFingertipConfig {
             palpate_core::check_positive(key, v, "mm")?;
         }
         if self.taxel_mm > self.pitch_mm {
-            return Err(ConfigError::key("taxel_mm", "taxels would overlap: make it at most pitch_mm"));
+            return Err(ConfigError::key(
+                "taxel_mm",
+                "taxels would overlap: make it at most pitch_mm",
+            ));
         }
         self.scene_config()?.build(ctx)
     }
@@ -154,7 +160,11 @@ mod tests {
 
     #[test]
     fn a_tiny_patch_is_an_error_naming_the_key() {
-        let c = HexFingertipConfig { width_mm: 1.0, length_mm: 1.0, ..Default::default() };
+        let c = HexFingertipConfig {
+            width_mm: 1.0,
+            length_mm: 1.0,
+            ..Default::default()
+        };
         let ctx = BuildContext {
             stage_id: "hex".into(),
             seed: 0,
