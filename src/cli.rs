@@ -55,6 +55,19 @@ enum Command {
         #[arg(long, value_enum, default_value_t = Format::Dot)]
         format: Format,
     },
+    /// Simulate a scene file's trials: NPY and CSV signals per trial, the trials'
+    /// metadata, and an SVG plot of one taxel over a trial (like the paper's Fig. 3a).
+    Simulate {
+        /// A scene file, e.g. graphs/scenes/lab.toml.
+        scene: PathBuf,
+        /// Output directory.
+        #[arg(long)]
+        out: PathBuf,
+        /// Seed (the same seed gives the same bits as a graph whose `scene` stage
+        /// has id `scene` and `file` = this file).
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+    },
     /// Print the JSON schema of graph files (generated from every registered
     /// stage), for editors that validate and complete TOML.
     Schema,
@@ -124,6 +137,18 @@ pub fn main() -> ExitCode {
             None => ExitCode::FAILURE,
         },
         Command::Stages { r#type } => cmd_stages(r#type),
+        Command::Simulate { scene, out, seed } => {
+            match crate::stages::scene::simulate_to_dir(&scene, &out, seed) {
+                Ok(files) => {
+                    println!("wrote {} files to {}", files.len(), out.display());
+                    ExitCode::SUCCESS
+                }
+                Err(e) => {
+                    eprintln!("{}: {e}", scene.display());
+                    ExitCode::FAILURE
+                }
+            }
+        }
         Command::Schema => match serde_json::to_string_pretty(&registry::graph_schema()) {
             Ok(s) => {
                 println!("{s}");

@@ -238,3 +238,42 @@ fn every_builtin_stage_type_is_registered() {
         );
     }
 }
+
+#[test]
+fn the_committed_graph_schema_is_up_to_date() {
+    palpate::link();
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("graphs/palpate-graph.schema.json");
+    let committed: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&path).unwrap()).unwrap();
+    assert!(
+        committed == core::registry::graph_schema(),
+        "graphs/palpate-graph.schema.json is stale: regenerate it with `cargo run -- schema > graphs/palpate-graph.schema.json`"
+    );
+}
+
+#[test]
+fn simulate_writes_signals_and_a_plot() {
+    let dir = out_dir("simulate");
+    let scene = dir.join("small.toml");
+    std::fs::create_dir_all(&dir).unwrap();
+    std::fs::write(&scene, "angles = [45.0]\ntrials_per_angle = 2\n").unwrap();
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_palpate"))
+        .args([
+            "simulate",
+            scene.to_str().unwrap(),
+            "--out",
+            dir.join("o").to_str().unwrap(),
+        ])
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let names: Vec<String> = std::fs::read_dir(dir.join("o"))
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into())
+        .collect();
+    for want in ["edge-45deg-r00.npy", "edge-45deg-r01.csv", "trials.json"] {
+        assert!(names.iter().any(|n| n == want), "{want} not in {names:?}");
+    }
+    assert!(names.iter().any(|n| n.ends_with(".svg")), "{names:?}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}

@@ -131,10 +131,11 @@ pub fn stage_doc(reg: &StageRegistration) -> StageDoc {
                 default: if required.contains(&name.as_str()) {
                     None
                 } else {
-                    prop.get("default")
-                        .or_else(|| resolved.get("default"))
-                        .map(|d| d.to_string())
-                        .or_else(|| Some("(none)".into()))
+                    // An optional key without a default reads "unset".
+                    match prop.get("default").or_else(|| resolved.get("default")) {
+                        None | Some(serde_json::Value::Null) => Some("unset".into()),
+                        Some(d) => Some(d.to_string()),
+                    }
                 },
                 doc: prop
                     .get("description")
