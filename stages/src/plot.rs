@@ -144,6 +144,7 @@ pub fn heatmap(
 pub fn bar_chart(
     path: &Path,
     title: &str,
+    x_label: &str,
     y_label: &str,
     categories: &[String],
     series: &[(&str, Vec<f64>)],
@@ -181,6 +182,7 @@ pub fn bar_chart(
             .disable_x_mesh()
             .x_labels(2 * n_cat + 1)
             .x_label_formatter(&label)
+            .x_desc(x_label)
             .y_desc(y_label)
             .draw()
             .map_err(err(path))?;

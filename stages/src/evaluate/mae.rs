@@ -257,7 +257,7 @@ pub fn to_markdown(all: &[MaeStats]) -> String {
         ("coarse acuity MAE", |st| {
             st.coarse
                 .iter()
-                .map(|(a, m)| format!("{}: {a}°", fmt_opt(*m, 2)))
+                .map(|(a, m)| format!("{a}°: {}", fmt_opt(*m, 2)))
                 .collect::<Vec<_>>()
                 .join(", ")
         }),
@@ -339,13 +339,59 @@ impl Sink for MaeSink {
             report
                 .metrics
                 .push((format!("{id}.no_edge"), stats.no_edge as f64));
+            for (a, m) in &stats.coarse {
+                if let Some(m) = m {
+                    report.metrics.push((format!("{id}.mae_at_{a}deg"), *m));
+                }
+            }
             all.push(stats);
         }
-        let path = ctx.out_dir.join(format!("{}.json", ctx.stage_id));
+        let out = |ext: &str| ctx.out_dir.join(format!("{}{ext}", ctx.stage_id));
         let json = serde_json::to_vec_pretty(&all).map_err(|e| StageError::new(e.to_string()))?;
-        write_atomic(&path, &json)
-            .map_err(|e| StageError::new(format!("writing {}: {e}", path.display())))?;
-        report.files.push(path);
+        let files: [(std::path::PathBuf, Vec<u8>); 3] = [
+            (out(".json"), json),
+            (out(".csv"), to_csv(&all).into_bytes()),
+            (out(".md"), to_markdown(&all).into_bytes()),
+        ];
+        for (path, bytes) in files {
+            write_atomic(&path, &bytes)
+                .map_err(|e| StageError::new(format!("writing {}: {e}", path.display())))?;
+            report.files.push(path);
+        }
+        let mut angles: Vec<f64> = all
+            .iter()
+            .flat_map(|s| s.classes.iter().map(|c| c.angle_deg))
+            .collect();
+        angles.sort_by(f64::total_cmp);
+        angles.dedup_by(|a, b| (*a - *b).abs() < 1e-9);
+        let class_mae = |st: &MaeStats, a: f64| {
+            st.classes
+                .iter()
+                .find(|c| (c.angle_deg - a).abs() < 1e-9)
+                .and_then(|c| c.mae_deg)
+                .unwrap_or(f64::NAN)
+        };
+        let series: Vec<(&str, Vec<f64>)> = all
+            .iter()
+            .map(|st| {
+                (
+                    st.estimator.as_str(),
+                    angles.iter().map(|&a| class_mae(st, a)).collect(),
+                )
+            })
+            .collect();
+        let svg = out("_per_class.svg");
+        let cats: Vec<String> = angles.iter().map(|a| format!("{a}")).collect();
+        crate::plot::bar_chart(
+            &svg,
+            "MAE per class",
+            "true angle (degrees)",
+            "MAE (degrees)",
+            &cats,
+            &series,
+        )
+        .map_err(|e| StageError::new(e.to_string()))?;
+        report.files.push(svg);
         Ok(report)
     }
 }
