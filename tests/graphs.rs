@@ -146,7 +146,12 @@ fn cli_check_prints_five_errors_with_stage_and_line() {
         &bad,
         r#"[stages.scene]
 type = "scene"
-trials_per_angel = 3
+trials_per_angle = 3
+
+[stages.norm]
+type = "normalize"
+inputs = ["scene"]
+mode = "sideways"
 
 [stages.enc]
 type = "izhikevich"
@@ -160,14 +165,11 @@ inputs = ["scene"]
 [stages.est]
 type = "wss"
 inputs = ["bins"]
+sigma = 1.0
 
 [stages.report]
 type = "mea"
 inputs = ["est"]
-
-[stages.report2]
-type = "mae"
-inputs = ["estimates"]
 "#,
     )
     .unwrap();

@@ -481,7 +481,8 @@ impl<'t> Loader<'t> {
             }
         }
 
-        let (order, input_index) = self.check_graph(&pending, &lines, stages_declared(&doc));
+        let (order, input_index) =
+            self.check_graph(&pending, &lines, stages_declared(&doc), &inputs_declared(&doc));
         if self.diags.iter().any(|d| d.severity == Severity::Error) {
             return Err(LoadErrors(self.diags));
         }
@@ -869,6 +870,7 @@ impl<'t> Loader<'t> {
         nodes: &[Pending],
         lines: &Lines,
         declared: Vec<String>,
+        referenced: &[String],
     ) -> (Vec<usize>, Vec<Vec<usize>>) {
         let index: HashMap<&str, usize> = nodes
             .iter()
@@ -996,7 +998,8 @@ impl<'t> Loader<'t> {
         }
 
         for (i, n) in nodes.iter().enumerate() {
-            if !read[i] && n.config.output().is_some() {
+            // A stage that failed to load still reads its inputs: no false warning.
+            if !read[i] && !referenced.contains(&n.id) && n.config.output().is_some() {
                 self.diags.push(Diagnostic {
                     severity: Severity::Warning,
                     file: self.file.clone(),
@@ -1023,6 +1026,19 @@ impl<'t> Loader<'t> {
 /// toml's messages append a location ("in `key`") after a blank line; we give our own.
 fn first_line(message: &str) -> &str {
     message.lines().next().unwrap_or(message).trim_end()
+}
+
+/// Every id named in any declared stage's `inputs`, loaded or not.
+fn inputs_declared(doc: &toml::Table) -> Vec<String> {
+    let Some(stages) = doc.get("stages").and_then(|s| s.as_table()) else {
+        return Vec::new();
+    };
+    stages
+        .values()
+        .filter_map(|st| st.get("inputs").and_then(|i| i.as_array()))
+        .flatten()
+        .filter_map(|v| v.as_str().map(str::to_string))
+        .collect()
 }
 
 fn stages_declared(doc: &toml::Table) -> Vec<String> {

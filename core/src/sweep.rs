@@ -88,9 +88,15 @@ pub fn load_points(
         for r in 0..sweep.repeats {
             let mut o = opts.clone();
             o.overrides.push((sweep.key.clone(), value.clone()));
+            // Repeat r shifts the seed by r; when the sweep is over the seed itself,
+            // the swept value is the base (else the repeat's override would hide it).
+            let seed = match (sweep.key.as_str(), value) {
+                ("run.seed", toml::Value::Integer(v)) => *v as u64,
+                _ => base.run.seed,
+            };
             o.overrides.push((
                 "run.seed".into(),
-                toml::Value::Integer(base.run.seed.wrapping_add(r as u64) as i64),
+                toml::Value::Integer(seed.wrapping_add(r as u64) as i64),
             ));
             o.out = Some(point_dir(&base.out_dir, &lbl, (sweep.repeats > 1).then_some(r)));
             match load_str(text, file, stem, &o) {

@@ -131,3 +131,35 @@ values = [10, 0]
         "{msg}"
     );
 }
+
+#[test]
+fn a_sweep_over_the_seed_uses_each_value() {
+    let text = r#"
+[run]
+seed = 1
+
+[stages.src]
+type = "t_source"
+samples = 20
+
+[stages.est]
+type = "t_estimator"
+inputs = ["src"]
+
+[stages.sink]
+type = "t_sink"
+inputs = ["est"]
+
+[sweep]
+key = "run.seed"
+values = [5, 9]
+repeats = 2
+"#;
+    let g = load(text).unwrap();
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let runs =
+        palpate_core::sweep::run_text(text, "t.toml", "t", &Default::default(), &g, &Default::default())
+            .unwrap();
+    let seeds: Vec<u64> = runs.iter().map(|r| r.seed).collect();
+    assert_eq!(seeds, [5, 6, 9, 10]);
+}
