@@ -16,6 +16,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 OUT=out/paper
 start=$(date +%s.%N)
+load=$(cut -d" " -f1 /proc/loadavg 2>/dev/null || echo null)
 
 echo "== building the release binary"
 cargo build --release --quiet
@@ -46,7 +47,8 @@ end=$(date +%s.%N)
 total=$(printf '%.2f' "$(echo "$end - $start" | bc)")
 build=$(printf '%.2f' "$(echo "$build_end - $start" | bc)")
 {
-    printf '{"total_s": %s, "build_s": %s, "cores": %s, "graphs": {' "$total" "$build" "$(nproc)"
+    printf '{"total_s": %s, "build_s": %s, "cores": %s, "load_at_start": %s, "graphs": {' \
+        "$total" "$build" "$(nproc)" "$load"
     (IFS=,; printf '%s' "${timings[*]}")
     printf '}}\n'
 } > "$OUT/timing.json"

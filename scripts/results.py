@@ -627,7 +627,8 @@ def main():
     if wall:
         head += [
             f"Measured wall time of that command on the machine that generated this file: "
-            f"**{wall['total_s']:.0f} s** ({wall.get('cores', '?')} cores; release build step "
+            f"**{wall['total_s']:.0f} s** ({wall.get('cores', '?')} cores, load average "
+            f"{wall.get('load_at_start', '?')} when it started; release build step "
             f"{wall.get('build_s', 0):.0f} s; per graph: "
             + ", ".join(f"{k} {v:.0f} s" for k, v in wall.get("graphs", {}).items()) + ").",
             "",
