@@ -183,11 +183,11 @@ inputs = ["est"]
     let errors: Vec<&str> = stderr.lines().filter(|l| l.contains(": error: ")).collect();
     assert_eq!(errors.len(), 5, "{stderr}");
     for (line, stage) in [
-        (3, "scene"),
-        (8, "enc"),
-        (12, "bins"),
-        (19, "report"),
-        (23, "report2"),
+        (8, "norm"),
+        (13, "enc"),
+        (17, "bins"),
+        (22, "est"),
+        (25, "report"),
     ] {
         assert!(
             errors
