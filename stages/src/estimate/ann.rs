@@ -85,7 +85,7 @@ pub struct AnnConfig {
     pub stride: usize,
     /// Smallest spike total of a used vector (frames below are skipped). Default 1.
     pub min_spikes: f64,
-    /// Most vectors a training trial contributes (evenly spaced). Default 100.
+    /// Most vectors a training trial contributes (evenly spaced). Default 50.
     pub max_train_frames: usize,
     /// Hidden units. Default 30 (the paper's).
     pub hidden: usize,
@@ -119,7 +119,7 @@ impl Default for AnnConfig {
             step: 0,
             stride: 0,
             min_spikes: 1.0,
-            max_train_frames: 100,
+            max_train_frames: 50,
             hidden: 30,
             optimizer: Optimizer::Adam,
             learning_rate: 0.005,

@@ -18,22 +18,38 @@
 //!   with `conf_c` the summed decision values in favour of `c`, so confidences
 //!   only order classes with equal votes; scores are divided by `K - 1`. The
 //!   fitted machines (support vectors, coefficients, bias) are copied out of
-//!   smartcore into [`OvoSvm`]: smartcore's `SVC` borrows its parameters and its
-//!   deserialized form cannot predict, and evaluating the decision function
-//!   ourselves lets it vectorise. `γ = 0` (auto) is `1 / dim` (sklearn's
-//!   "scale" for standardised features).
+//!   smartcore into [`OvoSvm`], which pools the support vectors of all machines
+//!   so each one's kernel value is computed once per frame (libsvm's scheme).
+//!   `γ = 0` (auto) is `1 / dim` (sklearn's "scale" for standardised features).
+//!   Cost: smartcore's SVC recomputes (and allocates for) every kernel value it
+//!   touches, so a fold on the paper-sized set takes seconds even with few
+//!   vectors; the default caps a training trial at 5 vectors (45 per class, 90
+//!   per pair) and one solver pass, which keeps the whole Table 2 graph under a
+//!   minute on two cores. Pairs with fewer rows than features are handled (see
+//!   the fit) because smartcore truncates such support vectors.
 //! * `random_forest`: smartcore's `RandomForestClassifier` (Gini, bootstrap,
-//!   `m = sqrt(dim)` features per split by default); each vector votes for its
-//!   predicted class (score 1).
-//! * `knn`: smartcore's `KNNClassifier` (Euclidean, cover tree), class scores =
-//!   its `predict_proba` (share of the `k` neighbours, optionally distance-weighted).
+//!   `m = sqrt(dim)` features per split by default), 15 trees on at most 15
+//!   vectors per training trial (smartcore grows a tree in ~0.1 s on 2300
+//!   vectors; 100 trees on 100 per trial took ~50 s per fold); each vector votes for its predicted class (score 1).
+//! * `knn`: k nearest neighbours (Euclidean, on the standardised vectors),
+//!   class scores = the neighbours' shares (optionally `1/d`-weighted), as
+//!   smartcore's `KNNClassifier::predict_proba`. The search is an exact
+//!   brute-force scan of our own: smartcore's (cover tree or linear) went
+//!   through boxed iterators per distance and took ~20 s per fold; the scan
+//!   keeps the `k` smallest `(distance, index)` pairs, so ties go to the earlier
+//!   training vector whatever the evaluation order.
 //! * `logistic`: smartcore's multinomial `LogisticRegression` (L-BFGS, L2 penalty
-//!   `alpha`); the coefficients are copied into [`Softmax`], whose class scores
-//!   are the softmax probabilities.
+//!   `alpha` on the summed loss); the coefficients are copied into [`Softmax`],
+//!   whose class scores are the softmax probabilities. Default input: one image
+//!   (`frames = 1`): a linear score cannot express "these taxels fire *after*
+//!   those" wherever the edge sits in a stacked window, and on the lab scene
+//!   the stacked 5-image input gave a worse MAE (~24° against ~16°) at ~10x the
+//!   L-BFGS cost. It is the weakest baseline by design, kept as the linear reference.
 //!
 //! Seeds: the SVM pairs and the forest take seeds from the fold's RNG; k-NN and
 //! logistic regression are deterministic. The SVM pairs train in parallel and
-//! are gathered in pair order, so 1 or N threads give the same bits.
+//! are gathered (and their support vectors pooled) in pair order, so 1 or N
+//! threads give the same bits.
 
 use super::ann::{dot, softmax};
 use super::features::{
@@ -53,9 +69,6 @@ use smartcore::ensemble::random_forest_classifier::{
 use smartcore::linalg::basic::arrays::Array;
 use smartcore::linalg::basic::matrix::DenseMatrix;
 use smartcore::linear::logistic_regression::{LogisticRegression, LogisticRegressionParameters};
-use smartcore::metrics::distance::euclidian::Euclidian;
-use smartcore::neighbors::knn_classifier::{KNNClassifier, KNNClassifierParameters};
-use smartcore::neighbors::KNNWeightFunction;
 use smartcore::svm::svc::{SVCParameters, SVC};
 use smartcore::svm::Kernels;
 use std::path::PathBuf;
@@ -151,13 +164,13 @@ pub struct SvmConfig {
     pub stride: usize,
     /// Smallest spike total of a used vector. Default 1.
     pub min_spikes: f64,
-    /// Most vectors a training trial contributes (evenly spaced). Default 40.
+    /// Most vectors a training trial contributes (evenly spaced). Default 5.
     pub max_train_frames: usize,
     /// Soft-margin penalty C. Default 10.
     pub c: f64,
     /// RBF width γ of `exp(-γ‖x-z‖²)` on standardised features; 0 = auto (1 / dim). Default 0.
     pub gamma: f64,
-    /// Passes of the LaSVM solver over each pair's data. Default 2.
+    /// Passes of the LaSVM solver over each pair's data. Default 1.
     pub epochs: usize,
     /// Solver tolerance. Default 1e-3.
     pub tol: f64,
@@ -174,10 +187,10 @@ impl Default for SvmConfig {
             step: 0,
             stride: 0,
             min_spikes: 1.0,
-            max_train_frames: 40,
+            max_train_frames: 5,
             c: 10.0,
             gamma: 0.0,
-            epochs: 2,
+            epochs: 1,
             tol: 1e-3,
             vote: Vote::Winner,
             save_model: false,
@@ -192,15 +205,18 @@ pub struct BinarySvm {
     pub a: usize,
     /// Class index on the positive side.
     pub b: usize,
-    /// Support vectors, row-major.
-    pub sv: Vec<f64>,
+    /// Its support vectors, as rows of [`OvoSvm::sv`].
+    pub sv_index: Vec<u32>,
     /// Their coefficients.
     pub coef: Vec<f64>,
     /// Bias.
     pub bias: f64,
 }
 
-/// A fitted one-vs-one RBF SVM.
+/// A fitted one-vs-one RBF SVM. The machines' support vectors are pooled:
+/// a training vector is a support vector of up to `K - 1` machines, and its
+/// kernel value is computed once per frame (as libsvm does), which cuts the
+/// cost of a prediction ~`K/2`-fold.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct OvoSvm {
     /// Input size.
@@ -211,20 +227,27 @@ pub struct OvoSvm {
     pub gamma: f64,
     /// Input standardisation.
     pub scaler: Standardizer,
+    /// Distinct support vectors of all machines, row-major.
+    pub sv: Vec<f64>,
     /// One machine per class pair, in pair order.
     pub machines: Vec<BinarySvm>,
 }
 
 impl OvoSvm {
-    /// Decision value of machine `m` at standardised `x`.
-    pub fn decision(&self, m: &BinarySvm, x: &[f64]) -> f64 {
+    /// Kernel values `exp(-γ‖x - s‖²)` of standardised `x` against every pooled support vector.
+    pub fn kernel_row(&self, x: &[f64], out: &mut Vec<f64>) {
+        out.clear();
+        out.extend(self.sv.chunks_exact(self.dim.max(1)).map(|s| {
+            let d2: f64 = s.iter().zip(x).map(|(a, b)| (a - b) * (a - b)).sum();
+            (-self.gamma * d2).exp()
+        }));
+    }
+
+    /// Decision value of machine `m` given the kernel row of `x`.
+    pub fn decision(&self, m: &BinarySvm, kernel: &[f64]) -> f64 {
         let mut f = m.bias;
-        for (sv, c) in m.sv.chunks_exact(self.dim).zip(&m.coef) {
-            let mut d2 = 0.0;
-            for (a, b) in sv.iter().zip(x) {
-                d2 += (a - b) * (a - b);
-            }
-            f += c * (-self.gamma * d2).exp();
+        for (&i, c) in m.sv_index.iter().zip(&m.coef) {
+            f += c * kernel.get(i as usize).copied().unwrap_or(0.0);
         }
         f
     }
@@ -233,10 +256,12 @@ impl OvoSvm {
     pub fn frame_scores(&self, x: &[f64], out: &mut [f64]) {
         let mut z = x.to_vec();
         self.scaler.apply(&mut z);
+        let mut kernel = Vec::with_capacity(self.sv.len() / self.dim.max(1));
+        self.kernel_row(&z, &mut kernel);
         let mut votes = vec![0.0; self.classes];
         let mut conf = vec![0.0; self.classes];
         for m in &self.machines {
-            let f = self.decision(m, &z);
+            let f = self.decision(m, &kernel);
             if f > 0.0 {
                 votes[m.b] += 1.0;
             } else {
@@ -303,19 +328,29 @@ impl SvmConfig {
                 };
                 let pairs: Vec<(usize, usize)> =
                     (0..k).flat_map(|a| (a + 1..k).map(move |b| (a, b))).collect();
-                let machines: Vec<Result<BinarySvm, StageError>> = pairs
+                // Each pair's machine, as (class a, class b, support vectors, coefficients, bias).
+                type Raw = (usize, usize, Vec<Vec<f64>>, Vec<f64>, f64);
+                let machines: Vec<Result<Raw, StageError>> = pairs
                     .par_iter()
                     .enumerate()
                     .map(|(p, &(a, b))| {
                         let idx: Vec<usize> = (0..d.y.len())
                             .filter(|&i| set.y[i] == a || set.y[i] == b)
                             .collect();
+                        // smartcore 0.4's SVC copies `min(rows, dim)` values of each
+                        // row (it takes `n_rows` items of a row), so with fewer rows
+                        // than features the support vectors come back truncated. Each
+                        // row is then repeated `r` times with `C / r`: the dual of that
+                        // problem has the same solution (the copies' multipliers sum
+                        // to the original one's, bounded by `C`).
+                        let r = set.dim.div_ceil(idx.len().max(1)).max(1);
+                        let idx: Vec<usize> = (0..r).flat_map(|_| idx.iter().copied()).collect();
                         let mut flat = Vec::with_capacity(idx.len() * set.dim);
                         idx.iter().for_each(|&i| flat.extend_from_slice(&d.rows[i]));
                         let x = DenseMatrix::new(idx.len(), set.dim, flat, false).map_err(smart_err)?;
                         let y: Vec<i32> = idx.iter().map(|&i| i32::from(set.y[i] == b)).collect();
                         let params = SVCParameters::default()
-                            .with_c(self.c)
+                            .with_c(self.c / r as f64)
                             .with_epoch(self.epochs)
                             .with_tol(self.tol)
                             .with_kernel(Kernels::rbf().with_gamma(gamma))
@@ -329,31 +364,47 @@ impl SvmConfig {
                                 "smartcore's SVC came back without support vectors",
                             ));
                         };
-                        let mut sv = Vec::with_capacity(inst.len() * set.dim);
-                        for v in &inst {
-                            if v.len() != set.dim {
-                                return Err(StageError::new(
-                                    "smartcore's SVC returned a support vector of the wrong size",
-                                ));
-                            }
-                            sv.extend_from_slice(v);
+                        if inst.len() != w.len() || inst.iter().any(|v| v.len() != set.dim) {
+                            return Err(StageError::new(
+                                "smartcore's SVC returned support vectors of the wrong shape",
+                            ));
                         }
-                        Ok(BinarySvm {
-                            a,
-                            b,
-                            sv,
-                            coef: w,
-                            bias,
-                        })
+                        Ok((a, b, inst, w, bias))
                     })
                     .collect();
-                let machines = machines.into_iter().collect::<Result<Vec<_>, _>>()?;
+                // Pool the support vectors in pair order (a deterministic order
+                // whatever the thread count); equal rows share one entry.
+                let mut pool: Vec<f64> = Vec::new();
+                let mut seen: std::collections::HashMap<Vec<u64>, u32> = std::collections::HashMap::new();
+                let mut out = Vec::with_capacity(machines.len());
+                for m in machines {
+                    let (a, b, inst, coef, bias) = m?;
+                    let sv_index = inst
+                        .iter()
+                        .map(|v| {
+                            let key: Vec<u64> = v.iter().map(|x| x.to_bits()).collect();
+                            let next = (pool.len() / set.dim.max(1)) as u32;
+                            *seen.entry(key).or_insert_with(|| {
+                                pool.extend_from_slice(v);
+                                next
+                            })
+                        })
+                        .collect();
+                    out.push(BinarySvm {
+                        a,
+                        b,
+                        sv_index,
+                        coef,
+                        bias,
+                    });
+                }
                 Ok(Classifier::Svm(OvoSvm {
                     dim: set.dim,
                     classes: k,
                     gamma,
                     scaler,
-                    machines,
+                    sv: pool,
+                    machines: out,
                 }))
             },
         )
@@ -396,9 +447,9 @@ pub struct RandomForestConfig {
     pub stride: usize,
     /// Smallest spike total of a used vector. Default 1.
     pub min_spikes: f64,
-    /// Most vectors a training trial contributes (evenly spaced). Default 100.
+    /// Most vectors a training trial contributes (evenly spaced). Default 15.
     pub max_train_frames: usize,
-    /// Trees. Default 100.
+    /// Trees. Default 15.
     pub n_trees: u16,
     /// Largest tree depth; 0 = unlimited. Default 0.
     pub max_depth: u16,
@@ -419,8 +470,8 @@ impl Default for RandomForestConfig {
             step: 0,
             stride: 0,
             min_spikes: 1.0,
-            max_train_frames: 100,
-            n_trees: 100,
+            max_train_frames: 15,
+            n_trees: 15,
             max_depth: 0,
             min_samples_leaf: 1,
             m: 0,
@@ -561,7 +612,7 @@ pub struct KnnConfig {
     pub stride: usize,
     /// Smallest spike total of a used vector. Default 1.
     pub min_spikes: f64,
-    /// Most vectors a training trial contributes (evenly spaced). Default 100.
+    /// Most vectors a training trial contributes (evenly spaced). Default 20.
     pub max_train_frames: usize,
     /// Neighbours. Default 10.
     pub k: usize,
@@ -580,7 +631,7 @@ impl Default for KnnConfig {
             step: 0,
             stride: 0,
             min_spikes: 1.0,
-            max_train_frames: 100,
+            max_train_frames: 20,
             k: 10,
             weight: KnnWeight::Uniform,
             vote: Vote::Winner,
@@ -589,35 +640,90 @@ impl Default for KnnConfig {
     }
 }
 
-/// A fitted k-NN classifier.
-#[derive(Debug, Serialize, Deserialize)]
+/// A fitted k-NN classifier: the standardised training vectors and their classes.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Knn {
     /// Number of classes.
     pub classes: usize,
+    /// Input size.
+    pub dim: usize,
+    /// Neighbours.
+    pub k: usize,
+    /// Neighbour weighting.
+    pub weight: KnnWeight,
     /// Input standardisation.
     pub scaler: Standardizer,
-    /// smartcore's classifier (labels are class indices).
-    pub knn: KNNClassifier<f64, i32, DenseMatrix<f64>, Vec<i32>, Euclidian<f64>>,
+    /// Standardised training vectors, row-major.
+    pub x: Vec<f64>,
+    /// Their class indices.
+    pub y: Vec<usize>,
 }
 
 impl Knn {
-    /// Neighbour shares per class.
+    /// The `k` nearest training vectors of standardised `z` as (squared
+    /// distance, index), nearest first; ties go to the lower index, so the
+    /// answer does not depend on evaluation order.
+    pub fn neighbours(&self, z: &[f64]) -> Vec<(f64, usize)> {
+        let k = self.k.min(self.y.len());
+        let mut best: Vec<(f64, usize)> = Vec::with_capacity(k + 1);
+        for (i, row) in self.x.chunks_exact(self.dim.max(1)).enumerate() {
+            let d2 = sq_dist(row, z);
+            // Inputs are checked finite, so d2 is; a non-finite one is never a neighbour.
+            if !d2.is_finite() || (best.len() == k && d2 >= best[k - 1].0) {
+                continue;
+            }
+            // Insert keeping (distance, index) order; equal distances keep the earlier index first.
+            let pos = best.partition_point(|&(d, _)| d <= d2);
+            best.insert(pos, (d2, i));
+            best.truncate(k);
+        }
+        best
+    }
+
+    /// Neighbour shares per class (weighted by `1 / distance` in `distance`
+    /// mode; neighbours at distance 0, if any, share all the weight).
     pub fn frame_scores(&self, x: &[f64], out: &mut [f64]) {
         out.iter_mut().for_each(|o| *o = 0.0);
         let mut z = x.to_vec();
         self.scaler.apply(&mut z);
-        let n = z.len();
-        let Ok(m) = DenseMatrix::new(1, n, z, false) else {
-            return;
-        };
-        if let Ok(p) = self.knn.predict_proba(&m) {
-            if let Some(row) = p.first() {
-                out.iter_mut()
-                    .zip(row)
-                    .for_each(|(o, v)| *o = if v.is_finite() { *v } else { 0.0 });
+        let nb = self.neighbours(&z);
+        let exact = nb.iter().any(|&(d, _)| d == 0.0);
+        let mut total = 0.0;
+        for &(d2, i) in &nb {
+            let w = match self.weight {
+                KnnWeight::Uniform => 1.0,
+                KnnWeight::Distance if exact => f64::from(u8::from(d2 == 0.0)),
+                KnnWeight::Distance => 1.0 / d2.sqrt(),
+            };
+            if let Some(o) = out.get_mut(self.y[i]) {
+                *o += w;
+                total += w;
             }
         }
+        if total > 0.0 && total.is_finite() {
+            out.iter_mut().for_each(|o| *o /= total);
+        } else {
+            out.iter_mut().for_each(|o| *o = 0.0);
+        }
     }
+}
+
+/// Squared Euclidean distance, over fixed-width chunks (vectorises; fixed order).
+fn sq_dist(a: &[f64], b: &[f64]) -> f64 {
+    let mut acc = [0.0f64; 4];
+    let (ca, cb) = (a.chunks_exact(4), b.chunks_exact(4));
+    let (ra, rb) = (ca.remainder(), cb.remainder());
+    for (x, y) in ca.zip(cb) {
+        for j in 0..4 {
+            let d = x[j] - y[j];
+            acc[j] += d * d;
+        }
+    }
+    let mut s = (acc[0] + acc[1]) + (acc[2] + acc[3]);
+    for (x, y) in ra.iter().zip(rb) {
+        s += (x - y) * (x - y);
+    }
+    s
 }
 
 impl KnnConfig {
@@ -644,17 +750,14 @@ impl KnnConfig {
     pub fn fit_model(&self, train: &[&Item], ctx: &FitContext<'_>) -> Result<FittedModel, StageError> {
         self.check()?;
         fit_classic(&self.keys(), self.vote, "knn", train, ctx, |set, d, scaler, _| {
-            let p = KNNClassifierParameters::default()
-                .with_k(self.k.min(set.len()))
-                .with_weight(match self.weight {
-                    KnnWeight::Uniform => KNNWeightFunction::Uniform,
-                    KnnWeight::Distance => KNNWeightFunction::Distance,
-                });
-            let knn = KNNClassifier::fit(&d.x, &d.y, p).map_err(smart_err)?;
             Ok(Classifier::Knn(Knn {
                 classes: set.classes.len(),
+                dim: set.dim,
+                k: self.k.min(set.len()),
+                weight: self.weight,
                 scaler,
-                knn,
+                x: d.rows.concat(),
+                y: set.y.clone(),
             }))
         })
     }
@@ -688,7 +791,7 @@ estimator!(KnnConfig, KnnEstimator);
 #[derive(Clone, Debug, Serialize, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields, default)]
 pub struct LogisticConfig {
-    /// Images stacked per vector (1 = spatial). Default 5.
+    /// Images stacked per vector (1 = spatial). Default 1 (see the module docs).
     pub frames: usize,
     /// Frames between stacked images; 0 = one window. Default 0.
     pub step: usize,
@@ -696,7 +799,7 @@ pub struct LogisticConfig {
     pub stride: usize,
     /// Smallest spike total of a used vector. Default 1.
     pub min_spikes: f64,
-    /// Most vectors a training trial contributes (evenly spaced). Default 100.
+    /// Most vectors a training trial contributes (evenly spaced). Default 20.
     pub max_train_frames: usize,
     /// L2 penalty on the coefficients. Default 1.
     pub alpha: f64,
@@ -709,11 +812,11 @@ pub struct LogisticConfig {
 impl Default for LogisticConfig {
     fn default() -> Self {
         LogisticConfig {
-            frames: 5,
+            frames: 1,
             step: 0,
             stride: 0,
             min_spikes: 1.0,
-            max_train_frames: 100,
+            max_train_frames: 20,
             alpha: 1.0,
             vote: Vote::Winner,
             save_model: false,

@@ -28,7 +28,8 @@
 //! 0` restores it). Weights start at `N(0, 1/n_vis)` so hidden units
 //! differentiate within the first epochs. The layer above is trained on the mean-field activities `p(h | v)` of
 //! the layer below. The training log records each layer-epoch's mean squared
-//! reconstruction error `‖v - p(v | p(h | v))‖² / D`.
+//! reconstruction error `‖v - p(v | p(h | v))‖² / D` after the epoch, on a fixed
+//! evenly spaced subset of at most 256 training vectors.
 //!
 //! # Inference (`inference` key)
 //!
@@ -92,19 +93,19 @@ pub struct EdbnConfig {
     pub stride: usize,
     /// Smallest spike total of a used vector. Default 1.
     pub min_spikes: f64,
-    /// Most vectors a training trial contributes (evenly spaced). Default 60.
+    /// Most vectors a training trial contributes (evenly spaced). Default 30.
     pub max_train_frames: usize,
-    /// Hidden layer sizes, bottom to top; the last is the associative layer trained with the labels. Default [120, 40].
+    /// Hidden layer sizes, bottom to top; the last is the associative layer trained with the labels. Default [60, 30].
     pub layers: Vec<usize>,
-    /// PCD epochs per layer. Default 30.
+    /// PCD epochs per layer. Default 15.
     pub epochs: usize,
-    /// Vectors per minibatch, and persistent chains. Default 10.
+    /// Vectors per minibatch, and persistent chains. Default 20.
     pub batch_size: usize,
     /// Initial learning rate (decays linearly to a tenth). Default 0.05.
     pub learning_rate: f64,
     /// L2 weight decay. Default 1e-4.
     pub l2: f64,
-    /// Weight of the discriminative gradient `∇ log p(y | x)` added to the top RBM's PCD update (hybrid training; 0 = purely generative). Default 1.
+    /// Weight of the discriminative gradient `∇ log p(y | x)` added to the top RBM's PCD update (hybrid training; 0 = purely generative). Default 10.
     pub discriminative: f64,
     /// `rate` (mean-field) or `spiking` (event-driven LIF). Default `rate`.
     pub inference: Inference,
@@ -127,13 +128,13 @@ impl Default for EdbnConfig {
             step: 0,
             stride: 0,
             min_spikes: 1.0,
-            max_train_frames: 60,
-            layers: vec![120, 40],
-            epochs: 30,
-            batch_size: 10,
+            max_train_frames: 30,
+            layers: vec![60, 30],
+            epochs: 15,
+            batch_size: 20,
             learning_rate: 0.05,
             l2: 1e-4,
-            discriminative: 1.0,
+            discriminative: 10.0,
             inference: Inference::Rate,
             input_rate_hz: 200.0,
             duration_ms: 100.0,
@@ -143,6 +144,9 @@ impl Default for EdbnConfig {
         }
     }
 }
+
+/// Vectors on which each layer-epoch's reconstruction error is logged.
+const RECON_SAMPLE: usize = 256;
 
 /// One RBM: `w` is hidden x visible, row-major. The top RBM's visible side
 /// ends with `labels` softmax units.
@@ -366,7 +370,6 @@ impl Rbm {
             let lr = cfg.learning_rate * (1.0 - 0.9 * epoch as f64 / cfg.epochs.max(1) as f64);
             let mom = if epoch < 5 { 0.5 } else { 0.9 };
             rand::seq::SliceRandom::shuffle(order.as_mut_slice(), rng);
-            let mut err = 0.0;
             for batch in order.chunks(bs) {
                 gw.iter_mut().for_each(|g| *g = 0.0);
                 ga.iter_mut().for_each(|g| *g = 0.0);
@@ -385,9 +388,6 @@ impl Rbm {
                     if self.labels > 0 && cfg.discriminative > 0.0 {
                         self.add_discriminative(v, cfg.discriminative, &mut gw, &mut ga, &mut gb, &mut disc);
                     }
-                    // Reconstruction error, for the log.
-                    self.vis_prob(&h, &mut vbuf);
-                    err += v.iter().zip(&vbuf).map(|(a, b)| (a - b) * (a - b)).sum::<f64>() / nv as f64;
                 }
                 // Negative phase: one Gibbs step of each persistent chain.
                 let scale_neg = batch.len() as f64 / bs as f64;
@@ -421,7 +421,18 @@ impl Rbm {
                     self.b[k] += vb[k];
                 }
             }
-            errors.push(err / n.max(1) as f64);
+            // Reconstruction error for the log, on a fixed evenly spaced subset
+            // (at most RECON_SAMPLE vectors): a per-step error doubled the cost.
+            let m = n.min(RECON_SAMPLE);
+            let mut err = 0.0;
+            for s in 0..m {
+                let i = s * n / m;
+                let v = &data[i * nv..(i + 1) * nv];
+                self.hid_prob(v, &mut h);
+                self.vis_prob(&h, &mut vbuf);
+                err += v.iter().zip(&vbuf).map(|(a, b)| (a - b) * (a - b)).sum::<f64>() / nv as f64;
+            }
+            errors.push(err / m.max(1) as f64);
         }
         errors
     }
