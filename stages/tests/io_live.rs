@@ -463,3 +463,50 @@ fn silent_stream_and_config_errors() {
     let e = LiveConfig::from_toml_str("sample_rate = 3\n").unwrap_err();
     assert!(e.message.contains("sample_rate"), "{e}");
 }
+
+fn shared_templates() -> std::sync::Arc<palpate_stages::estimate::wss::Templates> {
+    static TPL: std::sync::OnceLock<std::sync::Arc<palpate_stages::estimate::wss::Templates>> =
+        std::sync::OnceLock::new();
+    TPL.get_or_init(|| config().templates().unwrap()).clone()
+}
+
+proptest::proptest! {
+    #![proptest_config(proptest::prelude::ProptestConfig::with_cases(24))]
+    /// Any stream (huge, tiny, constant, NaN or infinite samples, steps, lost
+    /// frames) gives a finite answer without panicking: scores, margin and
+    /// spike counts finite, and an edge only above the threshold.
+    #[test]
+    fn any_stream_gives_a_finite_answer(
+        segs in proptest::collection::vec(
+            (
+                proptest::prop_oneof![
+                    -1e12f64..1e12,
+                    -1.0f64..1.0,
+                    proptest::strategy::Just(f64::NAN),
+                    proptest::strategy::Just(f64::INFINITY),
+                    proptest::strategy::Just(0.0),
+                ],
+                1usize..600,
+                0u64..40,
+            ),
+            1..8,
+        ),
+    ) {
+        let cfg = config();
+        let mut p = LivePipeline::with_templates(&cfg, shared_templates()).unwrap();
+        for (v, len, lost) in segs {
+            let frame: Vec<f64> = (0..16).map(|t| v * (1.0 + 0.1 * t as f64)).collect();
+            for _ in 0..len {
+                p.push(&frame).unwrap();
+            }
+            p.hold(lost).unwrap();
+        }
+        let e = p.finish().unwrap();
+        proptest::prop_assert!(e.score.is_finite() && e.margin.is_finite());
+        proptest::prop_assert!(e.estimate.scores.iter().all(|s| s.score.is_finite()));
+        if e.angle_deg.is_some() {
+            proptest::prop_assert!(e.score >= cfg.wss.threshold);
+        }
+        proptest::prop_assert_eq!(e.frames, (p.samples() as usize).div_ceil(10).max(1));
+    }
+}
