@@ -22,6 +22,7 @@
 pub mod arrays;
 pub mod common;
 pub mod daq;
+pub mod live;
 pub mod signal_file;
 pub mod sinks;
 pub mod spike_file;
