@@ -68,6 +68,11 @@ enum Command {
         #[arg(long, default_value_t = 0)]
         seed: u64,
     },
+    /// A DAQ board over serial: emulate one, or estimate live from one.
+    Daq {
+        #[command(subcommand)]
+        command: DaqCommand,
+    },
     /// Print the JSON schema of graph files (generated from every registered
     /// stage), for editors that validate and complete TOML.
     Schema,
@@ -75,6 +80,69 @@ enum Command {
     Stages {
         /// A stage type: show its keys with defaults, units and docs.
         r#type: Option<String>,
+    },
+}
+
+#[derive(Subcommand)]
+enum DaqCommand {
+    /// Play a simulated trial or a recording into a pseudo-terminal at real-time
+    /// rate (times --speed), as a DAQ board would, so the live path runs without
+    /// hardware. Prints the device path to open with `palpate daq run`.
+    Emulate {
+        /// A scene file (e.g. graphs/scenes/lab.toml) to simulate one trial of.
+        #[arg(long, conflicts_with = "recording")]
+        scene: Option<PathBuf>,
+        /// Edge angle of the simulated trial, degrees.
+        #[arg(long, default_value_t = 45.0)]
+        angle: f64,
+        /// Seed of the simulated trial.
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        /// A recording (CSV, NPY, NPZ, MAT or raw DAQ; the first trial is played).
+        #[arg(long)]
+        recording: Option<PathBuf>,
+        /// Sample rate of the recording, Hz, when the file does not carry it.
+        #[arg(long)]
+        sample_rate_hz: Option<f64>,
+        /// Playback speed: 1 = real time.
+        #[arg(long, default_value_t = 1.0)]
+        speed: f64,
+        /// Seconds to wait after printing the device path before playing, so a
+        /// reader (`palpate daq run PATH`) can open it first.
+        #[arg(long, default_value_t = 5.0)]
+        delay: f64,
+    },
+    /// Estimate edges live from a DAQ on a serial port (or an emulator's
+    /// pseudo-terminal), printing the estimate whenever it changes.
+    Run {
+        /// The serial device, e.g. /dev/ttyACM0 (omit with --emulate-scene).
+        #[arg(required_unless_present = "emulate_scene")]
+        port: Option<String>,
+        /// Instead of a device, emulate one in this process: simulate a trial of
+        /// this scene file (at --angle, --seed) and play it at --speed.
+        #[arg(long)]
+        emulate_scene: Option<PathBuf>,
+        /// Edge angle of the emulated trial, degrees.
+        #[arg(long, default_value_t = 45.0)]
+        angle: f64,
+        /// Seed of the emulated trial.
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        /// Playback speed of the emulated trial: 1 = real time.
+        #[arg(long, default_value_t = 1.0)]
+        speed: f64,
+        /// The live pipeline's settings (a graph with a `live` stage, or a file of its keys).
+        #[arg(long, default_value = "graphs/live.toml")]
+        config: PathBuf,
+        /// Baud rate (USB CDC devices ignore it).
+        #[arg(long, default_value_t = 921_600)]
+        baud: u32,
+        /// Record the raw byte stream to this file as it arrives.
+        #[arg(long)]
+        record: Option<PathBuf>,
+        /// Stop after this many seconds.
+        #[arg(long)]
+        seconds: Option<f64>,
     },
 }
 
@@ -149,6 +217,7 @@ pub fn main() -> ExitCode {
                 }
             }
         }
+        Command::Daq { command } => cmd_daq(command),
         Command::Schema => match serde_json::to_string_pretty(&registry::graph_schema()) {
             Ok(s) => {
                 println!("{s}");
@@ -328,6 +397,181 @@ fn cmd_stages(type_name: Option<String>) -> ExitCode {
                 }
             }
             ExitCode::SUCCESS
+        }
+    }
+}
+
+fn cmd_daq(command: DaqCommand) -> ExitCode {
+    use crate::stages::io::{daq, live, signal_file};
+    match command {
+        DaqCommand::Emulate {
+            scene,
+            angle,
+            seed,
+            recording,
+            sample_rate_hz,
+            speed,
+            delay,
+        } => {
+            let signals = match (scene, recording) {
+                (Some(scene), None) => match live::simulate_trial(&scene, angle, seed) {
+                    Ok(s) => s,
+                    Err(e) => {
+                        eprintln!("{}: {e}", scene.display());
+                        return ExitCode::FAILURE;
+                    }
+                },
+                (None, Some(rec)) => {
+                    let cfg = signal_file::SignalFileConfig {
+                        path: Some(rec.display().to_string()),
+                        sample_rate_hz,
+                        ..Default::default()
+                    };
+                    match signal_file::read_signal_files(&cfg, std::path::Path::new(".")) {
+                        Ok(trials) if !trials.is_empty() => (*trials[0].1).clone(),
+                        Ok(_) => {
+                            eprintln!("{}: no trial in the recording", rec.display());
+                            return ExitCode::FAILURE;
+                        }
+                        Err(e) => {
+                            eprintln!("{}: {e}", rec.display());
+                            return ExitCode::FAILURE;
+                        }
+                    }
+                }
+                _ => {
+                    eprintln!("give --scene FILE (with --angle, --seed) or --recording FILE");
+                    return ExitCode::FAILURE;
+                }
+            };
+            let opts = daq::EmulateOptions {
+                speed,
+                ..Default::default()
+            };
+            let result = daq::emulate_pty(&signals, &opts, |path| {
+                println!(
+                    "emulating a DAQ on {path} ({} taxels, {:.1} s at {speed}x), starting in {delay} s",
+                    signals.data.len(),
+                    signals.duration_ms() / 1e3
+                );
+                std::thread::sleep(std::time::Duration::from_secs_f64(delay.max(0.0)));
+            });
+            match result {
+                Ok(report) => {
+                    println!("done: {report:?}");
+                    ExitCode::SUCCESS
+                }
+                Err(e) => {
+                    eprintln!("emulator: {e}");
+                    ExitCode::FAILURE
+                }
+            }
+        }
+        DaqCommand::Run {
+            port,
+            emulate_scene,
+            angle,
+            seed,
+            speed,
+            config,
+            baud,
+            record,
+            seconds,
+        } => {
+            let cfg = match live::LiveConfig::from_file(&config) {
+                Ok(c) => c,
+                Err(e) => {
+                    eprintln!("{}: {e}", config.display());
+                    return ExitCode::FAILURE;
+                }
+            };
+            let mut player = None;
+            // An emulated stream ends after its last frame, which is no error.
+            let mut max_frames = None;
+            let port = match (port, emulate_scene) {
+                (_, Some(scene)) => {
+                    let signals = match live::simulate_trial(&scene, angle, seed) {
+                        Ok(s) => s,
+                        Err(e) => {
+                            eprintln!("{}: {e}", scene.display());
+                            return ExitCode::FAILURE;
+                        }
+                    };
+                    max_frames = Some(signals.n_samples() as u64);
+                    let (tx, rx) = std::sync::mpsc::channel();
+                    player = Some(std::thread::spawn(move || {
+                        let opts = daq::EmulateOptions {
+                            speed,
+                            ..Default::default()
+                        };
+                        daq::emulate_pty(&signals, &opts, move |path| {
+                            let _ = tx.send(path.to_string());
+                        })
+                    }));
+                    match rx.recv() {
+                        Ok(p) => {
+                            println!(
+                                "emulated DAQ on {p}: {} at {angle} deg, seed {seed}, {speed}x",
+                                scene.display()
+                            );
+                            p
+                        }
+                        Err(_) => {
+                            eprintln!("the emulator did not start");
+                            return ExitCode::FAILURE;
+                        }
+                    }
+                }
+                (Some(p), None) => p,
+                (None, None) => {
+                    eprintln!("give a serial device or --emulate-scene FILE");
+                    return ExitCode::FAILURE;
+                }
+            };
+            let acquire = daq::AcquireOptions {
+                record,
+                max_duration: seconds.map(std::time::Duration::from_secs_f64),
+                max_frames,
+                ..Default::default()
+            };
+            let result = live::run_live_serial(&port, baud, &cfg, &acquire, None, |u| match u {
+                live::LiveUpdate::Estimate(e) | live::LiveUpdate::Final(e) => {
+                    let what = if matches!(u, live::LiveUpdate::Final(_)) {
+                        "final"
+                    } else {
+                        "now"
+                    };
+                    match e.angle_deg {
+                        Some(a) => println!(
+                            "{:>9.1} s  {what}: {a:.1} deg (score {:.3}, margin {:.3}{})",
+                            e.t_ms / 1e3,
+                            e.score,
+                            e.margin,
+                            if e.decided { ", decided" } else { "" }
+                        ),
+                        None => println!("{:>9.1} s  {what}: no edge", e.t_ms / 1e3),
+                    }
+                }
+                other => eprintln!("daq: {other:?}"),
+            });
+            if let Some(p) = player {
+                if let Ok(Err(e)) = p.join() {
+                    eprintln!("emulator: {e}");
+                }
+            }
+            match result {
+                Ok(report) => {
+                    if let Some(err) = report.error() {
+                        eprintln!("{port}: {err}");
+                        return ExitCode::FAILURE;
+                    }
+                    ExitCode::SUCCESS
+                }
+                Err(e) => {
+                    eprintln!("{port}: {e}");
+                    ExitCode::FAILURE
+                }
+            }
         }
     }
 }
