@@ -35,17 +35,17 @@
 //! thread (folds run in parallel in the runtime).
 
 use super::features::{
-    maybe_save, Classifier, FeatureKeys, FittedModel, Standardizer, TrainSet, TrainingLog, Vote, MODEL_FORMAT,
+    Classifier, FeatureKeys, FittedModel, Standardizer, TrainSet, TrainingLog, Vote, MODEL_FORMAT,
 };
+use crate::estimate::features::{FitBaseline, TrainedEstimator};
 use palpate_core::{
-    check_positive, check_range, register_stage, BuildContext, ConfigError, Estimator, FitContext, InputSpec,
-    Item, Model, PayloadKind, Stage, StageConfig, StageError,
+    check_positive, check_range, register_stage, BuildContext, ConfigError, FitContext, InputSpec, Item,
+    PayloadKind, Stage, StageConfig, StageError,
 };
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
-use std::path::PathBuf;
 
 /// Input of the ANN.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
@@ -213,27 +213,17 @@ impl StageConfig for AnnConfig {
     }
     fn build(&self, ctx: &BuildContext) -> Result<Stage, ConfigError> {
         self.check()?;
-        Ok(Stage::Estimator(Box::new(AnnEstimator {
-            config: self.clone(),
-            out_dir: ctx.out_dir.clone(),
-        })))
+        Ok(TrainedEstimator::stage(self, ctx))
     }
 }
 register_stage!("ann", AnnConfig);
 
-struct AnnEstimator {
-    config: AnnConfig,
-    out_dir: PathBuf,
-}
-
-impl Estimator for AnnEstimator {
-    fn trained(&self) -> bool {
-        true
+impl FitBaseline for AnnConfig {
+    fn fit_fold(&self, train: &[&Item], ctx: &FitContext<'_>) -> Result<FittedModel, StageError> {
+        self.fit_model(train, ctx)
     }
-    fn fit(&self, train: &[&Item], ctx: &FitContext<'_>) -> Result<Box<dyn Model>, StageError> {
-        let m = self.config.fit_model(train, ctx)?;
-        maybe_save(&m, self.config.save_model, &self.out_dir, ctx)?;
-        Ok(Box::new(m))
+    fn saves_models(&self) -> bool {
+        self.save_model
     }
 }
 

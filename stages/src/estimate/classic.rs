@@ -53,11 +53,12 @@
 
 use super::ann::{dot, softmax};
 use super::features::{
-    maybe_save, Classifier, FeatureKeys, FittedModel, Standardizer, TrainSet, TrainingLog, Vote, MODEL_FORMAT,
+    Classifier, FeatureKeys, FittedModel, Standardizer, TrainSet, TrainingLog, Vote, MODEL_FORMAT,
 };
+use crate::estimate::features::{FitBaseline, TrainedEstimator};
 use palpate_core::{
-    check_positive, check_range, register_stage, BuildContext, ConfigError, Estimator, FitContext, InputSpec,
-    Item, Model, PayloadKind, Stage, StageConfig, StageError,
+    check_positive, check_range, register_stage, BuildContext, ConfigError, FitContext, InputSpec, Item,
+    PayloadKind, Stage, StageConfig, StageError,
 };
 use rand::Rng;
 use rayon::prelude::*;
@@ -71,7 +72,6 @@ use smartcore::linalg::basic::matrix::DenseMatrix;
 use smartcore::linear::logistic_regression::{LogisticRegression, LogisticRegressionParameters};
 use smartcore::svm::svc::{SVCParameters, SVC};
 use smartcore::svm::Kernels;
-use std::path::PathBuf;
 
 /// Standardised training rows of a fold, as a smartcore matrix with `i32` labels.
 struct Design {
@@ -126,25 +126,6 @@ fn fit_classic(
         vote,
         classifier,
     })
-}
-
-macro_rules! estimator {
-    ($cfg:ty, $est:ident) => {
-        struct $est {
-            config: $cfg,
-            out_dir: PathBuf,
-        }
-        impl Estimator for $est {
-            fn trained(&self) -> bool {
-                true
-            }
-            fn fit(&self, train: &[&Item], ctx: &FitContext<'_>) -> Result<Box<dyn Model>, StageError> {
-                let m = self.config.fit_model(train, ctx)?;
-                maybe_save(&m, self.config.save_model, &self.out_dir, ctx)?;
-                Ok(Box::new(m))
-            }
-        }
-    };
 }
 
 // ---------------------------------------------------------------- SVM
@@ -425,14 +406,18 @@ impl StageConfig for SvmConfig {
     }
     fn build(&self, ctx: &BuildContext) -> Result<Stage, ConfigError> {
         self.check()?;
-        Ok(Stage::Estimator(Box::new(SvmEstimator {
-            config: self.clone(),
-            out_dir: ctx.out_dir.clone(),
-        })))
+        Ok(TrainedEstimator::stage(self, ctx))
     }
 }
 register_stage!("svm", SvmConfig);
-estimator!(SvmConfig, SvmEstimator);
+impl FitBaseline for SvmConfig {
+    fn fit_fold(&self, train: &[&Item], ctx: &FitContext<'_>) -> Result<FittedModel, StageError> {
+        self.fit_model(train, ctx)
+    }
+    fn saves_models(&self) -> bool {
+        self.save_model
+    }
+}
 
 // ---------------------------------------------------------------- random forest
 
@@ -580,14 +565,18 @@ impl StageConfig for RandomForestConfig {
     }
     fn build(&self, ctx: &BuildContext) -> Result<Stage, ConfigError> {
         self.check()?;
-        Ok(Stage::Estimator(Box::new(ForestEstimator {
-            config: self.clone(),
-            out_dir: ctx.out_dir.clone(),
-        })))
+        Ok(TrainedEstimator::stage(self, ctx))
     }
 }
 register_stage!("random_forest", RandomForestConfig);
-estimator!(RandomForestConfig, ForestEstimator);
+impl FitBaseline for RandomForestConfig {
+    fn fit_fold(&self, train: &[&Item], ctx: &FitContext<'_>) -> Result<FittedModel, StageError> {
+        self.fit_model(train, ctx)
+    }
+    fn saves_models(&self) -> bool {
+        self.save_model
+    }
+}
 
 // ---------------------------------------------------------------- k-NN
 
@@ -777,14 +766,18 @@ impl StageConfig for KnnConfig {
     }
     fn build(&self, ctx: &BuildContext) -> Result<Stage, ConfigError> {
         self.check()?;
-        Ok(Stage::Estimator(Box::new(KnnEstimator {
-            config: self.clone(),
-            out_dir: ctx.out_dir.clone(),
-        })))
+        Ok(TrainedEstimator::stage(self, ctx))
     }
 }
 register_stage!("knn", KnnConfig);
-estimator!(KnnConfig, KnnEstimator);
+impl FitBaseline for KnnConfig {
+    fn fit_fold(&self, train: &[&Item], ctx: &FitContext<'_>) -> Result<FittedModel, StageError> {
+        self.fit_model(train, ctx)
+    }
+    fn saves_models(&self) -> bool {
+        self.save_model
+    }
+}
 
 // ---------------------------------------------------------------- logistic
 
@@ -931,11 +924,15 @@ impl StageConfig for LogisticConfig {
     }
     fn build(&self, ctx: &BuildContext) -> Result<Stage, ConfigError> {
         self.check()?;
-        Ok(Stage::Estimator(Box::new(LogisticEstimator {
-            config: self.clone(),
-            out_dir: ctx.out_dir.clone(),
-        })))
+        Ok(TrainedEstimator::stage(self, ctx))
     }
 }
 register_stage!("logistic", LogisticConfig);
-estimator!(LogisticConfig, LogisticEstimator);
+impl FitBaseline for LogisticConfig {
+    fn fit_fold(&self, train: &[&Item], ctx: &FitContext<'_>) -> Result<FittedModel, StageError> {
+        self.fit_model(train, ctx)
+    }
+    fn saves_models(&self) -> bool {
+        self.save_model
+    }
+}

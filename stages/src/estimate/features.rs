@@ -629,6 +629,42 @@ pub fn maybe_save(
     )
 }
 
+/// A baseline's config: fits one fold's [`FittedModel`] and says whether to save it.
+pub trait FitBaseline: Clone + Send + Sync + 'static {
+    /// Fits on one fold's training trials.
+    fn fit_fold(&self, train: &[&Item], ctx: &FitContext<'_>) -> Result<FittedModel, StageError>;
+    /// True when each fold's model is saved beside the run's reports.
+    fn saves_models(&self) -> bool;
+}
+
+/// The runtime estimator every trained baseline shares: fits per fold (saving
+/// the model when asked) and hands the fitted model to the runtime.
+pub struct TrainedEstimator<C> {
+    config: C,
+    out_dir: std::path::PathBuf,
+}
+
+impl<C: FitBaseline> TrainedEstimator<C> {
+    /// The runtime stage of `config`, whose models (if saved) go to the run's output directory.
+    pub fn stage(config: &C, ctx: &palpate_core::BuildContext) -> palpate_core::Stage {
+        palpate_core::Stage::Estimator(Box::new(TrainedEstimator {
+            config: config.clone(),
+            out_dir: ctx.out_dir.clone(),
+        }))
+    }
+}
+
+impl<C: FitBaseline> palpate_core::Estimator for TrainedEstimator<C> {
+    fn trained(&self) -> bool {
+        true
+    }
+    fn fit(&self, train: &[&Item], ctx: &FitContext<'_>) -> Result<Box<dyn Model>, StageError> {
+        let m = self.config.fit_fold(train, ctx)?;
+        maybe_save(&m, self.config.saves_models(), &self.out_dir, ctx)?;
+        Ok(Box::new(m))
+    }
+}
+
 /// The running vote of a trial.
 #[derive(Clone, Debug)]
 pub struct Accumulator {
