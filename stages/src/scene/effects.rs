@@ -24,6 +24,7 @@
 //! [stage id, "array"])`, so they are identical in every trial.
 
 use super::config::Scene;
+use super::gauss::GaussianSource;
 use palpate_core::{derive_seed, ConfigError, TaxelLayout};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -687,48 +688,54 @@ impl SignalEffect for Creep {
 
 impl SignalState for CreepState {
     fn process(&mut self, b: &mut Block<'_>) {
-        let len = b.len;
-        if !self.started {
-            for (i, row) in b.data.chunks_exact(len).enumerate() {
-                self.z[i] = row[0];
-            }
-            self.started = true;
-        }
-        let (keep, alpha, frac) = (self.keep, self.alpha, self.fraction);
-        // Four taxels at a time: four independent recurrences hide each
-        // other's latency.
-        let mut rows = b.data.chunks_exact_mut(len).enumerate().peekable();
-        while rows.peek().is_some() {
-            let group: Vec<(usize, &mut [f64])> = rows.by_ref().take(4).collect();
-            if group.len() == 4 {
-                let mut it = group.into_iter();
-                let (i0, r0) = it.next().expect("4 rows");
-                let (_, r1) = it.next().expect("4 rows");
-                let (_, r2) = it.next().expect("4 rows");
-                let (_, r3) = it.next().expect("4 rows");
-                let mut z = [self.z[i0], self.z[i0 + 1], self.z[i0 + 2], self.z[i0 + 3]];
-                for k in 0..len {
-                    let x = [r0[k], r1[k], r2[k], r3[k]];
-                    for j in 0..4 {
-                        z[j] += alpha * (x[j] - z[j]);
+        // Pure arithmetic: compiled for AVX2 where the CPU has it (same bits).
+        super::wide::with_avx2(
+            #[inline(always)]
+            || {
+                let len = b.len;
+                if !self.started {
+                    for (i, row) in b.data.chunks_exact(len).enumerate() {
+                        self.z[i] = row[0];
                     }
-                    r0[k] = keep * x[0] + frac * z[0];
-                    r1[k] = keep * x[1] + frac * z[1];
-                    r2[k] = keep * x[2] + frac * z[2];
-                    r3[k] = keep * x[3] + frac * z[3];
+                    self.started = true;
                 }
-                self.z[i0..i0 + 4].copy_from_slice(&z);
-            } else {
-                for (i, row) in group {
-                    let mut z = self.z[i];
-                    for x in row.iter_mut() {
-                        z += alpha * (*x - z);
-                        *x = keep * *x + frac * z;
+                let (keep, alpha, frac) = (self.keep, self.alpha, self.fraction);
+                // Four taxels at a time: four independent recurrences hide each
+                // other's latency.
+                let mut rows = b.data.chunks_exact_mut(len).enumerate().peekable();
+                while rows.peek().is_some() {
+                    let group: Vec<(usize, &mut [f64])> = rows.by_ref().take(4).collect();
+                    if group.len() == 4 {
+                        let mut it = group.into_iter();
+                        let (i0, r0) = it.next().expect("4 rows");
+                        let (_, r1) = it.next().expect("4 rows");
+                        let (_, r2) = it.next().expect("4 rows");
+                        let (_, r3) = it.next().expect("4 rows");
+                        let mut z = [self.z[i0], self.z[i0 + 1], self.z[i0 + 2], self.z[i0 + 3]];
+                        for k in 0..len {
+                            let x = [r0[k], r1[k], r2[k], r3[k]];
+                            for j in 0..4 {
+                                z[j] += alpha * (x[j] - z[j]);
+                            }
+                            r0[k] = keep * x[0] + frac * z[0];
+                            r1[k] = keep * x[1] + frac * z[1];
+                            r2[k] = keep * x[2] + frac * z[2];
+                            r3[k] = keep * x[3] + frac * z[3];
+                        }
+                        self.z[i0..i0 + 4].copy_from_slice(&z);
+                    } else {
+                        for (i, row) in group {
+                            let mut z = self.z[i];
+                            for x in row.iter_mut() {
+                                z += alpha * (*x - z);
+                                *x = keep * *x + frac * z;
+                            }
+                            self.z[i] = z;
+                        }
                     }
-                    self.z[i] = z;
                 }
-            }
-        }
+            },
+        )
     }
 }
 
@@ -783,16 +790,22 @@ struct PiezoState<'a>(&'a Piezo);
 
 impl SignalState for PiezoState<'_> {
     fn process(&mut self, b: &mut Block<'_>) {
-        let Piezo { v_open, k, exponent } = *self.0;
-        if exponent == 1.0 {
-            for x in b.data.iter_mut() {
-                *x = v_open / (1.0 + k * x.max(0.0));
-            }
-        } else {
-            for x in b.data.iter_mut() {
-                *x = v_open / (1.0 + k * x.max(0.0).powf(exponent));
-            }
-        }
+        // Pure arithmetic: compiled for AVX2 where the CPU has it (same bits).
+        super::wide::with_avx2(
+            #[inline(always)]
+            || {
+                let Piezo { v_open, k, exponent } = *self.0;
+                if exponent == 1.0 {
+                    for x in b.data.iter_mut() {
+                        *x = v_open / (1.0 + k * x.max(0.0));
+                    }
+                } else {
+                    for x in b.data.iter_mut() {
+                        *x = v_open / (1.0 + k * x.max(0.0).powf(exponent));
+                    }
+                }
+            },
+        )
     }
 }
 
@@ -815,13 +828,19 @@ struct MismatchState<'a>(&'a Mismatch);
 
 impl SignalState for MismatchState<'_> {
     fn process(&mut self, b: &mut Block<'_>) {
-        let len = b.len;
-        for (i, row) in b.data.chunks_exact_mut(len).enumerate() {
-            let (g, o) = (self.0.gain[i], self.0.offset[i]);
-            for x in row.iter_mut() {
-                *x = g * *x + o;
-            }
-        }
+        // Pure arithmetic: compiled for AVX2 where the CPU has it (same bits).
+        super::wide::with_avx2(
+            #[inline(always)]
+            || {
+                let len = b.len;
+                for (i, row) in b.data.chunks_exact_mut(len).enumerate() {
+                    let (g, o) = (self.0.gain[i], self.0.offset[i]);
+                    for x in row.iter_mut() {
+                        *x = g * *x + o;
+                    }
+                }
+            },
+        )
     }
 }
 
@@ -854,34 +873,43 @@ struct CrosstalkState<'a> {
 
 impl SignalState for CrosstalkState<'_> {
     fn process(&mut self, b: &mut Block<'_>) {
-        let Crosstalk { row, col, rows, cols } = *self.fx;
-        let len = b.len;
-        self.row_sum.clear();
-        self.row_sum.resize(rows * len, 0.0);
-        self.col_sum.clear();
-        self.col_sum.resize(cols * len, 0.0);
-        for (i, x) in b.data.chunks_exact(len).enumerate() {
-            let (r, c) = (i / cols, i % cols);
-            for (s, v) in self.row_sum[r * len..(r + 1) * len].iter_mut().zip(x) {
-                *s += v;
-            }
-            for (s, v) in self.col_sum[c * len..(c + 1) * len].iter_mut().zip(x) {
-                *s += v;
-            }
-        }
-        // With a single taxel in a row (or column) there are no others to leak
-        // from: that weight stays on the taxel itself.
-        let (wr, wc) = (if cols > 1 { row } else { 0.0 }, if rows > 1 { col } else { 0.0 });
-        let (nr, nc) = ((cols.max(2) - 1) as f64, (rows.max(2) - 1) as f64);
-        for (i, x) in b.data.chunks_exact_mut(len).enumerate() {
-            let (r, c) = (i / cols, i % cols);
-            let rs = &self.row_sum[r * len..(r + 1) * len];
-            let cs = &self.col_sum[c * len..(c + 1) * len];
-            for k in 0..len {
-                let v = x[k];
-                x[k] = (1.0 - wr - wc) * v + wr * (rs[k] - v) / nr + wc * (cs[k] - v) / nc;
-            }
-        }
+        // Pure arithmetic: compiled for AVX2 where the CPU has it (same bits).
+        super::wide::with_avx2(
+            #[inline(always)]
+            || {
+                let Crosstalk { row, col, rows, cols } = *self.fx;
+                let len = b.len;
+                self.row_sum.clear();
+                self.row_sum.resize(rows * len, 0.0);
+                self.col_sum.clear();
+                self.col_sum.resize(cols * len, 0.0);
+                for (i, x) in b.data.chunks_exact(len).enumerate() {
+                    let (r, c) = (i / cols, i % cols);
+                    for (s, v) in self.row_sum[r * len..(r + 1) * len].iter_mut().zip(x) {
+                        *s += v;
+                    }
+                    for (s, v) in self.col_sum[c * len..(c + 1) * len].iter_mut().zip(x) {
+                        *s += v;
+                    }
+                }
+                // With a single taxel in a row (or column) there are no others to leak
+                // from: that weight stays on the taxel itself.
+                let (wr, wc) = (if cols > 1 { row } else { 0.0 }, if rows > 1 { col } else { 0.0 });
+                let (nr, nc) = ((cols.max(2) - 1) as f64, (rows.max(2) - 1) as f64);
+                // x' = (1 - wr - wc) v + wr (rs - v) / nr + wc (cs - v) / nc, with the
+                // divisions hoisted: three multiply-adds per sample.
+                let (br, bc) = (wr / nr, wc / nc);
+                let a = 1.0 - wr - wc - br - bc;
+                for (i, x) in b.data.chunks_exact_mut(len).enumerate() {
+                    let (r, c) = (i / cols, i % cols);
+                    let rs = &self.row_sum[r * len..(r + 1) * len];
+                    let cs = &self.col_sum[c * len..(c + 1) * len];
+                    for ((v, &rk), &ck) in x.iter_mut().zip(rs).zip(cs) {
+                        *v = a * *v + br * rk + bc * ck;
+                    }
+                }
+            },
+        )
     }
 }
 
@@ -911,24 +939,30 @@ impl SignalEffect for Hum {
 
 impl SignalState for HumState {
     fn process(&mut self, b: &mut Block<'_>) {
-        let len = b.len;
-        // One sine per sample, shared by every taxel: the exact phase at the
-        // block's start, then a rotation recurrence (error ~1e-13 over a block).
-        let phi0 = (self.phase + self.omega * b.start as f64) % std::f64::consts::TAU;
-        let (mut s, mut c) = phi0.sin_cos();
-        let (sd, cd) = self.omega.sin_cos();
-        self.wave.clear();
-        for _ in 0..len {
-            self.wave.push(self.amplitude * s);
-            let s2 = s * cd + c * sd;
-            c = c * cd - s * sd;
-            s = s2;
-        }
-        for row in b.data.chunks_exact_mut(len) {
-            for (x, w) in row.iter_mut().zip(&self.wave) {
-                *x += w;
-            }
-        }
+        // Pure arithmetic: compiled for AVX2 where the CPU has it (same bits).
+        super::wide::with_avx2(
+            #[inline(always)]
+            || {
+                let len = b.len;
+                // One sine per sample, shared by every taxel: the exact phase at the
+                // block's start, then a rotation recurrence (error ~1e-13 over a block).
+                let phi0 = (self.phase + self.omega * b.start as f64) % std::f64::consts::TAU;
+                let (mut s, mut c) = phi0.sin_cos();
+                let (sd, cd) = self.omega.sin_cos();
+                self.wave.clear();
+                for _ in 0..len {
+                    self.wave.push(self.amplitude * s);
+                    let s2 = s * cd + c * sd;
+                    c = c * cd - s * sd;
+                    s = s2;
+                }
+                for row in b.data.chunks_exact_mut(len) {
+                    for (x, w) in row.iter_mut().zip(&self.wave) {
+                        *x += w;
+                    }
+                }
+            },
+        )
     }
 }
 
@@ -936,47 +970,7 @@ struct Noise(f64);
 
 struct NoiseState {
     sigma: f64,
-    rng: Xoshiro256pp,
-}
-
-/// xoshiro256++ (Blackman & Vigna 2018): a small, fast generator of excellent
-/// statistical quality, seeded from the effect's ChaCha8 stream. White noise
-/// needs one Gaussian per taxel and sample; ChaCha8 without SIMD costs about
-/// 4 ns per draw, this about 1.
-struct Xoshiro256pp([u64; 4]);
-
-impl Xoshiro256pp {
-    fn from_rng(rng: &mut ChaCha8Rng) -> Self {
-        let mut s = [0u64; 4];
-        while s == [0; 4] {
-            s = [rng.random(), rng.random(), rng.random(), rng.random()];
-        }
-        Xoshiro256pp(s)
-    }
-}
-
-impl rand::RngCore for Xoshiro256pp {
-    fn next_u64(&mut self) -> u64 {
-        let s = &mut self.0;
-        let out = s[0].wrapping_add(s[3]).rotate_left(23).wrapping_add(s[0]);
-        let t = s[1] << 17;
-        s[2] ^= s[0];
-        s[3] ^= s[1];
-        s[1] ^= s[2];
-        s[0] ^= s[3];
-        s[2] ^= t;
-        s[3] = s[3].rotate_left(45);
-        out
-    }
-    fn next_u32(&mut self) -> u32 {
-        (self.next_u64() >> 32) as u32
-    }
-    fn fill_bytes(&mut self, dst: &mut [u8]) {
-        for chunk in dst.chunks_mut(8) {
-            let v = self.next_u64().to_le_bytes();
-            chunk.copy_from_slice(&v[..chunk.len()]);
-        }
-    }
+    source: GaussianSource,
 }
 
 impl SignalEffect for Noise {
@@ -987,17 +981,14 @@ impl SignalEffect for Noise {
         log_event("run", "noise");
         Box::new(NoiseState {
             sigma: self.0,
-            rng: Xoshiro256pp::from_rng(&mut rng),
+            source: GaussianSource::new(&mut rng),
         })
     }
 }
 
 impl SignalState for NoiseState {
     fn process(&mut self, b: &mut Block<'_>) {
-        for x in b.data.iter_mut() {
-            let z: f64 = StandardNormal.sample(&mut self.rng);
-            *x += self.sigma * z;
-        }
+        self.source.add_scaled(b.data, self.sigma);
     }
 }
 
@@ -1021,16 +1012,22 @@ struct AdcState<'a>(&'a Adc);
 
 impl SignalState for AdcState<'_> {
     fn process(&mut self, b: &mut Block<'_>) {
-        let Adc { min, step, levels } = *self.0;
-        let inv = 1.0 / step;
-        // Adding and subtracting 1.5 * 2^52 rounds a double below 2^51 to the
-        // nearest integer (ties to even) with two vectorizable additions.
-        const ROUND: f64 = 6_755_399_441_055_744.0;
-        for x in b.data.iter_mut() {
-            // `max` ignores NaN: a NaN sample reads as the lowest level.
-            let code = ((*x - min) * inv).max(0.0).min(levels);
-            *x = min + ((code + ROUND) - ROUND) * step;
-        }
+        // Pure arithmetic: compiled for AVX2 where the CPU has it (same bits).
+        super::wide::with_avx2(
+            #[inline(always)]
+            || {
+                let Adc { min, step, levels } = *self.0;
+                let inv = 1.0 / step;
+                // Adding and subtracting 1.5 * 2^52 rounds a double below 2^51 to the
+                // nearest integer (ties to even) with two vectorizable additions.
+                const ROUND: f64 = 6_755_399_441_055_744.0;
+                for x in b.data.iter_mut() {
+                    // `max` ignores NaN: a NaN sample reads as the lowest level.
+                    let code = ((*x - min) * inv).max(0.0).min(levels);
+                    *x = min + ((code + ROUND) - ROUND) * step;
+                }
+            },
+        )
     }
 }
 

@@ -39,8 +39,10 @@
 pub mod config;
 pub mod effects;
 pub mod field;
+pub mod gauss;
 pub mod sim;
 pub mod special;
+pub mod wide;
 
 #[cfg(test)]
 mod tests;

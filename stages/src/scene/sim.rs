@@ -37,7 +37,7 @@ use palpate_core::{ConfigError, Signals, StageError};
 
 /// Samples per block: 16 taxels x 1024 samples x 8 bytes = 128 KiB, which
 /// stays in L2 while every effect passes over it.
-pub const BLOCK: usize = 1024;
+pub const BLOCK: usize = 256;
 
 /// The nominal plan of a trial at one angle.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -292,12 +292,7 @@ impl Simulator {
                 row[k2..].fill(force * left);
                 let (row, s_act) = (&mut row[k1..k2], &s_blk[k1..k2]);
                 match (&table, exact.terms.is_empty()) {
-                    (Some(t), true) => {
-                        let base = exact.base;
-                        for (x, &s) in row.iter_mut().zip(s_act) {
-                            *x = force * (base + t.eval(s - c));
-                        }
-                    }
+                    (Some(t), true) => t.eval_active(c, s_act, row, force, exact.base),
                     (Some(t), false) => {
                         for (x, &s) in row.iter_mut().zip(s_act) {
                             *x = force * (exact.value(s - c) + t.eval(s - c));
