@@ -35,10 +35,11 @@
 //!    (whole trials, drawn from the fold's generator) is exported too, so the peer
 //!    can stop on the same validation trials.
 //!
-//! Timing: each figure is the median (and minimum) over `--repeats` runs of wall
-//! time and of this thread's on-CPU time (`/proc/thread-self/schedstat`), one
-//! thread, as criterion's encoder bench does; the CPU time is what one core
-//! costs when the two-core machine is shared.
+//! Timing: each figure is a sample of wall time and of this thread's on-CPU
+//! time (`/proc/thread-self/schedstat`), one thread, per call, averaged over a
+//! batch of calls of at least 50 ms; `--repeats` samples, their minimum ("best")
+//! and median. The machine is shared, so the best sample is the one least
+//! disturbed by other processes; run.py compares best with best.
 
 use palpate_core::{derive_seed, FitContext, Item, LoadOptions, RunOptions, SpikeEvent};
 use palpate_stages::encode::izhikevich::{Izhikevich, IzhikevichConfig, Scheme};
@@ -95,22 +96,29 @@ fn cpu_time() -> Option<Duration> {
     Some(Duration::from_nanos(s.split_whitespace().next()?.parse().ok()?))
 }
 
-/// Runs `f` `repeats` times; returns its last result and the times as JSON
-/// (`wall_s`, `cpu_s` lists, their medians and minima; `cpu_s` is null
-/// where the kernel does not report thread time).
+/// Times `f`: `repeats` samples, each the average of a batch of calls long
+/// enough (>= 50 ms, found from one untimed warm-up call) that the thread's
+/// CPU clock, which this kernel advances in ticks of a few ms, resolves it.
+/// Returns the last result and the per-call times as JSON (`wall_s`, `cpu_s`:
+/// every sample, median and minimum; `cpu_s` is null where the kernel does not
+/// report thread time).
 fn timed<T>(repeats: usize, mut f: impl FnMut() -> T) -> (T, Value) {
+    let w0 = Instant::now();
+    let mut last = black_box(f());
+    let once = w0.elapsed().as_secs_f64().max(1e-6);
+    let batch = ((0.05 / once).ceil() as usize).clamp(1, 10_000);
     let mut wall = Vec::new();
     let mut cpu = Vec::new();
-    let mut last = None;
     for _ in 0..repeats {
         let c0 = cpu_time();
         let w0 = Instant::now();
-        let v = black_box(f());
-        wall.push(w0.elapsed().as_secs_f64());
-        if let (Some(a), Some(b)) = (c0, cpu_time()) {
-            cpu.push((b - a).as_secs_f64());
+        for _ in 0..batch {
+            last = black_box(f());
         }
-        last = Some(v);
+        wall.push(w0.elapsed().as_secs_f64() / batch as f64);
+        if let (Some(a), Some(b)) = (c0, cpu_time()) {
+            cpu.push((b - a).as_secs_f64() / batch as f64);
+        }
     }
     let stats = |xs: &[f64]| -> Value {
         if xs.is_empty() {
@@ -120,8 +128,8 @@ fn timed<T>(repeats: usize, mut f: impl FnMut() -> T) -> (T, Value) {
         s.sort_by(f64::total_cmp);
         json!({ "median": s[s.len() / 2], "min": s[0], "all": xs })
     };
-    let t = json!({ "repeats": repeats, "wall_s": stats(&wall), "cpu_s": stats(&cpu) });
-    (last.expect("repeats >= 1"), t)
+    let t = json!({ "repeats": repeats, "calls_per_repeat": batch, "wall_s": stats(&wall), "cpu_s": stats(&cpu) });
+    (last, t)
 }
 
 fn write(path: &Path, bytes: &[u8]) -> Res<()> {
@@ -247,11 +255,12 @@ fn encoder(args: &Args) -> Res<Value> {
         let rows: Vec<f64> = events.iter().flat_map(|e| [e.taxel as f64, e.t_ms]).collect();
         let name = scheme_name(scheme);
         write_npy(&dir.join(format!("spikes_{name}.npy")), &[events.len(), 2], &rows)?;
-        let wall = times["wall_s"]["median"].as_f64().unwrap_or(f64::NAN);
+        let wall = |k: &str| times["wall_s"][k].as_f64().unwrap_or(f64::NAN) * 1e3;
         println!(
-            "encoder {name:>10}: {} spikes, median {:.2} ms wall over {} runs",
+            "encoder {name:>10}: {} spikes, {:.2} ms best, {:.2} ms median wall over {} samples",
             events.len(),
-            wall * 1e3,
+            wall("min"),
+            wall("median"),
             args.repeats
         );
         runs.insert(
@@ -443,7 +452,7 @@ fn baselines(args: &Args) -> Res<Value> {
         )?;
 
         // Training: a fit is deterministic, so every repeat gives the same model.
-        let fit_repeats = args.repeats.clamp(1, 5);
+        let fit_repeats = args.repeats.clamp(1, 3);
         let mut err = None;
         let (model, fit_time) = timed(fit_repeats, || {
             b.fit(set.clone(), &fctx).map_err(|e| err = Some(e)).ok()
@@ -471,8 +480,8 @@ fn baselines(args: &Args) -> Res<Value> {
             set.len(),
             set.dim,
             t.y.len(),
-            fit_time["wall_s"]["median"].as_f64().unwrap_or(f64::NAN),
-            predict_time["wall_s"]["median"].as_f64().unwrap_or(f64::NAN) * 1e3,
+            fit_time["wall_s"]["min"].as_f64().unwrap_or(f64::NAN),
+            predict_time["wall_s"]["min"].as_f64().unwrap_or(f64::NAN) * 1e3,
             frame_acc,
             mae
         );
