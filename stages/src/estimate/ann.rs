@@ -136,7 +136,8 @@ impl Default for AnnConfig {
 }
 
 impl AnnConfig {
-    fn feature_keys(&self) -> FeatureKeys {
+    /// The feature keys this config states (`frames` is 1 for `spatial` input).
+    pub fn feature_keys(&self) -> FeatureKeys {
         FeatureKeys {
             frames: match self.input {
                 AnnInput::Spatial => 1,
@@ -175,8 +176,15 @@ impl AnnConfig {
     pub fn fit_model(&self, train: &[&Item], ctx: &FitContext<'_>) -> Result<FittedModel, StageError> {
         self.check()?;
         let set = TrainSet::build(train, &self.feature_keys())?;
-        let mut rng = ctx.rng();
-        let (fit_idx, val_idx) = set.split_by_trial(self.val_fraction, &mut rng);
+        Ok(self.fit_set(set, &mut ctx.rng()))
+    }
+
+    /// Fits the ANN on a fold's training vectors (the part of
+    /// [`AnnConfig::fit_model`] after feature extraction; `rng` is the fold's
+    /// generator, first drawn on for the validation split). The config must have
+    /// passed [`AnnConfig::check`]. `benches/peers` times training through this.
+    pub fn fit_set(&self, set: TrainSet, rng: &mut ChaCha8Rng) -> FittedModel {
+        let (fit_idx, val_idx) = set.split_by_trial(self.val_fraction, rng);
         let scaler = Standardizer::fit(&set, &fit_idx);
         let standardized = |idx: &[usize]| -> (Vec<f64>, Vec<usize>) {
             let mut x = Vec::with_capacity(idx.len() * set.dim);
@@ -189,9 +197,9 @@ impl AnnConfig {
         };
         let (xf, yf) = standardized(&fit_idx);
         let (xv, yv) = standardized(&val_idx);
-        let mut mlp = Mlp::new(set.dim, self.hidden, set.classes.len(), scaler, &mut rng);
-        let log = mlp.train(&xf, &yf, &xv, &yv, self, &mut rng);
-        Ok(FittedModel {
+        let mut mlp = Mlp::new(set.dim, self.hidden, set.classes.len(), scaler, rng);
+        let log = mlp.train(&xf, &yf, &xv, &yv, self, rng);
+        FittedModel {
             format: MODEL_FORMAT,
             stage_type: "ann".into(),
             classes: set.classes,
@@ -199,7 +207,7 @@ impl AnnConfig {
             vote: self.vote,
             classifier: Classifier::Ann(mlp),
             log,
-        })
+        }
     }
 }
 

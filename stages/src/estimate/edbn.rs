@@ -545,7 +545,8 @@ impl Dbn {
 }
 
 impl EdbnConfig {
-    fn keys(&self) -> FeatureKeys {
+    /// The feature keys this config states.
+    pub fn keys(&self) -> FeatureKeys {
         FeatureKeys {
             frames: self.frames,
             step: self.step,
@@ -595,7 +596,14 @@ impl EdbnConfig {
     pub fn fit_model(&self, train: &[&Item], ctx: &FitContext<'_>) -> Result<FittedModel, StageError> {
         self.check()?;
         let set = TrainSet::build(train, &self.keys())?;
-        let mut rng = ctx.rng();
+        self.fit_set(set, &mut ctx.rng())
+    }
+
+    /// Fits the DBN on a fold's training vectors (the part of
+    /// [`EdbnConfig::fit_model`] after feature extraction; `rng` is the fold's
+    /// generator). The config must have passed [`EdbnConfig::check`].
+    /// `benches/peers` times training through this.
+    pub fn fit_set(&self, set: TrainSet, rng: &mut ChaCha8Rng) -> Result<FittedModel, StageError> {
         let k = set.classes.len();
         let mut data = set.x.clone();
         let mut dim = set.dim;
@@ -621,8 +629,8 @@ impl EdbnConfig {
             for row in data.chunks_exact(nv) {
                 mean.iter_mut().zip(row).for_each(|(m, x)| *m += x / n as f64);
             }
-            let mut rbm = Rbm::new(nv, nh, if top { k } else { 0 }, &mean, &mut rng);
-            log.loss.extend(rbm.train_pcd(&data, self, &mut rng));
+            let mut rbm = Rbm::new(nv, nh, if top { k } else { 0 }, &mean, rng);
+            log.loss.extend(rbm.train_pcd(&data, self, rng));
             if !top {
                 let mut next = vec![0.0; n * nh];
                 for i in 0..n {
