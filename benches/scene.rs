@@ -112,6 +112,20 @@ fn dataset(sim: &Simulator) -> Vec<palpate_core::Signals> {
     out
 }
 
+/// The same trials simulated into one reused set of rows: the computation
+/// alone, without the allocator and the kernel's first touch of fresh memory.
+fn dataset_reused(sim: &Simulator, rows: &mut Vec<Vec<f64>>) -> f64 {
+    let mut sum = 0.0;
+    for &angle in &sim.scene.angles {
+        for rep in 0..sim.scene.trials_per_angle {
+            let seed = derive_seed(1, &["scene", &format!("{angle}-{rep}")]);
+            sim.simulate_into(angle, seed, rows).expect("trial");
+            sum += rows[5][rows[5].len() / 2];
+        }
+    }
+    sum
+}
+
 fn lab_with(kinds: &[&str]) -> Simulator {
     let mut sim = simulator("lab");
     let mut scene = sim.scene.clone();
@@ -135,6 +149,10 @@ fn bench(c: &mut Criterion<ThreadCpu>) {
     });
     g.bench_function("scene_paper_dataset_ideal", |b| {
         b.iter_with_large_drop(|| dataset(&ideal))
+    });
+    let mut rows = Vec::new();
+    g.bench_function("scene_paper_dataset_lab_reused_rows", |b| {
+        b.iter(|| black_box(dataset_reused(&lab, &mut rows)))
     });
     g.finish();
 

@@ -549,22 +549,63 @@ def section_weightings(out):
     return lines
 
 
-def section_time(out):
-    run = load(os.path.join(out, "wss", "run.json"))
-    row = next((t for t in run["timing"] if t["stage"] == "wss"), None)
-    if not row or not row["trials"]:
-        return []
-    eps = row.get("estimates_per_s")
-    return [
-        "## Time per estimate (text of section 3.2)",
-        "",
-        "| | paper (MATLAB, i7-6700) | ours (release build, this machine, wss.toml's `wss` stage) |",
-        "| --- | --- | --- |",
-        f"| one estimate over a whole palpation | {PAPER_TIME_S} s | median {row['median_ms']:.1f} ms per trial "
-        f"(p95 {row['p95_ms']:.1f} ms; {eps:.0f} estimates/s over {row['trials']} trials, all threads) |",
-        "",
-        "Timing is measured, so it changes from run to run; the dedicated benches are in benches/.",
+def section_time(out, wall):
+    """What accuracy costs in time: issue 8's targets, each with its command."""
+    lines = ["## What accuracy costs in time", ""]
+    run = load(os.path.join(out, "wss", "run.json")) if exists(os.path.join(out, "wss", "run.json")) else None
+    row = next((t for t in run["timing"] if t["stage"] == "wss"), None) if run else None
+    targets = [
+        "| target | measured | met | command |",
+        "| --- | --- | --- | --- |",
     ]
+    if row and row["trials"]:
+        speedup = PAPER_TIME_S / (row["median_ms"] / 1e3)
+        targets.append(
+            f"| a trial's estimate >= 1000x faster than the paper's {PAPER_TIME_S} s | median "
+            f"{row['median_ms']:.2f} ms per trial (p95 {row['p95_ms']:.1f} ms; {row['estimates_per_s']:.0f} "
+            f"estimates/s over {row['trials']} trials, all threads): **{speedup:.0f}x** | {yes_no(speedup >= 1000)} "
+            f"| {cmd('wss')} (the `wss` stage of the timing table) |"
+        )
+    if wall:
+        total = wall["total_s"]
+        targets.append(
+            f"| the whole paper reproduction under 5 minutes on 2 cores | **{total:.0f} s** on "
+            f"{wall.get('cores', '?')} cores (load {wall.get('load_at_start', '?')} at start) | "
+            f"{yes_no(total < 300)} | `scripts/reproduce.sh` |"
+        )
+    peers = "benches/peers/RESULTS-peers.md"
+    if exists(peers):
+        text = open(peers, encoding="utf-8").read()
+        verdicts = [l[2:] for l in text.splitlines() if l.startswith("- vs Brian2")]
+        if verdicts:
+            targets.append(
+                "| the encoder >= 100x faster than Brian2 on 16 taxels x 40 s with the same spike counts | "
+                + "; ".join(verdicts)
+                + " | see the verdict per Brian2 target | `benches/peers/run.sh --seed 1` (table below) |"
+            )
+    memory = "docs/memory.json"
+    if exists(memory):
+        mem = load(memory)
+        targets.append(mem["target_row"])
+    lines += targets + [""]
+    if row:
+        lines += [
+            "The paper's own time per estimate (text of section 3.2) is the first row. "
+            "Timing is measured, so it changes from run to run; the benches (benches/, docs/benches.md) "
+            "measure each stage on its own.",
+            "",
+        ]
+    for path, title in [
+        ("docs/accuracy_vs_time.md", None),
+        (peers, None),
+        ("docs/memory.md", None),
+    ]:
+        if exists(path):
+            text = open(path, encoding="utf-8").read().strip()
+            # Nest the file's own headings one level below this section.
+            text = "\n".join("#" + l if l.startswith("##") else l for l in text.splitlines())
+            lines += [text, ""]
+    return lines
 
 
 def main():
@@ -599,7 +640,7 @@ def main():
         section_area(out, docs, ann_s),
         section_ridges(out, docs),
         section_weightings(out),
-        section_time(out),
+        section_time(out, wall),
     ]
 
     head = [

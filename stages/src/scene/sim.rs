@@ -224,6 +224,26 @@ impl Simulator {
 
     /// Simulates one trial at nominal angle `theta_deg` with the trial's seed.
     pub fn simulate(&self, theta_deg: f64, trial_seed: u64) -> Result<Signals, StageError> {
+        let mut data = Vec::new();
+        self.simulate_into(theta_deg, trial_seed, &mut data)?;
+        Ok(Signals {
+            sample_rate_hz: self.scene.motion.sample_rate_hz,
+            layout: self.scene.layout.clone(),
+            unit: self.unit.clone(),
+            data,
+        })
+    }
+
+    /// [`Simulator::simulate`] into caller-owned rows (`data[taxel][sample]`),
+    /// reusing their allocations: for loops over many trials that do not keep
+    /// them (a live emulator, a benchmark of the computation alone), which then
+    /// skip the allocator and the kernel's zeroing of fresh pages.
+    pub fn simulate_into(
+        &self,
+        theta_deg: f64,
+        trial_seed: u64,
+        data: &mut Vec<Vec<f64>>,
+    ) -> Result<(), StageError> {
         let plan = self.plan(theta_deg)?;
         let sc = &self.scene;
         let m = &sc.motion;
@@ -270,7 +290,11 @@ impl Simulator {
             .iter()
             .map(|(e, occ)| e.start(&info, effects::stream(trial_seed, e.kind(), *occ)))
             .collect();
-        let mut data: Vec<Vec<f64>> = (0..n_taxels).map(|_| Vec::with_capacity(n)).collect();
+        data.resize_with(n_taxels, Vec::new);
+        for row in data.iter_mut() {
+            row.clear();
+            row.reserve(n);
+        }
         let mut buf = vec![0.0; n_taxels * BLOCK.min(n)];
         let mut s_buf = vec![0.0; BLOCK.min(n)];
         let mut start = 0;
@@ -318,11 +342,6 @@ impl Simulator {
             }
             start += len;
         }
-        Ok(Signals {
-            sample_rate_hz: fs,
-            layout: sc.layout.clone(),
-            unit: self.unit.clone(),
-            data,
-        })
+        Ok(())
     }
 }
