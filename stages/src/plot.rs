@@ -1,6 +1,7 @@
 //! Shared SVG plotting: line charts (signals over time, sweep curves), spike
-//! rasters and heatmaps (confusion matrices, spike images). Plots are written
-//! atomically like every report file.
+//! rasters and heatmaps (confusion matrices, spike images), grouped bars, and
+//! scatter charts with a Pareto frontier (accuracy against time). Plots are
+//! written atomically like every report file.
 
 use palpate_core::output::write_atomic;
 use plotters::prelude::*;
@@ -217,6 +218,210 @@ pub fn bar_chart(
     write_atomic(path, svg.as_bytes())
 }
 
+/// One point of a [`frontier_chart`]: its position, its colour group (e.g. the
+/// estimator) and its marker group (e.g. the sweep series).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ScatterPoint {
+    /// x (must be positive on a log axis; other points are left out).
+    pub x: f64,
+    /// y.
+    pub y: f64,
+    /// Index into [`FrontierChart::colors`].
+    pub color: usize,
+    /// Index into [`FrontierChart::markers`].
+    pub marker: usize,
+}
+
+/// What [`frontier_chart`] draws.
+pub struct FrontierChart<'a> {
+    /// Caption.
+    pub title: &'a str,
+    /// x axis description.
+    pub x_label: &'a str,
+    /// y axis description.
+    pub y_label: &'a str,
+    /// Logarithmic x axis (base 10).
+    pub log_x: bool,
+    /// Legend name of each colour group.
+    pub colors: &'a [&'a str],
+    /// Legend name of each marker group (drawn in black in the legend).
+    pub markers: &'a [&'a str],
+    /// The points.
+    pub points: &'a [ScatterPoint],
+    /// The frontier's points, drawn ringed and joined as a step line in x
+    /// order (any order is accepted).
+    pub frontier: &'a [(f64, f64)],
+    /// Per colour group, that group's own frontier, drawn as a dashed step
+    /// line in its colour (empty: none).
+    pub own_frontiers: &'a [Vec<(f64, f64)>],
+}
+
+type Xy = (f64, f64);
+
+/// The step line through frontier points: sorted by x, from each point right
+/// to the next one's x, then to its y (the best y reachable at each x).
+fn step_line(points: &[(f64, f64)], ok: impl Fn(f64, f64) -> bool) -> (Vec<Xy>, Vec<Xy>) {
+    let mut front: Vec<(f64, f64)> = points.iter().copied().filter(|p| ok(p.0, p.1)).collect();
+    front.sort_by(|a, b| a.0.total_cmp(&b.0).then(b.1.total_cmp(&a.1)));
+    let mut steps = Vec::with_capacity(2 * front.len());
+    for (k, &(x, y)) in front.iter().enumerate() {
+        if k > 0 {
+            steps.push((x, front[k - 1].1));
+        }
+        steps.push((x, y));
+    }
+    (front, steps)
+}
+
+/// Marker shapes, cycled by marker group: filled circle, triangle, square,
+/// cross, ring, diamond.
+const MARKERS: usize = 6;
+
+/// Writes a scatter chart with its Pareto frontier as SVG: points coloured by
+/// colour group with a marker per marker group, the frontier ringed and joined
+/// by a step line (from each frontier point, right to the next one's x, then
+/// down to its y: the best y reachable at each x). Non-finite points are left
+/// out; y starts at 0.
+pub fn frontier_chart(path: &Path, c: &FrontierChart<'_>) -> std::io::Result<()> {
+    let ok = |x: f64, y: f64| x.is_finite() && y.is_finite() && (!c.log_x || x > 0.0);
+    let points: Vec<ScatterPoint> = c.points.iter().copied().filter(|p| ok(p.x, p.y)).collect();
+    let (front, steps) = step_line(c.frontier, ok);
+    let own: Vec<Vec<(f64, f64)>> = c.own_frontiers.iter().map(|f| step_line(f, ok).1).collect();
+    let y_max = points.iter().map(|p| p.y).fold(0.0_f64, f64::max);
+    let y_max = if y_max > 0.0 { y_max * 1.08 } else { 1.0 };
+    let (x0, x1) = if c.log_x {
+        let lo = points.iter().map(|p| p.x).fold(f64::INFINITY, f64::min);
+        let hi = points.iter().map(|p| p.x).fold(0.0_f64, f64::max);
+        if lo.is_finite() && hi > 0.0 {
+            (lo / 1.5, hi * 1.5)
+        } else {
+            (0.1, 10.0)
+        }
+    } else {
+        let (lo, hi) = bounds(points.iter().map(|p| p.x));
+        (lo.min(0.0), hi)
+    };
+    let mut svg = String::new();
+    {
+        let root = SVGBackend::with_string(&mut svg, (900, 560)).into_drawing_area();
+        root.fill(&WHITE).map_err(err(path))?;
+        let builder = |root| {
+            let mut b = ChartBuilder::on(root);
+            b.caption(c.title, ("sans-serif", 20))
+                .margin(12)
+                .x_label_area_size(45)
+                .y_label_area_size(60);
+            b
+        };
+        // The same drawing on a log or a linear x axis (two coordinate types).
+        macro_rules! draw {
+            ($chart:expr) => {{
+                let mut chart = $chart.map_err(err(path))?;
+                chart
+                    .configure_mesh()
+                    .x_desc(c.x_label)
+                    .y_desc(c.y_label)
+                    .draw()
+                    .map_err(err(path))?;
+                for p in &points {
+                    let color = Palette99::pick(p.color).to_rgba();
+                    let at = EmptyElement::at((p.x, p.y));
+                    match p.marker % MARKERS {
+                        0 => chart.draw_series(std::iter::once(at + Circle::new((0, 0), 4, color.filled()))),
+                        1 => chart.draw_series(std::iter::once(
+                            at + TriangleMarker::new((0, 0), 5, color.filled()),
+                        )),
+                        2 => chart.draw_series(std::iter::once(
+                            at + Rectangle::new([(-4, -4), (4, 4)], color.filled()),
+                        )),
+                        3 => chart.draw_series(std::iter::once(
+                            at + Cross::new((0, 0), 4, color.stroke_width(2)),
+                        )),
+                        4 => chart.draw_series(std::iter::once(
+                            at + Circle::new((0, 0), 4, color.stroke_width(2)),
+                        )),
+                        _ => chart.draw_series(std::iter::once(
+                            at + Polygon::new(vec![(0, -5), (5, 0), (0, 5), (-5, 0)], color.filled()),
+                        )),
+                    }
+                    .map_err(err(path))?;
+                }
+                for (k, line) in own.iter().enumerate().filter(|(_, l)| l.len() > 1) {
+                    let color = Palette99::pick(k).to_rgba();
+                    chart
+                        .draw_series(DashedLineSeries::new(
+                            line.iter().copied(),
+                            6,
+                            4,
+                            color.stroke_width(1),
+                        ))
+                        .map_err(err(path))?;
+                }
+                if !steps.is_empty() {
+                    chart
+                        .draw_series(LineSeries::new(
+                            steps.iter().copied(),
+                            BLACK.stroke_width(1),
+                        ))
+                        .map_err(err(path))?
+                        .label("Pareto frontier")
+                        .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], BLACK));
+                    chart
+                        .draw_series(
+                            front.iter().map(|&p| {
+                                EmptyElement::at(p) + Circle::new((0, 0), 8, BLACK.stroke_width(1))
+                            }),
+                        )
+                        .map_err(err(path))?;
+                }
+                for (k, name) in c.colors.iter().enumerate() {
+                    let color = Palette99::pick(k).to_rgba();
+                    chart
+                        .draw_series(std::iter::empty::<Circle<(f64, f64), i32>>())
+                        .map_err(err(path))?
+                        .label(*name)
+                        .legend(move |(x, y)| Rectangle::new([(x, y - 5), (x + 10, y + 5)], color.filled()));
+                }
+                for (k, name) in c.markers.iter().enumerate() {
+                    let anno = chart
+                        .draw_series(std::iter::empty::<Circle<(f64, f64), i32>>())
+                        .map_err(err(path))?;
+                    let anno = anno.label(*name);
+                    match k % MARKERS {
+                        0 => anno.legend(|(x, y)| Circle::new((x + 5, y), 4, BLACK.filled())),
+                        1 => anno.legend(|(x, y)| TriangleMarker::new((x + 5, y), 5, BLACK.filled())),
+                        2 => anno.legend(|(x, y)| {
+                            Rectangle::new([(x + 1, y - 4), (x + 9, y + 4)], BLACK.filled())
+                        }),
+                        3 => anno.legend(|(x, y)| Cross::new((x + 5, y), 4, BLACK.stroke_width(2))),
+                        4 => anno.legend(|(x, y)| Circle::new((x + 5, y), 4, BLACK.stroke_width(2))),
+                        _ => anno.legend(|(x, y)| {
+                            Polygon::new(
+                                vec![(x + 5, y - 5), (x + 10, y), (x + 5, y + 5), (x, y)],
+                                BLACK.filled(),
+                            )
+                        }),
+                    };
+                }
+                chart
+                    .configure_series_labels()
+                    .position(SeriesLabelPosition::UpperRight)
+                    .background_style(WHITE.mix(0.85))
+                    .border_style(BLACK)
+                    .draw()
+                    .map_err(err(path))?;
+            }};
+        }
+        if c.log_x {
+            draw!(builder(&root).build_cartesian_2d((x0..x1).log_scale(), 0.0..y_max));
+        } else {
+            draw!(builder(&root).build_cartesian_2d(x0..x1, 0.0..y_max));
+        }
+        root.present().map_err(err(path))?;
+    }
+    write_atomic(path, svg.as_bytes())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -258,6 +463,68 @@ mod tests {
         )
         .unwrap();
         assert!(std::fs::read_to_string(&h).unwrap().contains("<rect"));
+        let f = dir.join("frontier.svg");
+        let pts: Vec<ScatterPoint> = (0..8)
+            .map(|k| ScatterPoint {
+                x: 0.5 * (k + 1) as f64,
+                y: 8.0 - k as f64,
+                color: k % 3,
+                marker: k,
+            })
+            .chain([ScatterPoint {
+                x: f64::NAN,
+                y: 1.0,
+                color: 0,
+                marker: 0,
+            }])
+            .collect();
+        for log_x in [true, false] {
+            frontier_chart(
+                &f,
+                &FrontierChart {
+                    title: "t",
+                    x_label: "ms",
+                    y_label: "MAE",
+                    log_x,
+                    colors: &["a", "b", "c"],
+                    markers: &["m0", "m1", "m2", "m3", "m4", "m5", "m6", "m7"],
+                    points: &pts,
+                    frontier: &[(4.0, 1.0), (0.5, 8.0), (1.0, 7.0)],
+                    own_frontiers: &[vec![(0.5, 8.0), (2.0, 5.0)], vec![], vec![(f64::NAN, 1.0)]],
+                },
+            )
+            .unwrap();
+            let s = std::fs::read_to_string(&f).unwrap();
+            assert!(
+                s.contains("Pareto frontier") && s.contains("polyline"),
+                "log {log_x}"
+            );
+            assert!(s.contains("m5") && s.contains("m0"), "legend missing");
+        }
+        // Nothing to draw, or only points a log axis cannot show: no panic.
+        let bad = [ScatterPoint {
+            x: -1.0,
+            y: 1.0,
+            color: 0,
+            marker: 0,
+        }];
+        for points in [&[][..], &bad[..]] {
+            frontier_chart(
+                &f,
+                &FrontierChart {
+                    title: "t",
+                    x_label: "x",
+                    y_label: "y",
+                    log_x: true,
+                    colors: &[],
+                    markers: &[],
+                    points,
+                    frontier: &[],
+                    own_frontiers: &[],
+                },
+            )
+            .unwrap();
+        }
         // Empty and constant data must not panic.
         line_chart(&p, "t", "x", "y", &[]).unwrap();
         heatmap(&h, "c", &[], &[], &[]).unwrap();

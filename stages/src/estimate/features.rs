@@ -576,7 +576,7 @@ impl FittedModel {
             s.push(images.frame(k))
                 .map_err(|e| StageError::new(format!("{what}: {}", e.message)))?;
         }
-        Ok(s.estimate())
+        Ok(super::cap_decision_time(s.estimate(), images))
     }
 }
 
