@@ -617,11 +617,9 @@ pub fn write(
         files.push(path);
     }
     let colors: Vec<&str> = estimators.iter().map(String::as_str).collect();
-    let mut markers: Vec<&str> = series.iter().map(String::as_str).collect();
+    let markers: Vec<&str> = series.iter().map(String::as_str).collect();
     let base_marker = markers.len();
-    if rows.iter().any(|r| r.is_base) {
-        markers.push("base");
-    }
+    let base = rows.iter().any(|r| r.is_base).then_some("base");
     let index = |v: &[String], s: &str| v.iter().position(|x| x == s).unwrap_or(0);
     let charts = [
         (
@@ -686,6 +684,7 @@ pub fn write(
                 points: &points,
                 frontier: &front,
                 own_frontiers: &own,
+                base,
             },
         )
         .map_err(|e| e.to_string())?;

@@ -368,7 +368,7 @@ fn the_frontier_of_a_small_series_sweep() {
     assert_eq!(json.as_array().unwrap().len(), 8);
     let svg = std::fs::read_to_string(out.join("frontier_compute.svg")).unwrap();
     assert!(
-        svg.contains("Pareto frontier") && svg.contains("wss_stop"),
+        svg.contains("overall frontier") && svg.contains("wss_stop"),
         "legend"
     );
     let table = frontier::render(&rows);

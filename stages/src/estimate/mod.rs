@@ -44,7 +44,8 @@ pub fn decision_time_ms(images: &SpikeImages, k: usize) -> f64 {
 }
 
 /// Caps an estimate's decision time at what its images cover (estimators
-/// compute `k·hop + window` frame by frame, without knowing the trial's end).
+/// compute `k·hop + window` frame by frame, without knowing the trial's end;
+/// streams keep the uncapped value, since they cannot know it either).
 pub(crate) fn cap_decision_time(
     mut e: palpate_core::Estimate,
     images: &SpikeImages,
