@@ -76,10 +76,14 @@ pub enum SweepError {
     },
 }
 
-/// A short, file-name-safe label of a sweep value.
+/// A short, file-name-safe label of a sweep value: a string as it is, a table
+/// as `k=v,...`, an array as its items joined by `-` (`[60, 30]` -> `60-30`),
+/// anything else as TOML writes it; characters other than letters, digits and
+/// `-_.=,` become `_`.
 pub fn label(value: &toml::Value) -> String {
     let raw = match value {
         toml::Value::String(s) => s.clone(),
+        toml::Value::Array(a) => a.iter().map(label).collect::<Vec<_>>().join("-"),
         toml::Value::Table(t) => t
             .iter()
             .map(|(k, v)| format!("{k}={}", label(v)))

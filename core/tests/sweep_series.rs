@@ -119,6 +119,10 @@ values = [10, 30, 40]
     assert_eq!(rows[2].series.as_deref(), Some("len"));
     assert_eq!(rows[2].x, Some(10.0));
     assert_eq!(sweep.describe(), "series scale_b, len");
+    let lbl = |t: &str| palpate_core::sweep::label(&toml::from_str::<toml::Table>(t).unwrap()["v"]);
+    assert_eq!(lbl("v = [60, 30]"), "60-30");
+    assert_eq!(lbl("v = { from = 1.0, step = 0.5 }"), "from=1.0,step=0.5");
+    assert_eq!(lbl("v = \"a b/c\""), "a_b_c");
 }
 
 #[test]
