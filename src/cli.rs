@@ -180,6 +180,10 @@ pub fn main() -> ExitCode {
         Command::Check { graph, set } => match load(&graph, set.clone(), None) {
             Some(g) if g.sweep.is_some() && load_sweep_points(&graph, set, &g).is_none() => ExitCode::FAILURE,
             Some(g) => {
+                if let Err(e) = crate::frontier::check(&g) {
+                    eprintln!("{}: {e}", g.file);
+                    return ExitCode::FAILURE;
+                }
                 println!(
                     "{}: ok ({} stages, {} warning{})",
                     graph.display(),
@@ -302,6 +306,11 @@ fn cmd_run(
         cache: None,
     };
     if graph.sweep.is_some() {
+        if let Err(e) = crate::frontier::check(&graph) {
+            eprintln!("{}: {e}", graph.file);
+            return ExitCode::FAILURE;
+        }
+        let t0 = std::time::Instant::now();
         let load_opts = LoadOptions {
             overrides: set,
             out: Some(graph.out_dir.clone()),
@@ -310,7 +319,11 @@ fn cmd_run(
         let runs = pool.install(|| core::sweep::run_file(&path, &load_opts, &graph, &opts));
         drop(bars);
         return match runs {
-            Ok(runs) => crate::report::sweep_report(&graph, &runs),
+            Ok(runs) => {
+                let code = crate::report::sweep_report(&graph, &runs);
+                println!("sweep wall time: {:.1} s", t0.elapsed().as_secs_f64());
+                code
+            }
             Err(e) => {
                 eprintln!("{}: sweep failed: {e}", graph.file);
                 ExitCode::FAILURE
@@ -337,21 +350,14 @@ fn cmd_run(
         t0.elapsed().as_secs_f64()
     );
     print!("{}", crate::report::timing_table(&rows));
-    let record = crate::report::run_record(&graph, &result);
-    let run_json = graph.out_dir.join("run.json");
-    match serde_json::to_vec_pretty(&record) {
-        Ok(bytes) => {
-            if let Err(e) = core::output::write_atomic(&run_json, &bytes) {
-                eprintln!("cannot write {}: {e}", run_json.display());
-                return ExitCode::FAILURE;
-            }
-        }
-        Err(e) => {
-            eprintln!("cannot encode the run record: {e}");
-            return ExitCode::FAILURE;
-        }
+    if let Err(e) = crate::report::write_run_files(&graph, &result) {
+        eprintln!("{e}");
+        return ExitCode::FAILURE;
     }
-    println!("reports in {}", graph.out_dir.display());
+    println!(
+        "reports in {} (timing in timing.md, timing.csv)",
+        graph.out_dir.display()
+    );
     ExitCode::SUCCESS
 }
 

@@ -3,9 +3,10 @@
 //! This crate is the facade and the `palpate` command line. The machinery lives in
 //! [`core`] (payloads, stage traits, graph loading, runtime); the built-in stages
 //! in [`stages`]. [`report`] formats a run's results for the terminal and the run
-//! record.
+//! record; [`frontier`] builds a sweep's accuracy-time frontier.
 
 pub mod cli;
+pub mod frontier;
 pub mod report;
 
 pub use palpate_core as core;

@@ -1,8 +1,14 @@
-//! Presenting a run: the timing table and the run record (`run.json`).
+//! Presenting a run: the timing table, the run record (`run.json`) and a
+//! sweep's summary.
 //!
 //! Timing: for every stage, the median and 95th percentile of its per-trial wall
-//! time, its fits (trained estimators: one per fold), its total wall time, and for
-//! estimators the estimates per second of the stage's wall time.
+//! time, the median and 95th percentile of its fits (trained estimators: one
+//! fit per fold, i.e. the training time per fold; a model-based estimator fits
+//! once, on nothing), its total wall time, and for estimators the estimates per
+//! second of the stage's wall time. A stage served from a sweep's cache shows the
+//! times of the run that computed it, marked `*`. Every run (and every point of
+//! a sweep) writes the table into its output directory as `timing.md` and
+//! `timing.csv`, beside `run.json`, which holds it too.
 
 use palpate_core::runtime::median_p95;
 use palpate_core::{Graph, RunResult};
@@ -31,12 +37,16 @@ pub struct TimingRow {
     pub p95_ms: f64,
     /// Number of fits (folds).
     pub fits: usize,
-    /// Median fit time, ms.
+    /// Median fit time (training time per fold), ms.
     pub fit_median_ms: f64,
+    /// 95th-percentile fit time, ms.
+    pub fit_p95_ms: f64,
     /// Wall time of the whole stage, ms.
     pub total_ms: f64,
     /// Estimates per second of the stage's wall time (estimators only).
     pub estimates_per_s: Option<f64>,
+    /// Served from a sweep's cache: the times are those of the run that computed it.
+    pub cached: bool,
 }
 
 /// Summarises a run's timings.
@@ -46,7 +56,7 @@ pub fn timing_rows(result: &RunResult) -> Vec<TimingRow> {
         .iter()
         .map(|t| {
             let (median, p95) = median_p95(&t.per_trial);
-            let (fit_median, _) = median_p95(&t.fits);
+            let (fit_median, fit_p95) = median_p95(&t.fits);
             let total = t.total.as_secs_f64();
             TimingRow {
                 stage: t.id.clone(),
@@ -57,38 +67,141 @@ pub fn timing_rows(result: &RunResult) -> Vec<TimingRow> {
                 p95_ms: ms(p95),
                 fits: t.fits.len(),
                 fit_median_ms: ms(fit_median),
+                fit_p95_ms: ms(fit_p95),
                 total_ms: total * 1e3,
                 estimates_per_s: (t.role == "estimator" && total > 0.0)
                     .then(|| t.per_trial.len() as f64 / total),
+                cached: t.cached,
             }
         })
         .collect()
 }
+
+fn stage_name(r: &TimingRow) -> String {
+    if r.cached {
+        format!("{}*", r.stage)
+    } else {
+        r.stage.clone()
+    }
+}
+
+const CACHED_NOTE: &str = "* served from the sweep cache: times of the run that computed it";
 
 /// Renders the timing table.
 pub fn timing_table(rows: &[TimingRow]) -> String {
     let mut s = String::new();
     let _ = writeln!(
         s,
-        "{:<14} {:<14} {:>7} {:>12} {:>12} {:>6} {:>12} {:>10} {:>10}",
-        "stage", "type", "trials", "median ms", "p95 ms", "fits", "fit med ms", "total s", "est/s"
+        "{:<14} {:<14} {:>7} {:>12} {:>12} {:>6} {:>12} {:>12} {:>10} {:>10}",
+        "stage",
+        "type",
+        "trials",
+        "median ms",
+        "p95 ms",
+        "fits",
+        "fit med ms",
+        "fit p95 ms",
+        "total s",
+        "est/s"
     );
     for r in rows {
         let _ = writeln!(
             s,
-            "{:<14} {:<14} {:>7} {:>12.3} {:>12.3} {:>6} {:>12.1} {:>10.2} {:>10}",
-            r.stage,
+            "{:<14} {:<14} {:>7} {:>12.3} {:>12.3} {:>6} {:>12.1} {:>12.1} {:>10.2} {:>10}",
+            stage_name(r),
             r.type_name,
             r.trials,
             r.median_ms,
             r.p95_ms,
             r.fits,
             r.fit_median_ms,
+            r.fit_p95_ms,
             r.total_ms / 1e3,
             r.estimates_per_s.map_or("-".to_string(), |v| format!("{v:.0}"))
         );
     }
+    if rows.iter().any(|r| r.cached) {
+        let _ = writeln!(s, "{CACHED_NOTE}");
+    }
     s
+}
+
+/// The timing table as Markdown.
+pub fn timing_markdown(rows: &[TimingRow]) -> String {
+    let mut s = String::from(
+        "Wall time per stage: per trial (median, p95), per fit (training per fold for trained \
+         estimators; median, p95), the whole stage, and estimates per second of it.\n\n\
+         | stage | type | role | trials | median ms/trial | p95 ms/trial | fits | fit median ms | \
+         fit p95 ms | total s | estimates/s |\n|---|---|---|---|---|---|---|---|---|---|---|\n",
+    );
+    for r in rows {
+        let _ = writeln!(
+            s,
+            "| {} | {} | {} | {} | {:.3} | {:.3} | {} | {:.1} | {:.1} | {:.2} | {} |",
+            stage_name(r),
+            r.type_name,
+            r.role,
+            r.trials,
+            r.median_ms,
+            r.p95_ms,
+            r.fits,
+            r.fit_median_ms,
+            r.fit_p95_ms,
+            r.total_ms / 1e3,
+            r.estimates_per_s.map_or("-".to_string(), |v| format!("{v:.0}"))
+        );
+    }
+    if rows.iter().any(|r| r.cached) {
+        let _ = write!(s, "\n{CACHED_NOTE}\n");
+    }
+    s
+}
+
+/// The timing table as CSV.
+pub fn timing_csv(rows: &[TimingRow]) -> String {
+    let mut s = String::from(
+        "stage,type,role,trials,median_ms,p95_ms,fits,fit_median_ms,fit_p95_ms,total_ms,estimates_per_s,cached\n",
+    );
+    for r in rows {
+        let _ = writeln!(
+            s,
+            "{},{},{},{},{},{},{},{},{},{},{},{}",
+            r.stage,
+            r.type_name,
+            r.role,
+            r.trials,
+            r.median_ms,
+            r.p95_ms,
+            r.fits,
+            r.fit_median_ms,
+            r.fit_p95_ms,
+            r.total_ms,
+            r.estimates_per_s.map_or(String::new(), |v| v.to_string()),
+            r.cached
+        );
+    }
+    s
+}
+
+/// Writes a run's `run.json`, `timing.md` and `timing.csv` into its output
+/// directory; returns the files written.
+pub fn write_run_files(graph: &Graph, result: &RunResult) -> Result<Vec<std::path::PathBuf>, String> {
+    use palpate_core::output::write_atomic;
+    let record = run_record(graph, result);
+    let rows = &record.timing;
+    let json =
+        serde_json::to_vec_pretty(&record).map_err(|e| format!("cannot encode the run record: {e}"))?;
+    let mut files = Vec::new();
+    for (name, bytes) in [
+        ("run.json", json),
+        ("timing.md", timing_markdown(rows).into_bytes()),
+        ("timing.csv", timing_csv(rows).into_bytes()),
+    ] {
+        let path = graph.out_dir.join(name);
+        write_atomic(&path, &bytes).map_err(|e| format!("cannot write {}: {e}", path.display()))?;
+        files.push(path);
+    }
+    Ok(files)
 }
 
 /// The run record written to `<out>/run.json`.
@@ -133,32 +246,53 @@ pub fn run_record<'a>(graph: &'a Graph, result: &RunResult) -> RunRecord<'a> {
     }
 }
 
-/// Prints a sweep's reports and summary, and writes `sweep.json`, `sweep.csv`
-/// and one SVG curve per metric (when the swept values are numbers) into the
-/// graph's output directory.
+/// Prints a sweep's reports and summary, and writes into the graph's output
+/// directory `sweep.json`, `sweep.csv`, SVG curves, and (with `[sweep]
+/// frontier`) the accuracy-time frontier ([`crate::frontier`]). Each point's
+/// directory gets its `run.json`, `timing.md` and `timing.csv`.
+///
+/// Curves: in the single-key form with numeric values, one `sweep_<metric>.svg`
+/// per metric; in the series form (whose series vary different keys, so share
+/// no x axis), one `sweep_<series>_<metric>.svg` per series with numeric values
+/// and per metric listed in `metrics` (none when `metrics` is empty: a series
+/// sweep reports many metrics, and the frontier plots are its summary).
 pub fn sweep_report(graph: &Graph, runs: &[palpate_core::sweep::SweepRun]) -> std::process::ExitCode {
     use palpate_core::output::write_atomic;
     let Some(sweep) = &graph.sweep else {
         return std::process::ExitCode::FAILURE;
     };
+    let mut failed = false;
     for r in runs {
-        println!(
-            "== {} = {} (repeat {}, seed {})",
-            sweep.key, r.label, r.repeat, r.seed
-        );
+        let value = palpate_core::sweep::label(&r.value);
+        match &r.series {
+            Some(s) => println!(
+                "== {s}: {} = {value} (repeat {}, seed {})",
+                r.key, r.repeat, r.seed
+            ),
+            None => println!("== {} = {value} (repeat {}, seed {})", r.key, r.repeat, r.seed),
+        }
         for (id, rep) in &r.result.reports {
             println!("-- {id}");
             print!("{}", rep.text);
         }
+        if let Err(e) = write_run_files(&r.graph, &r.result) {
+            eprintln!("{e}");
+            failed = true;
+        }
     }
     let rows = palpate_core::sweep::summarize(runs, &sweep.metrics);
+    let points = sweep.points().len();
     println!(
-        "== sweep over {} ({} values x {} repeats)",
-        sweep.key,
-        sweep.values.len(),
+        "== sweep over {} ({points} points x {} repeats; per-point timing in <point>/timing.md)",
+        sweep.describe(),
         sweep.repeats
     );
-    print!("{}", palpate_core::sweep::render(&sweep.key, &rows));
+    let head = if sweep.series.is_empty() {
+        sweep.key.as_str()
+    } else {
+        "point"
+    };
+    print!("{}", palpate_core::sweep::render(head, &rows));
     let out = &graph.out_dir;
     let mut csv = String::from("value,metric,mean,sd,runs\n");
     for r in &rows {
@@ -166,44 +300,69 @@ pub fn sweep_report(graph: &Graph, runs: &[palpate_core::sweep::SweepRun]) -> st
             let _ = writeln!(csv, "{},{m},{mean},{sd},{n}", r.label);
         }
     }
-    let mut failed = false;
-    let mut write = |name: &str, bytes: &[u8]| {
+    let write = |name: &str, bytes: &[u8]| {
         if let Err(e) = write_atomic(&out.join(name), bytes) {
             eprintln!("cannot write {}: {e}", out.join(name).display());
-            failed = true;
+            false
+        } else {
+            true
         }
     };
-    write("sweep.csv", csv.as_bytes());
+    failed |= !write("sweep.csv", csv.as_bytes());
     if let Ok(json) = serde_json::to_vec_pretty(&rows) {
-        write("sweep.json", &json);
+        failed |= !write("sweep.json", &json);
     }
-    if rows.iter().all(|r| r.x.is_some()) {
+    let safe = |s: &str| s.replace(|c: char| !c.is_ascii_alphanumeric(), "_");
+    // (file, title, x label, rows) per curve group.
+    let mut groups: Vec<(String, String, Vec<&palpate_core::sweep::SummaryRow>, bool)> = Vec::new();
+    if sweep.series.is_empty() {
+        groups.push((String::new(), sweep.key.clone(), rows.iter().collect(), true));
+    } else if !sweep.metrics.is_empty() {
+        for s in &sweep.series {
+            let of: Vec<_> = rows
+                .iter()
+                .filter(|r| r.series.as_ref() == Some(&s.name))
+                .collect();
+            groups.push((format!("{}_", safe(&s.name)), s.key.clone(), of, false));
+        }
+    }
+    for (prefix, key, of, all_metrics) in groups {
+        if of.is_empty() || !of.iter().all(|r| r.x.is_some()) {
+            continue;
+        }
         let mut names: Vec<&str> = Vec::new();
-        for r in &rows {
+        for r in &of {
             for (n, ..) in &r.metrics {
-                if !names.contains(&n.as_str()) {
+                if !names.contains(&n.as_str()) && (all_metrics || sweep.metrics.contains(n)) {
                     names.push(n);
                 }
             }
         }
         for name in names {
-            let points: Vec<(f64, f64)> = rows
+            let points: Vec<(f64, f64)> = of
                 .iter()
                 .filter_map(|r| Some((r.x?, r.metrics.iter().find(|m| m.0 == name)?.1)))
                 .collect();
-            let file = out.join(format!(
-                "sweep_{}.svg",
-                name.replace(|c: char| !c.is_ascii_alphanumeric(), "_")
-            ));
+            let file = out.join(format!("sweep_{prefix}{}.svg", safe(name)));
             let series = [palpate_stages::plot::Series { name, points }];
-            if let Err(e) = palpate_stages::plot::line_chart(
-                &file,
-                &format!("{name} across {}", sweep.key),
-                &sweep.key,
-                name,
-                &series,
-            ) {
+            if let Err(e) =
+                palpate_stages::plot::line_chart(&file, &format!("{name} across {key}"), &key, name, &series)
+            {
                 eprintln!("{e}");
+                failed = true;
+            }
+        }
+    }
+    if !sweep.frontier.is_empty() {
+        match crate::frontier::report(graph, runs) {
+            Ok(text) => {
+                println!(
+                    "== accuracy-time frontier (compute ms: median per trial summed over the estimator's upstream stages, sources left out; decision ms: median palpation from first contact)"
+                );
+                print!("{text}");
+            }
+            Err(e) => {
+                eprintln!("frontier: {e}");
                 failed = true;
             }
         }

@@ -28,7 +28,7 @@ fn graph_files() -> Vec<PathBuf> {
 }
 
 /// The graph's text made small: 2 trials of 3 angles per scene, the first two
-/// values of a sweep, one repeat.
+/// values of a sweep (of each series of a series sweep), one repeat.
 fn shrink(text: &str) -> String {
     let mut doc: toml::Table = toml::from_str(text).unwrap();
     if let Some(stages) = doc.get_mut("stages").and_then(|s| s.as_table_mut()) {
@@ -46,6 +46,16 @@ fn shrink(text: &str) -> String {
     if let Some(sweep) = doc.get_mut("sweep").and_then(|s| s.as_table_mut()) {
         if let Some(v) = sweep.get_mut("values").and_then(|v| v.as_array_mut()) {
             v.truncate(2);
+        }
+        for series in sweep
+            .get_mut("series")
+            .and_then(|s| s.as_array_mut())
+            .into_iter()
+            .flatten()
+        {
+            if let Some(v) = series.get_mut("values").and_then(|v| v.as_array_mut()) {
+                v.truncate(2);
+            }
         }
         sweep.insert("repeats".into(), toml::Value::Integer(1));
     }
@@ -76,7 +86,20 @@ fn every_graph_checks_and_runs_small() {
         if g.sweep.is_some() {
             let runs = core::sweep::run_text(&text, &name, &name, &opts, &small, &RunOptions::default())
                 .unwrap_or_else(|e| panic!("{}: {e}", f.display()));
-            assert_eq!(runs.len(), 2, "{}", f.display());
+            let sweep = small.sweep.as_ref().unwrap();
+            let points = if sweep.series.is_empty() {
+                2
+            } else {
+                2 * sweep.series.len()
+            };
+            assert_eq!(runs.len(), points, "{}", f.display());
+            // A frontier sweep's report builds (one row per point and estimator).
+            if !sweep.frontier.is_empty() {
+                palpate::frontier::check(&small).unwrap_or_else(|e| panic!("{}: {e}", f.display()));
+                let rows = palpate::frontier::rows(&runs, &sweep.frontier, Some(&small))
+                    .unwrap_or_else(|e| panic!("{}: {e}", f.display()));
+                assert_eq!(rows.len(), points * sweep.frontier.len(), "{}", f.display());
+            }
         } else {
             let r =
                 core::run(&small, &RunOptions::default()).unwrap_or_else(|e| panic!("{}: {e}", f.display()));

@@ -69,16 +69,24 @@ impl Default for RunSettings {
     }
 }
 
-/// A sweep: the graph's `[sweep]` table. The graph runs once per value (and per
-/// repeat), with `key` set to the value; stages whose config and inputs did not
-/// change are not run again (see [`crate::sweep`]).
+/// A sweep: the graph's `[sweep]` table. The graph runs once per point (and per
+/// repeat); stages whose config and inputs did not change are not run again (see
+/// [`crate::sweep`]).
+///
+/// Two forms: the single-key form (`key` and `values`: one point per value), or
+/// `[[sweep.series]]` tables, each varying one key from the base graph (the
+/// sweep is then the union of the series' points). A graph gives one form, not
+/// both.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct SweepSettings {
-    /// What to vary: `stages.<id>.<key>`, `run.<key>`, or `stages.<id>` with table
-    /// values whose keys are merged into the stage (to vary several keys at once).
+    /// Single-key form: what to vary: `stages.<id>.<key>`, `run.<key>`, or
+    /// `stages.<id>` with table values whose keys are merged into the stage (to
+    /// vary several keys at once). Leave out with `series`.
+    #[serde(default)]
     pub key: String,
-    /// The values, in order; TOML values of the key's type.
+    /// Single-key form: the values, in order; TOML values of the key's type.
+    #[serde(default)]
     #[schemars(with = "Vec<serde_json::Value>")]
     pub values: Vec<toml::Value>,
     /// Runs per value, repeat `r` with seed `[run] seed + r`. Default 1.
@@ -88,6 +96,92 @@ pub struct SweepSettings {
     /// e.g. `wss.mae_deg`); default every metric.
     #[serde(default)]
     pub metrics: Vec<String>,
+    /// Several series (`[[sweep.series]]`), each varying one key from the base
+    /// graph; the sweep is their union. Point labels are `<series>/<value>` and
+    /// each point reports into `<out>/<series>/<value>/`.
+    #[serde(default)]
+    pub series: Vec<SweepSeries>,
+    /// Estimator stage ids to place on the accuracy-time frontier (each must
+    /// feed an `mae` sink): MAE against compute time per trial and against
+    /// decision time, written as `frontier.{md,csv,json}` and
+    /// `frontier_{compute,decision}.svg` into the sweep's output directory.
+    /// Default none.
+    #[serde(default)]
+    pub frontier: Vec<String>,
+}
+
+/// One series of a sweep: one key, its values, and constant overrides.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
+#[serde(deny_unknown_fields)]
+#[schemars(inline)]
+pub struct SweepSeries {
+    /// The series' name: the prefix of its point labels and report
+    /// directories, and its legend entry in plots. Letters, digits, `-` and `_`.
+    pub name: String,
+    /// What to vary, as the single-key form's `key`.
+    pub key: String,
+    /// The values, in order.
+    #[schemars(with = "Vec<serde_json::Value>")]
+    pub values: Vec<toml::Value>,
+    /// Overrides applied to every point of this series before its key, each a
+    /// quoted path as `--set` takes it (`"stages.bins.inputs" = ["crop"]`):
+    /// for a setting that needs the graph wired differently. Default none.
+    #[serde(default)]
+    #[schemars(with = "std::collections::BTreeMap<String, serde_json::Value>")]
+    pub set: toml::Table,
+}
+
+/// One point of a sweep: a key set to one value (plus a series' constants).
+#[derive(Clone, Debug, PartialEq)]
+pub struct SweepPoint {
+    /// The series' name (`None` in the single-key form).
+    pub series: Option<String>,
+    /// The key varied.
+    pub key: String,
+    /// Its value here.
+    pub value: toml::Value,
+    /// Overrides applied before the key (a series' `set`).
+    pub set: Vec<(String, toml::Value)>,
+}
+
+impl SweepSettings {
+    /// Every point, in order: the values of the single-key form, or each
+    /// series' values in turn.
+    pub fn points(&self) -> Vec<SweepPoint> {
+        if self.series.is_empty() {
+            return self
+                .values
+                .iter()
+                .map(|v| SweepPoint {
+                    series: None,
+                    key: self.key.clone(),
+                    value: v.clone(),
+                    set: Vec::new(),
+                })
+                .collect();
+        }
+        self.series
+            .iter()
+            .flat_map(|s| {
+                s.values.iter().map(|v| SweepPoint {
+                    series: Some(s.name.clone()),
+                    key: s.key.clone(),
+                    value: v.clone(),
+                    set: s.set.iter().map(|(k, v)| (k.clone(), v.clone())).collect(),
+                })
+            })
+            .collect()
+    }
+
+    /// How the sweep names what it varies: its key, or its series' names.
+    pub fn describe(&self) -> String {
+        if self.series.is_empty() {
+            self.key.clone()
+        } else {
+            let names: Vec<&str> = self.series.iter().map(|s| s.name.as_str()).collect();
+            format!("series {}", names.join(", "))
+        }
+    }
 }
 
 fn one() -> usize {
@@ -535,30 +629,102 @@ impl<'t> Loader<'t> {
                 return None;
             }
         };
-        let parts: Vec<&str> = sweep.key.split('.').collect();
-        let ok = match parts.as_slice() {
-            ["run", _, ..] => true,
-            ["stages", id, ..] => doc.get("stages").and_then(|s| s.get(*id)).is_some(),
-            _ => false,
+        let key_ok = |key: &str| {
+            let parts: Vec<&str> = key.split('.').collect();
+            match parts.as_slice() {
+                ["run", _, ..] => true,
+                ["stages", id, ..] => doc.get("stages").and_then(|s| s.get(*id)).is_some(),
+                _ => false,
+            }
         };
-        if !ok {
+        let key_msg = |key: &str| {
+            format!("must name run.<key> or a declared stage: stages.<id>[.<key>], not \"{key}\"")
+        };
+        if sweep.series.is_empty() {
+            if !key_ok(&sweep.key) {
+                self.error(
+                    line,
+                    None,
+                    Some("key"),
+                    format!("in [sweep]: `key` {}", key_msg(&sweep.key)),
+                );
+            }
+            if sweep.values.is_empty() {
+                self.error(
+                    line,
+                    None,
+                    Some("values"),
+                    "in [sweep]: `values` lists no value (or give [[sweep.series]] tables)".into(),
+                );
+            }
+        } else if !sweep.key.is_empty() || !sweep.values.is_empty() {
             self.error(
                 line,
                 None,
-                Some("key"),
-                format!(
-                    "in [sweep]: `key = \"{}\"` must name run.<key> or a declared stage: stages.<id>[.<key>]",
-                    sweep.key
-                ),
+                Some("series"),
+                "in [sweep]: give either `key` and `values` or [[sweep.series]] tables, not both".into(),
             );
         }
-        if sweep.values.is_empty() {
-            self.error(
-                line,
-                None,
-                Some("values"),
-                "in [sweep]: `values` lists no value".into(),
-            );
+        let mut names: Vec<&str> = Vec::new();
+        for s in &sweep.series {
+            let what = format!("in [sweep] series `{}`", s.name);
+            let name_ok = !s.name.is_empty()
+                && s.name
+                    .chars()
+                    .all(|c| c.is_ascii_alphanumeric() || "-_".contains(c));
+            if !name_ok {
+                self.error(
+                    line,
+                    None,
+                    Some("name"),
+                    format!("{what}: `name` must be letters, digits, `-` and `_` (it names a directory)"),
+                );
+            }
+            if names.contains(&s.name.as_str()) {
+                self.error(
+                    line,
+                    None,
+                    Some("name"),
+                    format!("{what}: two series share this name"),
+                );
+            }
+            names.push(&s.name);
+            if !key_ok(&s.key) {
+                self.error(
+                    line,
+                    None,
+                    Some("key"),
+                    format!("{what}: `key` {}", key_msg(&s.key)),
+                );
+            }
+            if s.values.is_empty() {
+                self.error(
+                    line,
+                    None,
+                    Some("values"),
+                    format!("{what}: `values` lists no value"),
+                );
+            }
+            for k in s.set.keys() {
+                if !key_ok(k) {
+                    self.error(
+                        line,
+                        None,
+                        Some("set"),
+                        format!("{what}: `set` key {}", key_msg(k)),
+                    );
+                }
+            }
+        }
+        for id in &sweep.frontier {
+            if doc.get("stages").and_then(|s| s.get(id)).is_none() {
+                self.error(
+                    line,
+                    None,
+                    Some("frontier"),
+                    format!("in [sweep]: `frontier` names `{id}`, which is not a declared stage"),
+                );
+            }
         }
         if sweep.repeats == 0 {
             self.error(

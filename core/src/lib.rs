@@ -9,7 +9,8 @@
 //!   units, docs);
 //! * [`graph`]: loading a TOML graph, gathering every error with its line;
 //! * [`runtime`]: running a graph, in parallel and deterministically;
-//! * [`sweep`]: running a graph across the values of one key, with a cache;
+//! * [`sweep`]: running a graph across the values of one key (or several series
+//!   of keys), with a cache;
 //! * [`output`]: atomic report files.
 //!
 //! `core` knows no stage by name: stages register themselves, and the CLI finds
@@ -26,7 +27,7 @@ pub mod sweep;
 
 pub use graph::{
     load_file, load_str, Diagnostic, Graph, LoadErrors, LoadOptions, Protocol, RunSettings, Severity,
-    SweepSettings,
+    SweepPoint, SweepSeries, SweepSettings,
 };
 pub use payload::{
     ClassScore, Estimate, Item, Label, Payload, PayloadKind, Provenance, Signals, SpikeEvent, SpikeImages,

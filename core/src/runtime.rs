@@ -41,12 +41,20 @@ pub trait Progress: Sync {
 /// inputs did not change is not run again. Sinks always run. Valid for graphs
 /// loaded from the same directory (relative paths in settings are not resolved
 /// into the key).
+///
+/// Each output is kept with the [`StageTiming`] of the run that computed it, so
+/// a run served from the cache still reports what the stage costs (marked
+/// `cached`): a sweep's compute-time figures then do not depend on which point
+/// happened to compute a shared stage first.
 #[derive(Default)]
 pub struct Cache {
-    map: std::sync::Mutex<HashMap<u64, Arc<Vec<Item>>>>,
+    map: std::sync::Mutex<HashMap<u64, Cached>>,
     hits: std::sync::atomic::AtomicUsize,
     misses: std::sync::atomic::AtomicUsize,
 }
+
+/// A cached output with the timing of the run that computed it.
+type Cached = (Arc<Vec<Item>>, StageTiming);
 
 impl Cache {
     /// Stage runs served from the cache.
@@ -57,15 +65,15 @@ impl Cache {
     pub fn misses(&self) -> usize {
         self.misses.load(std::sync::atomic::Ordering::Relaxed)
     }
-    fn get(&self, key: u64) -> Option<Arc<Vec<Item>>> {
+    fn get(&self, key: u64) -> Option<Cached> {
         let hit = self.map.lock().ok()?.get(&key).cloned();
         let counter = if hit.is_some() { &self.hits } else { &self.misses };
         counter.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         hit
     }
-    fn put(&self, key: u64, items: Arc<Vec<Item>>) {
+    fn put(&self, key: u64, items: Arc<Vec<Item>>, timing: StageTiming) {
         if let Ok(mut m) = self.map.lock() {
-            m.insert(key, items);
+            m.insert(key, (items, timing));
         }
     }
 }
@@ -97,7 +105,8 @@ pub struct StageTiming {
     pub fits: Vec<Duration>,
     /// Wall time of the whole stage.
     pub total: Duration,
-    /// True when the output came from the sweep cache (nothing was computed).
+    /// True when the output came from the sweep cache: nothing was computed in
+    /// this run, and the times above are those of the run that computed it.
     pub cached: bool,
 }
 
@@ -175,13 +184,13 @@ pub fn run(graph: &Graph, opts: &RunOptions<'_>) -> Result<RunResult, RunError> 
         labels.extend(input_keys.iter().map(String::as_str));
         keys[i] = derive_seed(seed, &labels);
         let cacheable = !matches!(node.stage, Stage::Sink(_));
-        if let (true, Some(items)) = (cacheable, opts.cache.and_then(|c| c.get(keys[i]))) {
+        if let (true, Some((items, computed))) = (cacheable, opts.cache.and_then(|c| c.get(keys[i]))) {
             result.timings.push(StageTiming {
                 id: node.id.clone(),
                 type_name: node.type_name.clone(),
                 role: node.stage.role(),
                 cached: true,
-                ..StageTiming::default()
+                ..computed
             });
             if opts.keep_outputs {
                 result.outputs.insert(node.id.clone(), items.clone());
@@ -364,17 +373,17 @@ pub fn run(graph: &Graph, opts: &RunOptions<'_>) -> Result<RunResult, RunError> 
         if let Some(p) = opts.progress {
             p.finish(id);
         }
-        result.timings.push(timing);
         if let Some(items) = produced {
             let items = Arc::new(items);
             if opts.keep_outputs {
                 result.outputs.insert(node.id.clone(), items.clone());
             }
             if let Some(c) = opts.cache {
-                c.put(keys[i], items.clone());
+                c.put(keys[i], items.clone(), timing.clone());
             }
             outputs[i] = Some(items);
         }
+        result.timings.push(timing);
         release_inputs(graph, i, &mut readers, &mut outputs);
     }
     Ok(result)

@@ -1,18 +1,35 @@
-//! Sweeps: running a graph once per value of one key (and per repeat), with one
-//! table across the sweep.
+//! Sweeps: running a graph once per point (a key set to one value), per repeat,
+//! with one table across the sweep.
 //!
-//! A graph's `[sweep]` table ([`SweepSettings`]) names a key and its values. Point
-//! `p`, repeat `r` is the graph with `key = values[p]` and `[run] seed = seed + r`,
-//! writing its reports to `<out>/<label>/` (`<out>/<label>/r<r>/` with repeats).
-//! Every point is loaded (and so checked) before any runs. All points share one
+//! A graph's `[sweep]` table ([`SweepSettings`]) gives its points in one of two
+//! forms:
+//!
+//! * single key: `key` and `values`; point `p` is the graph with
+//!   `key = values[p]`, labelled by the value and reporting into `<out>/<label>/`;
+//! * series: `[[sweep.series]]` tables, each with a `name`, a `key`, `values`
+//!   and optional constant overrides `set`; the sweep is the union of the
+//!   series' points, each changing ONE key from the base graph (after its
+//!   series' `set`), labelled `<series>/<value>` and reporting into
+//!   `<out>/<series>/<value>/`. Series let one sweep explore several settings
+//!   (a grid step, a hop, an encoder step, ...) around one base graph, which is
+//!   what an accuracy-time frontier needs: a grid of every combination would
+//!   multiply the run time, and each setting's effect is read against the base.
+//!
+//! Repeat `r` of a point uses `[run] seed = seed + r` (and reports into
+//! `.../r<r>/`). Every point is loaded (and so checked) before any runs; an
+//! error names the point's series (or key) and value. All points share one
 //! [`Cache`]: a stage whose type, settings, seed and inputs did not change is not
-//! run again, so sweeping a downstream key (a WSS weighting, a jitter width)
-//! does not re-simulate or re-encode.
+//! run again, so sweeping a downstream key (a WSS weighting, a jitter width, a
+//! grid step) does not re-simulate, re-encode or retrain; the cache keeps each
+//! stage's timing from the run that computed it, so every point still reports
+//! what each of its stages costs.
 //!
-//! The summary gives, per value, each metric's mean and population SD over the
+//! The summary gives, per point, each metric's mean and population SD over the
 //! repeats.
 
-use crate::graph::{load_str, Diagnostic, Graph, LoadErrors, LoadOptions, Severity, SweepSettings};
+use crate::graph::{
+    load_str, Diagnostic, Graph, LoadErrors, LoadOptions, Severity, SweepPoint, SweepSettings,
+};
 use crate::runtime::{run, Cache, RunError, RunOptions, RunResult};
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -20,12 +37,21 @@ use std::path::{Path, PathBuf};
 /// One run of a sweep.
 #[derive(Debug)]
 pub struct SweepRun {
-    /// Index of the value.
+    /// Index of the point (into [`SweepSettings::points`]).
     pub point: usize,
+    /// The point's series (`None` in the single-key form).
+    pub series: Option<String>,
+    /// The key varied.
+    pub key: String,
     /// The value.
     pub value: toml::Value,
-    /// The value as a short label (also the report sub-directory).
+    /// The point's label: the value's [`label`], prefixed by `<series>/` in the
+    /// series form (also the report sub-directory).
     pub label: String,
+    /// The point's graph as run: its `out_dir` is the point's report directory,
+    /// and a series' `set` may have rewired it (reports that follow a stage's
+    /// upstream path read it here).
+    pub graph: Graph,
     /// Repeat number.
     pub repeat: usize,
     /// The seed the run used.
@@ -50,10 +76,14 @@ pub enum SweepError {
     },
 }
 
-/// A short, file-name-safe label of a sweep value.
+/// A short, file-name-safe label of a sweep value: a string as it is, a table
+/// as `k=v,...`, an array as its items joined by `-` (`[60, 30]` -> `60-30`),
+/// anything else as TOML writes it; characters other than letters, digits and
+/// `-_.=,` become `_`.
 pub fn label(value: &toml::Value) -> String {
     let raw = match value {
         toml::Value::String(s) => s.clone(),
+        toml::Value::Array(a) => a.iter().map(label).collect::<Vec<_>>().join("-"),
         toml::Value::Table(t) => t
             .iter()
             .map(|(k, v)| format!("{k}={}", label(v)))
@@ -72,7 +102,17 @@ pub fn label(value: &toml::Value) -> String {
         .collect()
 }
 
-/// Loads every (point, repeat) graph of a sweep, gathering every error.
+/// A point's label: the value's [`label`], prefixed by `<series>/` in the series
+/// form.
+pub fn point_label(point: &SweepPoint) -> String {
+    match &point.series {
+        Some(s) => format!("{s}/{}", label(&point.value)),
+        None => label(&point.value),
+    }
+}
+
+/// Loads every (point, repeat) graph of a sweep, gathering every error. Point
+/// indices are into [`SweepSettings::points`].
 pub fn load_points(
     text: &str,
     file: &str,
@@ -83,14 +123,16 @@ pub fn load_points(
 ) -> Result<Vec<(usize, usize, Graph)>, LoadErrors> {
     let mut graphs = Vec::new();
     let mut errors = Vec::new();
-    for (p, value) in sweep.values.iter().enumerate() {
-        let lbl = label(value);
+    for (p, point) in sweep.points().iter().enumerate() {
+        let lbl = point_label(point);
+        let value = &point.value;
         for r in 0..sweep.repeats {
             let mut o = opts.clone();
-            o.overrides.push((sweep.key.clone(), value.clone()));
-            // Repeat r shifts the seed by r; when the sweep is over the seed itself,
+            o.overrides.extend(point.set.iter().cloned());
+            o.overrides.push((point.key.clone(), value.clone()));
+            // Repeat r shifts the seed by r; when the point is over the seed itself,
             // the swept value is the base (else the repeat's override would hide it).
-            let seed = match (sweep.key.as_str(), value) {
+            let seed = match (point.key.as_str(), value) {
                 ("run.seed", toml::Value::Integer(v)) => *v as u64,
                 _ => base.run.seed,
             };
@@ -102,8 +144,12 @@ pub fn load_points(
             match load_str(text, file, stem, &o) {
                 Ok(g) => graphs.push((p, r, g)),
                 Err(e) => {
+                    let at = match &point.series {
+                        Some(name) => format!("in sweep series `{name}`, with {} = {value}", point.key),
+                        None => format!("with sweep value {} = {value}", point.key),
+                    };
                     for mut d in e.0.into_iter().filter(|d| d.severity == Severity::Error) {
-                        d.message = format!("with sweep value {} = {value}: {}", sweep.key, d.message);
+                        d.message = format!("{at}: {}", d.message);
                         if !errors.contains(&d) {
                             errors.push(d);
                         }
@@ -164,12 +210,13 @@ pub fn run_text(
         }])));
     };
     let graphs = load_points(text, file, stem, opts, base, sweep).map_err(SweepError::Load)?;
+    let points = sweep.points();
     let own_cache = Cache::default();
     let cache = run_opts.cache.unwrap_or(&own_cache);
     let mut runs = Vec::with_capacity(graphs.len());
     for (p, r, g) in graphs {
-        let value = sweep.values[p].clone();
-        let lbl = label(&value);
+        let point = &points[p];
+        let lbl = point_label(point);
         let o = RunOptions {
             progress: run_opts.progress,
             cache: Some(cache),
@@ -181,28 +228,33 @@ pub fn run_text(
         })?;
         runs.push(SweepRun {
             point: p,
-            value,
+            series: point.series.clone(),
+            key: point.key.clone(),
+            value: point.value.clone(),
             label: lbl,
             repeat: r,
             seed: g.run.seed,
             result,
+            graph: g,
         });
     }
     Ok(runs)
 }
 
-/// One row of a sweep's summary: a value and each metric's statistics.
+/// One row of a sweep's summary: a point and each metric's statistics.
 #[derive(Clone, Debug, PartialEq, serde::Serialize)]
 pub struct SummaryRow {
-    /// The value's label.
+    /// The point's label.
     pub label: String,
+    /// The point's series (`None` in the single-key form).
+    pub series: Option<String>,
     /// The value as a number, when it is one (for plots).
     pub x: Option<f64>,
     /// (metric, mean, population SD, runs) per metric.
     pub metrics: Vec<(String, f64, f64, usize)>,
 }
 
-/// Mean and SD of each metric per sweep value, over repeats. `wanted` filters
+/// Mean and SD of each metric per sweep point, over repeats. `wanted` filters
 /// metric names (empty: all).
 pub fn summarize(runs: &[SweepRun], wanted: &[String]) -> Vec<SummaryRow> {
     let mut rows: Vec<SummaryRow> = Vec::new();
@@ -245,6 +297,7 @@ pub fn summarize(runs: &[SweepRun], wanted: &[String]) -> Vec<SummaryRow> {
         };
         rows.push(SummaryRow {
             label: first.label.clone(),
+            series: first.series.clone(),
             x,
             metrics,
         });

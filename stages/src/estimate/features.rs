@@ -59,7 +59,8 @@
 //! a loaded model predicts the same bits). [`FittedModel::stream`] returns a
 //! [`Streamer`] that takes one frame at a time and keeps the running vote; the
 //! batch [`Model::predict`] is implemented by streaming every frame, so the two
-//! cannot disagree.
+//! cannot disagree (except in `decision_time_ms`, which the batch caps at the
+//! trial's end: a stream cannot know where the trial ends; see `estimate`).
 
 use palpate_core::output::write_atomic;
 use palpate_core::{
@@ -583,7 +584,11 @@ impl FittedModel {
 impl Model for FittedModel {
     fn predict(&self, item: &Item, ctx: &TrialContext<'_>) -> Result<Estimate, StageError> {
         let images = item.payload.images()?;
-        self.predict_images(images, ctx.seed, &format!("trial `{}`", item.meta.trial_id))
+        let e = self.predict_images(images, ctx.seed, &format!("trial `{}`", item.meta.trial_id))?;
+        // A stream (and so `predict_images`) cannot know where the trial ends;
+        // a whole trial's answer can: cap its decision time there (see the
+        // decision-time rule in `estimate`).
+        Ok(super::cap_decision_time(e, images))
     }
 }
 

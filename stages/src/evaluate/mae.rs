@@ -19,6 +19,22 @@
 //!   is the other reading, a 9-class WSS on the 9 matching classes: that is a
 //!   graph, graphs/paper/acuity.toml, not a metric.)
 //!
+//! * decision time (metric `<id>.decision_ms`): the median over trials of the
+//!   palpation each answer needed, `decision_time_ms − t₀`, in ms. The
+//!   estimator's `decision_time_ms` counts from the trial's start (see
+//!   `estimate`'s module docs for how each estimator sets it); `t₀` is the
+//!   edge's first contact with the array, the trial's `crossing_ms[0]`, when the
+//!   source knows it (simulated scenes), else 0 (the trial's start: a recording
+//!   without a known crossing; such trials are counted in the report). Counted
+//!   from first contact because the hold before it is the protocol's (the
+//!   paper's robot waits 2 s at P1), the same for every estimator and no part of
+//!   palpating the edge; and because `crop`'s share is defined on the crossing,
+//!   so a crop to share `s` caps the decision time at `s · (t₁ − t₀)`. Every
+//!   trial with a decision time counts, "no edge" answers included (the time
+//!   was spent); an answer given before contact gives a negative time. The
+//!   median, not the mean, because crossing times grow like `1/sin θ` and a few
+//!   shallow angles would dominate a mean.
+//!
 //! Files, in the run's output directory, written atomically: `<sink id>.json`,
 //! `<sink id>.csv` (one row per estimator and class), `<sink id>.md` (the table
 //! as Markdown) and `<sink id>_per_class.svg` (per-class MAE bars, one series per
@@ -117,6 +133,52 @@ pub struct MaeStats {
     pub classes: Vec<ClassStats>,
     /// (acuity, MAE at that acuity), degrees.
     pub coarse: Vec<(f64, Option<f64>)>,
+    /// Median decision time, ms of palpation from first contact (see the
+    /// module docs); `None` when no trial has one.
+    pub decision_ms: Option<f64>,
+    /// Trials with a decision time.
+    pub decision_trials: usize,
+    /// Of those, trials timed from their start (no known crossing).
+    pub decision_from_start: usize,
+}
+
+/// One trial's decision time from first contact: `(ms, timed from the start?)`,
+/// or `None` when the estimate has no decision time.
+pub fn decision_from_contact(
+    decision_time_ms: Option<f64>,
+    crossing_ms: Option<[f64; 2]>,
+) -> Option<(f64, bool)> {
+    let t = decision_time_ms.filter(|t| t.is_finite())?;
+    match crossing_ms {
+        Some([t0, _]) if t0.is_finite() => Some((t - t0, false)),
+        _ => Some((t, true)),
+    }
+}
+
+/// Median of finite values (`None` when there is none): the mean of the two
+/// middle values for an even count.
+pub fn median(values: &[f64]) -> Option<f64> {
+    let mut v: Vec<f64> = values.iter().copied().filter(|x| x.is_finite()).collect();
+    if v.is_empty() {
+        return None;
+    }
+    v.sort_by(f64::total_cmp);
+    let n = v.len();
+    Some(if n % 2 == 1 {
+        v[n / 2]
+    } else {
+        (v[n / 2 - 1] + v[n / 2]) / 2.0
+    })
+}
+
+/// Adds the decision-time statistics from each trial's `(ms, timed from the
+/// start?)` (see [`decision_from_contact`]).
+pub fn with_decision(mut stats: MaeStats, times: &[(f64, bool)]) -> MaeStats {
+    let ms: Vec<f64> = times.iter().map(|t| t.0).collect();
+    stats.decision_ms = median(&ms);
+    stats.decision_trials = times.len();
+    stats.decision_from_start = times.iter().filter(|t| t.1).count();
+    stats
 }
 
 /// MAE after binning truth and estimate into classes of width `acuity` from `origin`.
@@ -189,13 +251,14 @@ pub fn with_coarse(mut stats: MaeStats, pairs: &[(Option<f64>, Option<f64>)], ac
 /// The statistics of several estimators as CSV: one row per estimator and class,
 /// then one `all` row per estimator.
 pub fn to_csv(all: &[MaeStats]) -> String {
-    let mut s = String::from("estimator,angle_deg,trials,no_edge,mean_estimate_deg,mae_deg,sd_deg\n");
+    let mut s =
+        String::from("estimator,angle_deg,trials,no_edge,mean_estimate_deg,mae_deg,sd_deg,decision_ms\n");
     let f = |v: Option<f64>| v.map_or(String::new(), |x| format!("{x}"));
     for st in all {
         for c in &st.classes {
             let _ = writeln!(
                 s,
-                "{},{},{},{},{},{},",
+                "{},{},{},{},{},{},,",
                 st.estimator,
                 c.angle_deg,
                 c.trials,
@@ -206,12 +269,13 @@ pub fn to_csv(all: &[MaeStats]) -> String {
         }
         let _ = writeln!(
             s,
-            "{},all,{},{},,{},{}",
+            "{},all,{},{},,{},{},{}",
             st.estimator,
             st.trials,
             st.no_edge,
             f(st.mae_deg),
-            f(st.sd_deg)
+            f(st.sd_deg),
+            f(st.decision_ms)
         );
     }
     s
@@ -248,12 +312,15 @@ pub fn to_markdown(all: &[MaeStats]) -> String {
         }
         s.push('\n');
     }
-    let rows: [SummaryCell; 4] = [
+    let rows: [SummaryCell; 5] = [
         ("overall MAE (SD)", |st| {
             format!("{} ({})", fmt_opt(st.mae_deg, 2), fmt_opt(st.sd_deg, 2))
         }),
         ("largest per-class MAE", |st| fmt_opt(st.max_class_mae_deg, 2)),
         ("no edge", |st| st.no_edge.to_string()),
+        ("decision time, median ms from contact", |st| {
+            fmt_opt(st.decision_ms, 0)
+        }),
         ("coarse acuity MAE", |st| {
             st.coarse
                 .iter()
@@ -311,6 +378,21 @@ pub fn render(stats: &MaeStats, per_class: bool) -> String {
             String::new()
         }
     );
+    if let Some(d) = stats.decision_ms {
+        let _ = writeln!(
+            s,
+            "  decision time: median {d:.0} ms of palpation from first contact ({} trials{})",
+            stats.decision_trials,
+            if stats.decision_from_start > 0 {
+                format!(
+                    "; {} without a known crossing timed from their start",
+                    stats.decision_from_start
+                )
+            } else {
+                String::new()
+            }
+        );
+    }
     s
 }
 
@@ -320,11 +402,14 @@ impl Sink for MaeSink {
         let mut all = Vec::new();
         for input in inputs {
             let mut pairs = Vec::with_capacity(input.items.len());
+            let mut times = Vec::with_capacity(input.items.len());
             for item in input.items {
                 let est = item.payload.estimate()?;
                 pairs.push((item.meta.label.angle_deg, est.angle_deg));
+                times.extend(decision_from_contact(est.decision_time_ms, item.meta.crossing_ms));
             }
             let stats = with_coarse(mae_stats(input.stage_id, &pairs), &pairs, &self.acuity_deg);
+            let stats = with_decision(stats, &times);
             report.text.push_str(&render(&stats, self.per_class));
             let id = input.stage_id;
             if let Some(m) = stats.mae_deg {
@@ -343,6 +428,9 @@ impl Sink for MaeSink {
                 if let Some(m) = m {
                     report.metrics.push((format!("{id}.mae_at_{a}deg"), *m));
                 }
+            }
+            if let Some(d) = stats.decision_ms {
+                report.metrics.push((format!("{id}.decision_ms"), d));
             }
             all.push(stats);
         }
@@ -440,6 +528,37 @@ mod tests {
         let md = to_markdown(&[s.clone(), s.clone()]);
         assert!(md.contains("| 40° | 5.00 | 5.00 |"), "{md}");
         assert!(to_csv(&[s]).lines().count() == 4);
+    }
+
+    #[test]
+    fn decision_time_counts_from_first_contact_and_takes_the_median() {
+        assert_eq!(
+            decision_from_contact(Some(2500.0), Some([2000.0, 5000.0])),
+            Some((500.0, false))
+        );
+        assert_eq!(decision_from_contact(Some(2500.0), None), Some((2500.0, true)));
+        assert_eq!(
+            decision_from_contact(Some(2500.0), Some([f64::NAN, 1.0])),
+            Some((2500.0, true))
+        );
+        assert_eq!(decision_from_contact(None, Some([0.0, 1.0])), None);
+        assert_eq!(decision_from_contact(Some(f64::NAN), None), None);
+        assert_eq!(median(&[]), None);
+        assert_eq!(median(&[3.0, 1.0, 2.0]), Some(2.0));
+        assert_eq!(median(&[4.0, 1.0, 2.0, 3.0]), Some(2.5));
+        assert_eq!(median(&[f64::NAN, 1.0]), Some(1.0));
+        let s = with_decision(
+            mae_stats("w", &[]),
+            &[(100.0, false), (300.0, true), (200.0, false)],
+        );
+        assert_eq!(s.decision_ms, Some(200.0));
+        assert_eq!((s.decision_trials, s.decision_from_start), (3, 1));
+        let text = render(&s, false);
+        assert!(
+            text.contains("median 200 ms") && text.contains("1 without a known crossing"),
+            "{text}"
+        );
+        assert!(to_csv(&[s]).lines().nth(1).unwrap().ends_with(",200"));
     }
 
     #[test]

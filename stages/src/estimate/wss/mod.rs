@@ -138,7 +138,8 @@ pub struct WssConfig {
     pub before_start: BeforeStart,
     /// Stop early, frame by frame, once the best class's score leads the
     /// second best by this margin (and passes `threshold`); `decision_time_ms`
-    /// then tells how much palpation was used. Default: none (whole trial).
+    /// then tells how much palpation was used (ms from the trial's start, to
+    /// the end of the stopping frame). Default: none (whole trial).
     pub stop_margin: Option<f64>,
 }
 
@@ -251,18 +252,26 @@ impl Model for WssModel {
     fn predict(&self, item: &Item, _ctx: &TrialContext<'_>) -> Result<Estimate, StageError> {
         let images = item.payload.images()?;
         let tpl = self.templates(images)?;
-        match self.stop_margin {
-            None => wss_batch(images, &tpl, &self.params),
+        let e = match self.stop_margin {
+            None => wss_batch(images, &tpl, &self.params)?,
             Some(margin) => {
                 let mut s = WssStream::new(tpl, self.params.clone(), images.window_ms)?;
+                let mut stopped = None;
                 for k in 0..images.n_frames {
                     let e = s.push(images.frame(k))?;
                     if e.angle_deg.is_some() && s.margin() >= margin {
-                        return Ok(e);
+                        stopped = Some(e);
+                        break;
                     }
                 }
-                Ok(s.estimate())
+                match stopped {
+                    Some(e) => e,
+                    None => s.estimate(),
+                }
             }
-        }
+        };
+        // Frame ends run past the trial's end by up to a window (see the
+        // decision-time rule in `estimate`).
+        Ok(super::cap_decision_time(e, images))
     }
 }
