@@ -112,28 +112,29 @@ impl Cand {
 }
 
 /// Whether `a`'s score is `>= b`'s (`> b`'s if `strict`) at every `u' ∈ [0, u]`:
-/// `sign(f_a − f_b)` is that of `g(x) = (N_a + xQ_a)(D_b + xS_b) − (N_b + xQ_b)(D_a + xS_a)`,
-/// `x = u − u' ∈ [0, u]` (denominators stay positive), a quadratic whose
-/// minimum over the interval is at an end or at its vertex.
+/// `sign(f_a − f_b)` is that of `g(t) = (N_a + tQ_a)(D_b + tS_b) − (N_b + tQ_b)(D_a + tS_a)`,
+/// with `t = (u − u')/u ∈ [0, 1]` (`Q`, `S` scaled by `u`, so that every term
+/// is of the size of a window's length, whatever the counts) and the
+/// denominators positive: a quadratic whose minimum over the interval is at
+/// an end or at its vertex. A `g` that is not finite (overflow) keeps both.
 fn dominates(a: &Cand, b: &Cand, u: f64, sigma: f64, strict: bool) -> bool {
     let (na, qa, da, sa) = a.at(u, sigma);
     let (nb, qb, db, sb) = b.at(u, sigma);
+    let (qa, sa, qb, sb) = (qa * u, sa * u, qb * u, sb * u);
     let c0 = na * db - nb * da;
     let c1 = na * sb + qa * db - nb * sa - qb * da;
     let c2 = qa * sb - qb * sa;
-    let g = |x: f64| c0 + x * (c1 + x * c2);
-    let mut m = g(0.0).min(g(u));
-    if c2 > 0.0 {
-        let xv = -c1 / (2.0 * c2);
-        if xv > 0.0 && xv < u {
-            m = m.min(g(xv));
-        }
-    }
-    if strict {
-        m > 0.0
+    let g = |t: f64| c0 + t * (c1 + t * c2);
+    let (g0, g1) = (g(0.0), g(1.0));
+    let tv = -c1 / (2.0 * c2);
+    let gv = if c2 > 0.0 && tv > 0.0 && tv < 1.0 {
+        g(tv)
     } else {
-        m >= 0.0
-    }
+        g0
+    };
+    [g0, g1, gv]
+        .iter()
+        .all(|&m| m.is_finite() && if strict { m > 0.0 } else { m >= 0.0 })
 }
 
 /// Adds alignment `c` (the newest) to its class's kept alignments `set`,

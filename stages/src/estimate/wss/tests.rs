@@ -711,3 +711,35 @@ fn streaming_search_refinement_keeps_every_frame() {
     );
     assert_ne!(a.angle_deg, a.class_deg, "refined off the grid");
 }
+
+/// Huge and tiny counts (the stream stores sums of counts times
+/// correlations, and compares products of them): the stream still equals the
+/// batch and the unscaled stream, and keeps few alignments.
+#[test]
+fn streams_of_huge_and_tiny_counts_equal_the_batch() {
+    let tpl = Arc::new(Templates::new(&TaxelLayout::paper(), 10.0, &small_params()).unwrap());
+    let trials: Vec<SpikeImages> = [45.0, 120.0, 70.0]
+        .iter()
+        .enumerate()
+        .map(|(j, &t)| noisy(small_trial(t), 70 + j as u64, 3.0))
+        .collect();
+    let im = back_to_back(&trials, &[1.0, 0.5, 2.0]);
+    let plain = stream_all(&im, &tpl, &small_params()).1.pop().unwrap();
+    for scale in [1e-150, 1e150] {
+        let mut big = im.clone();
+        big.counts.iter_mut().for_each(|c| *c *= scale);
+        let (s, mut ests) = stream_all(&big, &tpl, &small_params());
+        let (e, b) = (
+            ests.pop().unwrap(),
+            wss_batch(&big, &tpl, &small_params()).unwrap(),
+        );
+        assert!(s.base > 0 && s.candidates() <= 40, "{scale}: {}", s.candidates());
+        for other in [&b, &plain] {
+            assert_eq!(e.class_deg, other.class_deg, "{scale}");
+            assert_eq!(e.best_frame, other.best_frame, "{scale}");
+            for (x, y) in e.scores.iter().zip(&other.scores) {
+                assert!((x.score - y.score).abs() < 1e-9, "{scale}: {x:?} {y:?}");
+            }
+        }
+    }
+}
