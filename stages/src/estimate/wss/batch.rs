@@ -144,6 +144,16 @@ impl Prepared {
     pub(crate) fn frame_end_ms(&self, k: usize) -> f64 {
         k as f64 * self.hop_ms + self.window_ms
     }
+
+    /// Whether any frame has a spike.
+    pub(crate) fn any_spikes(&self) -> bool {
+        self.count.iter().any(|&c| c > 0.0)
+    }
+
+    /// End of the last frame, ms (`None` without frames).
+    pub(crate) fn end_ms(&self) -> Option<f64> {
+        (self.k > 0).then(|| self.frame_end_ms(self.k - 1))
+    }
 }
 
 /// `w` of a frame with total count `c` when the trial's largest count is `max`.
@@ -564,13 +574,15 @@ pub fn parabola_peak(x: [f64; 3], y: [f64; 3]) -> Option<f64> {
     v.is_finite().then(|| v.clamp(x[0], x[2]))
 }
 
-/// Builds the estimate from each class's best `(score, frame)`. `search`
-/// evaluates `max_k WSS` at an arbitrary angle for [`Refine::Search`].
+/// Builds the estimate from each class's best `(score, frame)`, whether any
+/// frame so far has a spike, and the end of the last frame (`None`: no
+/// frames). `search` evaluates `max_k WSS` at an arbitrary angle for
+/// [`Refine::Search`].
 pub(crate) fn finish(
     angles: &[f64],
     best: &[(f64, usize)],
-    prep: &Prepared,
-    upto: usize,
+    any_spikes: bool,
+    decision_time_ms: Option<f64>,
     params: &WssParams,
     search: Option<&mut dyn FnMut(f64) -> f64>,
 ) -> Estimate {
@@ -588,14 +600,12 @@ pub(crate) fn finish(
             b = c;
         }
     }
-    let decision_time_ms = (upto > 0).then(|| prep.frame_end_ms(upto - 1));
-    let any_spikes = prep.count[..upto].iter().any(|&c| c > 0.0);
-    if upto == 0 || !any_spikes || best[b].0 < params.threshold {
+    if !any_spikes || best[b].0 < params.threshold {
         return Estimate {
             angle_deg: None,
             class_deg: None,
             scores,
-            best_frame: (upto > 0 && any_spikes).then_some(best[b].1),
+            best_frame: any_spikes.then_some(best[b].1),
             decision_time_ms,
         };
     }
@@ -682,8 +692,8 @@ pub fn wss_batch(images: &SpikeImages, tpl: &Templates, params: &WssParams) -> R
     Ok(finish(
         &tpl.angles(),
         &best,
-        &prep,
-        prep.k,
+        prep.any_spikes(),
+        prep.end_ms(),
         params,
         Some(&mut search),
     ))
@@ -699,7 +709,14 @@ pub fn wss_reference(
     let prep = prepare(images, tpl)?;
     let series = wss_reference_series(images, tpl, params)?;
     let best: Vec<(f64, usize)> = series.iter().map(|s| best_of(s)).collect();
-    Ok(finish(&tpl.angles(), &best, &prep, prep.k, params, None))
+    Ok(finish(
+        &tpl.angles(),
+        &best,
+        prep.any_spikes(),
+        prep.end_ms(),
+        params,
+        None,
+    ))
 }
 
 /// `WSS_θ(k)` for every class and `k` by the fast path (for plots and tests).

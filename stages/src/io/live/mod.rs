@@ -77,21 +77,25 @@
 //!
 //! Per frame: the filter, normalization and drive of every taxel, and
 //! `dt`-steps of every neuron (`fs·dt/1000` steps per sample): O(taxels).
-//! Every `hop` one image goes into WSS (WssStream: a few µs per image,
-//! O(classes·K) on the rare images that raise the largest count). Measured
+//! Every `hop` one image goes into WSS (WssStream: a few µs per image, plus
+//! a re-scoring of its few kept alignments on the rare images that raise the
+//! largest count). Measured
 //! (`cargo bench --bench live`, on-CPU time, one core of a shared AMD EPYC):
 //! 0.93 µs per frame over a 60-degree lab trial, everything included (1.07
-//! million frames/s; a 1 kHz board needs 1000). What the
-//! pipeline itself holds is bounded (spikes of the current sample, at most
-//! `window/hop + 2` open images). What grows is the WSS stream's per-image
-//! statistics, which exact running WSS needs (the weights `1 ∓ SR` depend on
-//! the largest count so far): about `8·taxels + 16·classes + 25` bytes per
-//! image ([`wss_bytes_per_image`]), 425 B for the paper's 4x4 array and 17
-//! classes, i.e. 4.2 kB per second of stream at a 10 ms hop, 25 MB for a
-//! 10-minute stream (up to twice that while vectors grow). Beside it, the WSS
-//! stream's frequency-domain delay line fills up over the longest template
-//! and then stays constant ([`wss_delay_line_bytes`]: 1.9 MB for the 10-degree
-//! class at 2 mm/s).
+//! million frames/s; a 1 kHz board needs 1000).
+//!
+//! Memory is constant: whatever the stream's length, nothing grows. The
+//! pipeline holds the spikes of the current sample and at most
+//! `window/hop + 2` open images. The WSS stream keeps, instead of every
+//! image's statistics, the frames its longest template still reads (37 s at
+//! 10 degrees and 2 mm/s), a frequency-domain delay line as long
+//! ([`wss_delay_line_bytes`]: 1.9 MB) and, per class, the few alignments that
+//! may still be the best for any largest count still to come (see
+//! [`WssStream`](crate::estimate::wss::WssStream)), all reserved when the
+//! stream is built ([`wss_stream_bytes`]: 2.7 MB for graphs/live.toml). With
+//! the templates and their spectra (8.0 MiB, once per config) a live run holds
+//! 10.7 MiB after 10, 100 or 1000 s of stream alike (`cargo bench --bench
+//! memory`, which also shows the batch path's linear growth).
 
 mod pipeline;
 mod run;
@@ -114,9 +118,22 @@ use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, OnceLock};
 
-/// Bytes the WSS stream keeps per image (see the module docs).
-pub fn wss_bytes_per_image(taxels: usize, classes: usize) -> usize {
-    8 * taxels + 16 * classes + 25
+/// Bytes a WSS stream for `templates` reserves when it is built and keeps
+/// to its end, whatever the stream's length (the templates themselves
+/// aside): its delay line ([`wss_delay_line_bytes`]) and the frames its
+/// longest template reads, with up to half as many again before old frames
+/// are dropped (`8·taxels + 17` bytes each: the centred frame, its count,
+/// its prefix sum, an activity flag).
+pub fn wss_stream_bytes(templates: &Templates) -> usize {
+    let longest = templates
+        .classes()
+        .iter()
+        .map(|c| c.len)
+        .max()
+        .unwrap_or(1)
+        .max(128);
+    let frames = longest + (longest / 2).max(64) + 2;
+    wss_delay_line_bytes(templates) + frames * (8 * templates.n_taxels() + 17)
 }
 
 /// Bytes of the WSS stream's frequency-domain delay line once full (after

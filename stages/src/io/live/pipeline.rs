@@ -242,6 +242,12 @@ impl LivePipeline {
         self.decision.as_ref()
     }
 
+    /// Alignments the WSS stream keeps as possible bests, over every class
+    /// ([`WssStream::candidates`]): a handful per class on real streams.
+    pub fn wss_candidates(&self) -> usize {
+        self.wss.candidates()
+    }
+
     /// What the pipeline holds besides the WSS stream: (spikes waiting for
     /// their sample's end, images still open). Both stay bounded however long
     /// the stream (by taxels and by `window / hop + 2`).
