@@ -3,7 +3,10 @@
 #   1. builds the release binary,
 #   2. runs every graph in graphs/paper/ (table2.toml included when present),
 #      writing its reports into out/paper/<name>/,
-#   3. runs scripts/results.py, which reads those reports and (re)writes
+#   3. runs graphs/accuracy_vs_time.toml (issue 8's accuracy-time frontier)
+#      into out/accuracy_vs_time/ and the memory study (`cargo bench --bench
+#      memory`, peak heap at 10/100/1000 s of input) into out/paper/memory.json,
+#   4. runs scripts/results.py, which reads those reports and (re)writes
 #      RESULTS.md and the plots in docs/results/,
 # and prints the wall time of the whole run (also recorded in RESULTS.md).
 #
@@ -43,13 +46,30 @@ for graph in graphs/paper/*.toml; do
     timings+=("\"$name\": $secs")
 done
 
+# The paper's reproduction ends here (its wall time is the one recorded);
+# the time study follows.
 end=$(date +%s.%N)
 total=$(printf '%.2f' "$(echo "$end - $start" | bc)")
+extra=()
+echo "== graphs/accuracy_vs_time.toml -> out/accuracy_vs_time"
+rm -rf out/accuracy_vs_time
+t0=$(date +%s.%N)
+if ! "$bin" run graphs/accuracy_vs_time.toml --out out/accuracy_vs_time "$@" > out/accuracy_vs_time.log 2>&1; then
+    echo "FAILED: graphs/accuracy_vs_time.toml (log: out/accuracy_vs_time.log)" >&2
+    tail -20 out/accuracy_vs_time.log >&2
+    exit 1
+fi
+t1=$(date +%s.%N)
+extra+=("\"accuracy_vs_time\": $(printf '%.2f' "$(echo "$t1 - $t0" | bc)")")
+echo "== memory study -> $OUT/memory.json"
+cargo bench --quiet --bench memory -- --json "$OUT/memory.json" > "$OUT/memory.log" 2>&1
 build=$(printf '%.2f' "$(echo "$build_end - $start" | bc)")
 {
     printf '{"total_s": %s, "build_s": %s, "cores": %s, "load_at_start": %s, "graphs": {' \
         "$total" "$build" "$(nproc)" "$load"
     (IFS=,; printf '%s' "${timings[*]}")
+    printf '}, "time_study": {'
+    (IFS=,; printf '%s' "${extra[*]}")
     printf '}}\n'
 } > "$OUT/timing.json"
 
