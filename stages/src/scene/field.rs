@@ -341,39 +341,45 @@ impl Table {
     /// exact value. Agrees with [`Table::eval`] to rounding (tested).
     ///
     /// Why runs: `s` moves by well under a grid step per sample, so samples come
-    /// in runs sharing one interval. Each run's end is found by binary search
-    /// and its cubic evaluated with constant coefficients: no per-sample index
-    /// conversion or table lookup, and a loop the compiler vectorizes.
+    /// in runs sharing one interval. The grid coordinates of all samples are
+    /// computed first (vectorized, into `out`), runs found by a linear scan,
+    /// and each run's cubic evaluated with constant coefficients: no per-sample
+    /// index conversion or table lookup.
     pub fn eval_active(&self, shift: f64, s: &[f64], out: &mut [f64], scale: f64, base: f64) {
         debug_assert!(s.windows(2).all(|w| w[1] <= w[0]), "offsets must not increase");
         let top = self.coef.len() - 1;
         let last = self.last.max(0.0);
-        let x_of = |v: f64| ((v - shift - self.u0) * self.inv_du).max(0.0).min(last);
         let n = s.len().min(out.len());
-        let mut k = 0;
-        while k < n {
-            let i = (x_of(s[k]) as usize).min(top);
-            // The run: samples whose argument stays at or above the interval's
-            // lower node (the lowest interval takes everything below).
-            let len = if i == 0 {
-                n - k
-            } else {
-                let lo = i as f64;
-                s[k..n].partition_point(|&v| x_of(v) >= lo).max(1)
-            };
-            let [p0, m0, b, a] = self.coef[i];
-            let fi = i as f64;
-            super::wide::with_avx2(
-                #[inline(always)]
-                || {
-                    for (o, &v) in out[k..k + len].iter_mut().zip(&s[k..k + len]) {
-                        let t = (x_of(v) - fi).clamp(0.0, 1.0);
+        let (out, s) = (&mut out[..n], &s[..n]);
+        super::wide::with_avx2(
+            #[inline(always)]
+            || {
+                for (o, &v) in out.iter_mut().zip(s) {
+                    *o = ((v - shift - self.u0) * self.inv_du).max(0.0).min(last);
+                }
+                let mut k = 0;
+                while k < n {
+                    let i = (out[k] as usize).min(top);
+                    let fi = i as f64;
+                    // The run: samples at or above the interval's lower node
+                    // (the lowest interval takes everything below).
+                    let mut e = k + 1;
+                    if i == 0 {
+                        e = n;
+                    } else {
+                        while e < n && out[e] >= fi {
+                            e += 1;
+                        }
+                    }
+                    let [p0, m0, b, a] = self.coef[i];
+                    for o in &mut out[k..e] {
+                        let t = (*o - fi).clamp(0.0, 1.0);
                         *o = scale * (base + (p0 + t * (m0 + t * (b + t * a))));
                     }
-                },
-            );
-            k += len;
-        }
+                    k = e;
+                }
+            },
+        )
     }
 }
 
