@@ -6,6 +6,7 @@
 #   3. runs graphs/accuracy_vs_time.toml (issue 8's accuracy-time frontier)
 #      into out/accuracy_vs_time/ and the memory study (`cargo bench --bench
 #      memory`, peak heap at 10/100/1000 s of input) into out/paper/memory.json,
+#      and the WSS batch bench (criterion, one estimate per trial length),
 #   4. runs scripts/results.py, which reads those reports and (re)writes
 #      RESULTS.md and the plots in docs/results/,
 # and prints the wall time of the whole run (also recorded in RESULTS.md).
@@ -63,6 +64,8 @@ t1=$(date +%s.%N)
 extra+=("\"accuracy_vs_time\": $(printf '%.2f' "$(echo "$t1 - $t0" | bc)")")
 echo "== memory study -> $OUT/memory.json"
 cargo bench --quiet --bench memory -- --json "$OUT/memory.json" > "$OUT/memory.log" 2>&1
+echo "== WSS batch bench (one estimate at 10, 45, 90 degrees) -> $target/criterion"
+cargo bench --quiet --bench wss -- wss_batch > "$OUT/wss_bench.log" 2>&1
 build=$(printf '%.2f' "$(echo "$build_end - $start" | bc)")
 {
     printf '{"total_s": %s, "build_s": %s, "cores": %s, "load_at_start": %s, "graphs": {' \
@@ -74,7 +77,7 @@ build=$(printf '%.2f' "$(echo "$build_end - $start" | bc)")
 } > "$OUT/timing.json"
 
 echo "== writing RESULTS.md"
-python3 scripts/results.py --out "$OUT" --results RESULTS.md --docs docs/results
+python3 scripts/results.py --out "$OUT" --results RESULTS.md --docs docs/results --criterion "$target/criterion"
 
 end=$(date +%s.%N)
 printf '== wall time of the whole run: %.0f s (graphs and build: %.0f s)\n' \
