@@ -42,7 +42,7 @@ use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 
 /// Neurons integrated together in lock step.
-pub const LANES: usize = 8;
+pub const LANES: usize = 16;
 
 /// Largest input current magnitude an encoder uses; larger values are clamped.
 pub const MAX_CURRENT: f64 = 1e12;

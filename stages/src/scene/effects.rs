@@ -689,7 +689,7 @@ impl SignalEffect for Creep {
 impl SignalState for CreepState {
     fn process(&mut self, b: &mut Block<'_>) {
         // Pure arithmetic: compiled for AVX2 where the CPU has it (same bits).
-        super::wide::with_avx2(
+        crate::wide::with_avx2(
             #[inline(always)]
             || {
                 let len = b.len;
@@ -791,7 +791,7 @@ struct PiezoState<'a>(&'a Piezo);
 impl SignalState for PiezoState<'_> {
     fn process(&mut self, b: &mut Block<'_>) {
         // Pure arithmetic: compiled for AVX2 where the CPU has it (same bits).
-        super::wide::with_avx2(
+        crate::wide::with_avx2(
             #[inline(always)]
             || {
                 let Piezo { v_open, k, exponent } = *self.0;
@@ -829,7 +829,7 @@ struct MismatchState<'a>(&'a Mismatch);
 impl SignalState for MismatchState<'_> {
     fn process(&mut self, b: &mut Block<'_>) {
         // Pure arithmetic: compiled for AVX2 where the CPU has it (same bits).
-        super::wide::with_avx2(
+        crate::wide::with_avx2(
             #[inline(always)]
             || {
                 let len = b.len;
@@ -874,7 +874,7 @@ struct CrosstalkState<'a> {
 impl SignalState for CrosstalkState<'_> {
     fn process(&mut self, b: &mut Block<'_>) {
         // Pure arithmetic: compiled for AVX2 where the CPU has it (same bits).
-        super::wide::with_avx2(
+        crate::wide::with_avx2(
             #[inline(always)]
             || {
                 let Crosstalk { row, col, rows, cols } = *self.fx;
@@ -940,7 +940,7 @@ impl SignalEffect for Hum {
 impl SignalState for HumState {
     fn process(&mut self, b: &mut Block<'_>) {
         // Pure arithmetic: compiled for AVX2 where the CPU has it (same bits).
-        super::wide::with_avx2(
+        crate::wide::with_avx2(
             #[inline(always)]
             || {
                 let len = b.len;
@@ -1013,7 +1013,7 @@ struct AdcState<'a>(&'a Adc);
 impl SignalState for AdcState<'_> {
     fn process(&mut self, b: &mut Block<'_>) {
         // Pure arithmetic: compiled for AVX2 where the CPU has it (same bits).
-        super::wide::with_avx2(
+        crate::wide::with_avx2(
             #[inline(always)]
             || {
                 let Adc { min, step, levels } = *self.0;

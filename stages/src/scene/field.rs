@@ -351,7 +351,7 @@ impl Table {
         let last = self.last.max(0.0);
         let n = s.len().min(out.len());
         let (out, s) = (&mut out[..n], &s[..n]);
-        super::wide::with_avx2(
+        crate::wide::with_avx2(
             #[inline(always)]
             || {
                 for (o, &v) in out.iter_mut().zip(s) {

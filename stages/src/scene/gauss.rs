@@ -91,7 +91,7 @@ impl GaussianSource {
 
     fn refill(&mut self) {
         #[cfg(target_arch = "x86_64")]
-        if super::wide::avx2() {
+        if crate::wide::avx2() {
             // SAFETY: the CPU has AVX2 (checked at run time).
             unsafe { refill_avx2(&mut self.s, &mut self.buf) };
             self.pos = 0;

@@ -42,7 +42,6 @@ pub mod field;
 pub mod gauss;
 pub mod sim;
 pub mod special;
-pub mod wide;
 
 #[cfg(test)]
 mod tests;

@@ -188,7 +188,7 @@ effects = [
     );
     for i in 0..2 {
         let fast = produce(src.as_ref(), i);
-        let slow = wide::baseline_only(|| produce(src.as_ref(), i));
+        let slow = crate::wide::baseline_only(|| produce(src.as_ref(), i));
         let bits = |s: &Signals| s.data.iter().flatten().map(|v| v.to_bits()).collect::<Vec<_>>();
         assert_eq!(bits(&fast), bits(&slow), "trial {i}");
     }
