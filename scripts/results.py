@@ -649,7 +649,13 @@ def section_time(out, wall, docs, criterion):
             "",
         ]
         text = open(os.path.join(avt, "frontier.md"), encoding="utf-8").read().strip()
-        lines += ["\n".join("###" + l if l.startswith("#") else l for l in text.splitlines()), ""]
+        # Rows repeating an earlier configuration ("as <point>") add nothing here
+        # (they stay in out/accuracy_vs_time/frontier.md).
+        kept = [
+            l for l in text.splitlines()
+            if not (l.startswith("|") and l.rstrip(" |").split("|")[-1].strip().startswith(("as ", "base, as ")))
+        ]
+        lines += ["\n".join("###" + l if l.startswith("#") else l for l in kept), ""]
     if exists(peers):
         text = open(peers, encoding="utf-8").read().strip()
         # Nest the file's own headings one level below this section.
