@@ -87,12 +87,27 @@ fn stage_name(r: &TimingRow) -> String {
 
 const CACHED_NOTE: &str = "* served from the sweep cache: times of the run that computed it";
 
+/// One row's cells, as both the terminal and the Markdown table show them:
+/// stage, type, trials, median and p95 ms per trial, fits, fit median and
+/// p95 ms, total s, estimates/s.
+fn cells(r: &TimingRow) -> [String; 10] {
+    [
+        stage_name(r),
+        r.type_name.clone(),
+        r.trials.to_string(),
+        format!("{:.3}", r.median_ms),
+        format!("{:.3}", r.p95_ms),
+        r.fits.to_string(),
+        format!("{:.1}", r.fit_median_ms),
+        format!("{:.1}", r.fit_p95_ms),
+        format!("{:.2}", r.total_ms / 1e3),
+        r.estimates_per_s.map_or("-".to_string(), |v| format!("{v:.0}")),
+    ]
+}
+
 /// Renders the timing table.
 pub fn timing_table(rows: &[TimingRow]) -> String {
-    let mut s = String::new();
-    let _ = writeln!(
-        s,
-        "{:<14} {:<14} {:>7} {:>12} {:>12} {:>6} {:>12} {:>12} {:>10} {:>10}",
+    const HEAD: [&str; 10] = [
         "stage",
         "type",
         "trials",
@@ -102,23 +117,27 @@ pub fn timing_table(rows: &[TimingRow]) -> String {
         "fit med ms",
         "fit p95 ms",
         "total s",
-        "est/s"
-    );
+        "est/s",
+    ];
+    // Column widths; the first two are left-aligned names, the rest numbers.
+    const WIDTH: [usize; 10] = [14, 14, 7, 12, 12, 6, 12, 12, 10, 10];
+    let line = |c: &[String]| {
+        let mut l = String::new();
+        for (k, (cell, w)) in c.iter().zip(WIDTH).enumerate() {
+            let sep = if k == 0 { "" } else { " " };
+            let _ = if k < 2 {
+                write!(l, "{sep}{cell:<w$}")
+            } else {
+                write!(l, "{sep}{cell:>w$}")
+            };
+        }
+        l
+    };
+    let mut s = line(&HEAD.map(String::from));
+    s.push('\n');
     for r in rows {
-        let _ = writeln!(
-            s,
-            "{:<14} {:<14} {:>7} {:>12.3} {:>12.3} {:>6} {:>12.1} {:>12.1} {:>10.2} {:>10}",
-            stage_name(r),
-            r.type_name,
-            r.trials,
-            r.median_ms,
-            r.p95_ms,
-            r.fits,
-            r.fit_median_ms,
-            r.fit_p95_ms,
-            r.total_ms / 1e3,
-            r.estimates_per_s.map_or("-".to_string(), |v| format!("{v:.0}"))
-        );
+        s += &line(&cells(r));
+        s.push('\n');
     }
     if rows.iter().any(|r| r.cached) {
         let _ = writeln!(s, "{CACHED_NOTE}");
@@ -135,21 +154,9 @@ pub fn timing_markdown(rows: &[TimingRow]) -> String {
          fit p95 ms | total s | estimates/s |\n|---|---|---|---|---|---|---|---|---|---|---|\n",
     );
     for r in rows {
-        let _ = writeln!(
-            s,
-            "| {} | {} | {} | {} | {:.3} | {:.3} | {} | {:.1} | {:.1} | {:.2} | {} |",
-            stage_name(r),
-            r.type_name,
-            r.role,
-            r.trials,
-            r.median_ms,
-            r.p95_ms,
-            r.fits,
-            r.fit_median_ms,
-            r.fit_p95_ms,
-            r.total_ms / 1e3,
-            r.estimates_per_s.map_or("-".to_string(), |v| format!("{v:.0}"))
-        );
+        let mut c = cells(r).to_vec();
+        c.insert(2, r.role.clone());
+        let _ = writeln!(s, "| {} |", c.join(" | "));
     }
     if rows.iter().any(|r| r.cached) {
         let _ = write!(s, "\n{CACHED_NOTE}\n");

@@ -16,8 +16,9 @@
 //!   layer a draw from the tail beyond `r` by Marsaglia's exponential method.
 //!
 //! Why not `rand_distr` directly: its sampler pulls one draw at a time through
-//! a generic RNG, about 2.5 ns per sample here; filling a block at once halves
-//! that, and noise was the scene's largest cost. The layer tables are computed
+//! a generic RNG, so the generator cannot run several lanes in vector
+//! registers; noise was the lab scene's largest single cost (perf, `cargo
+//! bench --bench scene`). The layer tables are computed
 //! once from the recursion `X[i+1] = sqrt(-2 ln(v / X[i] + f(X[i])))`,
 //! `f(x) = exp(-x²/2)`. Tests check moments, the CDF at many points and the
 //! tail against Φ.
