@@ -4,6 +4,7 @@
 //! It lives in the library so that a plugin crate can ship its own binary with
 //! its stages linked: `fn main() -> ExitCode { my_plugin::link(); palpate::cli::main() }`.
 
+use crate::core::shard::Selection;
 use crate::core::{self, registry, Graph, LoadOptions, Progress, RunOptions};
 use clap::{Parser, Subcommand, ValueEnum};
 use indicatif::{MultiProgress, ProgressBar, ProgressStyle};
@@ -38,6 +39,54 @@ enum Command {
         /// Worker threads (default: all cores). Results do not depend on it.
         #[arg(long)]
         threads: Option<usize>,
+        /// Sweeps: run only these points (numbers from `palpate sweep list`),
+        /// e.g. `3,7-9`.
+        #[arg(long, conflicts_with = "shard", value_parser = Selection::parse_points)]
+        points: Option<Selection>,
+        /// Sweeps: run only shard K of N (1-based; contiguous blocks of points),
+        /// e.g. `2/4`.
+        #[arg(long, value_parser = Selection::parse_shard)]
+        shard: Option<Selection>,
+        /// Sweeps: run every selected point again, even those with a completion
+        /// marker from an earlier run.
+        #[arg(long)]
+        fresh: bool,
+    },
+    /// Sweep points: list them (number, label, keys).
+    Sweep {
+        #[command(subcommand)]
+        command: SweepCommand,
+    },
+    /// Write a sweep's report from its point folders (after `run --shard` or
+    /// `--points` runs, or a Slurm array); lists the points still missing.
+    Merge {
+        /// The sweep's output folder (holding sweep-manifest.json).
+        out: PathBuf,
+    },
+    /// Write Slurm batch scripts for a sweep: a job array over its points and a
+    /// merge job that runs once every task succeeded; prints how to submit them.
+    Slurm {
+        /// The graph file (with a [sweep] table).
+        graph: PathBuf,
+        /// Override a key, as for `run`.
+        #[arg(long = "set", value_name = "PATH=VALUE", value_parser = LoadOptions::parse_set)]
+        set: Vec<(String, toml::Value)>,
+        /// Output folder of the sweep (default: `[run] out`, else out/<graph name>);
+        /// must be on a file system every node sees.
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Tasks in the array (each runs one shard); at most the number of points.
+        #[arg(long, default_value_t = 8)]
+        array_size: usize,
+        /// Slurm partition (default: the cluster's default).
+        #[arg(long)]
+        partition: Option<String>,
+        /// Time limit per task, Slurm's format.
+        #[arg(long, default_value = "01:00:00")]
+        time: String,
+        /// CPUs per task (and worker threads per shard).
+        #[arg(long, default_value_t = 2)]
+        cpus: usize,
     },
     /// Check a graph: print every error and warning; exit non-zero on an error.
     Check {
@@ -80,6 +129,22 @@ enum Command {
     Stages {
         /// A stage type: show its keys with defaults, units and docs.
         r#type: Option<String>,
+    },
+}
+
+#[derive(Subcommand)]
+enum SweepCommand {
+    /// Print every point of a graph's sweep: number, label, keys, and how many
+    /// of its repeats are already complete in the output folder.
+    List {
+        /// The graph file.
+        graph: PathBuf,
+        /// Override a key, as for `run`.
+        #[arg(long = "set", value_name = "PATH=VALUE", value_parser = LoadOptions::parse_set)]
+        set: Vec<(String, toml::Value)>,
+        /// Output folder to look for completion markers in (default as for `run`).
+        #[arg(long)]
+        out: Option<PathBuf>,
     },
 }
 
@@ -176,7 +241,43 @@ pub fn main() -> ExitCode {
             set,
             out,
             threads,
-        } => cmd_run(graph, set, out, threads),
+            points,
+            shard,
+            fresh,
+        } => cmd_run(
+            graph,
+            set,
+            out,
+            threads,
+            points.or(shard).unwrap_or_default(),
+            fresh,
+        ),
+        Command::Sweep {
+            command: SweepCommand::List { graph, set, out },
+        } => match load(&graph, set, out) {
+            Some(g) => crate::cluster::list(&graph, &g),
+            None => ExitCode::FAILURE,
+        },
+        Command::Merge { out } => crate::cluster::merge(&out),
+        Command::Slurm {
+            graph,
+            set,
+            out,
+            array_size,
+            partition,
+            time,
+            cpus,
+        } => cmd_slurm(
+            graph,
+            set,
+            out,
+            crate::cluster::SlurmOptions {
+                array_size,
+                partition,
+                time,
+                cpus,
+            },
+        ),
         Command::Check { graph, set } => match load(&graph, set.clone(), None) {
             Some(g) if g.sweep.is_some() && load_sweep_points(&graph, set, &g).is_none() => ExitCode::FAILURE,
             Some(g) => {
@@ -279,11 +380,57 @@ fn load(path: &std::path::Path, set: Vec<(String, toml::Value)>, out: Option<Pat
     }
 }
 
+fn cmd_slurm(
+    path: PathBuf,
+    set: Vec<(String, toml::Value)>,
+    out: Option<PathBuf>,
+    o: crate::cluster::SlurmOptions,
+) -> ExitCode {
+    let Some(graph) = load(&path, set.clone(), out) else {
+        return ExitCode::FAILURE;
+    };
+    if graph.sweep.is_none() {
+        eprintln!(
+            "{}: the graph has no [sweep] table: nothing to spread over a cluster",
+            graph.file
+        );
+        return ExitCode::FAILURE;
+    }
+    if load_sweep_points(&path, set.clone(), &graph).is_none() {
+        return ExitCode::FAILURE;
+    }
+    let job = crate::cluster::SweepJob {
+        path: &path,
+        graph: &graph,
+        set: &set,
+    };
+    match crate::cluster::slurm_scripts(&job, &o) {
+        Ok(files) => {
+            for f in &files {
+                println!("wrote {}", f.display());
+            }
+            if let Some(submit) = files.last() {
+                println!("submit with:\n  sh {}", submit.display());
+                println!(
+                    "(or by hand: sbatch array.sbatch, then sbatch --dependency=afterok:<array job id> merge.sbatch)"
+                );
+            }
+            ExitCode::SUCCESS
+        }
+        Err(e) => {
+            eprintln!("{}: {e}", graph.file);
+            ExitCode::FAILURE
+        }
+    }
+}
+
 fn cmd_run(
     path: PathBuf,
     set: Vec<(String, toml::Value)>,
     out: Option<PathBuf>,
     threads: Option<usize>,
+    selection: Selection,
+    fresh: bool,
 ) -> ExitCode {
     let Some(graph) = load(&path, set.clone(), out) else {
         return ExitCode::FAILURE;
@@ -310,25 +457,21 @@ fn cmd_run(
             eprintln!("{}: {e}", graph.file);
             return ExitCode::FAILURE;
         }
-        let t0 = std::time::Instant::now();
-        let load_opts = LoadOptions {
-            overrides: set,
-            out: Some(graph.out_dir.clone()),
-            base_dir: None,
+        let job = crate::cluster::SweepJob {
+            path: &path,
+            graph: &graph,
+            set: &set,
         };
-        let runs = pool.install(|| core::sweep::run_file(&path, &load_opts, &graph, &opts));
+        let code = pool.install(|| crate::cluster::run_sweep(&job, &selection, fresh, &opts));
         drop(bars);
-        return match runs {
-            Ok(runs) => {
-                let code = crate::report::sweep_report(&graph, &runs);
-                println!("sweep wall time: {:.1} s", t0.elapsed().as_secs_f64());
-                code
-            }
-            Err(e) => {
-                eprintln!("{}: sweep failed: {e}", graph.file);
-                ExitCode::FAILURE
-            }
-        };
+        return code;
+    }
+    if selection != Selection::All || fresh {
+        eprintln!(
+            "{}: --points, --shard and --fresh apply to sweeps; this graph has no [sweep] table",
+            graph.file
+        );
+        return ExitCode::FAILURE;
     }
     let t0 = std::time::Instant::now();
     let result = pool.install(|| core::run(&graph, &opts));

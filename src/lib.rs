@@ -3,9 +3,11 @@
 //! This crate is the facade and the `palpate` command line. The machinery lives in
 //! [`core`] (payloads, stage traits, graph loading, runtime); the built-in stages
 //! in [`stages`]. [`report`] formats a run's results for the terminal and the run
-//! record; [`frontier`] builds a sweep's accuracy-time frontier.
+//! record; [`frontier`] builds a sweep's accuracy-time frontier; [`cluster`] runs
+//! sweeps as shards, merges them and writes Slurm job arrays.
 
 pub mod cli;
+pub mod cluster;
 pub mod frontier;
 pub mod report;
 

@@ -11,6 +11,8 @@
 //! * [`runtime`]: running a graph, in parallel and deterministically;
 //! * [`sweep`]: running a graph across the values of one key (or several series
 //!   of keys), with a cache;
+//! * [`shard`]: sweeps beyond one process (points by number, shards,
+//!   completion markers, the manifest `palpate merge` reads);
 //! * [`output`]: atomic report files.
 //!
 //! `core` knows no stage by name: stages register themselves, and the CLI finds
@@ -22,6 +24,7 @@ pub mod output;
 pub mod payload;
 pub mod registry;
 pub mod runtime;
+pub mod shard;
 pub mod stage;
 pub mod sweep;
 

@@ -1,7 +1,8 @@
 //! Writing report files so that a failed or interrupted run never leaves a
 //! half-written one: each file is written to a temporary name beside its target,
 //! flushed, then renamed over it (a rename within a directory is atomic on the
-//! file systems we run on).
+//! file systems we run on). Concurrent writers of one file (shards of a sweep
+//! sharing an output folder) each rename a whole file into place: the last wins.
 
 use std::io::Write;
 use std::path::Path;
@@ -17,7 +18,11 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
         .file_name()
         .map(|n| n.to_string_lossy().into_owned())
         .unwrap_or_else(|| "out".into());
-    let tmp = path.with_file_name(format!(".{name}.tmp-{}", std::process::id()));
+    // Unique per process and per call: two processes (shards of one sweep) or
+    // two threads writing the same report never share a temporary file.
+    static CALLS: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+    let call = CALLS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    let tmp = path.with_file_name(format!(".{name}.tmp-{}-{call}", std::process::id()));
     let result = (|| {
         let mut f = std::fs::File::create(&tmp)?;
         f.write_all(bytes)?;

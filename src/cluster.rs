@@ -1,0 +1,417 @@
+//! Sweeps beyond one machine: running a subset of a sweep's points, resuming,
+//! merging point folders into the sweep's report, and Slurm job arrays.
+//!
+//! The model ([`palpate_core::shard`]): every (point, repeat) of a sweep writes
+//! its reports into its own folder and, last, a completion marker; a rerun skips
+//! complete points; the sweep's report (table, CSV/JSON, curves, accuracy-time
+//! frontier) is always built from the markers, by the same code whether one
+//! process ran every point or N shards ran a part each, so `palpate merge`
+//! equals a single run (timing aside). See docs/cluster.md.
+
+use crate::core::shard::{record_dir, Manifest, PointRecord, Selection};
+use crate::core::sweep::{load_points, point_label, SweepRun};
+use crate::core::{self, Graph, RunOptions};
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+
+/// A sweep as run from the command line.
+pub struct SweepJob<'a> {
+    /// The graph file.
+    pub path: &'a Path,
+    /// Its base graph (loaded with the overrides and output folder).
+    pub graph: &'a Graph,
+    /// `--set` overrides.
+    pub set: &'a [(String, toml::Value)],
+}
+
+fn absolute(p: &Path) -> PathBuf {
+    std::path::absolute(p).unwrap_or_else(|_| p.to_path_buf())
+}
+
+impl SweepJob<'_> {
+    fn manifest(&self) -> Result<Manifest, String> {
+        let text = std::fs::read_to_string(self.path)
+            .map_err(|e| format!("{}: cannot read the graph file: {e}", self.path.display()))?;
+        let sweep = self
+            .graph
+            .sweep
+            .as_ref()
+            .ok_or_else(|| format!("{}: the graph has no [sweep] table", self.graph.file))?;
+        Ok(Manifest {
+            format: 1,
+            file: self.graph.file.clone(),
+            text,
+            base_dir: absolute(self.path.parent().unwrap_or(Path::new(""))),
+            overrides: self.set.iter().map(|(k, v)| (k.clone(), v.to_string())).collect(),
+            points: sweep.points().len(),
+            repeats: sweep.repeats,
+        })
+    }
+}
+
+/// Every (point, repeat) graph of the sweep the manifest describes, checked.
+fn load_all(manifest: &Manifest, out: &Path) -> Result<(Graph, Vec<(usize, usize, Graph)>), String> {
+    let (base, opts) = manifest.load(out).map_err(|e| e.to_string())?;
+    let sweep = base
+        .sweep
+        .clone()
+        .ok_or_else(|| format!("{}: the graph has no [sweep] table", manifest.file))?;
+    let stem = core::shard::stem(&manifest.file);
+    let graphs = load_points(&manifest.text, &manifest.file, &stem, &opts, &base, &sweep)
+        .map_err(|e| e.to_string())?;
+    Ok((base, graphs))
+}
+
+/// `palpate run GRAPH` on a sweep: runs the selected points that are not yet
+/// complete (all of them with `fresh`), then, when every point of the sweep is
+/// complete, writes the sweep's report.
+pub fn run_sweep(job: &SweepJob<'_>, selection: &Selection, fresh: bool, opts: &RunOptions<'_>) -> ExitCode {
+    let t0 = std::time::Instant::now();
+    let manifest = match job.manifest() {
+        Ok(m) => m,
+        Err(e) => {
+            eprintln!("{e}");
+            return ExitCode::FAILURE;
+        }
+    };
+    let out = job.graph.out_dir.clone();
+    let (base, graphs) = match load_all(&manifest, &out) {
+        Ok(g) => g,
+        Err(e) => {
+            eprintln!("{e}");
+            return ExitCode::FAILURE;
+        }
+    };
+    let total = manifest.points;
+    let missing = selection.out_of_range(total);
+    if !missing.is_empty() {
+        eprintln!(
+            "{}: --points names {} but the sweep has points 0..{} (see `palpate sweep list {}`)",
+            job.graph.file,
+            missing
+                .iter()
+                .map(usize::to_string)
+                .collect::<Vec<_>>()
+                .join(", "),
+            total.saturating_sub(1),
+            job.path.display()
+        );
+        return ExitCode::FAILURE;
+    }
+    if let Err(e) = manifest.write(&out) {
+        eprintln!("{e}");
+        return ExitCode::FAILURE;
+    }
+    let chosen: Vec<&(usize, usize, Graph)> = graphs
+        .iter()
+        .filter(|(p, ..)| selection.contains(*p, total))
+        .collect();
+    let cache = core::Cache::default();
+    let (mut ran, mut skipped) = (0usize, 0usize);
+    let points = base.sweep.as_ref().map(|s| s.points()).unwrap_or_default();
+    for (i, (p, r, g)) in chosen.iter().enumerate() {
+        let label = points.get(*p).map(point_label).unwrap_or_default();
+        if !fresh && PointRecord::read_matching(&g.out_dir, g, *p, *r).is_some() {
+            skipped += 1;
+            continue;
+        }
+        eprintln!("point {p} ({label}), repeat {r}: {}/{}", i + 1, chosen.len());
+        let o = RunOptions {
+            progress: opts.progress,
+            cache: Some(&cache),
+            keep_outputs: false,
+        };
+        let result = match core::run(g, &o) {
+            Ok(r) => r,
+            Err(e) => {
+                eprintln!("{}: sweep point {p} ({label}), repeat {r}: {e}", job.graph.file);
+                return ExitCode::FAILURE;
+            }
+        };
+        if let Err(e) = crate::report::write_run_files(g, &result) {
+            eprintln!("{e}");
+            return ExitCode::FAILURE;
+        }
+        if let Err(e) = PointRecord::new(g, *p, *r, &label, &result).write(&g.out_dir) {
+            eprintln!("{e}");
+            return ExitCode::FAILURE;
+        }
+        ran += 1;
+    }
+    eprintln!(
+        "ran {ran} point run{}, skipped {skipped} already complete ({:.1} s)",
+        if ran == 1 { "" } else { "s" },
+        t0.elapsed().as_secs_f64()
+    );
+    let count = graphs.len();
+    match gather(&base, graphs) {
+        Ok(runs) => {
+            let code = crate::report::sweep_report(&base, &runs);
+            println!("sweep wall time: {:.1} s", t0.elapsed().as_secs_f64());
+            code
+        }
+        Err(missing) => {
+            println!(
+                "{} of {} point runs complete; when every shard has finished, write the sweep's report with\n  palpate merge {}",
+                count - missing.len(),
+                count,
+                out.display()
+            );
+            ExitCode::SUCCESS
+        }
+    }
+}
+
+/// The sweep's runs rebuilt from their markers, or the (point, repeat, folder)
+/// of each one missing.
+fn gather(
+    base: &Graph,
+    graphs: Vec<(usize, usize, Graph)>,
+) -> Result<Vec<SweepRun>, Vec<(usize, usize, PathBuf)>> {
+    let points = base.sweep.as_ref().map(|s| s.points()).unwrap_or_default();
+    let mut runs = Vec::with_capacity(graphs.len());
+    let mut missing = Vec::new();
+    for (p, r, g) in graphs {
+        let Some(point) = points.get(p) else {
+            missing.push((p, r, g.out_dir.clone()));
+            continue;
+        };
+        match PointRecord::read_matching(&g.out_dir, &g, p, r) {
+            Some(rec) => runs.push(SweepRun {
+                point: p,
+                series: point.series.clone(),
+                key: point.key.clone(),
+                value: point.value.clone(),
+                label: point_label(point),
+                seed: g.run.seed,
+                graph: g,
+                repeat: r,
+                result: rec.to_result(),
+            }),
+            None => missing.push((p, r, g.out_dir.clone())),
+        }
+    }
+    if missing.is_empty() {
+        Ok(runs)
+    } else {
+        Err(missing)
+    }
+}
+
+/// `palpate merge OUT`: the sweep's report from the point folders under `out`.
+pub fn merge(out: &Path) -> ExitCode {
+    let manifest = match Manifest::read(out) {
+        Ok(m) => m,
+        Err(e) => {
+            eprintln!("{e}");
+            return ExitCode::FAILURE;
+        }
+    };
+    let (base, graphs) = match load_all(&manifest, out) {
+        Ok(g) => g,
+        Err(e) => {
+            eprintln!("{e}");
+            return ExitCode::FAILURE;
+        }
+    };
+    let count = graphs.len();
+    match gather(&base, graphs) {
+        Ok(runs) => crate::report::sweep_report(&base, &runs),
+        Err(missing) => {
+            eprintln!(
+                "{}: {} of {} point runs are not complete (no valid {} in their folder); nothing merged:",
+                out.display(),
+                missing.len(),
+                count,
+                core::shard::MARKER
+            );
+            for (p, r, dir) in &missing {
+                eprintln!("  point {p}, repeat {r}: {}", dir.display());
+            }
+            let list: Vec<String> = {
+                let mut ps: Vec<usize> = missing.iter().map(|m| m.0).collect();
+                ps.dedup();
+                ps.iter().map(usize::to_string).collect()
+            };
+            eprintln!(
+                "run them with: palpate run {} --out {} --points {}",
+                manifest.file,
+                out.display(),
+                list.join(",")
+            );
+            ExitCode::FAILURE
+        }
+    }
+}
+
+/// `palpate sweep list GRAPH`: every point with its number, label and keys.
+pub fn list(path: &Path, graph: &Graph) -> ExitCode {
+    let Some(sweep) = &graph.sweep else {
+        eprintln!("{}: the graph has no [sweep] table", path.display());
+        return ExitCode::FAILURE;
+    };
+    let points = sweep.points();
+    println!(
+        "{}: {} point{} x {} repeat{} (seeds {}..={}), output {}",
+        path.display(),
+        points.len(),
+        if points.len() == 1 { "" } else { "s" },
+        sweep.repeats,
+        if sweep.repeats == 1 { "" } else { "s" },
+        graph.run.seed,
+        graph
+            .run
+            .seed
+            .saturating_add(sweep.repeats.saturating_sub(1) as u64),
+        graph.out_dir.display()
+    );
+    println!("{:>5}  {:<28}  keys", "point", "label");
+    for (i, p) in points.iter().enumerate() {
+        let mut keys: Vec<String> = p.set.iter().map(|(k, v)| format!("{k} = {v}")).collect();
+        keys.push(format!("{} = {}", p.key, p.value));
+        let done = (0..sweep.repeats)
+            .filter(|&r| {
+                record_dir(&graph.out_dir, p, sweep.repeats, r)
+                    .join(core::shard::MARKER)
+                    .is_file()
+            })
+            .count();
+        println!(
+            "{i:>5}  {:<28}  {}{}",
+            point_label(p),
+            keys.join(", "),
+            if done > 0 {
+                format!("  [{done}/{} repeats have a marker]", sweep.repeats)
+            } else {
+                String::new()
+            }
+        );
+    }
+    ExitCode::SUCCESS
+}
+
+/// Settings of `palpate slurm`.
+pub struct SlurmOptions {
+    /// Tasks in the job array (each runs one shard); capped at the number of points.
+    pub array_size: usize,
+    /// `--partition`, if any.
+    pub partition: Option<String>,
+    /// `--time` per task (Slurm's format, e.g. `01:00:00`).
+    pub time: String,
+    /// CPUs per task (also the worker threads of each shard).
+    pub cpus: usize,
+}
+
+/// Quotes a string for a POSIX shell.
+fn sh(s: &str) -> String {
+    format!("'{}'", s.replace('\'', r"'\''"))
+}
+
+/// Writes `OUT/slurm/{array,merge}.sbatch` and `submit.sh` for the sweep, and
+/// returns their paths.
+pub fn slurm_scripts(job: &SweepJob<'_>, o: &SlurmOptions) -> Result<Vec<PathBuf>, String> {
+    let manifest = job.manifest()?;
+    if o.array_size == 0 || o.cpus == 0 {
+        return Err("--array-size and --cpus must be at least 1".into());
+    }
+    if o.time.is_empty() || o.time.contains(char::is_whitespace) {
+        return Err(format!("--time `{}`: give Slurm's form, e.g. 01:00:00", o.time));
+    }
+    if let Some(p) = &o.partition {
+        if p.is_empty() || !p.chars().all(|c| c.is_ascii_alphanumeric() || "-_.,".contains(c)) {
+            return Err(format!("--partition `{p}`: letters, digits and -_., only"));
+        }
+    }
+    let n = o.array_size.min(manifest.points.max(1));
+    let out = absolute(&job.graph.out_dir);
+    let dir = out.join("slurm");
+    std::fs::create_dir_all(dir.join("logs")).map_err(|e| format!("cannot create {}: {e}", dir.display()))?;
+    let exe = std::env::current_exe().map_err(|e| format!("cannot find palpate's own path: {e}"))?;
+    let graph = absolute(job.path);
+    let cwd = std::env::current_dir().map_err(|e| format!("cannot read the working directory: {e}"))?;
+    let sets: String = job
+        .set
+        .iter()
+        .map(|(k, v)| format!(" --set {}", sh(&format!("{k}={v}"))))
+        .collect();
+    let stem = core::shard::stem(&manifest.file);
+    let partition = o
+        .partition
+        .as_ref()
+        .map(|p| format!("#SBATCH --partition={p}\n"))
+        .unwrap_or_default();
+    let array = format!(
+        "#!/bin/bash\n\
+         # A Slurm job array over the sweep points of {graph}: task K of {n} runs\n\
+         # shard K/{n} (`palpate run --shard K/{n}`); a point already complete in\n\
+         # {out} is skipped, so resubmitting resumes. Written by `palpate slurm`.\n\
+         #SBATCH --job-name=palpate-{stem}\n\
+         #SBATCH --array=1-{n}\n\
+         #SBATCH --cpus-per-task={cpus}\n\
+         #SBATCH --time={time}\n\
+         {partition}\
+         #SBATCH --output={logs}/shard-%a.out\n\
+         set -euo pipefail\n\
+         cd {cwd}\n\
+         exec {exe} run {graph_q} --out {out_q} --shard \"${{SLURM_ARRAY_TASK_ID}}/{n}\" --threads \"${{SLURM_CPUS_PER_TASK:-{cpus}}}\"{sets}\n",
+        graph = graph.display(),
+        out = out.display(),
+        cpus = o.cpus,
+        time = o.time,
+        logs = dir.join("logs").display(),
+        cwd = sh(&cwd.display().to_string()),
+        exe = sh(&exe.display().to_string()),
+        graph_q = sh(&graph.display().to_string()),
+        out_q = sh(&out.display().to_string()),
+    );
+    let merge = format!(
+        "#!/bin/bash\n\
+         # Merges the point folders of {out} into the sweep's report once every\n\
+         # array task has succeeded (submitted with --dependency=afterok).\n\
+         #SBATCH --job-name=palpate-{stem}-merge\n\
+         #SBATCH --cpus-per-task=1\n\
+         #SBATCH --time={time}\n\
+         {partition}\
+         #SBATCH --output={logs}/merge.out\n\
+         set -euo pipefail\n\
+         cd {cwd}\n\
+         exec {exe} merge {out_q}\n",
+        out = out.display(),
+        time = o.time,
+        logs = dir.join("logs").display(),
+        cwd = sh(&cwd.display().to_string()),
+        exe = sh(&exe.display().to_string()),
+        out_q = sh(&out.display().to_string()),
+    );
+    let submit = format!(
+        "#!/bin/sh\n\
+         # Submits the array, then the merge job that waits for every task to succeed.\n\
+         set -eu\n\
+         cd {d}\n\
+         array=$(sbatch --parsable array.sbatch)\n\
+         array=${{array%%;*}}\n\
+         merge=$(sbatch --parsable --dependency=afterok:\"$array\" merge.sbatch)\n\
+         merge=${{merge%%;*}}\n\
+         echo \"submitted array job $array ({n} tasks) and merge job $merge\"\n\
+         echo \"$array $merge\" > jobs.txt\n",
+        d = sh(&dir.display().to_string()),
+    );
+    let mut files = Vec::new();
+    for (name, text) in [
+        ("array.sbatch", array),
+        ("merge.sbatch", merge),
+        ("submit.sh", submit),
+    ] {
+        let path = dir.join(name);
+        core::output::write_atomic(&path, text.as_bytes())
+            .map_err(|e| format!("cannot write {}: {e}", path.display()))?;
+        #[cfg(unix)]
+        {
+            use std::os::unix::fs::PermissionsExt;
+            let _ = std::fs::set_permissions(&path, std::fs::Permissions::from_mode(0o755));
+        }
+        files.push(path);
+    }
+    manifest.write(&job.graph.out_dir)?;
+    Ok(files)
+}
