@@ -7,6 +7,7 @@
 
 pub mod cli;
 pub mod frontier;
+pub mod guide;
 pub mod report;
 
 pub use palpate_core as core;
