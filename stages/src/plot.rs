@@ -274,7 +274,7 @@ pub fn heatmap_svg(h: &Heatmap<'_>) -> String {
         22.0
     };
     let bar_x = g.left + mw + 24.0;
-    let width = bar_x + 16.0 + 70.0;
+    let width = bar_x + 16.0 + 80.0;
     let height = g.top + mh + x_label_h + 34.0;
     let mut s = svg_open(width.max(320.0), height);
     text(
@@ -490,7 +490,7 @@ pub fn small_multiples_svg(m: &SmallMultiples<'_>) -> String {
     let (gc, gr) = panel_grid(n);
     let n_cat = m.categories.len().max(1);
     let (pw, ph) = if gc == 1 { (640.0, 280.0) } else { (300.0, 190.0) };
-    let (left, top, gap_x, gap_y) = (70.0, 52.0, 28.0, 58.0);
+    let (left, top, gap_x, gap_y) = (70.0, 64.0, 28.0, 58.0);
     let width = left + gc as f64 * pw + (gc - 1) as f64 * gap_x + 20.0;
     let height = top + gr as f64 * ph + (gr - 1) as f64 * gap_y + 78.0;
     let max = m
@@ -554,7 +554,10 @@ pub fn small_multiples_svg(m: &SmallMultiples<'_>) -> String {
             let bw = (slot * 0.7).max(1.0);
             if v.is_finite() {
                 let v = v.max(0.0);
-                let (y, h) = (y_of(v), ph * v / top_v);
+                // A zero is drawn as a hairline on the axis, so "no error"
+                // reads differently from "no value" (the cross).
+                let h = (ph * v / top_v).max(1.5);
+                let y = y0 + ph - h;
                 let _ = writeln!(
                     s,
                     r#"<rect class="bar" data-cat="{i}" x="{:.2}" y="{y:.2}" width="{bw:.2}" height="{h:.2}" fill="{fill}"><title>{}: {}</title></rect>"#,
@@ -586,7 +589,7 @@ pub fn small_multiples_svg(m: &SmallMultiples<'_>) -> String {
             x0 + pw,
             style::INK
         );
-        for i in 0..m.categories.len() {
+        for (i, category) in m.categories.iter().enumerate() {
             let cx = x0 + (i as f64 + 0.5) * slot;
             let _ = writeln!(
                 s,
@@ -603,7 +606,7 @@ pub fn small_multiples_svg(m: &SmallMultiples<'_>) -> String {
                     style::TICK,
                     "middle",
                     0.0,
-                    &m.categories[i],
+                    category,
                 );
             }
         }
@@ -1227,7 +1230,11 @@ mod tests {
         // Panels 0, 1 have 17 bars, panel 2 has 16 (its NaN), panel 3 has 17.
         let h = |i: usize| attr(bars[i], "height");
         assert!((h(4) - h(67)).abs() < 1e-9, "est0 at 30° = est4 at 10° = 2.0");
-        assert!((h(bars.len() - 1) / h(4) - 11.5 / 2.0).abs() < 1e-9);
+        assert!(
+            (h(bars.len() - 1) / h(4) - 11.5 / 2.0).abs() < 0.01,
+            "heights to 0.01 px"
+        );
+        assert_eq!(h(0), 1.5, "a zero is a visible hairline, not nothing");
         assert_eq!(panel_grid(8), (4, 2));
         assert_eq!(panel_grid(1), (1, 1));
         assert_eq!(panel_grid(0), (1, 1));
