@@ -51,6 +51,10 @@ enum Command {
         /// marker from an earlier run.
         #[arg(long)]
         fresh: bool,
+        /// After the reports, print what each reported number means (accuracy,
+        /// MAE, SD, no edge, decision time, ...).
+        #[arg(long)]
+        explain: bool,
     },
     /// Sweep points: list them (number, label, keys).
     Sweep {
@@ -104,8 +108,10 @@ enum Command {
         #[arg(long, value_enum, default_value_t = Format::Dot)]
         format: Format,
     },
-    /// Simulate a scene file's trials: NPY and CSV signals per trial, the trials'
-    /// metadata, and an SVG plot of one taxel over a trial (like the paper's Fig. 3a).
+    /// Simulate a scene file's trials as files `signal_file` reads back: one NPY
+    /// `(samples, taxels)` per trial (CSV with --csv), a `labels.toml` label file,
+    /// the trials' metadata (`trials.json`), and an SVG plot of one taxel over a
+    /// trial (like the paper's Fig. 3a).
     Simulate {
         /// A scene file, e.g. graphs/scenes/lab.toml.
         scene: PathBuf,
@@ -116,6 +122,9 @@ enum Command {
         /// has id `scene` and `file` = this file).
         #[arg(long, default_value_t = 0)]
         seed: u64,
+        /// Write CSV (`time_ms, taxel_0 ..`) instead of NPY: about twice the disk.
+        #[arg(long)]
+        csv: bool,
     },
     /// A DAQ board over serial: emulate one, or estimate live from one.
     Daq {
@@ -244,14 +253,14 @@ pub fn main() -> ExitCode {
             points,
             shard,
             fresh,
-        } => cmd_run(
-            graph,
-            set,
-            out,
-            threads,
-            points.or(shard).unwrap_or_default(),
-            fresh,
-        ),
+            explain,
+        } => {
+            let code = cmd_run(graph, set, out, threads, points.or(shard).unwrap_or_default(), fresh);
+            if explain {
+                print!("\n{}", crate::guide::EXPLAIN);
+            }
+            code
+        }
         Command::Sweep {
             command: SweepCommand::List { graph, set, out },
         } => match load(&graph, set, out) {
@@ -310,18 +319,32 @@ pub fn main() -> ExitCode {
             None => ExitCode::FAILURE,
         },
         Command::Stages { r#type } => cmd_stages(r#type),
-        Command::Simulate { scene, out, seed } => {
-            match crate::stages::scene::simulate_to_dir(&scene, &out, seed) {
-                Ok(files) => {
-                    println!("wrote {} files to {}", files.len(), out.display());
-                    ExitCode::SUCCESS
-                }
-                Err(e) => {
-                    eprintln!("{}: {e}", scene.display());
-                    ExitCode::FAILURE
-                }
+        Command::Simulate {
+            scene,
+            out,
+            seed,
+            csv,
+        } => match crate::stages::scene::simulate_to_dir(&scene, &out, seed, csv) {
+            Ok(files) => {
+                let n = files.len();
+                println!(
+                        "wrote {n} file{} to {d}\nread them back with a `signal_file` stage: path = \"{d}/*.{}\", labels = \"{d}/labels.toml\"{}",
+                        if n == 1 { "" } else { "s" },
+                        if csv { "csv" } else { "npy" },
+                        if csv {
+                            ""
+                        } else {
+                            ", and sample_rate_hz as in trials.json"
+                        },
+                        d = out.display()
+                    );
+                ExitCode::SUCCESS
             }
-        }
+            Err(e) => {
+                eprintln!("{}: {e}", scene.display());
+                ExitCode::FAILURE
+            }
+        },
         Command::Daq { command } => cmd_daq(command),
         Command::Schema => match serde_json::to_string_pretty(&registry::graph_schema()) {
             Ok(s) => {
@@ -446,9 +469,17 @@ fn cmd_run(
         }
     };
     let interactive = std::io::stdout().is_terminal() && std::io::stderr().is_terminal();
-    let bars = interactive.then(Bars::new);
+    let stages = graph.nodes.len();
+    let bars = interactive.then(|| Bars::new(stages));
+    // Off a terminal (a log, a batch job) bars would be noise: one plain line
+    // per stage instead.
+    let lines = (!interactive).then(|| Lines::new(stages));
     let opts = RunOptions {
-        progress: bars.as_ref().map(|b| b as &dyn Progress),
+        progress: match (&bars, &lines) {
+            (Some(b), _) => Some(b as &dyn Progress),
+            (None, Some(l)) => Some(l as &dyn Progress),
+            (None, None) => None,
+        },
         keep_outputs: false,
         cache: None,
     };
@@ -485,7 +516,12 @@ fn cmd_run(
     };
     for (id, report) in &result.reports {
         println!("== {id}");
+        // A report is text lines; one that forgot its last line end must not
+        // run into the next report's header.
         print!("{}", report.text);
+        if !report.text.is_empty() && !report.text.ends_with('\n') {
+            println!();
+        }
     }
     let rows = crate::report::timing_rows(&result);
     println!(
@@ -529,6 +565,9 @@ fn cmd_stages(type_name: Option<String>) -> ExitCode {
             let doc = registry::stage_doc(reg);
             println!("{}\n", doc.type_name);
             println!("{}\n", doc.doc);
+            if let Some(page) = crate::guide::stage_page(&doc.type_name) {
+                println!("The maths, file formats and examples: the user guide, {page}\n");
+            }
             if doc.keys.is_empty() {
                 println!("(no keys)");
             }
@@ -725,18 +764,68 @@ fn cmd_daq(command: DaqCommand) -> ExitCode {
     }
 }
 
-/// Progress bars: one per running stage, drawn to stderr.
+/// Progress bars, drawn to stderr: an overall bar counting finished stages
+/// (across every point of a sweep), and one bar for the running stage.
 struct Bars {
     multi: MultiProgress,
+    overall: ProgressBar,
     current: Mutex<Option<ProgressBar>>,
 }
 
 impl Bars {
-    fn new() -> Self {
+    fn new(stages: usize) -> Self {
+        let multi = MultiProgress::new();
+        let overall = multi.add(ProgressBar::new(stages as u64));
+        if let Ok(style) =
+            ProgressStyle::with_template("{prefix:>14} [{bar:30}] {pos}/{len} stages {elapsed_precise}")
+        {
+            overall.set_style(style.progress_chars("=> "));
+        }
+        overall.set_prefix("all");
         Bars {
-            multi: MultiProgress::new(),
+            multi,
+            overall,
             current: Mutex::new(None),
         }
+    }
+}
+
+/// Progress as plain lines on stderr, for logs: one line when a stage starts
+/// and one when it ends, with its place among the run's stages and its time.
+struct Lines {
+    stages: usize,
+    done: std::sync::atomic::AtomicUsize,
+    started: Mutex<Option<std::time::Instant>>,
+}
+
+impl Lines {
+    fn new(stages: usize) -> Self {
+        Lines {
+            stages,
+            done: std::sync::atomic::AtomicUsize::new(0),
+            started: Mutex::new(None),
+        }
+    }
+}
+
+impl Progress for Lines {
+    fn start(&self, stage: &str, total: usize) {
+        let k = self.done.load(std::sync::atomic::Ordering::Relaxed) + 1;
+        eprintln!("[{k}/{}] {stage}: {total} to do", self.stages.max(k));
+        if let Ok(mut t) = self.started.lock() {
+            *t = Some(std::time::Instant::now());
+        }
+    }
+    fn tick(&self) {}
+    fn finish(&self, stage: &str) {
+        let k = self.done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
+        let secs = self
+            .started
+            .lock()
+            .ok()
+            .and_then(|t| t.map(|t| t.elapsed().as_secs_f64()))
+            .unwrap_or(0.0);
+        eprintln!("[{k}/{}] {stage}: done in {secs:.1} s", self.stages.max(k));
     }
 }
 
@@ -766,5 +855,10 @@ impl Progress for Bars {
                 b.finish_and_clear();
             }
         }
+        // A sweep runs the stages once per point: the overall bar grows.
+        if self.overall.position() >= self.overall.length().unwrap_or(0) {
+            self.overall.inc_length(1);
+        }
+        self.overall.inc(1);
     }
 }

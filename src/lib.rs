@@ -9,6 +9,7 @@
 pub mod cli;
 pub mod cluster;
 pub mod frontier;
+pub mod guide;
 pub mod report;
 
 pub use palpate_core as core;

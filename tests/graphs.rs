@@ -296,7 +296,12 @@ fn simulate_writes_signals_and_a_plot() {
         .unwrap()
         .map(|e| e.unwrap().file_name().to_string_lossy().into())
         .collect();
-    for want in ["edge-45deg-r00.npy", "edge-45deg-r01.csv", "trials.json"] {
+    for want in [
+        "edge-45deg-r00.npy",
+        "edge-45deg-r01.npy",
+        "labels.toml",
+        "trials.json",
+    ] {
         assert!(names.iter().any(|n| n == want), "{want} not in {names:?}");
     }
     assert!(names.iter().any(|n| n.ends_with(".svg")), "{names:?}");

@@ -278,7 +278,10 @@ pub fn run(graph: &Graph, opts: &RunOptions<'_>) -> Result<RunResult, RunError> 
                         "a trained estimator needs at least two repetitions (groups) of its classes for leave-one-trial-out",
                     ));
                 }
-                start(opts, id, items.len());
+                // Progress counts folds, each a fit plus its test trials: a
+                // fit dominates a fold's time, so counting trials (ticked
+                // only after each fit) made the first ETA many times too long.
+                start(opts, id, folds.len());
                 let mut per_trial = vec![Duration::ZERO; items.len()];
                 let mut estimates: Vec<Option<Item>> = vec![None; items.len()];
                 let fold_results: Vec<FoldOutcome> = folds
@@ -306,13 +309,13 @@ pub fn run(graph: &Graph, opts: &RunOptions<'_>) -> Result<RunResult, RunError> 
                                     seed: derive_seed(seed, &[id, &item.meta.trial_id]),
                                 };
                                 let (est, dt) = timed(|| model.predict(item, &ctx));
-                                tick(opts);
                                 let est =
                                     est.map_err(|e| RunError::new(id, Some(&item.meta.trial_id), e.message))?;
                                 Ok((t, (with_provenance(&item.meta, &prov, Payload::from(est)), dt)))
                             })
                             .collect();
                         let preds = preds.into_iter().collect::<Result<Vec<_>, _>>()?;
+                        tick(opts);
                         Ok((fit_time, preds))
                     })
                     .collect();

@@ -104,10 +104,30 @@ pub fn check_range(key: &str, value: f64, min: f64, max: f64, unit: &str) -> Res
     if value.is_finite() && value >= min && value <= max {
         Ok(value)
     } else {
-        Err(ConfigError::key(
-            key,
-            format!("must lie in [{min}, {max}] {unit}, got {value}").replace("  ", " "),
-        ))
+        // Bounds print readably: an open upper end (f64::MAX) is said in
+        // words, and a huge bound in exponent form, never as 309 digits.
+        let num = |v: f64| {
+            if v.abs() >= 1e15 {
+                format!("{v:e}")
+            } else {
+                format!("{v}")
+            }
+        };
+        let msg = if max == f64::MAX {
+            format!(
+                "must be a finite number of at least {} {unit}, got {}",
+                num(min),
+                num(value)
+            )
+        } else {
+            format!(
+                "must lie in [{}, {}] {unit}, got {}",
+                num(min),
+                num(max),
+                num(value)
+            )
+        };
+        Err(ConfigError::key(key, msg.replace("  ", " ")))
     }
 }
 
@@ -352,6 +372,16 @@ pub(crate) fn settings_json(config: &dyn StageConfig) -> Arc<serde_json::Value> 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn range_errors_print_bounds_readably() {
+        let e = check_range("min_span", -1.0, 0.0, f64::MAX, "V").unwrap_err();
+        assert!(e.message.contains("at least 0 V, got -1"), "{}", e.message);
+        assert!(e.message.len() < 80, "{}", e.message);
+        let e = check_range("x", 2e300, 0.0, 1e20, "ms").unwrap_err();
+        assert!(e.message.contains("[0, 1e20] ms, got 2e300"), "{}", e.message);
+        assert_eq!(check_range("x", 1.0, 0.0, f64::MAX, "ms").unwrap(), 1.0);
+    }
 
     #[test]
     fn seeds_differ_by_every_label_and_are_stable() {

@@ -1,10 +1,19 @@
-//! Shared SVG plotting: line charts (signals over time, sweep curves), spike
-//! rasters and heatmaps (confusion matrices, spike images), grouped bars, and
-//! scatter charts with a Pareto frontier (accuracy against time). Plots are
-//! written atomically like every report file.
+//! Shared SVG plotting in one house style ([`style`]): line charts (signals
+//! over time, sweep curves), heatmaps (confusion matrices: square cells,
+//! labels at the cells' centres, axis titles, a colour bar and the value in
+//! every cell), small-multiples bar charts (a per-class metric of many
+//! estimators, one panel each on shared axes), and scatter charts with a
+//! Pareto frontier (accuracy against time). Plots are written atomically like
+//! every report file.
+//!
+//! Heatmaps and small multiples are written as SVG text directly (rectangles,
+//! lines and text with a `class` naming each element's role), so their
+//! structure can be checked by tests and no font is needed to write them;
+//! line and frontier charts use `plotters`.
 
 use palpate_core::output::write_atomic;
 use plotters::prelude::*;
+use std::fmt::Write as _;
 use std::path::Path;
 
 /// One named series of `(x, y)` points.
@@ -50,7 +59,7 @@ pub fn line_chart(
         let (x0, x1) = bounds(series.iter().flat_map(|s| s.points.iter().map(|p| p.0)));
         let (y0, y1) = bounds(series.iter().flat_map(|s| s.points.iter().map(|p| p.1)));
         let mut chart = ChartBuilder::on(&root)
-            .caption(title, ("sans-serif", 20))
+            .caption(title, ("sans-serif", style::TITLE))
             .margin(10)
             .x_label_area_size(40)
             .y_label_area_size(60)
@@ -63,7 +72,7 @@ pub fn line_chart(
             .draw()
             .map_err(err(path))?;
         for (k, s) in series.iter().enumerate() {
-            let color = Palette99::pick(k).to_rgba();
+            let color = tab10(k);
             chart
                 .draw_series(LineSeries::new(s.points.iter().copied(), color.stroke_width(2)))
                 .map_err(err(path))?
@@ -83,139 +92,570 @@ pub fn line_chart(
     write_atomic(path, svg.as_bytes())
 }
 
-/// Writes a heatmap of `values[row][col]` as SVG, with row and column labels.
-pub fn heatmap(
-    path: &Path,
-    title: &str,
-    row_labels: &[String],
-    col_labels: &[String],
-    values: &[Vec<f64>],
-) -> std::io::Result<()> {
-    let rows = values.len();
-    let cols = values.first().map_or(0, Vec::len);
-    let max = values
+/// The house style shared by every plot palpate writes: one font family, the
+/// same title, axis-title and tick sizes, and the Tableau-10 colours
+/// ([`tab10`]), so that figures from different sinks sit together in a paper.
+pub mod style {
+    /// Font family of every text.
+    pub const FONT: &str = "DejaVu Sans, Helvetica, Arial, sans-serif";
+    /// Title size, px.
+    pub const TITLE: u32 = 17;
+    /// Axis-title size, px.
+    pub const AXIS: u32 = 14;
+    /// Tick-label size, px.
+    pub const TICK: u32 = 12;
+    /// Colour of axes, ticks and text.
+    pub const INK: &str = "#222222";
+    /// Colour of grid lines.
+    pub const GRID: &str = "#dddddd";
+}
+
+/// Escapes text for SVG.
+fn esc(s: &str) -> String {
+    s.replace('&', "&amp;")
+        .replace('<', "&lt;")
+        .replace('>', "&gt;")
+        .replace('"', "&quot;")
+}
+
+/// Opens an SVG document of `w` x `h` px on a white background.
+fn svg_open(w: f64, h: f64) -> String {
+    format!(
+        r##"<svg xmlns="http://www.w3.org/2000/svg" width="{w:.0}" height="{h:.0}" viewBox="0 0 {w:.0} {h:.0}" font-family="{}" fill="{}">
+<rect x="0" y="0" width="{w:.0}" height="{h:.0}" fill="#ffffff"/>
+"##,
+        style::FONT,
+        style::INK
+    )
+}
+
+/// One text element; `class` names its role (tests and style sheets find it).
+#[allow(clippy::too_many_arguments)]
+fn text(s: &mut String, class: &str, x: f64, y: f64, size: u32, anchor: &str, rotate: f64, body: &str) {
+    let rot = if rotate == 0.0 {
+        String::new()
+    } else {
+        format!(r#" transform="rotate({rotate} {x:.2} {y:.2})""#)
+    };
+    let _ = writeln!(
+        s,
+        r#"<text class="{class}" x="{x:.2}" y="{y:.2}" font-size="{size}" text-anchor="{anchor}"{rot}>{}</text>"#,
+        esc(body)
+    );
+}
+
+/// "Nice" axis ticks from 0 to at least `max`: steps of 1, 2 or 5 times a
+/// power of ten, at most about `n` of them. Returns `(ticks, top)`.
+fn nice_ticks(max: f64, n: usize) -> (Vec<f64>, f64) {
+    let max = if max.is_finite() && max > 0.0 { max } else { 1.0 };
+    let raw = max / n.max(1) as f64;
+    let mag = 10f64.powf(raw.log10().floor());
+    let step = [1.0, 2.0, 5.0, 10.0]
+        .iter()
+        .map(|m| m * mag)
+        .find(|s| *s >= raw)
+        .unwrap_or(10.0 * mag);
+    let k = (max / step - 1e-9).ceil().max(1.0) as usize;
+    let ticks = (0..=k).map(|i| i as f64 * step).collect();
+    (ticks, k as f64 * step)
+}
+
+/// The sequential colour scale of heatmaps, `t` in `[0, 1]` from white to dark
+/// blue (the "Blues" ramp: light cells read as "few", the eye finds the dark
+/// diagonal).
+fn blues(t: f64) -> (u8, u8, u8) {
+    const STOPS: [(u8, u8, u8); 5] = [
+        (247, 251, 255),
+        (198, 219, 239),
+        (107, 174, 214),
+        (33, 113, 181),
+        (8, 48, 107),
+    ];
+    let t = if t.is_finite() { t.clamp(0.0, 1.0) } else { 0.0 };
+    let x = t * (STOPS.len() - 1) as f64;
+    let i = (x.floor() as usize).min(STOPS.len() - 2);
+    let f = x - i as f64;
+    let mix = |a: u8, b: u8| (a as f64 + (b as f64 - a as f64) * f).round() as u8;
+    let (a, b) = (STOPS[i], STOPS[i + 1]);
+    (mix(a.0, b.0), mix(a.1, b.1), mix(a.2, b.2))
+}
+
+fn hex((r, g, b): (u8, u8, u8)) -> String {
+    format!("#{r:02x}{g:02x}{b:02x}")
+}
+
+/// What [`heatmap`] draws: a matrix of cells `values[row][col]` coloured on one
+/// scale from 0 to `v_max`, with row and column labels at the cells' centres,
+/// axis titles, a colour bar and (optionally) a text in every cell.
+pub struct Heatmap<'a> {
+    /// Title above the matrix.
+    pub title: &'a str,
+    /// Title of the x axis (the columns), below the labels.
+    pub x_title: &'a str,
+    /// Title of the y axis (the rows), left of the labels.
+    pub y_title: &'a str,
+    /// Label of each row, top to bottom.
+    pub row_labels: &'a [String],
+    /// Label of each column, left to right.
+    pub col_labels: &'a [String],
+    /// `values[row][col]`; a non-finite value is drawn as an empty (grey) cell.
+    pub values: &'a [Vec<f64>],
+    /// Text written in each cell (same shape as `values`; an empty string or a
+    /// missing row writes nothing).
+    pub cell_text: &'a [Vec<String>],
+    /// Top of the colour scale (`None`: the largest finite value, or 1).
+    pub v_max: Option<f64>,
+    /// Title of the colour bar.
+    pub scale_title: &'a str,
+    /// Tick labels of the colour bar are `value * scale_factor` (e.g. 100 for
+    /// shares shown as percent).
+    pub scale_factor: f64,
+}
+
+/// Pixel geometry of a [`Heatmap`]: where cell `(r, c)` is. Exposed so tests
+/// (and callers overlaying marks) agree with the drawing.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct HeatmapGeometry {
+    /// Left edge of the matrix, px.
+    pub left: f64,
+    /// Top edge of the matrix, px.
+    pub top: f64,
+    /// Side of one (square) cell, px.
+    pub cell: f64,
+}
+
+impl HeatmapGeometry {
+    /// Centre of column `c`, px.
+    pub fn col_centre(&self, c: usize) -> f64 {
+        self.left + (c as f64 + 0.5) * self.cell
+    }
+    /// Centre of row `r`, px.
+    pub fn row_centre(&self, r: usize) -> f64 {
+        self.top + (r as f64 + 0.5) * self.cell
+    }
+}
+
+/// The geometry [`heatmap_svg`] uses for `rows` x `cols` cells: square cells of
+/// 14 to 44 px, the matrix at most about 560 px on its longer side.
+pub fn heatmap_geometry(rows: usize, cols: usize, row_labels: &[String]) -> HeatmapGeometry {
+    let n = rows.max(cols).max(1) as f64;
+    let cell = (560.0 / n).clamp(14.0, 44.0).floor();
+    let label_w =
+        row_labels.iter().map(|l| l.chars().count()).max().unwrap_or(1) as f64 * 0.62 * style::TICK as f64;
+    HeatmapGeometry {
+        left: 40.0 + label_w + 12.0,
+        top: 48.0,
+        cell,
+    }
+}
+
+/// The SVG text of a heatmap (see [`Heatmap`]).
+pub fn heatmap_svg(h: &Heatmap<'_>) -> String {
+    let rows = h.values.len();
+    let cols = h.values.iter().map(Vec::len).max().unwrap_or(0);
+    let g = heatmap_geometry(rows, cols, h.row_labels);
+    let finite_max = h
+        .values
         .iter()
         .flatten()
         .copied()
         .filter(|v| v.is_finite())
         .fold(0.0_f64, f64::max);
-    let mut svg = String::new();
-    {
-        let root = SVGBackend::with_string(&mut svg, (700, 640)).into_drawing_area();
-        root.fill(&WHITE).map_err(err(path))?;
-        let mut chart = ChartBuilder::on(&root)
-            .caption(title, ("sans-serif", 20))
-            .margin(10)
-            .x_label_area_size(50)
-            .y_label_area_size(60)
-            .build_cartesian_2d(0..cols, 0..rows)
-            .map_err(err(path))?;
-        let xl = |c: &usize| col_labels.get(*c).cloned().unwrap_or_default();
-        let yl = |r: &usize| {
-            row_labels
-                .get(rows.saturating_sub(1 + *r))
-                .cloned()
-                .unwrap_or_default()
-        };
-        chart
-            .configure_mesh()
-            .disable_mesh()
-            .x_labels(cols.max(1))
-            .y_labels(rows.max(1))
-            .x_label_formatter(&xl)
-            .y_label_formatter(&yl)
-            .draw()
-            .map_err(err(path))?;
-        chart
-            .draw_series(values.iter().enumerate().flat_map(|(r, row)| {
-                row.iter().enumerate().map(move |(c, &v)| {
-                    let t = if max > 0.0 && v.is_finite() { v / max } else { 0.0 };
-                    let shade = (255.0 * (1.0 - t)) as u8;
-                    let y = rows - 1 - r;
-                    Rectangle::new([(c, y), (c + 1, y + 1)], RGBColor(shade, shade, 255).filled())
-                })
-            }))
-            .map_err(err(path))?;
-        root.present().map_err(err(path))?;
+    let v_max = h
+        .v_max
+        .filter(|v| v.is_finite() && *v > 0.0)
+        .unwrap_or(if finite_max > 0.0 { finite_max } else { 1.0 });
+    let (mw, mh) = (cols as f64 * g.cell, rows as f64 * g.cell);
+    let rotate_x = g.cell < 34.0 || h.col_labels.iter().any(|l| l.chars().count() > 4);
+    let x_label_h = if rotate_x {
+        h.col_labels.iter().map(|l| l.chars().count()).max().unwrap_or(1) as f64 * 0.5 * style::TICK as f64
+            + 16.0
+    } else {
+        22.0
+    };
+    let bar_x = g.left + mw + 24.0;
+    let width = bar_x + 16.0 + 80.0;
+    let height = g.top + mh + x_label_h + 34.0;
+    let mut s = svg_open(width.max(320.0), height);
+    text(
+        &mut s,
+        "title",
+        (g.left + mw / 2.0).max(160.0),
+        28.0,
+        style::TITLE,
+        "middle",
+        0.0,
+        h.title,
+    );
+    // Cells, then their texts (white on dark cells).
+    for (r, row) in h.values.iter().enumerate() {
+        for c in 0..cols {
+            let v = row.get(c).copied().unwrap_or(f64::NAN);
+            let (x, y) = (g.left + c as f64 * g.cell, g.top + r as f64 * g.cell);
+            let t = v / v_max;
+            let fill = if v.is_finite() {
+                hex(blues(t))
+            } else {
+                "#eeeeee".into()
+            };
+            let _ = writeln!(
+                s,
+                r##"<rect class="cell" data-row="{r}" data-col="{c}" x="{x:.2}" y="{y:.2}" width="{w:.2}" height="{w:.2}" fill="{fill}" stroke="#ffffff" stroke-width="1"/>"##,
+                w = g.cell
+            );
+            let body = h
+                .cell_text
+                .get(r)
+                .and_then(|t| t.get(c))
+                .map_or("", String::as_str);
+            if !body.is_empty() {
+                let size = ((g.cell * 0.36).floor() as u32).clamp(7, 13);
+                let color = if v.is_finite() && t > 0.55 {
+                    "#ffffff"
+                } else {
+                    style::INK
+                };
+                let _ = writeln!(
+                    s,
+                    r#"<text class="cell-value" x="{:.2}" y="{:.2}" font-size="{size}" text-anchor="middle" dominant-baseline="central" fill="{color}">{}</text>"#,
+                    g.col_centre(c),
+                    g.row_centre(r),
+                    esc(body)
+                );
+            }
+        }
     }
-    write_atomic(path, svg.as_bytes())
+    let _ = writeln!(
+        s,
+        r#"<rect x="{:.2}" y="{:.2}" width="{mw:.2}" height="{mh:.2}" fill="none" stroke="{}" stroke-width="1"/>"#,
+        g.left,
+        g.top,
+        style::INK
+    );
+    // One tick and one label per row and per column, at the cell's centre.
+    for (r, label) in h.row_labels.iter().enumerate().take(rows) {
+        let y = g.row_centre(r);
+        let _ = writeln!(
+            s,
+            r#"<line class="tick-y" x1="{:.2}" y1="{y:.2}" x2="{:.2}" y2="{y:.2}" stroke="{}"/>"#,
+            g.left - 4.0,
+            g.left,
+            style::INK
+        );
+        let _ = writeln!(
+            s,
+            r#"<text class="label-y" x="{:.2}" y="{y:.2}" font-size="{}" text-anchor="end" dominant-baseline="central">{}</text>"#,
+            g.left - 7.0,
+            style::TICK,
+            esc(label)
+        );
+    }
+    let y_ticks = g.top + mh;
+    for (c, label) in h.col_labels.iter().enumerate().take(cols) {
+        let x = g.col_centre(c);
+        let _ = writeln!(
+            s,
+            r#"<line class="tick-x" x1="{x:.2}" y1="{y_ticks:.2}" x2="{x:.2}" y2="{:.2}" stroke="{}"/>"#,
+            y_ticks + 4.0,
+            style::INK
+        );
+        if rotate_x {
+            let y = y_ticks + 8.0;
+            let _ = writeln!(
+                s,
+                r#"<text class="label-x" x="{x:.2}" y="{y:.2}" font-size="{}" text-anchor="end" dominant-baseline="central" transform="rotate(-60 {x:.2} {y:.2})">{}</text>"#,
+                style::TICK,
+                esc(label)
+            );
+        } else {
+            text(
+                &mut s,
+                "label-x",
+                x,
+                y_ticks + 18.0,
+                style::TICK,
+                "middle",
+                0.0,
+                label,
+            );
+        }
+    }
+    text(
+        &mut s,
+        "axis-title-x",
+        g.left + mw / 2.0,
+        y_ticks + x_label_h + 20.0,
+        style::AXIS,
+        "middle",
+        0.0,
+        h.x_title,
+    );
+    text(
+        &mut s,
+        "axis-title-y",
+        18.0,
+        g.top + mh / 2.0,
+        style::AXIS,
+        "middle",
+        -90.0,
+        h.y_title,
+    );
+    // The colour bar: a vertical gradient from 0 (bottom) to v_max (top).
+    let _ = writeln!(
+        s,
+        r#"<defs><linearGradient id="scale" x1="0" y1="1" x2="0" y2="0">"#
+    );
+    for k in 0..=8 {
+        let t = k as f64 / 8.0;
+        let _ = writeln!(s, r#"<stop offset="{t:.3}" stop-color="{}"/>"#, hex(blues(t)));
+    }
+    let _ = writeln!(s, "</linearGradient></defs>");
+    let bar_h = mh.max(60.0);
+    let _ = writeln!(
+        s,
+        r#"<rect class="colorbar" x="{bar_x:.2}" y="{:.2}" width="16" height="{bar_h:.2}" fill="url(#scale)" stroke="{}" stroke-width="0.5"/>"#,
+        g.top,
+        style::INK
+    );
+    for k in 0..=4 {
+        let t = k as f64 / 4.0;
+        let y = g.top + bar_h * (1.0 - t);
+        let _ = writeln!(
+            s,
+            r#"<line x1="{:.2}" y1="{y:.2}" x2="{:.2}" y2="{y:.2}" stroke="{}"/>"#,
+            bar_x + 16.0,
+            bar_x + 20.0,
+            style::INK
+        );
+        let label = tick_label(t * v_max * h.scale_factor);
+        let _ = writeln!(
+            s,
+            r#"<text class="colorbar-tick" x="{:.2}" y="{y:.2}" font-size="{}" dominant-baseline="central">{label}</text>"#,
+            bar_x + 23.0,
+            style::TICK
+        );
+    }
+    text(
+        &mut s,
+        "colorbar-title",
+        bar_x + 8.0,
+        g.top - 10.0,
+        style::TICK,
+        "middle",
+        0.0,
+        h.scale_title,
+    );
+    s.push_str("</svg>\n");
+    s
 }
 
-/// Writes a grouped bar chart as SVG: one group per category, one bar per series.
-pub fn bar_chart(
-    path: &Path,
-    title: &str,
-    x_label: &str,
-    y_label: &str,
-    categories: &[String],
-    series: &[(&str, Vec<f64>)],
-) -> std::io::Result<()> {
-    let n_cat = categories.len().max(1);
-    let n_ser = series.len().max(1);
-    let y_max = series
+/// Writes a heatmap (see [`Heatmap`]) as SVG, atomically.
+pub fn heatmap(path: &Path, h: &Heatmap<'_>) -> std::io::Result<()> {
+    write_atomic(path, heatmap_svg(h).as_bytes())
+}
+
+/// What [`small_multiples`] draws: one small bar chart (a panel) per series,
+/// all on the same axes, so that many estimators stay readable side by side
+/// (grouped bars of 8 series become slivers).
+pub struct SmallMultiples<'a> {
+    /// Title above the panels.
+    pub title: &'a str,
+    /// x axis title (under the bottom row of panels).
+    pub x_title: &'a str,
+    /// y axis title (left of the left column of panels).
+    pub y_title: &'a str,
+    /// Category of each bar, left to right (the same in every panel).
+    pub categories: &'a [String],
+    /// Per panel: its name and one value per category (non-finite: no value,
+    /// marked by a small grey cross on the axis).
+    pub series: &'a [(&'a str, Vec<f64>)],
+    /// Per panel, a note after its name (e.g. its overall value); may be empty.
+    pub notes: &'a [String],
+}
+
+/// Panel layout of [`small_multiples`]: `(columns, rows)` for `n` panels.
+pub fn panel_grid(n: usize) -> (usize, usize) {
+    let cols = match n {
+        0 | 1 => 1,
+        2..=4 => 2,
+        5 | 6 => 3,
+        _ => 4,
+    };
+    (cols, n.max(1).div_ceil(cols))
+}
+
+/// The SVG text of a small-multiples bar chart (see [`SmallMultiples`]).
+pub fn small_multiples_svg(m: &SmallMultiples<'_>) -> String {
+    let n = m.series.len();
+    let (gc, gr) = panel_grid(n);
+    let n_cat = m.categories.len().max(1);
+    let (pw, ph) = if gc == 1 { (640.0, 280.0) } else { (300.0, 190.0) };
+    let (left, top, gap_x, gap_y) = (70.0, 64.0, 28.0, 58.0);
+    let width = left + gc as f64 * pw + (gc - 1) as f64 * gap_x + 20.0;
+    let height = top + gr as f64 * ph + (gr - 1) as f64 * gap_y + 78.0;
+    let max = m
+        .series
         .iter()
         .flat_map(|s| s.1.iter())
         .copied()
         .filter(|v| v.is_finite())
         .fold(0.0_f64, f64::max);
-    let y_max = if y_max > 0.0 { y_max * 1.1 } else { 1.0 };
-    let mut svg = String::new();
-    {
-        let root = SVGBackend::with_string(&mut svg, (900, 450)).into_drawing_area();
-        root.fill(&WHITE).map_err(err(path))?;
-        let mut chart = ChartBuilder::on(&root)
-            .caption(title, ("sans-serif", 20))
-            .margin(10)
-            .x_label_area_size(40)
-            .y_label_area_size(60)
-            .build_cartesian_2d(0.0..n_cat as f64, 0.0..y_max)
-            .map_err(err(path))?;
-        let label = |x: &f64| {
-            let i = x.floor() as usize;
-            if (x - i as f64 - 0.5).abs() < 1e-6 {
-                categories.get(i).cloned().unwrap_or_default()
-            } else {
-                String::new()
+    let (ticks, top_v) = nice_ticks(max, 4);
+    let mut s = svg_open(width, height);
+    text(
+        &mut s,
+        "title",
+        width / 2.0,
+        26.0,
+        style::TITLE,
+        "middle",
+        0.0,
+        m.title,
+    );
+    // Every label when there is room, else every other one (the ticks stay).
+    let slot = pw / n_cat as f64;
+    let longest = m.categories.iter().map(|c| c.chars().count()).max().unwrap_or(1) as f64;
+    let every = if slot >= longest * 0.62 * style::TICK as f64 + 3.0 {
+        1
+    } else {
+        2
+    };
+    for (k, (name, values)) in m.series.iter().enumerate() {
+        let (col, row) = (k % gc, k / gc);
+        let x0 = left + col as f64 * (pw + gap_x);
+        let y0 = top + row as f64 * (ph + gap_y);
+        let y_of = |v: f64| y0 + ph * (1.0 - v / top_v);
+        let _ = writeln!(s, r#"<g class="panel" data-series="{}">"#, esc(name));
+        for &t in &ticks {
+            let y = y_of(t);
+            let _ = writeln!(
+                s,
+                r#"<line x1="{x0:.2}" y1="{y:.2}" x2="{:.2}" y2="{y:.2}" stroke="{}" stroke-width="1"/>"#,
+                x0 + pw,
+                style::GRID
+            );
+            if col == 0 {
+                text(
+                    &mut s,
+                    "label-y",
+                    x0 - 6.0,
+                    y + 4.0,
+                    style::TICK,
+                    "end",
+                    0.0,
+                    &tick_label(t),
+                );
             }
+        }
+        let color = tab10(k);
+        let fill = format!("#{:02x}{:02x}{:02x}", color.0, color.1, color.2);
+        for (i, &v) in values.iter().enumerate().take(n_cat) {
+            let cx = x0 + (i as f64 + 0.5) * slot;
+            let bw = (slot * 0.7).max(1.0);
+            if v.is_finite() {
+                let v = v.max(0.0);
+                // A zero is drawn as a hairline on the axis, so "no error"
+                // reads differently from "no value" (the cross).
+                let h = (ph * v / top_v).max(1.5);
+                let y = y0 + ph - h;
+                let _ = writeln!(
+                    s,
+                    r#"<rect class="bar" data-cat="{i}" x="{:.2}" y="{y:.2}" width="{bw:.2}" height="{h:.2}" fill="{fill}"><title>{}: {}</title></rect>"#,
+                    cx - bw / 2.0,
+                    esc(m.categories.get(i).map_or("", String::as_str)),
+                    tick_label(v)
+                );
+            } else {
+                let (y, d) = (y0 + ph - 4.0, 3.0);
+                let _ = writeln!(
+                    s,
+                    r##"<path class="missing" d="M{:.2} {:.2}L{:.2} {:.2}M{:.2} {:.2}L{:.2} {:.2}" stroke="#999999" stroke-width="1.2"/>"##,
+                    cx - d,
+                    y - d,
+                    cx + d,
+                    y + d,
+                    cx - d,
+                    y + d,
+                    cx + d,
+                    y - d
+                );
+            }
+        }
+        // Axes, one tick per category at its slot's centre.
+        let yb = y0 + ph;
+        let _ = writeln!(
+            s,
+            r#"<path d="M{x0:.2} {y0:.2}L{x0:.2} {yb:.2}L{:.2} {yb:.2}" fill="none" stroke="{}"/>"#,
+            x0 + pw,
+            style::INK
+        );
+        for (i, category) in m.categories.iter().enumerate() {
+            let cx = x0 + (i as f64 + 0.5) * slot;
+            let _ = writeln!(
+                s,
+                r#"<line class="tick-x" x1="{cx:.2}" y1="{yb:.2}" x2="{cx:.2}" y2="{:.2}" stroke="{}"/>"#,
+                yb + 4.0,
+                style::INK
+            );
+            if i % every == 0 {
+                text(
+                    &mut s,
+                    "label-x",
+                    cx,
+                    yb + 16.0,
+                    style::TICK,
+                    "middle",
+                    0.0,
+                    category,
+                );
+            }
+        }
+        let note = m.notes.get(k).filter(|n| !n.is_empty());
+        let head = match note {
+            Some(n) => format!("{name} — {n}"),
+            None => name.to_string(),
         };
-        chart
-            .configure_mesh()
-            .disable_x_mesh()
-            .x_labels(2 * n_cat + 1)
-            .x_label_formatter(&label)
-            .x_desc(x_label)
-            .y_desc(y_label)
-            .draw()
-            .map_err(err(path))?;
-        let width = 0.8 / n_ser as f64;
-        for (k, (name, values)) in series.iter().enumerate() {
-            let color = Palette99::pick(k).to_rgba();
-            chart
-                .draw_series(
-                    values
-                        .iter()
-                        .enumerate()
-                        .filter(|(_, v)| v.is_finite())
-                        .map(|(i, &v)| {
-                            let x0 = i as f64 + 0.1 + k as f64 * width;
-                            Rectangle::new([(x0, 0.0), (x0 + width, v)], color.filled())
-                        }),
-                )
-                .map_err(err(path))?
-                .label(*name)
-                .legend(move |(x, y)| Rectangle::new([(x, y - 5), (x + 10, y + 5)], color.filled()));
-        }
-        if series.len() > 1 {
-            chart
-                .configure_series_labels()
-                .background_style(WHITE.mix(0.8))
-                .border_style(BLACK)
-                .draw()
-                .map_err(err(path))?;
-        }
-        root.present().map_err(err(path))?;
+        text(
+            &mut s,
+            "panel-title",
+            x0 + pw / 2.0,
+            y0 - 8.0,
+            style::AXIS,
+            "middle",
+            0.0,
+            &head,
+        );
+        s.push_str("</g>\n");
     }
-    write_atomic(path, svg.as_bytes())
+    let grid_w = gc as f64 * pw + (gc - 1) as f64 * gap_x;
+    let grid_h = gr as f64 * ph + (gr - 1) as f64 * gap_y;
+    text(
+        &mut s,
+        "axis-title-x",
+        left + grid_w / 2.0,
+        top + grid_h + 44.0,
+        style::AXIS,
+        "middle",
+        0.0,
+        m.x_title,
+    );
+    text(
+        &mut s,
+        "axis-title-y",
+        20.0,
+        top + grid_h / 2.0,
+        style::AXIS,
+        "middle",
+        -90.0,
+        m.y_title,
+    );
+    s.push_str("</svg>\n");
+    s
+}
+
+/// Writes a small-multiples bar chart (see [`SmallMultiples`]) as SVG, atomically.
+pub fn small_multiples(path: &Path, m: &SmallMultiples<'_>) -> std::io::Result<()> {
+    write_atomic(path, small_multiples_svg(m).as_bytes())
 }
 
 /// One point of a [`frontier_chart`]: its position, its colour group (e.g. the
@@ -416,7 +856,7 @@ pub fn frontier_chart(path: &Path, c: &FrontierChart<'_>) -> std::io::Result<()>
         let (plot, legend) = root.split_horizontally(820);
         let builder = |area| {
             let mut b = ChartBuilder::on(area);
-            b.caption(c.title, ("sans-serif", 20))
+            b.caption(c.title, ("sans-serif", style::TITLE))
                 .margin(12)
                 .x_label_area_size(45)
                 .y_label_area_size(60);
@@ -536,7 +976,7 @@ mod tests {
     use super::*;
 
     #[test]
-    fn line_chart_and_heatmap_write_svg() {
+    fn line_and_frontier_charts_write_svg() {
         let dir = std::env::temp_dir().join(format!("palpate-plot-{}", std::process::id()));
         let p = dir.join("line.svg");
         line_chart(
@@ -562,16 +1002,6 @@ mod tests {
             "{}",
             &s[..200.min(s.len())]
         );
-        let h = dir.join("heat.svg");
-        heatmap(
-            &h,
-            "c",
-            &["a".into(), "b".into()],
-            &["x".into(), "y".into()],
-            &[vec![1.0, 0.0], vec![0.0, 0.0]],
-        )
-        .unwrap();
-        assert!(std::fs::read_to_string(&h).unwrap().contains("<rect"));
         let f = dir.join("frontier.svg");
         let pts: Vec<ScatterPoint> = (0..8)
             .map(|k| ScatterPoint {
@@ -638,7 +1068,196 @@ mod tests {
         }
         // Empty and constant data must not panic.
         line_chart(&p, "t", "x", "y", &[]).unwrap();
-        heatmap(&h, "c", &[], &[], &[]).unwrap();
         std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    /// The numeric attribute `name` of an SVG element's text.
+    fn attr(el: &str, name: &str) -> f64 {
+        let key = format!(" {name}=\"");
+        let i = el.find(&key).unwrap_or_else(|| panic!("no {name} in {el}")) + key.len();
+        let j = el[i..].find('"').unwrap() + i;
+        el[i..j].parse().unwrap()
+    }
+
+    /// Every element of class `class`, as its text.
+    fn elements<'s>(svg: &'s str, class: &str) -> Vec<&'s str> {
+        let key = format!("class=\"{class}\"");
+        svg.lines().filter(|l| l.contains(&key)).collect()
+    }
+
+    /// The text of a `<text>` element.
+    fn body(el: &str) -> &str {
+        let i = el.find('>').unwrap() + 1;
+        &el[i..el.rfind("</text>").unwrap()]
+    }
+
+    fn labels(n: usize) -> Vec<String> {
+        (0..n).map(|k| format!("{}", 10 + 5 * k)).collect()
+    }
+
+    #[test]
+    fn heatmap_labels_sit_at_cell_centres_one_per_row_and_column() {
+        for n in [1, 3, 17, 40] {
+            let rows = labels(n);
+            let mut cols = labels(n);
+            cols.push("no edge".into());
+            let values: Vec<Vec<f64>> = (0..n)
+                .map(|r| (0..=n).map(|c| if r == c { 1.0 } else { 0.0 }).collect())
+                .collect();
+            let text: Vec<Vec<String>> = values
+                .iter()
+                .map(|row| row.iter().map(|v| format!("{:.0}", v * 100.0)).collect())
+                .collect();
+            let svg = heatmap_svg(&Heatmap {
+                title: "t",
+                x_title: "estimated angle (°)",
+                y_title: "true angle (°)",
+                row_labels: &rows,
+                col_labels: &cols,
+                values: &values,
+                cell_text: &text,
+                v_max: Some(1.0),
+                scale_title: "% of row",
+                scale_factor: 100.0,
+            });
+            let g = heatmap_geometry(n, n + 1, &rows);
+            let cells = elements(&svg, "cell");
+            assert_eq!(cells.len(), n * (n + 1), "n {n}");
+            for cell in &cells {
+                assert!(
+                    (attr(cell, "width") - attr(cell, "height")).abs() < 1e-9,
+                    "square cells"
+                );
+            }
+            // One label per row and column, each at its cell's centre, in order.
+            let ly = elements(&svg, "label-y");
+            let lx = elements(&svg, "label-x");
+            assert_eq!((ly.len(), lx.len()), (n, n + 1), "n {n}");
+            assert_eq!(elements(&svg, "tick-x").len(), n + 1);
+            assert_eq!(elements(&svg, "tick-y").len(), n);
+            for (r, el) in ly.iter().enumerate() {
+                assert!((attr(el, "y") - g.row_centre(r)).abs() < 0.01, "row {r}: {el}");
+                assert_eq!(body(el), rows[r]);
+            }
+            for (c, el) in lx.iter().enumerate() {
+                assert!((attr(el, "x") - g.col_centre(c)).abs() < 0.01, "col {c}: {el}");
+                assert_eq!(body(el), cols[c]);
+            }
+            // Labels are unique: no class appears twice.
+            let mut seen: Vec<&str> = ly.iter().map(|e| body(e)).collect();
+            seen.sort_unstable();
+            seen.dedup();
+            assert_eq!(seen.len(), n);
+            // Axis titles, colour bar, a value in every cell.
+            assert_eq!(elements(&svg, "axis-title-x").len(), 1);
+            assert_eq!(elements(&svg, "axis-title-y").len(), 1);
+            assert_eq!(elements(&svg, "colorbar").len(), 1);
+            let ticks: Vec<&str> = elements(&svg, "colorbar-tick").into_iter().map(body).collect();
+            assert_eq!(ticks, ["0", "25", "50", "75", "100"]);
+            assert_eq!(elements(&svg, "cell-value").len(), n * (n + 1));
+            // The diagonal is the darkest colour, the rest white.
+            let dark = hex(blues(1.0));
+            for cell in &cells {
+                let (r, c) = (attr(cell, "data-row"), attr(cell, "data-col"));
+                assert_eq!(cell.contains(&dark), r == c, "{cell}");
+            }
+        }
+    }
+
+    #[test]
+    fn heatmap_of_nothing_or_nan_is_valid_svg() {
+        for values in [vec![], vec![vec![f64::NAN, f64::INFINITY]], vec![vec![0.0; 3]; 2]] {
+            let svg = heatmap_svg(&Heatmap {
+                title: "<&>",
+                x_title: "x",
+                y_title: "y",
+                row_labels: &[],
+                col_labels: &[],
+                values: &values,
+                cell_text: &[],
+                v_max: None,
+                scale_title: "",
+                scale_factor: 1.0,
+            });
+            assert!(svg.starts_with("<svg") && svg.trim_end().ends_with("</svg>"));
+            assert!(!svg.contains("NaN") && !svg.contains("inf") && svg.contains("&lt;&amp;&gt;"));
+        }
+    }
+
+    #[test]
+    fn small_multiples_give_one_panel_per_series_on_shared_axes() {
+        let cats = labels(17);
+        let names: Vec<String> = (0..8).map(|k| format!("est{k}")).collect();
+        let series: Vec<(&str, Vec<f64>)> = names
+            .iter()
+            .enumerate()
+            .map(|(k, n)| {
+                let v = (0..17)
+                    .map(|i| {
+                        if i == 3 && k == 2 {
+                            f64::NAN
+                        } else {
+                            (k + i) as f64 * 0.5
+                        }
+                    })
+                    .collect();
+                (n.as_str(), v)
+            })
+            .collect();
+        let notes: Vec<String> = (0..8).map(|k| format!("MAE {k}")).collect();
+        let svg = small_multiples_svg(&SmallMultiples {
+            title: "MAE per class",
+            x_title: "true angle (°)",
+            y_title: "MAE (°)",
+            categories: &cats,
+            series: &series,
+            notes: &notes,
+        });
+        assert_eq!(svg.matches(r#"<g class="panel""#).count(), 8);
+        assert_eq!(elements(&svg, "panel-title").len(), 8);
+        // One tick per class in every panel, the bars centred on them.
+        let ticks = elements(&svg, "tick-x");
+        assert_eq!(ticks.len(), 8 * 17);
+        let bars = elements(&svg, "bar");
+        assert_eq!(bars.len(), 8 * 17 - 1, "the NaN is not a bar");
+        assert_eq!(elements(&svg, "missing").len(), 1);
+        for (bar, tick) in bars.iter().zip(ticks.iter()).take(17) {
+            let centre = attr(bar, "x") + attr(bar, "width") / 2.0;
+            assert!((centre - attr(tick, "x1")).abs() < 0.01);
+            assert!(attr(bar, "width") > 5.0, "bars are not slivers: {bar}");
+        }
+        // Shared y axis: equal values give equal bar heights in any panel.
+        // Panels 0, 1 have 17 bars, panel 2 has 16 (its NaN), panel 3 has 17.
+        let h = |i: usize| attr(bars[i], "height");
+        assert!((h(4) - h(67)).abs() < 1e-9, "est0 at 30° = est4 at 10° = 2.0");
+        assert!(
+            (h(bars.len() - 1) / h(4) - 11.5 / 2.0).abs() < 0.01,
+            "heights to 0.01 px"
+        );
+        assert_eq!(h(0), 1.5, "a zero is a visible hairline, not nothing");
+        assert_eq!(panel_grid(8), (4, 2));
+        assert_eq!(panel_grid(1), (1, 1));
+        assert_eq!(panel_grid(0), (1, 1));
+        assert!(svg.contains("est7 — MAE 7"));
+        // Nothing to draw: still a valid document.
+        let empty = small_multiples_svg(&SmallMultiples {
+            title: "t",
+            x_title: "x",
+            y_title: "y",
+            categories: &[],
+            series: &[],
+            notes: &[],
+        });
+        assert!(empty.trim_end().ends_with("</svg>") && !empty.contains("NaN"));
+    }
+
+    #[test]
+    fn nice_ticks_cover_the_maximum() {
+        assert_eq!(nice_ticks(0.0, 4), (vec![0.0, 0.5, 1.0], 1.0));
+        let (t, top) = nice_ticks(7.3, 4);
+        assert_eq!(t, vec![0.0, 2.0, 4.0, 6.0, 8.0]);
+        assert_eq!(top, 8.0);
+        let (t, top) = nice_ticks(f64::NAN, 4);
+        assert!(top >= 1.0 && t[0] == 0.0);
     }
 }

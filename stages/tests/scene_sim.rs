@@ -541,7 +541,7 @@ fn shipped_scenes_load_and_lab_looks_like_fig_3a() {
 }
 
 #[test]
-fn simulate_to_dir_writes_npy_csv_and_a_plot() {
+fn simulate_writes_what_signal_file_reads_back_with_labels() {
     let dir = temp_dir("export");
     let scene = dir.join("scene.toml");
     std::fs::write(
@@ -549,38 +549,55 @@ fn simulate_to_dir_writes_npy_csv_and_a_plot() {
         "angles = [90, 45]\ntrials_per_angle = 2\neffects = [{ kind = \"piezo\" }, { kind = \"noise\", sigma = 0.01 }]\n",
     )
     .unwrap();
-    let out = dir.join("out");
-    let files = palpate_stages::scene::simulate_to_dir(&scene, &out, 5).unwrap();
-    assert_eq!(files.len(), 4 * 2 + 2);
-    assert!(files.iter().all(|f| f.exists()));
-    // The NPY round-trips to the same signals a graph produces.
-    let g = items_in(
+    let want = items_in(
         &graph(&format!("file = {:?}", scene.display().to_string()), 5),
         None,
     );
-    let bytes = std::fs::read(out.join("edge-45deg-r01.npy")).unwrap();
+    for (csv, ext) in [(false, "npy"), (true, "csv")] {
+        let out = dir.join(format!("out-{ext}"));
+        let files = palpate_stages::scene::simulate_to_dir(&scene, &out, 5, csv).unwrap();
+        // 4 trials, labels.toml, trials.json, the plot.
+        assert_eq!(files.len(), 4 + 3, "{files:?}");
+        assert!(files.iter().all(|f| f.exists()));
+        let data_files = files
+            .iter()
+            .filter(|f| f.extension().is_some_and(|e| e == ext))
+            .count();
+        assert_eq!(data_files, 4, "one {ext} per trial, and no other format");
+        let svg = files.last().unwrap();
+        assert!(std::fs::read_to_string(svg).unwrap().contains("polyline"));
+        // Read back by `signal_file` with either label file: the same samples,
+        // bit for bit, and the same labels and groups as the scene's trials.
+        for labels in ["labels.toml", "trials.json"] {
+            let text = format!(
+                "[run]\nseed = 5\n[stages.scene]\ntype = \"signal_file\"\npath = \"*.{ext}\"\nlabels = \"{labels}\"\n{}\n",
+                if csv { "" } else { "sample_rate_hz = 1000.0" }
+            );
+            let got = items_in(&text, Some(&out));
+            assert_eq!(got.len(), want.len());
+            let mut got: Vec<&Item> = got.iter().collect();
+            got.sort_by(|a, b| a.meta.trial_id.cmp(&b.meta.trial_id));
+            let mut exp: Vec<&Item> = want.iter().collect();
+            exp.sort_by(|a, b| a.meta.trial_id.cmp(&b.meta.trial_id));
+            for (g, w) in got.iter().zip(&exp) {
+                assert_eq!(g.meta.trial_id, w.meta.trial_id, "{ext} {labels}");
+                assert_eq!(g.meta.label, w.meta.label, "{ext} {labels}");
+                assert_eq!(g.meta.group, w.meta.group, "{ext} {labels}");
+                assert_eq!(data(g), data(w), "{ext} {labels}: samples differ");
+            }
+        }
+    }
+    // The CSV's columns are the ones `signal_file` expects.
+    let csv = std::fs::read_to_string(dir.join("out-csv/edge-90deg-r00.csv")).unwrap();
+    let header = csv.lines().next().unwrap();
+    assert!(header.starts_with("time_ms,taxel_0,taxel_1,") && header.ends_with(",taxel_15"));
+    // The NPY is (samples, taxels).
+    let bytes = std::fs::read(dir.join("out-npy/edge-45deg-r01.npy")).unwrap();
     let npy = npyz::NpyFile::new(&bytes[..]).unwrap();
-    assert_eq!(npy.shape(), &[16, data(&g[3])[0].len() as u64]);
-    let flat: Vec<f64> = npy.into_vec().unwrap();
-    let want: Vec<f64> = data(&g[3]).iter().flatten().copied().collect();
-    assert_eq!(flat, want);
-    let csv = std::fs::read_to_string(out.join("edge-90deg-r00.csv")).unwrap();
-    let mut lines = csv.lines();
-    let header = lines.next().unwrap();
-    assert!(header.starts_with("time_ms,r0c0,r0c1") && header.ends_with("r3c3"));
-    let second: Vec<f64> = lines
-        .nth(1)
-        .unwrap()
-        .split(',')
-        .map(|v| v.parse().unwrap())
-        .collect();
-    assert_eq!(second[0], 1.0);
-    assert_eq!(second[1], data(&g[0])[0][1]);
-    let svg = files.last().unwrap();
-    assert!(svg.extension().unwrap() == "svg");
-    assert!(std::fs::read_to_string(svg).unwrap().contains("polyline"));
+    let w = want.iter().find(|i| i.meta.trial_id == "edge-45deg-r01").unwrap();
+    assert_eq!(npy.shape(), &[data(w)[0].len() as u64, 16]);
     assert!(
-        palpate_stages::scene::simulate_to_dir(&dir.join("nope.toml"), &out, 5)
+        palpate_stages::scene::simulate_to_dir(&dir.join("nope.toml"), &dir.join("o"), 5, false)
             .unwrap_err()
             .message
             .contains("nope.toml")

@@ -8,7 +8,9 @@
 //!
 //! Files per estimator `<est>`, written atomically into the run's output
 //! directory: `<sink id>_<est>.csv` (counts and shares), `<sink id>_<est>.md`,
-//! and `<sink id>_<est>.svg` (a heatmap).
+//! and `<sink id>_<est>.svg`: the matrix drawn square over every class (true
+//! or estimated) plus the "no edge" column, each cell coloured and labelled
+//! with its share of the row in percent, with axis titles and a colour bar.
 
 use palpate_core::output::write_atomic;
 use palpate_core::{
@@ -111,6 +113,58 @@ impl Confusion {
             .collect()
     }
 
+    /// Every class, true or estimated, in order: the rows and (with "no edge"
+    /// last) the columns of the square matrix that is plotted.
+    pub fn all_classes(&self) -> Vec<f64> {
+        let mut all: Vec<f64> = self.truths.iter().chain(&self.classes).copied().collect();
+        all.sort_by(f64::total_cmp);
+        all.dedup_by(|a, b| key(*a) == key(*b));
+        all
+    }
+
+    /// The square plot of the matrix: rows and columns are every class (true
+    /// or estimated, so the diagonal is where it belongs even when an
+    /// estimator answers a class no trial had), plus a last "no edge" column;
+    /// a cell's colour and number are the share of its row, in percent. A
+    /// class no trial had is a grey row.
+    pub fn heatmap(&self, title: &str) -> ConfusionPlot {
+        let all = self.all_classes();
+        let shares = self.normalized();
+        let n = all.len();
+        let mut values = vec![vec![f64::NAN; n + 1]; n];
+        let mut text = vec![vec![String::new(); n + 1]; n];
+        for (r, t) in self.truths.iter().enumerate() {
+            let Some(rr) = all.iter().position(|a| key(*a) == key(*t)) else {
+                continue;
+            };
+            let cols = self
+                .classes
+                .iter()
+                .map(|c| all.iter().position(|a| key(*a) == key(*c)).unwrap_or(n))
+                .chain([n]);
+            for (c, cc) in cols.enumerate() {
+                let v = shares[r][c];
+                values[rr][cc] = v;
+                if self.counts[r][c] > 0 {
+                    text[rr][cc] = format!("{:.0}", v * 100.0);
+                }
+            }
+            for v in values[rr].iter_mut().filter(|v| v.is_nan()) {
+                *v = 0.0;
+            }
+        }
+        let labels: Vec<String> = all.iter().map(|a| format!("{a}")).collect();
+        let mut cols = labels.clone();
+        cols.push("no edge".into());
+        ConfusionPlot {
+            title: title.to_string(),
+            rows: labels,
+            cols,
+            values,
+            text,
+        }
+    }
+
     /// As a terminal table of percentages.
     pub fn render(&self) -> String {
         let mut s = String::from("true\\\\est");
@@ -173,6 +227,39 @@ impl Confusion {
     }
 }
 
+/// The data of a confusion matrix's plot (see [`Confusion::heatmap`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct ConfusionPlot {
+    /// Caption.
+    pub title: String,
+    /// Row labels: every class, degrees.
+    pub rows: Vec<String>,
+    /// Column labels: every class, then "no edge".
+    pub cols: Vec<String>,
+    /// Share of the row in each cell (NaN: a class no trial had).
+    pub values: Vec<Vec<f64>>,
+    /// The share in percent, written in each non-empty cell.
+    pub text: Vec<Vec<String>>,
+}
+
+impl ConfusionPlot {
+    /// The heatmap to draw.
+    pub fn as_plot(&self) -> crate::plot::Heatmap<'_> {
+        crate::plot::Heatmap {
+            title: &self.title,
+            x_title: "estimated class (degrees)",
+            y_title: "true angle (degrees)",
+            row_labels: &self.rows,
+            col_labels: &self.cols,
+            values: &self.values,
+            cell_text: &self.text,
+            v_max: Some(1.0),
+            scale_title: "% of row",
+            scale_factor: 100.0,
+        }
+    }
+}
+
 impl Sink for ConfusionConfig {
     fn consume(&self, inputs: &[SinkInput<'_>], ctx: &SinkContext<'_>) -> Result<SinkReport, StageError> {
         let mut report = SinkReport::default();
@@ -219,16 +306,13 @@ impl Sink for ConfusionConfig {
                     .map_err(|e| StageError::new(format!("writing {}: {e}", path.display())))?;
                 report.files.push(path);
             }
-            let rows: Vec<String> = m.truths.iter().map(|t| format!("{t}")).collect();
             let svg = with_ext("svg");
             crate::plot::heatmap(
                 &svg,
-                &format!("Normalized confusion: {}", input.stage_id),
-                &rows,
-                &m.col_labels(),
-                &m.normalized(),
+                &m.heatmap(&format!("Confusion matrix: {}", input.stage_id))
+                    .as_plot(),
             )
-            .map_err(|e| StageError::new(e.to_string()))?;
+            .map_err(|e| StageError::new(format!("writing {}: {e}", svg.display())))?;
             report.files.push(svg);
         }
         Ok(report)
@@ -269,5 +353,33 @@ mod tests {
         let m = Confusion::new(&[]);
         assert!(m.normalized().is_empty());
         assert!(!m.render().contains("NaN"));
+    }
+
+    #[test]
+    fn the_plot_is_square_over_every_class_with_the_diagonal_in_place() {
+        // Truths 10, 20; an estimator that also answers 15 (no trial's class).
+        let m = Confusion::new(&[
+            (Some(10.0), Some(10.0)),
+            (Some(10.0), Some(15.0)),
+            (Some(20.0), Some(20.0)),
+            (Some(20.0), None),
+        ]);
+        let p = m.heatmap("t");
+        assert_eq!(p.rows, ["10", "15", "20"]);
+        assert_eq!(p.cols, ["10", "15", "20", "no edge"]);
+        assert_eq!(p.values.len(), 3);
+        assert!(p.values.iter().all(|r| r.len() == 4));
+        assert_eq!(p.values[0], [0.5, 0.5, 0.0, 0.0]);
+        assert!(
+            p.values[1].iter().all(|v| v.is_nan()),
+            "no trial of 15°: grey row"
+        );
+        assert_eq!(p.values[2], [0.0, 0.0, 0.5, 0.5]);
+        assert_eq!(p.text[2], ["", "", "50", "50"]);
+        let svg = crate::plot::heatmap_svg(&p.as_plot());
+        assert_eq!(svg.matches(r#"class="label-y""#).count(), 3);
+        assert_eq!(svg.matches(r#"class="label-x""#).count(), 4);
+        assert!(svg.contains("true angle (degrees)") && svg.contains("no edge"));
+        assert!(!svg.contains("NaN"));
     }
 }

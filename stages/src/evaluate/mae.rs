@@ -35,10 +35,17 @@
 //!   median, not the mean, because crossing times grow like `1/sin θ` and a few
 //!   shallow angles would dominate a mean.
 //!
+//! * accuracy: the share of labelled trials answered within
+//!   `correct_within_deg` (default 0: the exact class) of the truth, and the
+//!   count of the others ("wrong", "no edge" included). With classes 5° apart
+//!   every miss costs at least 5°, so "4 of 170 wrong" says what an MAE of
+//!   0.12° (SD 0.76°) hides.
+//!
 //! Files, in the run's output directory, written atomically: `<sink id>.json`,
 //! `<sink id>.csv` (one row per estimator and class), `<sink id>.md` (the table
-//! as Markdown) and `<sink id>_per_class.svg` (per-class MAE bars, one series per
-//! estimator).
+//! as Markdown), `<sink id>_trials.csv` (one row per estimator and trial: truth,
+//! answer, error, correct, decision time) and `<sink id>_per_class.svg` (per-class MAE bars, one panel per
+//! estimator on shared axes).
 
 use palpate_core::output::write_atomic;
 use palpate_core::{
@@ -62,6 +69,11 @@ pub struct MaeConfig {
     /// Default [10].
     #[serde(default = "ten")]
     pub acuity_deg: Vec<f64>,
+    /// A trial counts as correct when its answer is within this many degrees
+    /// of the truth (0: the exact class, up to 1e-6° of rounding), degrees.
+    /// Default 0.
+    #[serde(default)]
+    pub correct_within_deg: f64,
 }
 
 fn ten() -> Vec<f64> {
@@ -84,9 +96,19 @@ impl StageConfig for MaeConfig {
         for a in &self.acuity_deg {
             palpate_core::check_positive("acuity_deg", *a, "degrees")?;
         }
+        if !(self.correct_within_deg.is_finite() && self.correct_within_deg >= 0.0) {
+            return Err(ConfigError::key(
+                "correct_within_deg",
+                format!(
+                    "must be a finite number of degrees >= 0, got {}",
+                    self.correct_within_deg
+                ),
+            ));
+        }
         Ok(Stage::Sink(Box::new(MaeSink {
             per_class: self.per_class,
             acuity_deg: self.acuity_deg.clone(),
+            correct_within_deg: self.correct_within_deg,
         })))
     }
 }
@@ -95,6 +117,7 @@ register_stage!("mae", MaeConfig);
 struct MaeSink {
     per_class: bool,
     acuity_deg: Vec<f64>,
+    correct_within_deg: f64,
 }
 
 /// Per-class statistics of one estimator.
@@ -140,6 +163,85 @@ pub struct MaeStats {
     pub decision_trials: usize,
     /// Of those, trials timed from their start (no known crossing).
     pub decision_from_start: usize,
+    /// Trials with a true angle.
+    pub labelled: usize,
+    /// Labelled trials answered within the tolerance of the truth (see
+    /// [`with_accuracy`]).
+    pub correct: usize,
+    /// `correct / labelled`; `None` without a labelled trial.
+    pub accuracy: Option<f64>,
+}
+
+/// Whether an answer is correct: an angle within `tolerance` degrees of the
+/// truth (plus 1e-6° for rounding); "no edge" is never correct.
+pub fn is_correct(truth: f64, estimate: Option<f64>, tolerance: f64) -> bool {
+    estimate.is_some_and(|e| (e - truth).abs() <= tolerance + 1e-6)
+}
+
+/// Adds accuracy: the share of labelled trials answered within `tolerance`
+/// degrees ([`is_correct`]); the rest, "no edge" included, are wrong.
+pub fn with_accuracy(mut stats: MaeStats, pairs: &[(Option<f64>, Option<f64>)], tolerance: f64) -> MaeStats {
+    let labelled: Vec<(f64, Option<f64>)> = pairs.iter().filter_map(|&(t, e)| Some((t?, e))).collect();
+    stats.labelled = labelled.len();
+    stats.correct = labelled
+        .iter()
+        .filter(|(t, e)| is_correct(*t, *e, tolerance))
+        .count();
+    stats.accuracy = (stats.labelled > 0).then(|| stats.correct as f64 / stats.labelled as f64);
+    stats
+}
+
+/// One row per trial as CSV: `estimator, trial, true_angle_deg, estimate_deg,
+/// abs_error_deg, correct, decision_ms` (empty cell: not known, or "no edge";
+/// `decision_ms` from first contact as in the summary).
+pub fn trials_csv(rows: &[TrialRow]) -> String {
+    let mut s =
+        String::from("estimator,trial,true_angle_deg,estimate_deg,abs_error_deg,correct,decision_ms\n");
+    let f = |v: Option<f64>| v.map_or(String::new(), |x| format!("{x}"));
+    for r in rows {
+        let err = r.truth.zip(r.estimate).map(|(t, e)| (e - t).abs());
+        let correct = r.truth.map_or(String::new(), |t| {
+            is_correct(t, r.estimate, r.tolerance).to_string()
+        });
+        let _ = writeln!(
+            s,
+            "{},{},{},{},{},{},{}",
+            csv_field(&r.estimator),
+            csv_field(&r.trial),
+            f(r.truth),
+            f(r.estimate),
+            f(err),
+            correct,
+            f(r.decision_ms)
+        );
+    }
+    s
+}
+
+/// A CSV field, quoted when it holds a comma, a quote or a line end.
+fn csv_field(s: &str) -> String {
+    if s.contains([',', '"', '\n', '\r']) {
+        format!("\"{}\"", s.replace('"', "\"\""))
+    } else {
+        s.to_string()
+    }
+}
+
+/// One trial of the per-trial table.
+#[derive(Clone, Debug, PartialEq)]
+pub struct TrialRow {
+    /// The estimator's stage id.
+    pub estimator: String,
+    /// The trial's id.
+    pub trial: String,
+    /// True angle, degrees.
+    pub truth: Option<f64>,
+    /// The answer, degrees (`None`: no edge).
+    pub estimate: Option<f64>,
+    /// Decision time from first contact, ms.
+    pub decision_ms: Option<f64>,
+    /// The tolerance of "correct", degrees.
+    pub tolerance: f64,
 }
 
 /// One trial's decision time from first contact: `(ms, timed from the start?)`,
@@ -312,7 +414,11 @@ pub fn to_markdown(all: &[MaeStats]) -> String {
         }
         s.push('\n');
     }
-    let rows: [SummaryCell; 5] = [
+    let rows: [SummaryCell; 6] = [
+        ("accuracy (wrong trials)", |st| match st.accuracy {
+            Some(a) => format!("{:.1}% ({})", a * 100.0, st.labelled - st.correct),
+            None => "-".to_string(),
+        }),
         ("overall MAE (SD)", |st| {
             format!("{} ({})", fmt_opt(st.mae_deg, 2), fmt_opt(st.sd_deg, 2))
         }),
@@ -365,6 +471,16 @@ pub fn render(stats: &MaeStats, per_class: bool) -> String {
             );
         }
     }
+    if let Some(a) = stats.accuracy {
+        let _ = writeln!(
+            s,
+            "  accuracy {:.1}% ({} of {} trials wrong, {} of them no edge)",
+            a * 100.0,
+            stats.labelled - stats.correct,
+            stats.labelled,
+            stats.no_edge
+        );
+    }
     let _ = writeln!(
         s,
         "  MAE {}° (SD {}°), largest per-class MAE {}°, no edge {}{}",
@@ -400,16 +516,27 @@ impl Sink for MaeSink {
     fn consume(&self, inputs: &[SinkInput<'_>], ctx: &SinkContext<'_>) -> Result<SinkReport, StageError> {
         let mut report = SinkReport::default();
         let mut all = Vec::new();
+        let mut trial_rows = Vec::new();
         for input in inputs {
             let mut pairs = Vec::with_capacity(input.items.len());
             let mut times = Vec::with_capacity(input.items.len());
             for item in input.items {
                 let est = item.payload.estimate()?;
                 pairs.push((item.meta.label.angle_deg, est.angle_deg));
-                times.extend(decision_from_contact(est.decision_time_ms, item.meta.crossing_ms));
+                let time = decision_from_contact(est.decision_time_ms, item.meta.crossing_ms);
+                times.extend(time);
+                trial_rows.push(TrialRow {
+                    estimator: input.stage_id.to_string(),
+                    trial: item.meta.trial_id.clone(),
+                    truth: item.meta.label.angle_deg,
+                    estimate: est.angle_deg,
+                    decision_ms: time.map(|t| t.0),
+                    tolerance: self.correct_within_deg,
+                });
             }
             let stats = with_coarse(mae_stats(input.stage_id, &pairs), &pairs, &self.acuity_deg);
             let stats = with_decision(stats, &times);
+            let stats = with_accuracy(stats, &pairs, self.correct_within_deg);
             report.text.push_str(&render(&stats, self.per_class));
             let id = input.stage_id;
             if let Some(m) = stats.mae_deg {
@@ -424,6 +551,12 @@ impl Sink for MaeSink {
             report
                 .metrics
                 .push((format!("{id}.no_edge"), stats.no_edge as f64));
+            if let Some(a) = stats.accuracy {
+                report.metrics.push((format!("{id}.accuracy"), a));
+                report
+                    .metrics
+                    .push((format!("{id}.wrong"), (stats.labelled - stats.correct) as f64));
+            }
             for (a, m) in &stats.coarse {
                 if let Some(m) = m {
                     report.metrics.push((format!("{id}.mae_at_{a}deg"), *m));
@@ -436,10 +569,11 @@ impl Sink for MaeSink {
         }
         let out = |ext: &str| ctx.out_dir.join(format!("{}{ext}", ctx.stage_id));
         let json = serde_json::to_vec_pretty(&all).map_err(|e| StageError::new(e.to_string()))?;
-        let files: [(std::path::PathBuf, Vec<u8>); 3] = [
+        let files: [(std::path::PathBuf, Vec<u8>); 4] = [
             (out(".json"), json),
             (out(".csv"), to_csv(&all).into_bytes()),
             (out(".md"), to_markdown(&all).into_bytes()),
+            (out("_trials.csv"), trials_csv(&trial_rows).into_bytes()),
         ];
         for (path, bytes) in files {
             write_atomic(&path, &bytes)
@@ -470,15 +604,22 @@ impl Sink for MaeSink {
             .collect();
         let svg = out("_per_class.svg");
         let cats: Vec<String> = angles.iter().map(|a| format!("{a}")).collect();
-        crate::plot::bar_chart(
+        let notes: Vec<String> = all
+            .iter()
+            .map(|st| format!("MAE {}°", fmt_opt(st.mae_deg, 2)))
+            .collect();
+        crate::plot::small_multiples(
             &svg,
-            "MAE per class",
-            "true angle (degrees)",
-            "MAE (degrees)",
-            &cats,
-            &series,
+            &crate::plot::SmallMultiples {
+                title: "MAE per class",
+                x_title: "true angle (degrees)",
+                y_title: "MAE (degrees)",
+                categories: &cats,
+                series: &series,
+                notes: &notes,
+            },
         )
-        .map_err(|e| StageError::new(e.to_string()))?;
+        .map_err(|e| StageError::new(format!("writing {}: {e}", svg.display())))?;
         report.files.push(svg);
         Ok(report)
     }
@@ -566,5 +707,53 @@ mod tests {
         let s = mae_stats("w", &[(Some(10.0), None)]);
         assert_eq!(s.mae_deg, None);
         assert!(!render(&s, true).contains("NaN"));
+    }
+
+    #[test]
+    fn accuracy_counts_wrong_trials_and_no_edge_as_wrong() {
+        let pairs = vec![
+            (Some(10.0), Some(10.0)),
+            (Some(10.0), Some(15.0)),
+            (Some(20.0), Some(20.0 + 1e-9)),
+            (Some(20.0), None),
+            (None, Some(3.0)),
+        ];
+        let s = with_accuracy(mae_stats("w", &pairs), &pairs, 0.0);
+        assert_eq!((s.labelled, s.correct), (4, 2));
+        assert_eq!(s.accuracy, Some(0.5));
+        let text = render(&s, false);
+        assert!(
+            text.contains("accuracy 50.0% (2 of 4 trials wrong, 1 of them no edge)"),
+            "{text}"
+        );
+        // A tolerance of 5 degrees forgives the 10 -> 15 miss, never "no edge".
+        let s = with_accuracy(mae_stats("w", &pairs), &pairs, 5.0);
+        assert_eq!(s.correct, 3);
+        assert!(to_markdown(&[s]).contains("| **accuracy (wrong trials)** | 75.0% (1) |"));
+        let none = with_accuracy(mae_stats("w", &[(None, Some(1.0))]), &[(None, Some(1.0))], 0.0);
+        assert_eq!(none.accuracy, None);
+        assert!(!render(&none, true).contains("accuracy"));
+    }
+
+    #[test]
+    fn per_trial_table_has_one_row_per_trial() {
+        let row = |trial: &str, truth, estimate| TrialRow {
+            estimator: "wss".into(),
+            trial: trial.into(),
+            truth,
+            estimate,
+            decision_ms: Some(1500.0),
+            tolerance: 0.0,
+        };
+        let csv = trials_csv(&[
+            row("a", Some(45.0), Some(50.0)),
+            row("b,c", Some(45.0), None),
+            row("d", None, Some(30.0)),
+        ]);
+        let lines: Vec<&str> = csv.lines().collect();
+        assert_eq!(lines.len(), 4);
+        assert_eq!(lines[1], "wss,a,45,50,5,false,1500");
+        assert_eq!(lines[2], "wss,\"b,c\",45,,,false,1500");
+        assert_eq!(lines[3], "wss,d,,30,,,1500");
     }
 }

@@ -5,7 +5,8 @@
 //! ## Label sidecars
 //!
 //! A sidecar maps trial ids to labels; it is a small TOML or CSV file (chosen by
-//! its extension). Every trial the files hold must appear in it, and every entry
+//! its extension), or the `trials.json` that `palpate simulate` writes (its
+//! trials' `trial_id`, `label.angle_deg`, `label.stimulus` and `group`). Every trial the files hold must appear in it, and every entry
 //! must name a trial the files hold (a typo would otherwise silently unlabel a
 //! trial).
 //!
@@ -335,7 +336,8 @@ struct TomlSidecar {
     trials: BTreeMap<String, TrialLabels>,
 }
 
-/// Reads a label sidecar (TOML or CSV, by extension): trial id -> labels.
+/// Reads a label sidecar (TOML, CSV, or the `trials.json` of `palpate
+/// simulate`, by extension): trial id -> labels.
 pub fn read_sidecar(path: &Path) -> Result<BTreeMap<String, TrialLabels>, StageError> {
     let shown = path.display();
     let text = std::fs::read_to_string(path)
@@ -403,10 +405,54 @@ pub fn read_sidecar(path: &Path) -> Result<BTreeMap<String, TrialLabels>, StageE
             }
             Ok(out)
         }
+        "json" => read_trials_json(&text).map_err(|e| StageError::new(format!("label sidecar {shown}: {e}"))),
         _ => Err(StageError::new(format!(
-            "label sidecar {shown}: unknown extension (use .toml or .csv)"
+            "label sidecar {shown}: unknown extension (use .toml, .csv, or the trials.json `palpate simulate` writes)"
         ))),
     }
+}
+
+/// One trial of a `trials.json` (what `palpate simulate` writes): the parts of
+/// its metadata that are labels.
+#[derive(Deserialize)]
+struct JsonTrial {
+    trial_id: String,
+    label: JsonLabel,
+    #[serde(default)]
+    group: Option<usize>,
+}
+
+#[derive(Deserialize)]
+struct JsonLabel {
+    #[serde(default, deserialize_with = "de_stimulus")]
+    stimulus: Option<Stimulus>,
+    #[serde(default)]
+    angle_deg: Option<f64>,
+}
+
+#[derive(Deserialize)]
+struct TrialsJson {
+    trials: Vec<JsonTrial>,
+}
+
+/// Reads the labels of a `trials.json`: `{"trials": [{"trial_id": ..., "label":
+/// {"stimulus": ..., "angle_deg": ...}, "group": ...}, ...]}` (other keys are
+/// ignored: they are metadata, not labels).
+fn read_trials_json(text: &str) -> Result<BTreeMap<String, TrialLabels>, String> {
+    let parsed: TrialsJson = serde_json::from_str(text).map_err(|e| e.to_string())?;
+    let mut out = BTreeMap::new();
+    for t in parsed.trials {
+        let labels = TrialLabels {
+            angle_deg: t.label.angle_deg,
+            stimulus: t.label.stimulus,
+            group: t.group,
+            duration_ms: None,
+        };
+        if out.insert(t.trial_id.clone(), labels).is_some() {
+            return Err(format!("trial `{}` appears twice", t.trial_id));
+        }
+    }
+    Ok(out)
 }
 
 /// Applies a sidecar to trials read from files: every trial must have an entry

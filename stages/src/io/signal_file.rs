@@ -96,8 +96,8 @@ pub enum SignalFormat {
 /// DAQ streams).
 ///
 /// One trial per file or many per file; labels from the file or a sidecar; any
-/// taxel layout; the formats are documented in the module docs of
-/// `palpate_stages::io::signal_file`.
+/// taxel layout; the formats and label files are in the user guide's "File
+/// formats and label files" page (docs/guide/src/formats.md).
 #[derive(Clone, Debug, Serialize, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields, default)]
 pub struct SignalFileConfig {
@@ -116,7 +116,8 @@ pub struct SignalFileConfig {
     pub layout: LayoutConfig,
     /// Unit of the samples, e.g. `V`. Default `V`.
     pub unit: String,
-    /// Label sidecar (TOML or CSV) mapping trial id to angle, stimulus, group.
+    /// Label sidecar (TOML, CSV, or a `trials.json` from `palpate simulate`)
+    /// mapping trial id to angle, stimulus, group.
     /// Default none (labels from the files, if any).
     pub labels: Option<String>,
     /// CSV: names of the taxel columns in taxel order, instead of `taxel_0..`.
@@ -570,8 +571,19 @@ fn arrays_to_trials(
             None => (a.shape[0], (0, 1, 0)),
             Some((trial_ax, (s_ax, x_ax))) => {
                 if a.shape[x_ax] != n_taxels {
+                    // The two axes the other way round is the usual cause:
+                    // say which key fixes it.
+                    let hint = if a.shape[s_ax] == n_taxels {
+                        format!(
+                            " (the other axis has {n_taxels} entries: set `taxel_major = {}` if the array is {})",
+                            !cfg.taxel_major,
+                            expected_shape(matlab, !cfg.taxel_major)
+                        )
+                    } else {
+                        String::new()
+                    };
                     return Err(format!(
-                        "{what}: wrong shape {:?}: the taxel axis has {} entries but the layout has {n_taxels} taxels; expected {}",
+                        "{what}: wrong shape {:?}: the taxel axis has {} entries but the layout has {n_taxels} taxels; expected {}{hint}",
                         a.shape,
                         a.shape[x_ax],
                         expected_shape(matlab, cfg.taxel_major)

@@ -120,7 +120,12 @@ impl Files {
             files.push(p);
         }
         Ok(SinkReport {
-            text: format!("wrote {what} to {} ({} files)", self.dir.display(), files.len()),
+            text: format!(
+                "wrote {what} to {} ({} file{})\n",
+                self.dir.display(),
+                files.len(),
+                if files.len() == 1 { "" } else { "s" }
+            ),
             metrics: vec![("files".into(), files.len() as f64)],
             files,
         })
@@ -265,7 +270,7 @@ fn finish_with_sidecar(
         files.add("info.json".into(), json(&info))?;
     }
     let n = rows.len();
-    files.write(&format!("{n} trials of {what}"))
+    files.write(&format!("{n} trial{} of {what}", if n == 1 { "" } else { "s" }))
 }
 
 struct ImagesSink {

@@ -113,7 +113,8 @@ pub enum SpikeFormat {
 /// Spike events `(x, y, t[, p])` read from CSV or NPY files, mapped to taxels.
 ///
 /// x = column, y = row of a grid (or x = taxel index for an explicit layout);
-/// t in `time_unit`. Formats in the module docs of `palpate_stages::io::spike_file`.
+/// t in `time_unit`. Formats: the user guide's "File formats and label files"
+/// page (docs/guide/src/formats.md).
 #[derive(Clone, Debug, Serialize, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields, default)]
 pub struct SpikeFileConfig {
@@ -134,7 +135,8 @@ pub struct SpikeFileConfig {
     pub duration_ms: Option<f64>,
     /// Taxel layout. Default: the paper's 4 x 4 grid, 3 mm pitch, 2 mm taxels.
     pub layout: LayoutConfig,
-    /// Label sidecar (TOML or CSV). Default none.
+    /// Label sidecar (TOML, CSV, or a `trials.json` from `palpate simulate`).
+    /// Default none.
     pub labels: Option<String>,
 }
 

@@ -33,8 +33,11 @@
 //!
 //! `file = "scenes/lab.toml"` takes a scene's keys as defaults (see
 //! [`config`]); `graphs/scenes/ideal.toml` and `graphs/scenes/lab.toml` are the
-//! shipped scenes. [`simulate_to_dir`] writes a scene's trials as NPY and CSV
-//! files with a plot, for `palpate simulate`.
+//! shipped scenes. [`simulate_to_dir`] writes a scene's trials for `palpate
+//! simulate` as `signal_file` reads them back (the files `write_signals`
+//! writes: NPY `(samples, taxels)` by default, or CSV `time_ms, taxel_0 ..`),
+//! with a `labels.toml` label file, a `trials.json` of the trials' metadata
+//! (also accepted as a label file) and a plot of one taxel.
 
 pub mod config;
 pub mod effects;
@@ -51,8 +54,8 @@ pub use sim::Simulator;
 
 use palpate_core::output::write_atomic;
 use palpate_core::{
-    derive_seed, register_stage, BuildContext, ConfigError, InputSpec, Label, Payload, PayloadKind, Signals,
-    Source, Stage, StageConfig, StageError, Stimulus, TrialContext, TrialMeta,
+    derive_seed, register_stage, BuildContext, ConfigError, InputSpec, Label, Payload, PayloadKind, Source,
+    Stage, StageConfig, StageError, Stimulus, TrialContext, TrialMeta,
 };
 use rayon::prelude::*;
 use std::path::{Path, PathBuf};
@@ -136,17 +139,25 @@ impl Source for SceneSource {
 
 /// Simulates every trial of a scene file and writes, into `out` (created):
 ///
-/// * `<trial_id>.npy`: float64, shape `[taxels, samples]`, C order;
-/// * `<trial_id>.csv`: header `time_ms,<taxel names>`, one row per sample
-///   (taxel names `r0c0`... for a grid, `t0`... otherwise);
-/// * `trials.json`: every trial's metadata, sample rate, unit and layout;
+/// * `<trial_id>.npy`: float64, shape `(samples, taxels)`, C order; or, with
+///   `csv`, `<trial_id>.csv`: header `time_ms,taxel_0,..`, one row per sample
+///   (the formats of `write_signals`, which `signal_file` reads);
+/// * `labels.toml`: each trial's angle, stimulus and group, the label file
+///   `signal_file`'s `labels` key reads;
+/// * `trials.json`: every trial's metadata, sample rate, unit and layout
+///   (`signal_file` also accepts it as a label file);
 /// * `<first trial>-<taxel>.svg`: one taxel's signal over the first trial, like
 ///   the paper's Fig. 3(a) (taxel `r1c1` of a grid: an inner taxel; else taxel 0).
 ///
 /// Trials are exactly those a graph with a `scene` stage of id `"scene"`,
 /// `file = <scene_file>` and `[run] seed = <seed>` produces. Returns the paths
 /// written, in that order (per trial NPY then CSV, then the JSON and the plot).
-pub fn simulate_to_dir(scene_file: &Path, out: &Path, seed: u64) -> Result<Vec<PathBuf>, StageError> {
+pub fn simulate_to_dir(
+    scene_file: &Path,
+    out: &Path,
+    seed: u64,
+    csv: bool,
+) -> Result<Vec<PathBuf>, StageError> {
     let config = SceneConfig {
         file: Some(scene_file.to_path_buf()),
         ..SceneConfig::default()
@@ -164,7 +175,10 @@ pub fn simulate_to_dir(scene_file: &Path, out: &Path, seed: u64) -> Result<Vec<P
     let metas = source.trials()?;
     std::fs::create_dir_all(out).map_err(|e| StageError::new(format!("creating {}: {e}", out.display())))?;
     let names = taxel_names(&source.sim.scene.layout);
-    let written: Vec<Vec<PathBuf>> = metas
+    // The files `write_signals` writes, so `signal_file` reads them back:
+    // NPY `(samples, taxels)`, or CSV `time_ms, taxel_0 ..`; one per trial,
+    // named after the trial id (scene ids are safe file names).
+    let written: Vec<PathBuf> = metas
         .par_iter()
         .map(|meta| {
             let ctx = TrialContext {
@@ -174,14 +188,23 @@ pub fn simulate_to_dir(scene_file: &Path, out: &Path, seed: u64) -> Result<Vec<P
             };
             let payload = source.produce(&ctx)?;
             let sig = payload.signals()?;
-            let npy = out.join(format!("{}.npy", meta.trial_id));
-            write_file(&npy, &npy_bytes(sig)?)?;
-            let csv = out.join(format!("{}.csv", meta.trial_id));
-            write_file(&csv, csv_text(sig, &names).as_bytes())?;
-            Ok(vec![npy, csv])
+            let (path, bytes) = if csv {
+                let path = out.join(format!("{}.csv", meta.trial_id));
+                (path, crate::io::sinks::signals_csv(sig).into_bytes())
+            } else {
+                let path = out.join(format!("{}.npy", meta.trial_id));
+                (path, crate::io::sinks::signals_npy(sig)?)
+            };
+            write_file(&path, &bytes)?;
+            Ok(path)
         })
         .collect::<Result<_, StageError>>()?;
-    let mut files: Vec<PathBuf> = written.into_iter().flatten().collect();
+    let mut files = written;
+    let rows: Vec<(String, &TrialMeta, Option<f64>)> =
+        metas.iter().map(|m| (m.trial_id.clone(), m, None)).collect();
+    let labels = out.join("labels.toml");
+    write_file(&labels, crate::io::common::sidecar_toml(&rows).as_bytes())?;
+    files.push(labels);
 
     let sc = &source.sim.scene;
     let json = serde_json::json!({
@@ -191,6 +214,7 @@ pub fn simulate_to_dir(scene_file: &Path, out: &Path, seed: u64) -> Result<Vec<P
         "unit": source.sim.unit,
         "layout": sc.layout,
         "taxels": names,
+        "columns": (0..names.len()).map(|i| format!("taxel_{i}")).collect::<Vec<_>>(),
         "trials": metas,
     });
     let path = out.join("trials.json");
@@ -246,46 +270,4 @@ pub fn taxel_names(layout: &palpate_core::TaxelLayout) -> Vec<String> {
             None => format!("t{i}"),
         })
         .collect()
-}
-
-/// The signals as an NPY file: float64, shape `[taxels, samples]`.
-pub fn npy_bytes(sig: &Signals) -> Result<Vec<u8>, StageError> {
-    use npyz::WriterBuilder;
-    let err = |e: std::io::Error| StageError::new(format!("encoding NPY: {e}"));
-    let mut cursor = std::io::Cursor::new(Vec::new());
-    {
-        let mut w = npyz::WriteOptions::<f64>::new()
-            .default_dtype()
-            .shape(&[sig.data.len() as u64, sig.n_samples() as u64])
-            .writer(&mut cursor)
-            .begin_nd()
-            .map_err(err)?;
-        for row in &sig.data {
-            w.extend(row.iter().copied()).map_err(err)?;
-        }
-        w.finish().map_err(err)?;
-    }
-    Ok(cursor.into_inner())
-}
-
-/// The signals as CSV: `time_ms` then one column per taxel, values printed in
-/// Rust's shortest round-trip form.
-pub fn csv_text(sig: &Signals, names: &[String]) -> String {
-    use std::fmt::Write as _;
-    let n = sig.n_samples();
-    let mut s = String::with_capacity(n * (sig.data.len() + 1) * 12);
-    s.push_str("time_ms");
-    for name in names {
-        s.push(',');
-        s.push_str(name);
-    }
-    s.push('\n');
-    for k in 0..n {
-        let _ = write!(s, "{}", k as f64 * 1000.0 / sig.sample_rate_hz);
-        for row in &sig.data {
-            let _ = write!(s, ",{}", row[k]);
-        }
-        s.push('\n');
-    }
-    s
 }

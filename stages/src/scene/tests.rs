@@ -2,7 +2,7 @@
 
 use super::effects::LOG;
 use super::*;
-use palpate_core::{Source, Stage, TrialContext};
+use palpate_core::{Signals, Source, Stage, TrialContext};
 use proptest::prelude::*;
 
 fn build(toml_keys: &str) -> Box<dyn Source> {
