@@ -34,16 +34,7 @@ use std::collections::HashMap;
 use std::fmt;
 use std::path::{Path, PathBuf};
 
-/// How trained estimators are evaluated.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
-#[serde(rename_all = "snake_case")]
-pub enum Protocol {
-    /// Leave-one-trial-out, as in the paper: fold `f` tests the `f`-th
-    /// repetition of every class and trains on every other repetition.
-    /// Model-based estimators (WSS) ignore the training part.
-    #[default]
-    LeaveOneTrialOut,
-}
+pub use crate::protocol::Protocol;
 
 /// Run-wide settings: the graph file's `[run]` table.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]

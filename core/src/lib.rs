@@ -8,6 +8,8 @@
 //! * [`registry`]: every registered stage type with its schema (keys, defaults,
 //!   units, docs);
 //! * [`graph`]: loading a TOML graph, gathering every error with its line;
+//! * [`protocol`]: evaluation protocols (leave-one-trial-out, k-fold,
+//!   hold-out, leave-one-condition-out) as train/test folds;
 //! * [`runtime`]: running a graph, in parallel and deterministically;
 //! * [`sweep`]: running a graph across the values of one key (or several series
 //!   of keys), with a cache;
@@ -22,6 +24,7 @@ pub mod geometry;
 pub mod graph;
 pub mod output;
 pub mod payload;
+pub mod protocol;
 pub mod registry;
 pub mod runtime;
 pub mod shard;

@@ -16,8 +16,9 @@
 //! leave-one-trial-out, fits once per distinct `group` (fold `f` holds out the
 //! `f`-th group of every class) and estimates only that fold's held-out trials.
 
-use crate::graph::{Graph, Protocol};
+use crate::graph::Graph;
 use crate::payload::{Item, Payload, Provenance, TrialMeta};
+use crate::protocol::folds;
 use crate::stage::{
     derive_seed, settings_json, FitContext, SinkContext, SinkInput, SinkReport, Stage, TrialContext,
 };
@@ -270,8 +271,11 @@ pub fn run(graph: &Graph, opts: &RunOptions<'_>) -> Result<RunResult, RunError> 
             }
             Stage::Estimator(est) => {
                 let items = &inputs[0];
-                let folds = folds(est.trained(), graph.run.protocol, items);
-                if est.trained() && folds.len() < 2 {
+                let folds = folds(est.trained(), &graph.run.protocol, items)
+                    .map_err(|e| RunError::new(id, None, e))?;
+                // A hold-out is one fold by design; every other protocol needs two.
+                let hold_out = matches!(graph.run.protocol, crate::protocol::Protocol::HoldOut { .. });
+                if est.trained() && folds.len() < 2 && !hold_out {
                     return Err(RunError::new(
                         id,
                         None,
@@ -330,6 +334,10 @@ pub fn run(graph: &Graph, opts: &RunOptions<'_>) -> Result<RunResult, RunError> 
                 timing.per_trial = per_trial;
                 let mut out = Vec::with_capacity(estimates.len());
                 for (t, e) in estimates.into_iter().enumerate() {
+                    // Under a hold-out only the held-out trials are scored.
+                    if e.is_none() && hold_out {
+                        continue;
+                    }
                     out.push(e.ok_or_else(|| {
                         RunError::new(
                             id,
@@ -474,28 +482,6 @@ fn aligned_len(id: &str, graph: &Graph, i: usize, inputs: &[Arc<Vec<Item>>]) -> 
     Ok(first.len())
 }
 
-/// (train, test) index lists per fold.
-fn folds(trained: bool, protocol: Protocol, items: &[Item]) -> Vec<(Vec<usize>, Vec<usize>)> {
-    if !trained {
-        return vec![(Vec::new(), (0..items.len()).collect())];
-    }
-    match protocol {
-        Protocol::LeaveOneTrialOut => {
-            let mut groups: Vec<usize> = items.iter().map(|it| it.meta.group).collect();
-            groups.sort_unstable();
-            groups.dedup();
-            groups
-                .iter()
-                .map(|&g| {
-                    let (test, train): (Vec<usize>, Vec<usize>) =
-                        (0..items.len()).partition(|&t| items[t].meta.group == g);
-                    (train, test)
-                })
-                .collect()
-        }
-    }
-}
-
 /// Per-stage timing summary: (median, p95) of per-trial times.
 pub fn median_p95(times: &[Duration]) -> (Duration, Duration) {
     if times.is_empty() {
@@ -510,37 +496,6 @@ pub fn median_p95(times: &[Duration]) -> (Duration, Duration) {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    fn item(group: usize, id: &str) -> Item {
-        Item {
-            meta: Arc::new(TrialMeta {
-                trial_id: id.into(),
-                group,
-                ..TrialMeta::default()
-            }),
-            payload: Payload::from(crate::payload::Estimate::default()),
-        }
-    }
-
-    #[test]
-    fn leave_one_trial_out_never_trains_on_a_test_trial() {
-        let items: Vec<Item> = (0..12).map(|t| item(t % 4, &format!("t{t}"))).collect();
-        let f = folds(true, Protocol::LeaveOneTrialOut, &items);
-        assert_eq!(f.len(), 4);
-        let mut tested = vec![0; items.len()];
-        for (train, test) in &f {
-            assert_eq!(test.len(), 3);
-            for t in test {
-                assert!(!train.contains(t));
-                tested[*t] += 1;
-            }
-            assert_eq!(train.len() + test.len(), items.len());
-        }
-        assert!(tested.iter().all(|&c| c == 1));
-        let m = folds(false, Protocol::LeaveOneTrialOut, &items);
-        assert_eq!(m.len(), 1);
-        assert!(m[0].0.is_empty());
-    }
 
     #[test]
     fn quantiles() {

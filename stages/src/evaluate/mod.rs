@@ -3,3 +3,4 @@
 
 pub mod confusion;
 pub mod mae;
+pub mod spike_timing;

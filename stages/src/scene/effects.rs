@@ -6,11 +6,13 @@
 //! effect acts in one of three phases, and the list must respect their order
 //! (otherwise "applied in the listed order" would be a lie):
 //!
-//! 1. **trial** (`variation`): perturbs one trial's motion and placement;
+//! 1. **trial** (`variation`, `sleeve`, `tilt`): perturbs one trial's motion,
+//!    placement and the pressure the array transmits;
 //! 2. **field** (`skin`, `stress`): reshapes the contact pressure field before
 //!    the taxels average it (these commute: the skin blurs the whole field,
 //!    stress concentration included);
-//! 3. **signal** (`creep`, `dead`, `piezo`, `mismatch`, `crosstalk`, `hum`,
+//! 3. **signal** (`creep`, `hysteresis`, `dynamics`, `ghosting`, `dead`,
+//!    `piezo`, `mismatch`, `crosstalk`, `hum`,
 //!    `noise`, `adc`): transforms the taxel signals sample by sample, strictly
 //!    in the listed order. Their amounts are in the unit of the signal at their
 //!    place in the list: "pressure" (1 = full contact with a flat surface)
@@ -25,6 +27,8 @@
 
 use super::config::Scene;
 use super::gauss::GaussianSource;
+use super::sensor::{Dynamics, Ghosting, Hysteresis};
+pub use super::sensor::{DynamicsConfig, GhostingConfig, HysteresisConfig, SleeveConfig, TiltConfig};
 use palpate_core::{derive_seed, ConfigError, TaxelLayout};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -38,12 +42,22 @@ use serde::{Deserialize, Serialize};
 pub enum EffectConfig {
     /// Trial-to-trial variation of speed, start position, force and placement angle.
     Variation(VariationConfig),
+    /// The soft sleeve: thickness and friction-driven stick-slip shear (see `sensor`).
+    Sleeve(SleeveConfig),
+    /// End-effector tilt: a per-trial pressure gradient across the array (see `sensor`).
+    Tilt(TiltConfig),
     /// Gaussian spreading of contact pressure through the soft skin.
     Skin(SkinConfig),
     /// Stress concentration just inside the object's edge.
     Stress(StressConfig),
     /// Viscoelastic creep: part of every change arrives with a delay.
     Creep(CreepConfig),
+    /// Loading/unloading hysteresis and slow recovery of the cloth (see `sensor`).
+    Hysteresis(HysteresisConfig),
+    /// Per-taxel first-order dynamics, time constants fixed per array (see `sensor`).
+    Dynamics(DynamicsConfig),
+    /// Sneak-path ghosting of a passive row/column read-out (see `sensor`).
+    Ghosting(GhostingConfig),
     /// Dead taxels: constant output, fixed per array.
     Dead(DeadConfig),
     /// Piezoresistive read-out: inverse, saturating pressure-to-voltage response.
@@ -308,6 +322,11 @@ impl EffectConfig {
     pub fn kind(&self) -> &'static str {
         match self {
             EffectConfig::Variation(_) => "variation",
+            EffectConfig::Sleeve(_) => "sleeve",
+            EffectConfig::Tilt(_) => "tilt",
+            EffectConfig::Hysteresis(_) => "hysteresis",
+            EffectConfig::Dynamics(_) => "dynamics",
+            EffectConfig::Ghosting(_) => "ghosting",
             EffectConfig::Skin(_) => "skin",
             EffectConfig::Stress(_) => "stress",
             EffectConfig::Creep(_) => "creep",
@@ -324,7 +343,7 @@ impl EffectConfig {
     /// The phase it acts in.
     pub fn phase(&self) -> Phase {
         match self {
-            EffectConfig::Variation(_) => Phase::Trial,
+            EffectConfig::Variation(_) | EffectConfig::Sleeve(_) | EffectConfig::Tilt(_) => Phase::Trial,
             EffectConfig::Skin(_) | EffectConfig::Stress(_) => Phase::Field,
             _ => Phase::Signal,
         }
@@ -416,6 +435,10 @@ pub trait SignalEffect: Send + Sync {
 pub struct BuiltEffects {
     /// Variation effects.
     pub variations: Vec<VariationConfig>,
+    /// Sleeve effects, each with its occurrence number.
+    pub sleeves: Vec<(SleeveConfig, usize)>,
+    /// Tilt effects, each with its occurrence number.
+    pub tilts: Vec<(TiltConfig, usize)>,
     /// The field's shape.
     pub field: FieldSpec,
     /// Signal effects, in order, each with its kind's occurrence number (its
@@ -463,6 +486,8 @@ pub fn stream(seed: u64, kind: &str, occurrence: usize) -> ChaCha8Rng {
 pub fn build(scene: &Scene, array_seed: u64) -> Result<BuiltEffects, ConfigError> {
     let mut built = BuiltEffects {
         variations: Vec::new(),
+        sleeves: Vec::new(),
+        tilts: Vec::new(),
         field: FieldSpec::default(),
         signal: Vec::new(),
     };
@@ -470,6 +495,9 @@ pub fn build(scene: &Scene, array_seed: u64) -> Result<BuiltEffects, ConfigError
     let mut last = (Phase::Trial, 0usize, "");
     let n_taxels = scene.layout.len();
     let mut sigma2 = 0.0;
+    // Where `piezo` turned pressure into volts: effects about pressure and
+    // conductance must come before it.
+    let mut piezo_at: Option<usize> = None;
     for (i, e) in scene.effects.iter().enumerate() {
         let kind = e.kind();
         if e.phase() < last.0 {
@@ -497,6 +525,72 @@ pub fn build(scene: &Scene, array_seed: u64) -> Result<BuiltEffects, ConfigError
                 check(i, "force_rel_sd", c.force_rel_sd, 0.0, 0.3, "")?;
                 check(i, "angle_sd_deg", c.angle_sd_deg, 0.0, 10.0, "degrees")?;
                 built.variations.push(c.clone());
+            }
+            EffectConfig::Sleeve(c) => {
+                check(i, "thickness_mm", c.thickness_mm, 0.0, 100.0, "mm")?;
+                check(i, "shear_modulus_kpa", c.shear_modulus_kpa, 1e-3, 1e7, "kPa")?;
+                check(i, "pressure_kpa", c.pressure_kpa, 0.0, 1e5, "kPa")?;
+                check(i, "friction_static", c.friction_static, 0.0, 10.0, "")?;
+                check(
+                    i,
+                    "friction_kinetic",
+                    c.friction_kinetic,
+                    0.0,
+                    c.friction_static,
+                    "",
+                )?;
+                check(i, "threshold_sd", c.threshold_sd, 0.0, 0.3, "")?;
+                check(i, "pressure_coupling", c.pressure_coupling, 0.0, 1.0, "")?;
+                // The shear moves the pattern; beyond 10 mm the model is meaningless.
+                check(
+                    i,
+                    "friction_static",
+                    c.u_max(),
+                    0.0,
+                    10.0,
+                    "mm of shear (mu_s p T / G at 3 SD)",
+                )?;
+                sigma2 += (c.thickness_mm / 2.0).powi(2);
+                built.sleeves.push((c.clone(), occurrence));
+            }
+            EffectConfig::Tilt(c) => {
+                check(i, "mean_x_per_mm", c.mean_x_per_mm, -1.0, 1.0, "per mm")?;
+                check(i, "mean_y_per_mm", c.mean_y_per_mm, -1.0, 1.0, "per mm")?;
+                check(i, "sd_per_mm", c.sd_per_mm, 0.0, 1.0, "per mm")?;
+                built.tilts.push((c.clone(), occurrence));
+            }
+            EffectConfig::Hysteresis(c) => {
+                before_piezo(i, kind, piezo_at)?;
+                check(i, "fraction", c.fraction, 0.0, 1.0, "")?;
+                palpate_core::check_positive(&key(i, "tau_s"), c.tau_s, "s")?;
+                built.signal.push((Box::new(Hysteresis(c.clone())), occurrence));
+            }
+            EffectConfig::Dynamics(c) => {
+                palpate_core::check_positive(&key(i, "tau_s"), c.tau_s, "s")?;
+                check(i, "tau_s", c.tau_s, 0.0, 1e4, "s")?;
+                check(i, "log_sd", c.log_sd, 0.0, 2.0, "")?;
+                let mut r = rng();
+                built
+                    .signal
+                    .push((Box::new(Dynamics::draw(c, n_taxels, &mut r)), occurrence));
+            }
+            EffectConfig::Ghosting(c) => {
+                before_piezo(i, kind, piezo_at)?;
+                check(i, "sneak", c.sneak, 0.0, 1.0, "")?;
+                let Some((rows, cols)) = scene.layout.grid() else {
+                    return Err(ConfigError::key(
+                        key(i, "kind"),
+                        "ghosting needs a grid array (`array`): it follows rows and columns",
+                    ));
+                };
+                built.signal.push((
+                    Box::new(Ghosting {
+                        sneak: c.sneak,
+                        rows,
+                        cols,
+                    }),
+                    occurrence,
+                ));
             }
             EffectConfig::Skin(c) => {
                 check(i, "sigma_mm", c.sigma_mm, 0.0, 100.0, "mm")?;
@@ -540,6 +634,7 @@ pub fn build(scene: &Scene, array_seed: u64) -> Result<BuiltEffects, ConfigError
                     .push((Box::new(Dead { dead, value: c.value }), occurrence));
             }
             EffectConfig::Piezo(c) => {
+                piezo_at.get_or_insert(i);
                 palpate_core::check_positive(&key(i, "v_open"), c.v_open, "V")?;
                 check(i, "v_contact", c.v_contact, f64::MIN_POSITIVE, c.v_open, "V")?;
                 if c.v_contact >= c.v_open {
@@ -628,6 +723,16 @@ pub fn build(scene: &Scene, array_seed: u64) -> Result<BuiltEffects, ConfigError
     }
     built.field.sigma_mm = sigma2.sqrt();
     Ok(built)
+}
+
+fn before_piezo(i: usize, kind: &str, piezo_at: Option<usize>) -> Result<(), ConfigError> {
+    match piezo_at {
+        Some(j) => Err(ConfigError::key(
+            format!("effects[{i}]"),
+            format!("`{kind}` acts on pressure and must be listed before `piezo` (effects[{j}]), which turns it into volts"),
+        )),
+        None => Ok(()),
+    }
 }
 
 fn phase_name(p: Phase) -> &'static str {

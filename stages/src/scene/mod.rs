@@ -19,8 +19,11 @@
 //! * **Effects** ([`effects`]): skin spreading, stress concentration,
 //!   piezoresistive read-out, gain/offset mismatch, row/column crosstalk,
 //!   viscoelastic creep, white noise, mains hum, ADC quantization, trial
-//!   variation and dead taxels — each a separate component, constructed and
-//!   computed only when a scene lists it, applied in the listed order.
+//!   variation and dead taxels, and ([`sensor`]) the soft sleeve's thickness
+//!   and stick-slip shear, end-effector tilt, loading/unloading hysteresis
+//!   with slow recovery, per-taxel time constants and passive-matrix
+//!   ghosting — each a separate component, constructed and computed only when
+//!   a scene lists it, applied in the listed order.
 //!
 //! # Reproducibility
 //!
@@ -43,6 +46,7 @@ pub mod config;
 pub mod effects;
 pub mod field;
 pub mod gauss;
+pub mod sensor;
 pub mod sim;
 pub mod special;
 

@@ -28,6 +28,13 @@
 //! actual slide ends plus the hold, so trials may differ in length by a few
 //! samples. `crossing_ms` stays the nominal plan: it is what the experimenter
 //! commanding the robot knows.
+//!
+//! A `sleeve` (when listed) makes the contact pattern lag the array by its
+//! stick-slip shear `u(t)` (the actual displacement becomes `X - u`; slips only
+//! move the pattern forward, so `s` still never increases) and scales each
+//! taxel's pressure by the friction's moment; a `tilt` scales it by the
+//! trial's pressure gradient (see `sensor`). Both act on the area-averaged
+//! field, before the signal effects, and only when listed.
 
 use super::config::{Scene, StimulusKind, MAX_TRIAL_VALUES};
 use super::effects::{self, Block, BuiltEffects, TrialInfo};
@@ -128,7 +135,9 @@ impl Simulator {
             .fold(0.0, f64::max)
             + sc.layout.taxel_mm() / std::f64::consts::SQRT_2;
         let k = 3.0 * sd_a;
-        let base = sc.motion.margin_mm + self.reach() + 3.0 * sd_x;
+        // A sleeve's shear makes the pattern lag the array by up to u_max.
+        let shear: f64 = self.effects.sleeves.iter().map(|(c, _)| c.u_max()).sum();
+        let base = sc.motion.margin_mm + self.reach() + 3.0 * sd_x + shear;
         // margin = base + k (x_mid + R), x_mid = (half + margin) / sin θ.
         if k >= 0.5 * sin {
             return Err(ConfigError::key(
@@ -273,9 +282,63 @@ impl Simulator {
         let force = draw.force;
         let (sup_lo, sup_hi) = profile.support();
         let (left, right) = (profile.value(sup_lo - 1.0), profile.value(sup_hi + 1.0));
+        // Sleeves: the shear u(k) (mm) by which the pattern lags the array,
+        // and per sleeve the rim's relative pressure change c u / u_s.
+        let k0 = (m.hold_before_s * fs).round() as usize;
+        let k1 = ((m.hold_before_s + slide_s) * fs).round() as usize;
+        let mut shift: Vec<f64> = Vec::new();
+        let mut couplings: Vec<Vec<f64>> = Vec::new();
+        for (c, occ) in &self.effects.sleeves {
+            effects::log_event("run", "sleeve");
+            let u = c.track(
+                n,
+                k0,
+                k1,
+                speed / fs,
+                &mut effects::stream(trial_seed, "sleeve", *occ),
+            );
+            if shift.is_empty() {
+                shift = u.clone();
+            } else {
+                for (a, b) in shift.iter_mut().zip(&u) {
+                    *a += b;
+                }
+            }
+            let per_u = c.pressure_coupling / c.u_static().max(f64::MIN_POSITIVE);
+            couplings.push(u.iter().map(|v| v * per_u).collect());
+        }
+        // Tilts: a per-trial pressure factor per taxel.
+        let mut tilt = vec![1.0; positions.len()];
+        for (c, occ) in &self.effects.tilts {
+            effects::log_event("run", "tilt");
+            let g = c.gains(&sc.layout, &mut effects::stream(trial_seed, "tilt", *occ));
+            for (t, g) in tilt.iter_mut().zip(g) {
+                *t *= g;
+            }
+        }
+        let rim = positions.iter().map(|p| p[0].abs()).fold(0.0, f64::max);
+        let x_rel: Vec<f64> = positions
+            .iter()
+            .map(|p| if rim > 0.0 { p[0] / rim } else { 0.0 })
+            .collect();
+        let reshape = !self.effects.sleeves.is_empty() || !self.effects.tilts.is_empty();
+        let travel_at = |k: usize| speed * (k as f64 / fs - m.hold_before_s).clamp(0.0, slide_s);
+        // With a sleeve the pattern's displacement is the array's minus the
+        // shear; while the sleeve sticks the two cancel, so a running maximum
+        // keeps rounding from moving the pattern backwards.
+        let lagged: Vec<f64> = if shift.is_empty() {
+            Vec::new()
+        } else {
+            let mut hi = f64::NEG_INFINITY;
+            (0..n)
+                .map(|k| {
+                    hi = hi.max(travel_at(k) - shift[k]);
+                    hi
+                })
+                .collect()
+        };
         let offset_at = |k: usize| {
-            let t = k as f64 / fs;
-            let x = speed * (t - m.hold_before_s).clamp(0.0, slide_s);
+            let x = lagged.get(k).copied().unwrap_or_else(|| travel_at(k));
             s_p - (x + draw.dx_mm - plan.x_mid) * sin_a
         };
 
@@ -326,6 +389,17 @@ impl Simulator {
                         for (x, &s) in row.iter_mut().zip(s_act) {
                             *x = force * exact.value(s - c);
                         }
+                    }
+                }
+            }
+            if reshape {
+                for (i, row) in block.chunks_exact_mut(len).enumerate() {
+                    for (j, x) in row.iter_mut().enumerate() {
+                        let mut f = tilt[i];
+                        for cu in &couplings {
+                            f *= 1.0 + cu[start + j] * x_rel[i];
+                        }
+                        *x *= f;
                     }
                 }
             }

@@ -193,3 +193,72 @@ effects = [
         assert_eq!(bits(&fast), bits(&slow), "trial {i}");
     }
 }
+
+#[test]
+fn sensor_effects_are_built_only_when_listed_and_keep_scenes_finite() {
+    take_log();
+    let src = build(
+        "angles = [30, 90]\ntrials_per_angle = 1\neffects = [\
+         { kind = \"sleeve\" }, { kind = \"tilt\" }, { kind = \"hysteresis\" },\
+         { kind = \"dynamics\" }, { kind = \"ghosting\" }, { kind = \"piezo\" }]",
+    );
+    let built = take_log();
+    assert_eq!(
+        built,
+        ["sleeve", "tilt", "hysteresis", "dynamics", "ghosting", "piezo"]
+            .iter()
+            .map(|k| format!("build:{k}"))
+            .collect::<Vec<_>>()
+    );
+    for i in 0..2 {
+        let s = produce(src.as_ref(), i);
+        assert!(s
+            .data
+            .iter()
+            .flatten()
+            .all(|v| v.is_finite() && (0.0..=3.3).contains(v)));
+        let ran = take_log();
+        for k in ["sleeve", "tilt", "hysteresis", "dynamics", "ghosting", "piezo"] {
+            assert!(ran.contains(&format!("run:{k}")), "{k} did not run: {ran:?}");
+        }
+    }
+    // Same seed, same bits; the sleeve's shear delays the crossing.
+    let a = produce(src.as_ref(), 1);
+    assert_eq!(a, produce(src.as_ref(), 1));
+}
+
+#[test]
+fn pressure_effects_after_piezo_are_config_errors() {
+    for kind in ["hysteresis", "ghosting"] {
+        let cfg: SceneConfig = toml::from_str(&format!(
+            "angles = [45]\neffects = [{{ kind = \"piezo\" }}, {{ kind = \"{kind}\" }}]"
+        ))
+        .unwrap();
+        let ctx = BuildContext {
+            stage_id: "scene".into(),
+            seed: 3,
+            out_dir: std::env::temp_dir(),
+            base_dir: std::path::PathBuf::from("."),
+        };
+        let err = cfg.build(&ctx).err().expect("an error");
+        assert_eq!(err.key.as_deref(), Some("effects[1]"), "{kind}: {err}");
+        assert!(err.message.contains("before `piezo`"), "{err}");
+    }
+}
+
+#[test]
+fn the_sleeve_delays_the_pattern_by_its_shear() {
+    // A sleeve with no spread and no moment: only the lag. At 90 degrees the
+    // last taxel column (x = 4.5) leaves the object when the actual displacement
+    // reaches its plan; with shear the array must travel u further.
+    let plain = build("angles = [90]\ntrials_per_angle = 1\neffects = [{ kind = \"skin\", sigma_mm = 0.5 }]");
+    let sleeve = build(
+        "angles = [90]\ntrials_per_angle = 1\neffects = [{ kind = \"sleeve\", thickness_mm = 1.0, pressure_coupling = 0.0, threshold_sd = 0.0 }]",
+    );
+    let (a, b) = (produce(plain.as_ref(), 0), produce(sleeve.as_ref(), 0));
+    // Half-contact time of taxel 3 (row 0, col 3), in samples, from the end of
+    // the hold; the two scenes plan different margins, so compare to the plan.
+    let half = |s: &Signals| s.data[3].iter().position(|&v| v < 0.5).unwrap();
+    let (ka, kb) = (half(&a), half(&b));
+    assert!(kb > ka, "shear must delay the crossing: {ka} vs {kb}");
+}

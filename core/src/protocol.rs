@@ -1,0 +1,398 @@
+//! Evaluation protocols: which trials a trained estimator fits on and which it
+//! is scored on, fold by fold.
+//!
+//! Every protocol returns folds `(train, test)` of trial indices such that
+//! every trial is tested exactly once (hold-out: the held-out share only) and
+//! **no fold's training set contains one of its test trials** (the test in
+//! this module checks both for every protocol). A model-based estimator (WSS)
+//! gets one fold with no training trial and every trial to test (under a
+//! hold-out: the held-out trials, so every estimator is scored on the same
+//! trials; the runtime then passes on only the scored trials).
+//!
+//! * `leave_one_trial_out` (the paper's): fold `f` tests the `f`-th distinct
+//!   repetition (`group`) of every class and trains on every other one.
+//! * `k_fold`: stratified, seeded `k`-fold: within each class (true angle and
+//!   stimulus) the trials are shuffled (ChaCha8 from `derive_seed(seed,
+//!   ["k_fold"])`) and dealt round-robin to folds, continuing where the
+//!   previous class stopped, so folds differ in size by at most one and every
+//!   class is spread evenly. `k` in `[2, trials]`.
+//! * `hold_out`: one fold; within each class, `round(test_share × n_class)`
+//!   trials (at least one when `n_class ≥ 2`, never all) drawn by a seeded
+//!   shuffle are tested, the rest train; trials not held out are not scored.
+//! * `leave_one_condition_out`: fold per distinct value of a label `key`:
+//!   `group` (the repetition: the same folds as leave-one-trial-out),
+//!   `angle` (leave one class out: the test class is never seen in training),
+//!   or `stimulus`.
+
+use crate::payload::Item;
+use crate::stage::derive_seed;
+use rand::seq::SliceRandom;
+use rand_chacha::rand_core::SeedableRng;
+use serde::{Deserialize, Serialize};
+
+/// How trained estimators are evaluated (the graph's `[run] protocol`).
+///
+/// In TOML: `protocol = "leave_one_trial_out"`, or a table naming one
+/// protocol: `protocol = { k_fold = { k = 5, seed = 1 } }`,
+/// `protocol = { hold_out = { test_share = 0.3, seed = 1 } }`,
+/// `protocol = { leave_one_condition_out = { key = "angle" } }`.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum Protocol {
+    /// Leave-one-trial-out, as in the paper: fold `f` tests the `f`-th
+    /// repetition of every class and trains on every other repetition.
+    /// Model-based estimators (WSS) ignore the training part.
+    #[default]
+    LeaveOneTrialOut,
+    /// Stratified, seeded k-fold cross-validation.
+    KFold {
+        /// Number of folds, at least 2 and at most the number of trials.
+        k: usize,
+        /// Seed of the shuffle. Default 0.
+        #[serde(default)]
+        seed: u64,
+    },
+    /// One stratified, seeded split: a share of each class is tested.
+    HoldOut {
+        /// Share of each class's trials tested, in (0, 1).
+        test_share: f64,
+        /// Seed of the shuffle. Default 0.
+        #[serde(default)]
+        seed: u64,
+    },
+    /// One fold per distinct value of a label key: "group", "angle" or "stimulus".
+    LeaveOneConditionOut {
+        /// The label key.
+        key: String,
+    },
+}
+
+/// One fold: trial indices to train on and to test.
+pub type Fold = (Vec<usize>, Vec<usize>);
+
+/// The label keys `leave_one_condition_out` accepts.
+pub const CONDITION_KEYS: [&str; 3] = ["group", "angle", "stimulus"];
+
+impl Protocol {
+    /// Checks the protocol's values, naming the key.
+    pub fn check(&self) -> Result<(), String> {
+        match self {
+            Protocol::LeaveOneTrialOut => Ok(()),
+            Protocol::KFold { k, .. } if *k < 2 => Err(format!("protocol.k_fold.k: must be at least 2, got {k}")),
+            Protocol::KFold { .. } => Ok(()),
+            Protocol::HoldOut { test_share, .. } if !(*test_share > 0.0 && *test_share < 1.0) => Err(format!(
+                "protocol.hold_out.test_share: must lie in (0, 1), got {test_share}"
+            )),
+            Protocol::HoldOut { .. } => Ok(()),
+            Protocol::LeaveOneConditionOut { key } if !CONDITION_KEYS.contains(&key.as_str()) => Err(format!(
+                "protocol.leave_one_condition_out.key: unknown label key `{key}`; expected one of {CONDITION_KEYS:?}"
+            )),
+            Protocol::LeaveOneConditionOut { .. } => Ok(()),
+        }
+    }
+}
+
+/// A trial's class for stratification: stimulus and angle (to 1e-6 degree).
+fn class_key(item: &Item) -> (String, i64) {
+    let l = &item.meta.label;
+    (
+        format!("{:?}", l.stimulus),
+        l.angle_deg.map_or(i64::MIN, |a| (a * 1e6).round() as i64),
+    )
+}
+
+/// Trial indices grouped by class, classes in order of first appearance.
+fn by_class(items: &[Item]) -> Vec<Vec<usize>> {
+    let mut keys: Vec<(String, i64)> = Vec::new();
+    let mut groups: Vec<Vec<usize>> = Vec::new();
+    for (i, it) in items.iter().enumerate() {
+        let k = class_key(it);
+        match keys.iter().position(|x| *x == k) {
+            Some(j) => groups[j].push(i),
+            None => {
+                keys.push(k);
+                groups.push(vec![i]);
+            }
+        }
+    }
+    groups
+}
+
+/// Folds of `protocol` over `items`: `(train, test)` index lists. A
+/// model-based estimator (`trained == false`) gets one fold testing every
+/// trial. Errors (naming the key) on an invalid protocol or one the data
+/// cannot satisfy (more folds than trials).
+pub fn folds(trained: bool, protocol: &Protocol, items: &[Item]) -> Result<Vec<Fold>, String> {
+    protocol.check()?;
+    if !trained {
+        // A model-based estimator is scored on every trial a trained one is:
+        // all of them, except under a hold-out (the held-out trials only).
+        let test = match protocol {
+            Protocol::HoldOut { .. } => folds(true, protocol, items)?.remove(0).1,
+            _ => (0..items.len()).collect(),
+        };
+        return Ok(vec![(Vec::new(), test)]);
+    }
+    let n = items.len();
+    let partition = |fold_of: &dyn Fn(usize) -> usize, n_folds: usize| -> Vec<Fold> {
+        (0..n_folds)
+            .map(|f| {
+                let (test, train): (Vec<usize>, Vec<usize>) = (0..n).partition(|&t| fold_of(t) == f);
+                (train, test)
+            })
+            .filter(|(_, test)| !test.is_empty())
+            .collect()
+    };
+    Ok(match protocol {
+        Protocol::LeaveOneTrialOut => condition_folds(items, |it| it.meta.group.to_string()),
+        Protocol::LeaveOneConditionOut { key } => match key.as_str() {
+            "group" => condition_folds(items, |it| it.meta.group.to_string()),
+            "angle" => condition_folds(items, |it| {
+                it.meta
+                    .label
+                    .angle_deg
+                    .map_or("none".into(), |a| format!("{}", (a * 1e6).round() as i64))
+            }),
+            _ => condition_folds(items, |it| format!("{:?}", it.meta.label.stimulus)),
+        },
+        Protocol::KFold { k, seed } => {
+            if *k > n {
+                return Err(format!(
+                    "protocol.k_fold.k: {k} folds but only {n} trials; use at most {n}"
+                ));
+            }
+            let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(derive_seed(*seed, &["k_fold"]));
+            let mut fold = vec![0usize; n];
+            let mut next = 0;
+            for mut class in by_class(items) {
+                class.shuffle(&mut rng);
+                for t in class {
+                    fold[t] = next % k;
+                    next += 1;
+                }
+            }
+            partition(&|t| fold[t], *k)
+        }
+        Protocol::HoldOut { test_share, seed } => {
+            let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(derive_seed(*seed, &["hold_out"]));
+            let (mut train, mut test) = (Vec::new(), Vec::new());
+            for mut class in by_class(items) {
+                class.shuffle(&mut rng);
+                let m = class.len();
+                let mut n_test = (test_share * m as f64).round() as usize;
+                if m >= 2 {
+                    n_test = n_test.clamp(1, m - 1);
+                } else {
+                    n_test = 0;
+                }
+                test.extend_from_slice(&class[..n_test]);
+                train.extend_from_slice(&class[n_test..]);
+            }
+            train.sort_unstable();
+            test.sort_unstable();
+            if test.is_empty() {
+                return Err("protocol.hold_out: no class has two trials, so nothing can be held out".into());
+            }
+            vec![(train, test)]
+        }
+    })
+}
+
+/// One fold per distinct value of `value` (in sorted order): test that value,
+/// train on the rest.
+fn condition_folds(items: &[Item], value: impl Fn(&Item) -> String) -> Vec<Fold> {
+    let values: Vec<String> = items.iter().map(&value).collect();
+    let mut distinct = values.clone();
+    distinct.sort_by(|a, b| match (a.parse::<i64>(), b.parse::<i64>()) {
+        (Ok(x), Ok(y)) => x.cmp(&y),
+        _ => a.cmp(b),
+    });
+    distinct.dedup();
+    distinct
+        .iter()
+        .map(|v| {
+            let (test, train): (Vec<usize>, Vec<usize>) = (0..items.len()).partition(|&t| values[t] == *v);
+            (train, test)
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::payload::{Estimate, Label, Payload, Stimulus, TrialMeta};
+    use proptest::prelude::*;
+    use std::sync::Arc;
+
+    fn item(group: usize, angle: f64, id: &str) -> Item {
+        Item {
+            meta: Arc::new(TrialMeta {
+                trial_id: id.into(),
+                group,
+                label: Label {
+                    stimulus: Stimulus::Edge,
+                    angle_deg: Some(angle),
+                },
+                ..TrialMeta::default()
+            }),
+            payload: Payload::from(Estimate::default()),
+        }
+    }
+
+    fn data(classes: usize, reps: usize) -> Vec<Item> {
+        (0..classes * reps)
+            .map(|t| item(t % reps, 10.0 + 5.0 * (t / reps) as f64, &format!("t{t}")))
+            .collect()
+    }
+
+    fn all() -> Vec<Protocol> {
+        vec![
+            Protocol::LeaveOneTrialOut,
+            Protocol::KFold { k: 3, seed: 7 },
+            Protocol::KFold { k: 5, seed: 1 },
+            Protocol::HoldOut {
+                test_share: 0.3,
+                seed: 2,
+            },
+            Protocol::LeaveOneConditionOut { key: "group".into() },
+            Protocol::LeaveOneConditionOut { key: "angle".into() },
+            Protocol::LeaveOneConditionOut {
+                key: "stimulus".into(),
+            },
+        ]
+    }
+
+    /// The property every protocol owes: no test trial reaches a fit, and no
+    /// trial is tested twice; all but hold-out test every trial.
+    fn check_no_leak(p: &Protocol, items: &[Item]) -> Result<(), TestCaseError> {
+        let f = folds(true, p, items).map_err(TestCaseError::fail)?;
+        let mut tested = vec![0; items.len()];
+        for (train, test) in &f {
+            prop_assert!(!test.is_empty());
+            for t in test {
+                prop_assert!(!train.contains(t), "{p:?}: test trial {t} in training");
+                tested[*t] += 1;
+            }
+            // Trial ids too: a duplicate id in training would leak as well.
+            for t in test {
+                prop_assert!(train
+                    .iter()
+                    .all(|&r| items[r].meta.trial_id != items[*t].meta.trial_id));
+            }
+        }
+        prop_assert!(tested.iter().all(|&c| c <= 1), "{p:?}: a trial tested twice");
+        if !matches!(p, Protocol::HoldOut { .. }) {
+            prop_assert!(tested.iter().all(|&c| c == 1), "{p:?}: a trial never tested");
+        }
+        Ok(())
+    }
+
+    #[test]
+    fn leave_one_trial_out_never_trains_on_a_test_trial() {
+        let items: Vec<Item> = (0..12).map(|t| item(t % 4, 45.0, &format!("t{t}"))).collect();
+        let f = folds(true, &Protocol::LeaveOneTrialOut, &items).unwrap();
+        assert_eq!(f.len(), 4);
+        for (train, test) in &f {
+            assert_eq!(test.len(), 3);
+            assert_eq!(train.len() + test.len(), items.len());
+        }
+        let m = folds(false, &Protocol::LeaveOneTrialOut, &items).unwrap();
+        assert_eq!(m.len(), 1);
+        assert!(m[0].0.is_empty());
+    }
+
+    #[test]
+    fn k_fold_is_stratified_balanced_and_seeded() {
+        let items = data(17, 10);
+        let p = Protocol::KFold { k: 5, seed: 3 };
+        let f = folds(true, &p, &items).unwrap();
+        assert_eq!(f.len(), 5);
+        for (_, test) in &f {
+            assert_eq!(test.len(), 34);
+            // Every class has exactly 2 of its 10 trials in each fold.
+            for c in 0..17 {
+                assert_eq!(test.iter().filter(|&&t| t / 10 == c).count(), 2);
+            }
+        }
+        assert_eq!(f, folds(true, &p, &items).unwrap(), "same seed, same folds");
+        assert_ne!(
+            f,
+            folds(true, &Protocol::KFold { k: 5, seed: 4 }, &items).unwrap()
+        );
+        assert!(folds(true, &Protocol::KFold { k: 171, seed: 0 }, &items).is_err());
+        assert!(folds(true, &Protocol::KFold { k: 1, seed: 0 }, &items).is_err());
+    }
+
+    #[test]
+    fn hold_out_tests_the_share_of_each_class() {
+        let items = data(17, 10);
+        let f = folds(
+            true,
+            &Protocol::HoldOut {
+                test_share: 0.3,
+                seed: 1,
+            },
+            &items,
+        )
+        .unwrap();
+        assert_eq!(f.len(), 1);
+        assert_eq!(f[0].1.len(), 51);
+        assert_eq!(f[0].0.len(), 119);
+        let bad = Protocol::HoldOut {
+            test_share: 1.0,
+            seed: 1,
+        };
+        assert!(folds(true, &bad, &items).unwrap_err().contains("test_share"));
+    }
+
+    #[test]
+    fn leave_one_class_out_never_trains_on_the_test_class() {
+        let items = data(4, 3);
+        let f = folds(
+            true,
+            &Protocol::LeaveOneConditionOut { key: "angle".into() },
+            &items,
+        )
+        .unwrap();
+        assert_eq!(f.len(), 4);
+        for (train, test) in &f {
+            let a = items[test[0]].meta.label.angle_deg;
+            assert!(train.iter().all(|&t| items[t].meta.label.angle_deg != a));
+        }
+        let bad = Protocol::LeaveOneConditionOut { key: "speed".into() };
+        assert!(folds(true, &bad, &items).unwrap_err().contains("speed"));
+    }
+
+    #[test]
+    fn protocols_read_from_toml() {
+        #[derive(Deserialize)]
+        struct R {
+            protocol: Protocol,
+        }
+        let r: R = toml::from_str("protocol = \"leave_one_trial_out\"").unwrap();
+        assert_eq!(r.protocol, Protocol::LeaveOneTrialOut);
+        let r: R = toml::from_str("protocol = { k_fold = { k = 5, seed = 2 } }").unwrap();
+        assert_eq!(r.protocol, Protocol::KFold { k: 5, seed: 2 });
+    }
+
+    proptest! {
+        #[test]
+        fn no_protocol_ever_lets_a_test_trial_reach_a_fit(
+            classes in 1usize..8,
+            reps in 1usize..8,
+            which in 0usize..7,
+        ) {
+            let items = data(classes, reps);
+            let p = &all()[which];
+            match folds(true, p, &items) {
+                Ok(_) => check_no_leak(p, &items)?,
+                // Only a data set too small for the protocol may refuse.
+                Err(e) => prop_assert!(
+                    (matches!(p, Protocol::KFold { k, .. } if *k > items.len()))
+                        || (matches!(p, Protocol::HoldOut { .. }) && reps < 2),
+                    "{p:?}: {e}"
+                ),
+            }
+        }
+    }
+}

@@ -1,0 +1,570 @@
+//! Sensor-level effects of a soft piezoresistive array, each an opt-in scene
+//! effect (listed in a scene's `effects`, never computed otherwise): the
+//! mechanisms behind what Kumar et al. 2020 saw on their real sensor (section
+//! 3.1, Fig. 5: taxels fire long before and after the edge crosses them, peaks
+//! off the crossing, every taxel different).
+//!
+//! * `sleeve` (phase: trial): the soft sleeve's thickness and the friction
+//!   that drags it. The sleeve spreads pressure like `skin`
+//!   (`σ = thickness / 2`, in quadrature), and its outer surface sticks to the
+//!   object while the array slides: the sleeve shears by `u` (mm), which grows
+//!   at the sliding speed while it sticks, until the shear stress
+//!   `G u / T` reaches static friction `μ_s p`, i.e. `u_s = μ_s p T / G`; then
+//!   it slips back to where kinetic friction holds it, `u_k = μ_k p T / G`
+//!   (stick-slip; each slip's threshold varies by `threshold_sd`, relative,
+//!   fresh per event). The taxels see the contact pattern lag the array by `u`
+//!   (the edge seems to reach a taxel up to `u_s / v` late, in jumps), and the
+//!   friction's moment about the sleeve tilts the pressure it transmits: a
+//!   loaded taxel at `x` (mm, along the slide) reads `p (1 + c (u / u_s) x / R)`
+//!   with `R` the largest `|x|` of the array and `c` = `pressure_coupling`.
+//!   Every slip then changes every loaded taxel's pressure at once: the FA-I
+//!   response to it is not tied to the edge. Simplification: the friction is
+//!   taken at the nominal contact pressure throughout the slide.
+//! * `tilt` (phase: trial): the end effector is not parallel to the object. A
+//!   tilt `α` (rad) about an axis through the array's centre indents the
+//!   sleeve by an extra `α x`; a linear-elastic layer pressed to `δ₀` then
+//!   carries `p (1 + α x / δ₀)`: a relative gradient `g = α / δ₀` per mm.
+//!   Per trial `g = (gx, gy)` is `mean + N(0, sd)` per component (3-SD
+//!   truncated); taxel `i` at `p_i` reads `max(0, 1 + g·p_i)` times its
+//!   pressure. E.g. `δ₀ = 0.3 mm`, `α = 0.3°`: 1.7 %/mm.
+//! * `hysteresis` (phase: signal, before `piezo`: pressure): the cloth's
+//!   conductance follows a rising load at once but recovers slowly when it is
+//!   unloaded (the fibres' contacts separate slowly): `y = (1 - f) x + f z`,
+//!   with `z = x` while `x >= z` (loading) and `dz/dt = (x - z) / τ` while
+//!   `x < z` (unloading, slow recovery), starting settled. A loading/unloading
+//!   loop: at the same pressure, the unloading branch reads higher.
+//! * `dynamics` (phase: signal): every taxel responds through its own
+//!   first-order lag, `dy/dt = (x - y) / τ_i`, `τ_i = tau_s · exp(N(0,
+//!   log_sd))` (log-normal, 3-SD truncated) drawn once per array from the
+//!   array seed: hand-made taxels differ in how fast they follow a load.
+//!   Starting settled.
+//! * `ghosting` (phase: signal, before `piezo`, grid arrays): a passive
+//!   row/column read-out without isolation measures taxel `(r, c)` in
+//!   parallel with the sneak paths `(r, c') → (r', c') → (r', c)` through
+//!   three other taxels in series. With conductance proportional to pressure
+//!   (the `piezo` default), the reading is
+//!   `g(r,c) = p(r,c) + s Σ_{r'≠r, c'≠c} S(p(r,c'), p(r',c'), p(r',c))` with
+//!   `S(a, b, d) = 1 / (1/a + 1/b + 1/d)` (0 when any is 0) and `s` the share
+//!   of sneak current the read-out lets through (`sneak`: 1 = floating lines,
+//!   0 = perfect isolation). A taxel off the object still reads its
+//!   neighbours' sneak paths, which change as *they* cross the edge: spikes
+//!   before and after its own crossing. Negative pressures read as 0.
+//!
+//! Units: pressure is "pressure" (1 = full contact with a flat surface);
+//! effects marked "before `piezo`" are an error when listed after it, since
+//! their physics is about pressure and conductance, not volts.
+
+use super::effects::{normal3, Block, SignalEffect, SignalState, TrialInfo};
+use palpate_core::TaxelLayout;
+use rand_chacha::ChaCha8Rng;
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
+
+/// The soft sleeve: thickness (pressure spreading) and friction-driven
+/// stick-slip shear (phase: trial). See the module docs for the physics.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields, default)]
+pub struct SleeveConfig {
+    /// Sleeve thickness T, mm: spreads pressure by σ = T/2 (like `skin`) and
+    /// sets the shear compliance. Default 1.
+    pub thickness_mm: f64,
+    /// Shear modulus G of the sleeve, kPa. Default 30 (a soft silicone).
+    pub shear_modulus_kpa: f64,
+    /// Nominal contact pressure p, kPa. Default 10.
+    pub pressure_kpa: f64,
+    /// Static friction coefficient μ_s between sleeve and object. Default 1.0.
+    pub friction_static: f64,
+    /// Kinetic friction coefficient μ_k (<= μ_s). Default 0.7.
+    pub friction_kinetic: f64,
+    /// Relative SD of each slip's threshold, unitless. Default 0.2.
+    pub threshold_sd: f64,
+    /// Relative pressure change at the array's rim at full shear `u_s`
+    /// (the friction's moment), unitless. Default 0.05.
+    pub pressure_coupling: f64,
+}
+
+impl Default for SleeveConfig {
+    fn default() -> Self {
+        SleeveConfig {
+            thickness_mm: 1.0,
+            shear_modulus_kpa: 30.0,
+            pressure_kpa: 10.0,
+            friction_static: 1.0,
+            friction_kinetic: 0.7,
+            threshold_sd: 0.2,
+            pressure_coupling: 0.05,
+        }
+    }
+}
+
+impl SleeveConfig {
+    /// Static shear limit `u_s = μ_s p T / G`, mm.
+    pub fn u_static(&self) -> f64 {
+        self.friction_static * self.pressure_kpa * self.thickness_mm / self.shear_modulus_kpa
+    }
+    /// Kinetic shear `u_k = μ_k p T / G`, mm.
+    pub fn u_kinetic(&self) -> f64 {
+        self.friction_kinetic * self.pressure_kpa * self.thickness_mm / self.shear_modulus_kpa
+    }
+    /// The largest shear a trial can reach (3-SD threshold), mm.
+    pub fn u_max(&self) -> f64 {
+        self.u_static() * (1.0 + 3.0 * self.threshold_sd)
+    }
+
+    /// The sleeve's shear `u` (mm) at every sample of a trial: 0 until the
+    /// slide starts at sample `k0`, stick-slip while it lasts (`v_per_sample`
+    /// mm per sample) until sample `k1`, then held.
+    pub fn track(&self, n: usize, k0: usize, k1: usize, v_per_sample: f64, rng: &mut ChaCha8Rng) -> Vec<f64> {
+        let (us, uk) = (self.u_static(), self.u_kinetic());
+        // A slip always drops the shear by at least 1 % of u_s: the sawtooth
+        // cannot degenerate into a slip every sample.
+        let floor = uk + 0.01 * us;
+        let mut threshold = (us * (1.0 + normal3(rng, self.threshold_sd))).max(floor);
+        let mut u = 0.0;
+        let mut out = Vec::with_capacity(n);
+        for k in 0..n {
+            if k >= k0 && k < k1 {
+                u += v_per_sample;
+                if u >= threshold {
+                    u = uk;
+                    threshold = (us * (1.0 + normal3(rng, self.threshold_sd))).max(floor);
+                }
+            }
+            out.push(u);
+        }
+        out
+    }
+}
+
+/// End-effector tilt: a pressure gradient across the array that varies per
+/// trial (phase: trial). See the module docs.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields, default)]
+pub struct TiltConfig {
+    /// Mean relative pressure gradient along x (the slide), per mm. Default 0.
+    pub mean_x_per_mm: f64,
+    /// Mean relative pressure gradient along y, per mm. Default 0.
+    pub mean_y_per_mm: f64,
+    /// SD of each component's per-trial draw, per mm. Default 0.01.
+    pub sd_per_mm: f64,
+}
+
+impl Default for TiltConfig {
+    fn default() -> Self {
+        TiltConfig {
+            mean_x_per_mm: 0.0,
+            mean_y_per_mm: 0.0,
+            sd_per_mm: 0.01,
+        }
+    }
+}
+
+impl TiltConfig {
+    /// One trial's per-taxel pressure factors, `max(0, 1 + g·p_i)`.
+    pub fn gains(&self, layout: &TaxelLayout, rng: &mut ChaCha8Rng) -> Vec<f64> {
+        let gx = self.mean_x_per_mm + normal3(rng, self.sd_per_mm);
+        let gy = self.mean_y_per_mm + normal3(rng, self.sd_per_mm);
+        layout
+            .positions()
+            .iter()
+            .map(|p| (1.0 + gx * p[0] + gy * p[1]).max(0.0))
+            .collect()
+    }
+}
+
+/// Loading/unloading hysteresis and slow recovery of the piezoresistive cloth
+/// (phase: signal, before `piezo`). See the module docs.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields, default)]
+pub struct HysteresisConfig {
+    /// Share of the response that recovers slowly on unloading, in [0, 1]. Default 0.3.
+    pub fraction: f64,
+    /// Recovery time constant on unloading, s. Default 1.0.
+    pub tau_s: f64,
+}
+
+impl Default for HysteresisConfig {
+    fn default() -> Self {
+        HysteresisConfig {
+            fraction: 0.3,
+            tau_s: 1.0,
+        }
+    }
+}
+
+/// Per-taxel first-order dynamics with log-normally spread time constants,
+/// fixed per array (phase: signal). See the module docs.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields, default)]
+pub struct DynamicsConfig {
+    /// Median time constant, s. Default 0.2.
+    pub tau_s: f64,
+    /// SD of ln(τ) across taxels. Default 0.5.
+    pub log_sd: f64,
+}
+
+impl Default for DynamicsConfig {
+    fn default() -> Self {
+        DynamicsConfig {
+            tau_s: 0.2,
+            log_sd: 0.5,
+        }
+    }
+}
+
+/// Sneak-path ghosting of a passive row/column read-out (phase: signal,
+/// before `piezo`, grid arrays). See the module docs.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields, default)]
+pub struct GhostingConfig {
+    /// Share of the sneak-path current the read-out lets through, in [0, 1]
+    /// (1 = floating lines). Default 0.2.
+    pub sneak: f64,
+}
+
+impl Default for GhostingConfig {
+    fn default() -> Self {
+        GhostingConfig { sneak: 0.2 }
+    }
+}
+
+/// The built `hysteresis` effect.
+pub(crate) struct Hysteresis(pub HysteresisConfig);
+
+struct HysteresisState {
+    keep: f64,
+    frac: f64,
+    alpha: f64,
+    z: Vec<f64>,
+    started: bool,
+}
+
+impl SignalEffect for Hysteresis {
+    fn kind(&self) -> &'static str {
+        "hysteresis"
+    }
+    fn start<'a>(&'a self, info: &TrialInfo<'_>, _rng: ChaCha8Rng) -> Box<dyn SignalState + 'a> {
+        super::effects::log_event("run", "hysteresis");
+        Box::new(HysteresisState {
+            keep: 1.0 - self.0.fraction,
+            frac: self.0.fraction,
+            // Exact discretization of dz/dt = (x - z)/tau for x held over a sample.
+            alpha: 1.0 - (-1.0 / (self.0.tau_s * info.sample_rate_hz)).exp(),
+            z: vec![0.0; info.layout.len()],
+            started: false,
+        })
+    }
+}
+
+impl SignalState for HysteresisState {
+    fn process(&mut self, b: &mut Block<'_>) {
+        let len = b.len;
+        for (i, row) in b.data.chunks_exact_mut(len).enumerate() {
+            if !self.started {
+                self.z[i] = row[0];
+            }
+            let mut z = self.z[i];
+            for x in row.iter_mut() {
+                if *x >= z {
+                    z = *x;
+                } else {
+                    z += self.alpha * (*x - z);
+                }
+                *x = self.keep * *x + self.frac * z;
+            }
+            self.z[i] = z;
+        }
+        self.started = true;
+    }
+}
+
+/// The built `dynamics` effect: one recurrence coefficient per taxel.
+pub(crate) struct Dynamics {
+    /// Per-taxel time constants, s.
+    pub tau_s: Vec<f64>,
+}
+
+impl Dynamics {
+    /// Draws the per-taxel time constants from the array's generator.
+    pub fn draw(c: &DynamicsConfig, n_taxels: usize, rng: &mut ChaCha8Rng) -> Dynamics {
+        Dynamics {
+            tau_s: (0..n_taxels)
+                .map(|_| c.tau_s * normal3(rng, c.log_sd).exp())
+                .collect(),
+        }
+    }
+}
+
+struct DynamicsState {
+    alpha: Vec<f64>,
+    y: Vec<f64>,
+    started: bool,
+}
+
+impl SignalEffect for Dynamics {
+    fn kind(&self) -> &'static str {
+        "dynamics"
+    }
+    fn start<'a>(&'a self, info: &TrialInfo<'_>, _rng: ChaCha8Rng) -> Box<dyn SignalState + 'a> {
+        super::effects::log_event("run", "dynamics");
+        Box::new(DynamicsState {
+            alpha: self
+                .tau_s
+                .iter()
+                .map(|t| 1.0 - (-1.0 / (t * info.sample_rate_hz)).exp())
+                .collect(),
+            y: vec![0.0; info.layout.len()],
+            started: false,
+        })
+    }
+}
+
+impl SignalState for DynamicsState {
+    fn process(&mut self, b: &mut Block<'_>) {
+        let len = b.len;
+        for (i, row) in b.data.chunks_exact_mut(len).enumerate() {
+            if !self.started {
+                self.y[i] = row[0];
+            }
+            let (a, mut y) = (self.alpha[i], self.y[i]);
+            for x in row.iter_mut() {
+                y += a * (*x - y);
+                *x = y;
+            }
+            self.y[i] = y;
+        }
+        self.started = true;
+    }
+}
+
+/// The built `ghosting` effect.
+pub(crate) struct Ghosting {
+    pub sneak: f64,
+    pub rows: usize,
+    pub cols: usize,
+}
+
+struct GhostingState<'a> {
+    fx: &'a Ghosting,
+    p: Vec<f64>,
+}
+
+impl SignalEffect for Ghosting {
+    fn kind(&self) -> &'static str {
+        "ghosting"
+    }
+    fn start<'a>(&'a self, _info: &TrialInfo<'_>, _rng: ChaCha8Rng) -> Box<dyn SignalState + 'a> {
+        super::effects::log_event("run", "ghosting");
+        Box::new(GhostingState {
+            fx: self,
+            p: Vec::new(),
+        })
+    }
+}
+
+/// Three conductances in series; 0 when any is 0.
+#[inline]
+fn series(a: f64, b: f64, d: f64) -> f64 {
+    let den = a * b + b * d + d * a;
+    if den > 0.0 {
+        a * b * d / den
+    } else {
+        0.0
+    }
+}
+
+impl SignalState for GhostingState<'_> {
+    fn process(&mut self, b: &mut Block<'_>) {
+        let Ghosting { sneak, rows, cols } = *self.fx;
+        let len = b.len;
+        let n = rows * cols;
+        self.p.resize(n, 0.0);
+        for k in 0..len {
+            for (i, p) in self.p.iter_mut().enumerate() {
+                *p = b.data[i * len + k].max(0.0);
+            }
+            for r in 0..rows {
+                for c in 0..cols {
+                    let mut ghost = 0.0;
+                    for r2 in (0..rows).filter(|&r2| r2 != r) {
+                        for c2 in (0..cols).filter(|&c2| c2 != c) {
+                            ghost += series(
+                                self.p[r * cols + c2],
+                                self.p[r2 * cols + c2],
+                                self.p[r2 * cols + c],
+                            );
+                        }
+                    }
+                    b.data[(r * cols + c) * len + k] = self.p[r * cols + c] + sneak * ghost;
+                }
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::SeedableRng;
+
+    fn run(fx: &dyn SignalEffect, layout: &TaxelLayout, rows: Vec<Vec<f64>>) -> Vec<Vec<f64>> {
+        let n = rows[0].len();
+        let info = TrialInfo {
+            sample_rate_hz: 1000.0,
+            n_samples: n,
+            layout,
+        };
+        let mut st = fx.start(&info, ChaCha8Rng::seed_from_u64(1));
+        let mut data: Vec<f64> = rows.concat();
+        // Two blocks, to exercise the carried state.
+        let half = n / 2;
+        let mut out = vec![Vec::new(); rows.len()];
+        for (start, len) in [(0, half), (half, n - half)] {
+            let mut blk: Vec<f64> = (0..rows.len())
+                .flat_map(|i| data[i * n + start..i * n + start + len].to_vec())
+                .collect();
+            st.process(&mut Block {
+                data: &mut blk,
+                len,
+                start,
+            });
+            for (i, o) in out.iter_mut().enumerate() {
+                o.extend_from_slice(&blk[i * len..(i + 1) * len]);
+            }
+        }
+        data.clear();
+        out
+    }
+
+    fn one() -> TaxelLayout {
+        TaxelLayout::Grid {
+            rows: 1,
+            cols: 1,
+            pitch_mm: 3.0,
+            taxel_mm: 2.0,
+        }
+    }
+
+    #[test]
+    fn hysteresis_loads_at_once_and_recovers_slowly() {
+        let fx = Hysteresis(HysteresisConfig {
+            fraction: 0.5,
+            tau_s: 1.0,
+        });
+        // 1 s at 0, 1 s at 1 (loading), 2 s at 0 (unloading).
+        let x: Vec<f64> = (0..4000)
+            .map(|k| if (1000..2000).contains(&k) { 1.0 } else { 0.0 })
+            .collect();
+        let y = run(&fx, &one(), vec![x]).remove(0);
+        assert_eq!(y[999], 0.0);
+        assert_eq!(y[1000], 1.0, "loading is immediate");
+        // Unloading: half drops at once, half decays with tau = 1 s.
+        assert!((y[2000] - 0.5 * (-1e-3f64).exp()).abs() < 1e-9, "{}", y[2000]);
+        let expect = 0.5 * (-1.0f64).exp();
+        assert!((y[2999] - expect).abs() < 2e-3, "{} vs {expect}", y[2999]);
+        // The loop: on the way down the reading exceeds the load.
+        assert!(y[2500] > 0.0);
+    }
+
+    #[test]
+    fn dynamics_give_each_taxel_its_own_lag() {
+        let mut rng = ChaCha8Rng::seed_from_u64(7);
+        let fx = Dynamics::draw(
+            &DynamicsConfig {
+                tau_s: 0.2,
+                log_sd: 0.5,
+            },
+            16,
+            &mut rng,
+        );
+        let taus = fx.tau_s.clone();
+        assert!(taus
+            .iter()
+            .all(|t| *t > 0.2 * (-1.5f64).exp() - 1e-12 && *t < 0.2 * 1.5f64.exp() + 1e-12));
+        assert!(taus.iter().any(|t| (t - taus[0]).abs() > 1e-3), "taxels differ");
+        let x: Vec<f64> = (0..2000).map(|k| if k >= 500 { 1.0 } else { 0.0 }).collect();
+        let y = run(&fx, &TaxelLayout::paper(), vec![x; 16]);
+        for (row, tau) in y.iter().zip(&taus) {
+            // The exact step response of the lag, sampled: the step enters at
+            // sample 500, so sample 500 + m has seen m + 1 samples of it.
+            for m in [0usize, 50, 200, 1000] {
+                let expect = 1.0 - (-((m + 1) as f64) / (tau * 1000.0)).exp();
+                assert!(
+                    (row[500 + m] - expect).abs() < 1e-12,
+                    "{} vs {expect}",
+                    row[500 + m]
+                );
+            }
+            assert_eq!(row[499], 0.0, "settled start");
+        }
+    }
+
+    #[test]
+    fn ghosting_follows_the_sneak_paths() {
+        let l = TaxelLayout::Grid {
+            rows: 2,
+            cols: 2,
+            pitch_mm: 3.0,
+            taxel_mm: 2.0,
+        };
+        let fx = Ghosting {
+            sneak: 1.0,
+            rows: 2,
+            cols: 2,
+        };
+        // Taxel 0 off the object, the other three at pressure 1: taxel 0 reads
+        // their sneak path, 1/3; the others read 1 (their paths go through 0).
+        let y = run(
+            &fx,
+            &l,
+            vec![vec![0.0; 4], vec![1.0; 4], vec![1.0; 4], vec![1.0; 4]],
+        );
+        assert!((y[0][0] - 1.0 / 3.0).abs() < 1e-12);
+        assert_eq!(y[1][0], 1.0);
+        // All loaded: every taxel reads 1 + 1/3 (uniform).
+        let y = run(&fx, &l, vec![vec![1.0; 4]; 4]);
+        assert!(y.iter().all(|r| (r[0] - 4.0 / 3.0).abs() < 1e-12));
+        // None loaded, or negative: 0, never NaN.
+        let y = run(&fx, &l, vec![vec![-1.0; 4]; 4]);
+        assert!(y.iter().all(|r| r[0] == 0.0));
+    }
+
+    #[test]
+    fn sleeve_sticks_and_slips_within_its_limits() {
+        let c = SleeveConfig::default();
+        assert!((c.u_static() - 1.0 * 10.0 * 1.0 / 30.0).abs() < 1e-12);
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let u = c.track(20_000, 2000, 18_000, 0.002, &mut rng);
+        assert!(u[..2000].iter().all(|&v| v == 0.0), "no shear before the slide");
+        assert!(u.iter().all(|&v| (0.0..=c.u_max() + 0.002).contains(&v)));
+        let slips = u.windows(2).filter(|w| w[1] < w[0]).count();
+        // Each cycle climbs from u_k to ~u_s: about travel / (u_s - u_k) slips.
+        let expect = 32.0 / (c.u_static() - c.u_kinetic());
+        assert!(
+            (slips as f64) > 0.5 * expect && (slips as f64) < 2.0 * expect,
+            "{slips} vs {expect}"
+        );
+        assert!(
+            u[18_000..].iter().all(|&v| v == u[17_999]),
+            "held after the slide"
+        );
+    }
+
+    #[test]
+    fn tilt_is_a_gradient_that_never_goes_negative() {
+        let c = TiltConfig {
+            mean_x_per_mm: 0.02,
+            mean_y_per_mm: 0.0,
+            sd_per_mm: 0.0,
+        };
+        let g = c.gains(&TaxelLayout::paper(), &mut ChaCha8Rng::seed_from_u64(1));
+        assert!((g[3] - (1.0 + 0.02 * 4.5)).abs() < 1e-12);
+        assert!((g[0] - (1.0 - 0.02 * 4.5)).abs() < 1e-12);
+        let steep = TiltConfig {
+            mean_x_per_mm: 1.0,
+            ..c
+        };
+        let g = steep.gains(&TaxelLayout::paper(), &mut ChaCha8Rng::seed_from_u64(1));
+        assert_eq!(g[0], 0.0);
+    }
+}
