@@ -42,6 +42,7 @@ const PAGES: &[(&str, &str)] = &[
     ("write_spikes", "stages/sinks.md"),
     ("write_images", "stages/sinks.md"),
     ("write_estimates", "stages/sinks.md"),
+    ("spike_timing", "stages/sinks.md"),
 ];
 
 /// The trained baselines share one section of the estimators page.
