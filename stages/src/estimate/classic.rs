@@ -1,4 +1,4 @@
-//! Classical baselines from smartcore 0.4 on the same features as the ANN
+//! Classical baselines (SVM by our own SMO; forest and logistic from smartcore 0.4) on the same features as the ANN
 //! (SPEC.md section 5): stage types `svm`, `random_forest`, `knn` and `logistic`.
 //!
 //! Design: one stage type per model (rather than one `classic` type with a
@@ -10,23 +10,27 @@
 //! ANN (ST) input), standardised per feature on the training vectors; a trial's
 //! answer is the paper's winner-take-all vote over its active frames.
 //!
-//! * `svm`: RBF-kernel SVMs, `K(x, z) = exp(-γ‖x - z‖²)`, trained with
-//!   smartcore's binary `SVC` (an approximate LaSVM solver) **one-vs-one**: one
-//!   machine per pair of classes (K(K-1)/2 of them), each on that pair's vectors
-//!   only, so each problem is small and balanced. A vector's class scores are
-//!   its votes plus sklearn's tie-breaker, `votes_c + conf_c / (3 (max|conf| + 1))`
-//!   with `conf_c` the summed decision values in favour of `c`, so confidences
-//!   only order classes with equal votes; scores are divided by `K - 1`. The
-//!   fitted machines (support vectors, coefficients, bias) are copied out of
-//!   smartcore into [`OvoSvm`], which pools the support vectors of all machines
-//!   so each one's kernel value is computed once per frame (libsvm's scheme).
-//!   `γ = 0` (auto) is `1 / dim` (sklearn's "scale" for standardised features).
-//!   Cost: smartcore's SVC recomputes (and allocates for) every kernel value it
-//!   touches, so a fold on the paper-sized set takes seconds even with few
-//!   vectors; the default caps a training trial at 5 vectors (45 per class, 90
-//!   per pair) and one solver pass, which keeps the whole Table 2 graph under a
-//!   minute on two cores. Pairs with fewer rows than features are handled (see
-//!   the fit) because smartcore truncates such support vectors.
+//! * `svm`: RBF-kernel SVMs, `K(x, z) = exp(-γ‖x - z‖²)`, **one-vs-one** as
+//!   libsvm/scikit-learn's `SVC`: one machine per pair of classes (K(K-1)/2 of
+//!   them), each on that pair's vectors only, so each problem is small and
+//!   balanced. Each machine is trained *exactly* (to libsvm's KKT tolerance) by
+//!   our own SMO solver, [`super::smo`] (libsvm's algorithm: second-order
+//!   working-set selection, a kernel cache, shrinking). The fold's whole Gram
+//!   matrix is computed once when it fits in `cache_mb` (every vector serves in
+//!   K - 1 machines), in parallel by rows. A vector's class scores are its votes
+//!   plus sklearn's tie-breaker, `votes_c + conf_c / (3 (max|conf| + 1))` with
+//!   `conf_c` the summed decision values in favour of `c`, so confidences only
+//!   order classes with equal votes; scores are divided by `K - 1`. The
+//!   machines' support vectors are pooled in [`OvoSvm`] so each one's kernel
+//!   value is computed once per frame (libsvm's scheme). `γ = 0` (auto) is
+//!   `1 / dim` (sklearn's "scale" for standardised features).
+//!   Why not smartcore's `SVC` (used before): it is LaSVM, an *approximate*
+//!   online solver run for a fixed number of passes, which recomputes and
+//!   allocates every kernel value it touches. One pass left the machines short
+//!   of the optimum by an amount that depended on the data size: the stage's
+//!   "cliff" (5 training vectors per trial gave 34.9° MAE, 8 gave 0.26°) was the
+//!   solver, not the data; see the `max_train_frames` doc for the exact solver's
+//!   numbers. It also took ~10 s per Table 2 fold.
 //! * `random_forest`: smartcore's `RandomForestClassifier` (Gini, bootstrap,
 //!   `m = sqrt(dim)` features per split by default), 15 trees on at most 15
 //!   vectors per training trial (smartcore grows a tree in ~0.1 s on 2300
@@ -46,8 +50,8 @@
 //!   the stacked 5-image input gave a worse MAE (~24° against ~16°) at ~10x the
 //!   L-BFGS cost. It is the weakest baseline by design, kept as the linear reference.
 //!
-//! Seeds: the SVM pairs and the forest take seeds from the fold's RNG; k-NN and
-//! logistic regression are deterministic. The SVM pairs train in parallel and
+//! Seeds: the forest takes its seed from the fold's RNG; the SVM (SMO draws
+//! nothing at random), k-NN and logistic regression are deterministic. The SVM pairs train in parallel and
 //! are gathered (and their support vectors pooled) in pair order, so 1 or N
 //! threads give the same bits.
 
@@ -55,12 +59,14 @@ use super::ann::{dot, softmax};
 use super::features::{
     Classifier, FeatureKeys, FittedModel, Standardizer, TrainSet, TrainingLog, Vote, MODEL_FORMAT,
 };
+use super::smo;
 use crate::estimate::features::{FitBaseline, TrainedEstimator};
 use palpate_core::{
     check_positive, check_range, register_stage, BuildContext, ConfigError, FitContext, InputSpec, Item,
     PayloadKind, Stage, StageConfig, StageError,
 };
 use rand::Rng;
+use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
@@ -70,8 +76,6 @@ use smartcore::ensemble::random_forest_classifier::{
 use smartcore::linalg::basic::arrays::Array;
 use smartcore::linalg::basic::matrix::DenseMatrix;
 use smartcore::linear::logistic_regression::{LogisticRegression, LogisticRegressionParameters};
-use smartcore::svm::svc::{SVCParameters, SVC};
-use smartcore::svm::Kernels;
 
 /// Standardised training rows of a fold, as a smartcore matrix with `i32` labels.
 struct Design {
@@ -98,21 +102,20 @@ fn smart_err(e: smartcore::error::Failed) -> StageError {
     StageError::new(format!("smartcore: {e}"))
 }
 
-/// Shared fit: features, standardisation, the model-specific part, packaging.
-fn fit_classic(
-    keys: &FeatureKeys,
+/// Shared fit after the features are built: standardisation on every
+/// training vector, one seed drawn from `rng` (the fold's generator), the
+/// model-specific part, packaging.
+fn fit_classic_set(
+    set: TrainSet,
     vote: Vote,
     stage_type: &str,
-    train: &[&Item],
-    ctx: &FitContext<'_>,
+    rng: &mut ChaCha8Rng,
     fit: impl FnOnce(&TrainSet, Design, Standardizer, u64) -> Result<Classifier, StageError>,
 ) -> Result<FittedModel, StageError> {
-    keys.check()?;
-    let set = TrainSet::build(train, keys)?;
     let all: Vec<usize> = (0..set.len()).collect();
     let scaler = Standardizer::fit(&set, &all);
     let d = design(&set, &scaler)?;
-    let seed = ctx.rng().random::<u64>();
+    let seed = rng.random::<u64>();
     let classifier = fit(&set, d, scaler, seed)?;
     Ok(FittedModel {
         format: MODEL_FORMAT,
@@ -130,7 +133,7 @@ fn fit_classic(
 
 // ---------------------------------------------------------------- SVM
 
-/// Multi-class RBF SVM (one-vs-one over smartcore's binary SVC) on spike-image features.
+/// Multi-class RBF SVM (one-vs-one, each machine trained exactly by SMO) on spike-image features.
 ///
 /// Per-frame votes are combined by the paper's winner-take-all over the trial.
 /// Input: spike images; output: orientation estimates.
@@ -146,19 +149,23 @@ pub struct SvmConfig {
     /// Smallest spike total of a used vector. Default 1.
     pub min_spikes: f64,
     /// Most vectors a training trial contributes (evenly spaced). Default 8.
-    /// Measured on graphs/paper/table2.toml (lab scene): 5 gives 34.9° MAE, 6
-    /// gives 20.6°, 8 gives 0.26° at ~7 s per fold, 12 gives 0.03° at ~14 s per
-    /// fold: with fewer vectors the one-pass solver leaves the pairwise machines
-    /// under-trained (cause not pinned down further).
     pub max_train_frames: usize,
     /// Soft-margin penalty C. Default 10.
     pub c: f64,
     /// RBF width γ of `exp(-γ‖x-z‖²)` on standardised features; 0 = auto (1 / dim). Default 0.
     pub gamma: f64,
-    /// Passes of the LaSVM solver over each pair's data. Default 1.
-    pub epochs: usize,
-    /// Solver tolerance. Default 1e-3.
+    /// Most SMO iterations per pairwise machine (a guard: the solver stops
+    /// earlier, at `tol`; hitting it is an error naming this key). Default 10000000.
+    pub max_iter: usize,
+    /// Stopping tolerance: largest KKT violation left, as libsvm's `eps`. Default 1e-3.
     pub tol: f64,
+    /// Shrink the active set during SMO (libsvm's heuristic; the answer is the
+    /// same to within `tol`). Default true.
+    pub shrinking: bool,
+    /// Kernel cache budget, MiB: the fold's whole Gram matrix is computed once
+    /// when it fits, otherwise each machine keeps its own LRU row cache of this
+    /// size. Default 256.
+    pub cache_mb: usize,
     /// `winner` (paper) or `sum`. Default `winner`.
     pub vote: Vote,
     /// Write each fold's fitted model to `<out>/<stage id>.fold<f>.model.json`. Default false.
@@ -175,8 +182,10 @@ impl Default for SvmConfig {
             max_train_frames: 8,
             c: 10.0,
             gamma: 0.0,
-            epochs: 1,
+            max_iter: 10_000_000,
             tol: 1e-3,
+            shrinking: true,
+            cache_mb: 256,
             vote: Vote::Winner,
             save_model: false,
         }
@@ -264,14 +273,6 @@ impl OvoSvm {
     }
 }
 
-/// Fields of smartcore's serialized `SVC` we read back.
-#[derive(Deserialize)]
-struct SvcParts {
-    instances: Option<Vec<Vec<f64>>>,
-    w: Option<Vec<f64>>,
-    b: Option<f64>,
-}
-
 impl SvmConfig {
     fn keys(&self) -> FeatureKeys {
         FeatureKeys {
@@ -289,8 +290,11 @@ impl SvmConfig {
         check_positive("c", self.c, "")?;
         check_range("gamma", self.gamma, 0.0, 1e6, "")?;
         check_positive("tol", self.tol, "")?;
-        if self.epochs == 0 {
-            return Err(ConfigError::key("epochs", "must be at least 1"));
+        if self.max_iter == 0 {
+            return Err(ConfigError::key("max_iter", "must be at least 1"));
+        }
+        if self.cache_mb == 0 || self.cache_mb > 1 << 20 {
+            return Err(ConfigError::key("cache_mb", "must be in 1..=1048576 (MiB)"));
         }
         Ok(())
     }
@@ -298,101 +302,129 @@ impl SvmConfig {
     /// Fits the one-vs-one SVM on a fold's training trials.
     pub fn fit_model(&self, train: &[&Item], ctx: &FitContext<'_>) -> Result<FittedModel, StageError> {
         self.check()?;
-        fit_classic(
-            &self.keys(),
-            self.vote,
-            "svm",
-            train,
-            ctx,
-            |set, d, scaler, seed| {
-                let k = set.classes.len();
-                let gamma = if self.gamma > 0.0 {
-                    self.gamma
-                } else {
-                    1.0 / set.dim as f64
+        let set = TrainSet::build(train, &self.keys())?;
+        self.fit_set(set, &mut ctx.rng())
+    }
+
+    /// Fits on prepared training vectors (what [`Self::fit_model`] does after
+    /// building them from the trials), drawing from `rng` as from the fold's generator.
+    pub fn fit_set(&self, set: TrainSet, rng: &mut ChaCha8Rng) -> Result<FittedModel, StageError> {
+        self.check()?;
+        fit_classic_set(set, self.vote, "svm", rng, |set, d, scaler, _seed| {
+            self.fit_design(set.classes.len(), set.dim, &d.rows, &set.y, scaler)
+        })
+    }
+
+    /// Fits the one-vs-one machines on standardised rows `rows` with class
+    /// indices `y` (`0..k`). Deterministic: SMO draws nothing at random.
+    pub fn fit_design(
+        &self,
+        k: usize,
+        dim: usize,
+        rows: &[Vec<f64>],
+        y: &[usize],
+        scaler: Standardizer,
+    ) -> Result<Classifier, StageError> {
+        let gamma = if self.gamma > 0.0 {
+            self.gamma
+        } else {
+            1.0 / dim.max(1) as f64
+        };
+        let n = rows.len();
+        // The fold's whole Gram matrix when it fits in the cache budget: every
+        // vector takes part in K - 1 pairs, so each kernel value is then
+        // computed once per fold instead of once per pair. It is built by rows
+        // in parallel; each entry's bits do not depend on the thread count.
+        let budget = self.cache_mb.saturating_mul(1 << 20);
+        let gram: Option<Vec<f64>> = n
+            .checked_mul(n)
+            .and_then(|nn| nn.checked_mul(std::mem::size_of::<f64>()))
+            .filter(|&bytes| bytes <= budget)
+            .map(|_| {
+                let mut g = vec![0.0f64; n * n];
+                g.par_chunks_mut(n.max(1)).enumerate().for_each(|(s, row)| {
+                    for (t, v) in row.iter_mut().enumerate() {
+                        *v = smo::rbf(&rows[s], &rows[t], gamma);
+                    }
+                });
+                g
+            });
+        let pairs: Vec<(usize, usize)> = (0..k).flat_map(|a| (a + 1..k).map(move |b| (a, b))).collect();
+        let params = smo::SmoParams {
+            c: self.c,
+            tol: self.tol,
+            max_iter: self.max_iter,
+            cache_bytes: budget,
+            shrinking: self.shrinking,
+        };
+        // Each pair's machine: (class a, class b, training rows used, coefficients, bias).
+        type Raw = (usize, usize, Vec<usize>, Vec<f64>, f64, bool);
+        let machines: Vec<Raw> = pairs
+            .par_iter()
+            .map(|&(a, b)| {
+                let idx: Vec<usize> = (0..n).filter(|&i| y[i] == a || y[i] == b).collect();
+                // Class b is the positive side (libsvm puts the first class there;
+                // only the sign convention differs).
+                let lab: Vec<f64> = idx.iter().map(|&i| if y[i] == b { 1.0 } else { -1.0 }).collect();
+                let sol = match &gram {
+                    Some(g) => smo::solve(&lab, &|s, t| g[idx[s] * n + idx[t]], &params),
+                    None => smo::solve(
+                        &lab,
+                        &|s, t| smo::rbf(&rows[idx[s]], &rows[idx[t]], gamma),
+                        &params,
+                    ),
                 };
-                let pairs: Vec<(usize, usize)> =
-                    (0..k).flat_map(|a| (a + 1..k).map(move |b| (a, b))).collect();
-                // Each pair's machine, as (class a, class b, support vectors, coefficients, bias).
-                type Raw = (usize, usize, Vec<Vec<f64>>, Vec<f64>, f64);
-                let machines: Vec<Result<Raw, StageError>> = pairs
-                    .par_iter()
-                    .enumerate()
-                    .map(|(p, &(a, b))| {
-                        let idx: Vec<usize> = (0..d.y.len())
-                            .filter(|&i| set.y[i] == a || set.y[i] == b)
-                            .collect();
-                        // smartcore 0.4's SVC copies `min(rows, dim)` values of each
-                        // row (it takes `n_rows` items of a row), so with fewer rows
-                        // than features the support vectors come back truncated. Each
-                        // row is then repeated `r` times with `C / r`: the dual of that
-                        // problem has the same solution (the copies' multipliers sum
-                        // to the original one's, bounded by `C`).
-                        let r = set.dim.div_ceil(idx.len().max(1)).max(1);
-                        let idx: Vec<usize> = (0..r).flat_map(|_| idx.iter().copied()).collect();
-                        let mut flat = Vec::with_capacity(idx.len() * set.dim);
-                        idx.iter().for_each(|&i| flat.extend_from_slice(&d.rows[i]));
-                        let x = DenseMatrix::new(idx.len(), set.dim, flat, false).map_err(smart_err)?;
-                        let y: Vec<i32> = idx.iter().map(|&i| i32::from(set.y[i] == b)).collect();
-                        let params = SVCParameters::default()
-                            .with_c(self.c / r as f64)
-                            .with_epoch(self.epochs)
-                            .with_tol(self.tol)
-                            .with_kernel(Kernels::rbf().with_gamma(gamma))
-                            .with_seed(Some(seed ^ (p as u64).wrapping_mul(0x9e37_79b9_7f4a_7c15)));
-                        let svc = SVC::fit(&x, &y, &params).map_err(smart_err)?;
-                        let parts: SvcParts = serde_json::to_value(&svc)
-                            .and_then(serde_json::from_value)
-                            .map_err(|e| StageError::new(format!("reading smartcore's SVC: {e}")))?;
-                        let (Some(inst), Some(w), Some(bias)) = (parts.instances, parts.w, parts.b) else {
-                            return Err(StageError::new(
-                                "smartcore's SVC came back without support vectors",
-                            ));
-                        };
-                        if inst.len() != w.len() || inst.iter().any(|v| v.len() != set.dim) {
-                            return Err(StageError::new(
-                                "smartcore's SVC returned support vectors of the wrong shape",
-                            ));
-                        }
-                        Ok((a, b, inst, w, bias))
-                    })
-                    .collect();
-                // Pool the support vectors in pair order (a deterministic order
-                // whatever the thread count); equal rows share one entry.
-                let mut pool: Vec<f64> = Vec::new();
-                let mut seen: std::collections::HashMap<Vec<u64>, u32> = std::collections::HashMap::new();
-                let mut out = Vec::with_capacity(machines.len());
-                for m in machines {
-                    let (a, b, inst, coef, bias) = m?;
-                    let sv_index = inst
-                        .iter()
-                        .map(|v| {
-                            let key: Vec<u64> = v.iter().map(|x| x.to_bits()).collect();
-                            let next = (pool.len() / set.dim.max(1)) as u32;
-                            *seen.entry(key).or_insert_with(|| {
-                                pool.extend_from_slice(v);
-                                next
-                            })
-                        })
-                        .collect();
-                    out.push(BinarySvm {
-                        a,
-                        b,
-                        sv_index,
-                        coef,
-                        bias,
-                    });
+                let mut sv = Vec::new();
+                let mut coef = Vec::new();
+                for (s, &al) in sol.alpha.iter().enumerate() {
+                    if al > 0.0 {
+                        sv.push(idx[s]);
+                        coef.push(al * lab[s]);
+                    }
                 }
-                Ok(Classifier::Svm(OvoSvm {
-                    dim: set.dim,
-                    classes: k,
-                    gamma,
-                    scaler,
-                    sv: pool,
-                    machines: out,
-                }))
-            },
-        )
+                (a, b, sv, coef, -sol.rho, sol.converged)
+            })
+            .collect();
+        // Pool the support vectors: a training row is stored once whatever the
+        // number of machines using it, in order of first use (pair order, so
+        // the same on any thread count).
+        let mut pool: Vec<f64> = Vec::new();
+        let mut slot: Vec<Option<u32>> = vec![None; n];
+        let mut out = Vec::with_capacity(machines.len());
+        for (a, b, sv, coef, bias, converged) in machines {
+            if !converged {
+                return Err(StageError::new(format!(
+                    "svm: the machine for classes {a} and {b} did not reach tol = {} within max_iter = {} \
+                     iterations (raise `max_iter` or `tol`)",
+                    self.tol, self.max_iter
+                )));
+            }
+            let sv_index = sv
+                .iter()
+                .map(|&r| {
+                    *slot[r].get_or_insert_with(|| {
+                        let next = (pool.len() / dim.max(1)) as u32;
+                        pool.extend_from_slice(&rows[r]);
+                        next
+                    })
+                })
+                .collect();
+            out.push(BinarySvm {
+                a,
+                b,
+                sv_index,
+                coef,
+                bias,
+            });
+        }
+        Ok(Classifier::Svm(OvoSvm {
+            dim,
+            classes: k,
+            gamma,
+            scaler,
+            sv: pool,
+            machines: out,
+        }))
     }
 }
 
@@ -527,31 +559,32 @@ impl RandomForestConfig {
     /// Fits the forest on a fold's training trials.
     pub fn fit_model(&self, train: &[&Item], ctx: &FitContext<'_>) -> Result<FittedModel, StageError> {
         self.check()?;
-        fit_classic(
-            &self.keys(),
-            self.vote,
-            "random_forest",
-            train,
-            ctx,
-            |set, d, scaler, seed| {
-                let mut p = RandomForestClassifierParameters::default()
-                    .with_n_trees(self.n_trees)
-                    .with_min_samples_leaf(self.min_samples_leaf)
-                    .with_seed(seed);
-                if self.max_depth > 0 {
-                    p = p.with_max_depth(self.max_depth);
-                }
-                if self.m > 0 {
-                    p = p.with_m(self.m.min(set.dim));
-                }
-                let forest = RandomForestClassifier::fit(&d.x, &d.y, p).map_err(smart_err)?;
-                Ok(Classifier::RandomForest(Forest {
-                    classes: set.classes.len(),
-                    scaler,
-                    forest,
-                }))
-            },
-        )
+        let set = TrainSet::build(train, &self.keys())?;
+        self.fit_set(set, &mut ctx.rng())
+    }
+
+    /// Fits on prepared training vectors (what [`Self::fit_model`] does after
+    /// building them from the trials), drawing from `rng` as from the fold's generator.
+    pub fn fit_set(&self, set: TrainSet, rng: &mut ChaCha8Rng) -> Result<FittedModel, StageError> {
+        self.check()?;
+        fit_classic_set(set, self.vote, "random_forest", rng, |set, d, scaler, seed| {
+            let mut p = RandomForestClassifierParameters::default()
+                .with_n_trees(self.n_trees)
+                .with_min_samples_leaf(self.min_samples_leaf)
+                .with_seed(seed);
+            if self.max_depth > 0 {
+                p = p.with_max_depth(self.max_depth);
+            }
+            if self.m > 0 {
+                p = p.with_m(self.m.min(set.dim));
+            }
+            let forest = RandomForestClassifier::fit(&d.x, &d.y, p).map_err(smart_err)?;
+            Ok(Classifier::RandomForest(Forest {
+                classes: set.classes.len(),
+                scaler,
+                forest,
+            }))
+        })
     }
 }
 
@@ -742,7 +775,15 @@ impl KnnConfig {
     /// Fits k-NN on a fold's training trials (`k` is capped at the vectors available).
     pub fn fit_model(&self, train: &[&Item], ctx: &FitContext<'_>) -> Result<FittedModel, StageError> {
         self.check()?;
-        fit_classic(&self.keys(), self.vote, "knn", train, ctx, |set, d, scaler, _| {
+        let set = TrainSet::build(train, &self.keys())?;
+        self.fit_set(set, &mut ctx.rng())
+    }
+
+    /// Fits on prepared training vectors (what [`Self::fit_model`] does after
+    /// building them from the trials), drawing from `rng` as from the fold's generator.
+    pub fn fit_set(&self, set: TrainSet, rng: &mut ChaCha8Rng) -> Result<FittedModel, StageError> {
+        self.check()?;
+        fit_classic_set(set, self.vote, "knn", rng, |set, d, scaler, _| {
             Ok(Classifier::Knn(Knn {
                 classes: set.classes.len(),
                 dim: set.dim,
@@ -869,48 +910,49 @@ impl LogisticConfig {
     /// Fits logistic regression on a fold's training trials.
     pub fn fit_model(&self, train: &[&Item], ctx: &FitContext<'_>) -> Result<FittedModel, StageError> {
         self.check()?;
-        fit_classic(
-            &self.keys(),
-            self.vote,
-            "logistic",
-            train,
-            ctx,
-            |set, d, scaler, _| {
-                let p = LogisticRegressionParameters::default().with_alpha(self.alpha);
-                let lr = LogisticRegression::fit(&d.x, &d.y, p).map_err(smart_err)?;
-                let k = set.classes.len();
-                let (coef, icpt) = (lr.coefficients(), lr.intercept());
-                let mut w = vec![0.0; k * set.dim];
-                let mut b = vec![0.0; k];
-                if k == 2 {
-                    // smartcore's binary model has one row, for class 1: softmax over
-                    // (0, z) is exactly sigmoid(z).
+        let set = TrainSet::build(train, &self.keys())?;
+        self.fit_set(set, &mut ctx.rng())
+    }
+
+    /// Fits on prepared training vectors (what [`Self::fit_model`] does after
+    /// building them from the trials), drawing from `rng` as from the fold's generator.
+    pub fn fit_set(&self, set: TrainSet, rng: &mut ChaCha8Rng) -> Result<FittedModel, StageError> {
+        self.check()?;
+        fit_classic_set(set, self.vote, "logistic", rng, |set, d, scaler, _| {
+            let p = LogisticRegressionParameters::default().with_alpha(self.alpha);
+            let lr = LogisticRegression::fit(&d.x, &d.y, p).map_err(smart_err)?;
+            let k = set.classes.len();
+            let (coef, icpt) = (lr.coefficients(), lr.intercept());
+            let mut w = vec![0.0; k * set.dim];
+            let mut b = vec![0.0; k];
+            if k == 2 {
+                // smartcore's binary model has one row, for class 1: softmax over
+                // (0, z) is exactly sigmoid(z).
+                for j in 0..set.dim {
+                    w[set.dim + j] = *coef.get((0, j));
+                }
+                b[1] = *icpt.get((0, 0));
+            } else {
+                for c in 0..k {
                     for j in 0..set.dim {
-                        w[set.dim + j] = *coef.get((0, j));
+                        w[c * set.dim + j] = *coef.get((c, j));
                     }
-                    b[1] = *icpt.get((0, 0));
-                } else {
-                    for c in 0..k {
-                        for j in 0..set.dim {
-                            w[c * set.dim + j] = *coef.get((c, j));
-                        }
-                        b[c] = *icpt.get((c, 0));
-                    }
+                    b[c] = *icpt.get((c, 0));
                 }
-                if w.iter().chain(&b).any(|v| !v.is_finite()) {
-                    return Err(StageError::new(
-                        "logistic regression diverged (non-finite coefficients); raise `alpha`",
-                    ));
-                }
-                Ok(Classifier::Logistic(Softmax {
-                    dim: set.dim,
-                    classes: k,
-                    w,
-                    b,
-                    scaler,
-                }))
-            },
-        )
+            }
+            if w.iter().chain(&b).any(|v| !v.is_finite()) {
+                return Err(StageError::new(
+                    "logistic regression diverged (non-finite coefficients); raise `alpha`",
+                ));
+            }
+            Ok(Classifier::Logistic(Softmax {
+                dim: set.dim,
+                classes: k,
+                w,
+                b,
+                scaler,
+            }))
+        })
     }
 }
 
