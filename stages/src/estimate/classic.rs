@@ -230,11 +230,20 @@ pub struct OvoSvm {
 impl OvoSvm {
     /// Kernel values `exp(-γ‖x - s‖²)` of standardised `x` against every pooled support vector.
     pub fn kernel_row(&self, x: &[f64], out: &mut Vec<f64>) {
-        out.clear();
-        out.extend(self.sv.chunks_exact(self.dim.max(1)).map(|s| {
-            let d2: f64 = s.iter().zip(x).map(|(a, b)| (a - b) * (a - b)).sum();
-            (-self.gamma * d2).exp()
-        }));
+        out.resize(self.sv.len() / self.dim.max(1), 0.0);
+        self.kernel_into(x, out);
+    }
+
+    #[inline]
+    fn kernel_into(&self, x: &[f64], out: &mut [f64]) {
+        let gamma = self.gamma;
+        // Four partial sums per distance in a fixed order and no FMA: the
+        // same bits with or without AVX2 (crate::wide).
+        crate::wide::with_avx2(|| {
+            for (k, s) in out.iter_mut().zip(self.sv.chunks_exact(self.dim.max(1))) {
+                *k = (-gamma * smo::sq_dist(s, x)).exp();
+            }
+        });
     }
 
     /// Decision value of machine `m` given the kernel row of `x`.
@@ -248,32 +257,51 @@ impl OvoSvm {
 
     /// Vote shares (with the confidence tie-breaker) of a normalised vector.
     pub fn frame_scores(&self, x: &[f64], out: &mut [f64]) {
-        let mut z = x.to_vec();
-        self.scaler.apply(&mut z);
-        let mut kernel = Vec::with_capacity(self.sv.len() / self.dim.max(1));
-        self.kernel_row(&z, &mut kernel);
-        let mut votes = vec![0.0; self.classes];
-        let mut conf = vec![0.0; self.classes];
-        for m in &self.machines {
-            let f = self.decision(m, &kernel);
-            if f > 0.0 {
-                votes[m.b] += 1.0;
-            } else {
-                votes[m.a] += 1.0;
+        self.scores_batch(x, out);
+    }
+
+    /// [`Self::frame_scores`] of every row of `x` (row-major, `dim` wide) into
+    /// the rows of `out` (`classes` wide), with the working buffers allocated
+    /// once: the same bits as row by row.
+    pub fn scores_batch(&self, x: &[f64], out: &mut [f64]) {
+        let dim = self.dim.max(1);
+        let k = self.classes;
+        let mut z = vec![0.0; dim];
+        let mut kernel = vec![0.0; self.sv.len() / dim];
+        let mut votes = vec![0.0; k];
+        let mut conf = vec![0.0; k];
+        let norm = 1.0 / (k.max(2) - 1) as f64;
+        for (row, o) in x.chunks_exact(dim).zip(out.chunks_exact_mut(k.max(1))) {
+            z.copy_from_slice(row);
+            self.scaler.apply(&mut z);
+            self.kernel_into(&z, &mut kernel);
+            votes.iter_mut().for_each(|v| *v = 0.0);
+            conf.iter_mut().for_each(|v| *v = 0.0);
+            for m in &self.machines {
+                let f = self.decision(m, &kernel);
+                if f > 0.0 {
+                    votes[m.b] += 1.0;
+                } else {
+                    votes[m.a] += 1.0;
+                }
+                conf[m.b] += f;
+                conf[m.a] -= f;
             }
-            conf[m.b] += f;
-            conf[m.a] -= f;
-        }
-        let cmax = conf.iter().fold(0.0f64, |a, c| a.max(c.abs()));
-        let norm = 1.0 / (self.classes.max(2) - 1) as f64;
-        for c in 0..self.classes {
-            let s = votes[c] + conf[c] / (3.0 * (cmax + 1.0));
-            out[c] = (s * norm).max(0.0);
+            let cmax = conf.iter().fold(0.0f64, |a, c| a.max(c.abs()));
+            for c in 0..k {
+                let s = votes[c] + conf[c] / (3.0 * (cmax + 1.0));
+                o[c] = (s * norm).max(0.0);
+            }
         }
     }
 }
 
 impl SvmConfig {
+    /// The feature keys, as the shared plumbing takes them.
+    pub fn feature_keys(&self) -> FeatureKeys {
+        self.keys()
+    }
+
     fn keys(&self) -> FeatureKeys {
         FeatureKeys {
             frames: self.frames,
@@ -341,12 +369,21 @@ impl SvmConfig {
             .and_then(|nn| nn.checked_mul(std::mem::size_of::<f64>()))
             .filter(|&bytes| bytes <= budget)
             .map(|_| {
+                // The upper triangle by rows, then mirrored: (a - b)² = (b - a)²
+                // exactly, so the matrix is symmetric bit for bit anyway.
                 let mut g = vec![0.0f64; n * n];
                 g.par_chunks_mut(n.max(1)).enumerate().for_each(|(s, row)| {
-                    for (t, v) in row.iter_mut().enumerate() {
-                        *v = smo::rbf(&rows[s], &rows[t], gamma);
-                    }
+                    crate::wide::with_avx2(|| {
+                        for (t, v) in row.iter_mut().enumerate().skip(s) {
+                            *v = smo::rbf(&rows[s], &rows[t], gamma);
+                        }
+                    })
                 });
+                for s in 0..n {
+                    for t in 0..s {
+                        g[s * n + t] = g[t * n + s];
+                    }
+                }
                 g
             });
         let pairs: Vec<(usize, usize)> = (0..k).flat_map(|a| (a + 1..k).map(move |b| (a, b))).collect();
@@ -534,6 +571,11 @@ impl Forest {
 }
 
 impl RandomForestConfig {
+    /// The feature keys, as the shared plumbing takes them.
+    pub fn feature_keys(&self) -> FeatureKeys {
+        self.keys()
+    }
+
     fn keys(&self) -> FeatureKeys {
         FeatureKeys {
             frames: self.frames,
@@ -690,8 +732,16 @@ impl Knn {
     /// distance, index), nearest first; ties go to the lower index, so the
     /// answer does not depend on evaluation order.
     pub fn neighbours(&self, z: &[f64]) -> Vec<(f64, usize)> {
+        let mut best = Vec::with_capacity(self.k.min(self.y.len()) + 1);
+        self.neighbours_into(z, &mut best);
+        best
+    }
+
+    /// [`Self::neighbours`] into a reused buffer.
+    #[inline]
+    fn neighbours_into(&self, z: &[f64], best: &mut Vec<(f64, usize)>) {
         let k = self.k.min(self.y.len());
-        let mut best: Vec<(f64, usize)> = Vec::with_capacity(k + 1);
+        best.clear();
         for (i, row) in self.x.chunks_exact(self.dim.max(1)).enumerate() {
             let d2 = sq_dist(row, z);
             // Inputs are checked finite, so d2 is; a non-finite one is never a neighbour.
@@ -703,19 +753,34 @@ impl Knn {
             best.insert(pos, (d2, i));
             best.truncate(k);
         }
-        best
     }
 
     /// Neighbour shares per class (weighted by `1 / distance` in `distance`
     /// mode; neighbours at distance 0, if any, share all the weight).
     pub fn frame_scores(&self, x: &[f64], out: &mut [f64]) {
+        self.scores_batch(x, out);
+    }
+
+    /// [`Self::frame_scores`] of every row of `x` into the rows of `out`, buffers allocated once per call.
+    pub fn scores_batch(&self, x: &[f64], out: &mut [f64]) {
+        let mut z = vec![0.0; self.dim.max(1)];
+        let mut nb = Vec::with_capacity(self.k.min(self.y.len()) + 1);
+        for (row, o) in x
+            .chunks_exact(self.dim.max(1))
+            .zip(out.chunks_exact_mut(self.classes.max(1)))
+        {
+            z.copy_from_slice(row);
+            self.scaler.apply(&mut z);
+            crate::wide::with_avx2(|| self.neighbours_into(&z, &mut nb));
+            self.shares(&nb, o);
+        }
+    }
+
+    fn shares(&self, nb: &[(f64, usize)], out: &mut [f64]) {
         out.iter_mut().for_each(|o| *o = 0.0);
-        let mut z = x.to_vec();
-        self.scaler.apply(&mut z);
-        let nb = self.neighbours(&z);
         let exact = nb.iter().any(|&(d, _)| d == 0.0);
         let mut total = 0.0;
-        for &(d2, i) in &nb {
+        for &(d2, i) in nb {
             let w = match self.weight {
                 KnnWeight::Uniform => 1.0,
                 KnnWeight::Distance if exact => f64::from(u8::from(d2 == 0.0)),
@@ -735,6 +800,7 @@ impl Knn {
 }
 
 /// Squared Euclidean distance, over fixed-width chunks (vectorises; fixed order).
+#[inline]
 fn sq_dist(a: &[f64], b: &[f64]) -> f64 {
     let mut acc = [0.0f64; 4];
     let (ca, cb) = (a.chunks_exact(4), b.chunks_exact(4));
@@ -753,6 +819,11 @@ fn sq_dist(a: &[f64], b: &[f64]) -> f64 {
 }
 
 impl KnnConfig {
+    /// The feature keys, as the shared plumbing takes them.
+    pub fn feature_keys(&self) -> FeatureKeys {
+        self.keys()
+    }
+
     fn keys(&self) -> FeatureKeys {
         FeatureKeys {
             frames: self.frames,
@@ -880,16 +951,32 @@ pub struct Softmax {
 impl Softmax {
     /// Class probabilities.
     pub fn frame_scores(&self, x: &[f64], out: &mut [f64]) {
-        let mut z = x.to_vec();
-        self.scaler.apply(&mut z);
-        for (c, o) in out.iter_mut().enumerate().take(self.classes) {
-            *o = dot(&self.w[c * self.dim..(c + 1) * self.dim], &z) + self.b[c];
+        self.scores_batch(x, out);
+    }
+
+    /// [`Self::frame_scores`] of every row of `x` into the rows of `out`, one buffer per call.
+    pub fn scores_batch(&self, x: &[f64], out: &mut [f64]) {
+        let mut z = vec![0.0; self.dim.max(1)];
+        for (row, o) in x
+            .chunks_exact(self.dim.max(1))
+            .zip(out.chunks_exact_mut(self.classes.max(1)))
+        {
+            z.copy_from_slice(row);
+            self.scaler.apply(&mut z);
+            for (c, o) in o.iter_mut().enumerate().take(self.classes) {
+                *o = dot(&self.w[c * self.dim..(c + 1) * self.dim], &z) + self.b[c];
+            }
+            softmax(&mut o[..self.classes]);
         }
-        softmax(&mut out[..self.classes]);
     }
 }
 
 impl LogisticConfig {
+    /// The feature keys, as the shared plumbing takes them.
+    pub fn feature_keys(&self) -> FeatureKeys {
+        self.keys()
+    }
+
     fn keys(&self) -> FeatureKeys {
         FeatureKeys {
             frames: self.frames,
