@@ -26,11 +26,11 @@
 //!   `1 / dim` (sklearn's "scale" for standardised features).
 //!   Why not smartcore's `SVC` (used before): it is LaSVM, an *approximate*
 //!   online solver run for a fixed number of passes, which recomputes and
-//!   allocates every kernel value it touches. One pass left the machines short
-//!   of the optimum by an amount that depended on the data size: the stage's
-//!   "cliff" (5 training vectors per trial gave 34.9° MAE, 8 gave 0.26°) was the
-//!   solver, not the data; see the `max_train_frames` doc for the exact solver's
-//!   numbers. It also took ~10 s per Table 2 fold.
+//!   allocates every kernel value it touches (~10 s per Table 2 fold; now
+//!   well under 1 s). The accuracy "cliff" in `max_train_frames` (5 vectors
+//!   per trial gave 34.9° MAE, 8 gave 0.26°) is *not* the solver's: the exact
+//!   solver gives 39.18° at 5 and 0.38° at 8; its cause is still open (see
+//!   `max_train_frames`).
 //! * `random_forest`: smartcore's `RandomForestClassifier` (Gini, bootstrap,
 //!   `m = sqrt(dim)` features per split by default), 15 trees on at most 15
 //!   vectors per training trial (smartcore grows a tree in ~0.1 s on 2300
@@ -149,6 +149,11 @@ pub struct SvmConfig {
     /// Smallest spike total of a used vector. Default 1.
     pub min_spikes: f64,
     /// Most vectors a training trial contributes (evenly spaced). Default 8.
+    /// Measured on graphs/paper/table2.toml's front end (lab scene, seed 1)
+    /// with the exact SMO solver: 5 gives 39.18° MAE, 8 gives 0.38°. The old
+    /// one-pass solver showed the same cliff (34.9° / 0.26°), so it is not a
+    /// solver artefact; why 5 evenly spaced vectors per trial fail is not
+    /// pinned down yet.
     pub max_train_frames: usize,
     /// Soft-margin penalty C. Default 10.
     pub c: f64,

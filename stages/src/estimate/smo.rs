@@ -47,11 +47,12 @@
 //!
 //! Why not smartcore's `SVC`: it is an approximate online solver (LaSVM, a
 //! fixed number of passes) that recomputes and allocates every kernel value it
-//! touches; one pass leaves the machines short of the optimum, by an amount
-//! that depends on how many vectors each pass sees. That was the "cliff" of the
-//! `svm` stage (5 training vectors per trial gave 34.9° MAE, 8 gave 0.26°):
-//! the solution, not the data, changed. This solver runs to the stated KKT
-//! tolerance whatever the problem size.
+//! touches: ~10 s per Table 2 fold, against well under 1 s here (the `svm`
+//! stage's `fit median ms` in the timing table of graphs/paper/table2.toml).
+//! The stage's accuracy "cliff" (5 training vectors per trial: 34.9° MAE with
+//! LaSVM, 8: 0.26°) is **not** the solver: this exact solver gives 39.18° at 5
+//! and 0.38° at 8 on the same graph (`palpate run` of table2.toml's front end
+//! with only the `svm` stage, `--set stages.svm.max_train_frames=5` / `8`).
 
 use std::collections::HashMap;
 
