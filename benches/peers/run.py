@@ -724,6 +724,8 @@ def main():
                 kept_tail.append(l)
         prev = next((l for l in old if l.startswith("Produced by")), "")
         again = next((l for l in old if l.startswith("The encoder rows above were kept")), None)
+        if kept_tail and kept_tail[-1] != "":
+            kept_tail.append("")
         if kept_rows and again:
             kept_tail += [again, ""]
         elif kept_rows and prev:
