@@ -1,7 +1,8 @@
 //! Training time of the paper's trained baselines, one fold on a paper-sized
 //! synthetic set (17 classes x 10 trials at 2 mm/s, ~1000-4000 frames of 4x4
 //! per trial; train on 9 repetitions = 153 trials) with each estimator's
-//! defaults: ANN (S), ANN (ST) and EDBN (rate inference). The held-out
+//! defaults: ANN (S), ANN (ST), EDBN (rate inference), and the classical
+//! SVM (exact SMO), random forest, k-NN and logistic regression. The held-out
 //! accuracy of the fold is printed once, so a fast but broken fit shows.
 //!
 //! `CARGO_TARGET_DIR=... cargo bench --bench baselines`
@@ -9,6 +10,7 @@
 use criterion::{criterion_group, criterion_main, Criterion};
 use palpate_core::{FitContext, Item, StageError};
 use palpate_stages::estimate::ann::{AnnConfig, AnnInput};
+use palpate_stages::estimate::classic::{KnnConfig, LogisticConfig, RandomForestConfig, SvmConfig};
 use palpate_stages::estimate::edbn::EdbnConfig;
 use palpate_stages::estimate::features::{synthetic_items, FittedModel, SynthParams};
 use std::time::Duration;
@@ -38,6 +40,16 @@ fn bench(c: &mut Criterion) {
         ("ann_s", Box::new(move |t, c| ann_s.fit_model(t, c))),
         ("ann_st", Box::new(move |t, c| ann_st.fit_model(t, c))),
         ("edbn", Box::new(move |t, c| edbn.fit_model(t, c))),
+        ("svm", Box::new(|t, c| SvmConfig::default().fit_model(t, c))),
+        (
+            "random_forest",
+            Box::new(|t, c| RandomForestConfig::default().fit_model(t, c)),
+        ),
+        ("knn", Box::new(|t, c| KnnConfig::default().fit_model(t, c))),
+        (
+            "logistic",
+            Box::new(|t, c| LogisticConfig::default().fit_model(t, c)),
+        ),
     ];
     let mut g = c.benchmark_group("baselines_fit_fold");
     g.sample_size(10)

@@ -24,13 +24,13 @@
 //! 2. Baselines. The quickstart front end on the whole lab data set (17 angles x
 //!    10 trials, seed `--seed`), binned into 100 ms / 10 ms images; fold 0 of
 //!    leave-one-trial-out (train on repetitions 1-9, test on repetition 0 of every
-//!    class, as the runtime's fold 0). For `ann_s` (ANN (S)), `ann_st` (ANN (ST))
-//!    and `edbn` with the stage defaults (stage ids and fold seed as in
+//!    class, as the runtime's fold 0). For `ann_s` (ANN (S)), `ann_st` (ANN (ST)),
+//!    `edbn`, `svm`, `random_forest`, `knn` and `logistic` with the stage defaults (stage ids and fold seed as in
 //!    `graphs/paper/table2.toml`), the training vectors exactly as the stages
 //!    build them ([`TrainSet::build`]) and every active test vector
 //!    ([`FeatureSpec::trial_vectors`]) are written as NPY; palpate trains on them
-//!    ([`AnnConfig::fit_set`], [`EdbnConfig::fit_set`]) and predicts every test
-//!    vector plus the trials' winner-take-all vote, timed; the JSON gets times,
+//!    (each config's `fit_set`) and predicts every test vector in one batch
+//!    call (`Classifier::scores_batch`) plus the trials' winner-take-all vote, timed; the JSON gets times,
 //!    frame accuracy and the test trials' MAE. The ANN's early-stopping split
 //!    (whole trials, drawn from the fold's generator) is exported too, so the peer
 //!    can stop on the same validation trials.
@@ -44,6 +44,7 @@
 use palpate_core::{derive_seed, FitContext, Item, LoadOptions, RunOptions, SpikeEvent};
 use palpate_stages::encode::izhikevich::{Izhikevich, IzhikevichConfig, Scheme};
 use palpate_stages::estimate::ann::{AnnConfig, AnnInput};
+use palpate_stages::estimate::classic::{KnnConfig, LogisticConfig, RandomForestConfig, SvmConfig};
 use palpate_stages::estimate::edbn::EdbnConfig;
 use palpate_stages::estimate::features::{argmax, Accumulator, FittedModel, TrainSet};
 use palpate_stages::io::arrays::npy_bytes;
@@ -300,33 +301,60 @@ fn encoder(args: &Args) -> Res<Value> {
 enum Baseline {
     Ann(AnnConfig),
     Edbn(EdbnConfig),
+    Svm(SvmConfig),
+    Forest(RandomForestConfig),
+    Knn(KnnConfig),
+    Logistic(LogisticConfig),
 }
 
 impl Baseline {
+    fn kind(&self) -> &'static str {
+        match self {
+            Baseline::Ann(_) => "ann",
+            Baseline::Edbn(_) => "edbn",
+            Baseline::Svm(_) => "svm",
+            Baseline::Forest(_) => "random_forest",
+            Baseline::Knn(_) => "knn",
+            Baseline::Logistic(_) => "logistic",
+        }
+    }
     fn keys(&self) -> palpate_stages::estimate::features::FeatureKeys {
         match self {
             Baseline::Ann(c) => c.feature_keys(),
             Baseline::Edbn(c) => c.keys(),
+            Baseline::Svm(c) => c.feature_keys(),
+            Baseline::Forest(c) => c.feature_keys(),
+            Baseline::Knn(c) => c.feature_keys(),
+            Baseline::Logistic(c) => c.feature_keys(),
         }
     }
     fn config_json(&self) -> Value {
         match self {
             Baseline::Ann(c) => serde_json::to_value(c).unwrap_or(Value::Null),
             Baseline::Edbn(c) => serde_json::to_value(c).unwrap_or(Value::Null),
+            Baseline::Svm(c) => serde_json::to_value(c).unwrap_or(Value::Null),
+            Baseline::Forest(c) => serde_json::to_value(c).unwrap_or(Value::Null),
+            Baseline::Knn(c) => serde_json::to_value(c).unwrap_or(Value::Null),
+            Baseline::Logistic(c) => serde_json::to_value(c).unwrap_or(Value::Null),
         }
     }
     /// Fits on `set` with the fold's generator, as the stage's `fit_model` does
     /// after building the set.
     fn fit(&self, set: TrainSet, ctx: &FitContext<'_>) -> Res<FittedModel> {
+        let rng = &mut ctx.rng();
         match self {
             Baseline::Ann(c) => {
                 c.check().map_err(|e| e.to_string())?;
-                Ok(c.fit_set(set, &mut ctx.rng()))
+                Ok(c.fit_set(set, rng))
             }
             Baseline::Edbn(c) => {
                 c.check().map_err(|e| e.to_string())?;
-                c.fit_set(set, &mut ctx.rng()).map_err(|e| e.message)
+                c.fit_set(set, rng).map_err(|e| e.message)
             }
+            Baseline::Svm(c) => c.fit_set(set, rng).map_err(|e| e.message),
+            Baseline::Forest(c) => c.fit_set(set, rng).map_err(|e| e.message),
+            Baseline::Knn(c) => c.fit_set(set, rng).map_err(|e| e.message),
+            Baseline::Logistic(c) => c.fit_set(set, rng).map_err(|e| e.message),
         }
     }
 }
@@ -340,8 +368,9 @@ struct TestSet {
     trial_angle: Vec<f64>,
 }
 
-/// Per-frame class scores of every test row, and each trial's
-/// winner-take-all answer (degrees; `None` = no edge).
+/// Per-frame class scores of every test row (one batch call, as the stage
+/// scores a trial), and each trial's winner-take-all answer (degrees; `None`
+/// = no edge).
 fn predict(model: &FittedModel, t: &TestSet) -> (Vec<usize>, Vec<Option<f64>>) {
     let k = model.classes.len();
     // Only spiking EDBN inference draws on it; the defaults (rate) do not.
@@ -351,14 +380,15 @@ fn predict(model: &FittedModel, t: &TestSet) -> (Vec<usize>, Vec<Option<f64>>) {
         seed: 0,
     }
     .rng();
-    let mut scores = vec![0.0; k];
+    let mut scores = vec![0.0; t.y.len() * k];
+    model
+        .classifier
+        .scores_batch(&t.x, t.dim, k, &mut rng, &mut scores);
     let mut pred = Vec::with_capacity(t.y.len());
     let mut accs: Vec<Accumulator> = (0..t.trial_angle.len()).map(|_| Accumulator::new(k)).collect();
-    for (i, &tr) in t.trial.iter().enumerate() {
-        let x = &t.x[i * t.dim..(i + 1) * t.dim];
-        model.classifier.frame_scores(x, &mut rng, &mut scores);
-        pred.push(argmax(&scores));
-        accs[tr].add(i, &scores, model.vote);
+    for (i, (&tr, s)) in t.trial.iter().zip(scores.chunks_exact(k)).enumerate() {
+        pred.push(argmax(s));
+        accs[tr].add(i, s, model.vote);
     }
     let answers = accs
         .iter()
@@ -389,6 +419,10 @@ fn baselines(args: &Args) -> Res<Value> {
         ),
         ("ann_st", Baseline::Ann(AnnConfig::default())),
         ("edbn", Baseline::Edbn(EdbnConfig::default())),
+        ("svm", Baseline::Svm(SvmConfig::default())),
+        ("random_forest", Baseline::Forest(RandomForestConfig::default())),
+        ("knn", Baseline::Knn(KnnConfig::default())),
+        ("logistic", Baseline::Logistic(LogisticConfig::default())),
     ];
     let mut out = serde_json::Map::new();
     for (id, b) in &models {
@@ -408,7 +442,7 @@ fn baselines(args: &Args) -> Res<Value> {
                 val.iter().for_each(|&i| m[i] = 1.0);
                 m
             }
-            Baseline::Edbn(_) => vec![0.0; set.len()],
+            _ => vec![0.0; set.len()],
         };
         let mut t = TestSet {
             dim: set.dim,
@@ -488,7 +522,7 @@ fn baselines(args: &Args) -> Res<Value> {
         out.insert(
             id.to_string(),
             json!({
-                "kind": match b { Baseline::Ann(_) => "ann", Baseline::Edbn(_) => "edbn" },
+                "kind": b.kind(),
                 "config": b.config_json(),
                 "fold": 0,
                 "fold_seed": fold_seed,

@@ -25,9 +25,10 @@ if [[ ! -x "$venv/bin/python" ]]; then
 fi
 work="$here/work"
 mkdir -p "$work"
-# One thread for the numeric libraries: palpate trains a fold and encodes a
-# trial on one core, and so do the peers.
-export OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1
+# One thread for the numeric libraries and for palpate's rayon pool (the SVM
+# trains its pairwise machines in parallel, the Gram matrix by rows): both
+# sides fit and predict on one core.
+export OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 RAYON_NUM_THREADS=1
 cd "$root"
 cargo run --release --example peers -- --out "$work" --seed "$seed"
 "$venv/bin/python" "$here/run.py" --work "$work" \

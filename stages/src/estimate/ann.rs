@@ -321,11 +321,24 @@ impl Mlp {
 
     /// Class probabilities of a normalised (not yet standardised) vector.
     pub fn frame_scores(&self, x: &[f64], out: &mut [f64]) {
-        let mut z = x.to_vec();
-        self.scaler.apply(&mut z);
+        self.scores_batch(x, out);
+    }
+
+    /// [`Self::frame_scores`] of every row of `x` (row-major, `dim` wide) into
+    /// the rows of `out` (`classes` wide), with the working buffers allocated
+    /// once: the same bits as row by row.
+    pub fn scores_batch(&self, x: &[f64], out: &mut [f64]) {
+        let mut z = vec![0.0; self.dim.max(1)];
         let mut s = self.scratch();
-        self.forward(&z, &mut s);
-        out.copy_from_slice(&s.p);
+        for (row, o) in x
+            .chunks_exact(self.dim.max(1))
+            .zip(out.chunks_exact_mut(self.classes.max(1)))
+        {
+            z.copy_from_slice(row);
+            self.scaler.apply(&mut z);
+            self.forward(&z, &mut s);
+            o.copy_from_slice(&s.p);
+        }
     }
 
     /// Mean cross-entropy of standardised rows `x` (row-major) with labels `y`,

@@ -462,6 +462,46 @@ impl Dbn {
         }
     }
 
+    /// [`Self::frame_scores`] of every row of `x` (row-major, `dim` wide) into
+    /// the rows of `out` (`classes` wide), in row order: the same bits as row
+    /// by row; rate inference reuses its buffers across rows.
+    pub fn scores_batch(&self, x: &[f64], dim: usize, rng: &mut ChaCha8Rng, out: &mut [f64]) {
+        let k = self.classes.max(1);
+        let shapes_ok = |top: &Rbm, below: &[Rbm]| {
+            let fed = below.last().map_or(dim, |r| r.n_hid);
+            top.labels == self.classes && top.n_vis.checked_sub(top.labels) == Some(fed)
+        };
+        let (Inference::Rate, Some((top, below))) = (self.inference, self.rbms.split_last()) else {
+            for (row, o) in x.chunks_exact(dim.max(1)).zip(out.chunks_exact_mut(k)) {
+                self.frame_scores(row, rng, o);
+            }
+            return;
+        };
+        if !shapes_ok(top, below) {
+            // A model whose layers do not chain: the row-by-row path decides.
+            for (row, o) in x.chunks_exact(dim.max(1)).zip(out.chunks_exact_mut(k)) {
+                self.frame_scores(row, rng, o);
+            }
+            return;
+        }
+        // One buffer per layer's activities; the top one has room for the labels.
+        let mut acts: Vec<Vec<f64>> = below.iter().map(|r| vec![0.0; r.n_hid]).collect();
+        let mut top_in = vec![0.0; top.n_vis];
+        let mut d = Disc::new(self.classes, top.n_hid);
+        for (row, o) in x.chunks_exact(dim.max(1)).zip(out.chunks_exact_mut(k)) {
+            let mut v: &[f64] = row;
+            for (r, h) in below.iter().zip(acts.iter_mut()) {
+                r.hid_prob(v, h);
+                v = &h[..];
+            }
+            let nb = top.n_vis - top.labels;
+            top_in[..nb].copy_from_slice(&v[..nb]);
+            top_in[nb..].iter_mut().for_each(|t| *t = 0.0);
+            top.label_posterior(&top_in, &mut d);
+            o[..self.classes].copy_from_slice(&d.p);
+        }
+    }
+
     /// Mean-field label posterior.
     pub fn rate_scores(&self, x: &[f64], out: &mut [f64]) {
         let mut v = x.to_vec();

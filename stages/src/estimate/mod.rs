@@ -26,6 +26,7 @@ pub mod ann;
 pub mod classic;
 pub mod edbn;
 pub mod features;
+pub mod smo;
 pub mod wss;
 
 use palpate_core::SpikeImages;
