@@ -618,10 +618,11 @@ def section_speed_error(out, docs):
     if not exists(os.path.join(d, "sweep.json")):
         return []
     rows = sweep(d)
-    series = {}
+    series, labels = {}, {}
     for label, m in rows.items():
         name, v = label.split("/", 1)
         series.setdefault(name, {})[float(v)] = m["wss.mae_deg"]
+        labels[(name, float(v))] = label
     true_speed = 2.0
     speeds = sorted(series["known"])
     errs = [100.0 * (v / true_speed - 1.0) for v in speeds]
@@ -646,7 +647,7 @@ def section_speed_error(out, docs):
     for n in series:
         per = []
         for v in speeds:
-            label = f"{n}/{v:g}"
+            label = labels[(n, v)]
             reps = series[n][v][2]
             try:
                 per.append("/".join(f"{r['mae_deg']:.2f}" for r in _per_seed(d, label, reps)))
