@@ -663,7 +663,7 @@ def section_speed_error(out, docs):
         f"joint {worst_joint:.2f}° ({worst_joint / max(known0, 1e-9):.1f}x the known-speed MAE; target ≤ 2x: "
         f"**{yes_no(worst_joint <= 2.0 * known0)}**).",
         "- Why a wrong speed hurts: the templates' timing is the normal speed v·sin θ, so a declared speed "
-        "10 % off is matched best by an angle whose sin θ is 10 % off (about 6° at 45°).",
+        "10 % off is matched best by an angle whose sin θ is 10 % off (geometry: 45° then reads as about 51°).",
         "- The joint search costs about `speed_steps` (5) times the classes plus ~20 single-class "
         "evaluations per trial; its accuracy-time point is the `wss_speed` series of "
         "graphs/accuracy_vs_time.toml.",
@@ -692,7 +692,7 @@ def section_seeds(out):
         per = ", ".join(f"{r['mae_deg']:.2f}" for r in _per_seed(d, label, reps))
         mx = m.get("wss.max_class_mae_deg", (0, 0, 0))
         ne = m.get("wss.no_edge", (0, 0, 0))
-        lines.append(f"| {label} | {pm(mean, sd)} | {pm(mx[0], mx[1])} | {ne[0]:.1f} | {per} |")
+        lines.append(f"| 1 − SR, refine = {label} | {pm(mean, sd)} | {pm(mx[0], mx[1])} | {ne[0]:.1f} | {per} |")
     lines += [
         "",
         "A single seed's number (Table 1 above is seed 1) is one simulated array; the spread across "
