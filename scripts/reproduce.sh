@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Reproduces the paper's findings in one command:
 #   1. builds the release binary,
-#   2. runs every graph in graphs/paper/ (table2.toml included when present),
+#   2. runs every graph in graphs/paper/ (table2.toml included when present)
+#      and graphs/continuous.toml (issue 15),
 #      writing its reports into out/paper/<name>/,
 #   3. runs graphs/accuracy_vs_time.toml (issue 8's accuracy-time frontier)
 #      into out/accuracy_vs_time/ and the memory study (`cargo bench --bench
@@ -30,7 +31,7 @@ build_end=$(date +%s.%N)
 
 mkdir -p "$OUT"
 timings=()
-for graph in graphs/paper/*.toml; do
+for graph in graphs/paper/*.toml graphs/continuous.toml; do
     name=$(basename "$graph" .toml)
     echo "== $graph -> $OUT/$name"
     "$bin" check "$graph"

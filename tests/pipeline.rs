@@ -52,11 +52,13 @@ fn run_quickstart(overrides: &[(&str, &str)]) -> Vec<(f64, Option<f64>)> {
 /// Izhikevich -> bins -> WSS) with constant and with 1 + SR weights.
 ///
 /// With the paper's 1 - SR weights the ideal scene is NOT exact (a few classes
-/// go 5 degrees high): 1 - SR weighs the sparse frames at the start and end of a
-/// taxel's crossing most, and there the ideal scene's sharp-cornered response
-/// and the neuron's threshold differ most from the Gaussian template. The lab
-/// scene's skin spreading smooths those corners (see RESULTS.md). This test
-/// pins that finding too, so a change to it is noticed.
+/// go 5 degrees high): on that scene a taxel fires only while the edge is over
+/// its own area, so a template's span holds spike-free frames (correlation 0),
+/// and 1 - SR gives exactly those frames its largest weight, diluting longer
+/// templates (smaller angles) more. No template width or shape fixes it; the
+/// lab scene's skin spread fills those frames (see the WSS module docs, and
+/// why WSS's default weighting is constant). This test pins that finding too,
+/// so a change to it is noticed.
 #[test]
 fn ideal_scene_is_estimated_exactly_with_constant_and_one_plus_sr_weights() {
     for w in ["constant", "one_plus_sr"] {

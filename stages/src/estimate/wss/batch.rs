@@ -28,7 +28,7 @@
 //! frames and raw templates) that tests compare the fast path with.
 
 use super::params::{BeforeStart, Refine, WssParams};
-use super::templates::{normalize, raw_template, ClassTemplates, Soa, Templates};
+use super::templates::{normalize, raw_templates, ClassTemplates, Soa, Templates};
 use palpate_core::{ClassScore, Estimate, SpikeImages, StageError};
 use realfft::num_complex::Complex;
 use std::collections::HashMap;
@@ -522,9 +522,7 @@ pub fn wss_reference_series(
     let w = prep.weights(params, prep.max_count);
     let mut all = Vec::new();
     for cls in tpl.classes() {
-        let raws: Vec<Vec<f64>> = (0..cls.len)
-            .map(|i| raw_template(tpl.layout(), tpl.hop_ms(), params, cls.angle_deg, i))
-            .collect();
+        let raws = raw_templates(tpl.layout(), tpl.hop_ms(), params, cls.angle_deg, cls.len);
         let mut out = Vec::with_capacity(k);
         for kk in 0..k {
             let (_, nw, extra) = window(kk, cls.len, params.before_start);
@@ -678,19 +676,99 @@ pub(crate) fn golden_max(f: &mut dyn FnMut(f64) -> f64, mut a: f64, mut b: f64, 
 
 /// The estimate for one trial's images: eq. 5 for every class and alignment by
 /// the fast path, eq. 7, threshold and refinement. The templates must have been
-/// built for the images' layout and hop ([`Templates::new`]).
+/// built for the images' layout and hop ([`Templates::new`]). With
+/// `speed_tolerance > 0` the templates of the other speeds are built here; a
+/// caller estimating many trials should build them once and call
+/// [`wss_batch_speeds`].
 pub fn wss_batch(images: &SpikeImages, tpl: &Templates, params: &WssParams) -> Result<Estimate, StageError> {
-    let prep = prepare(images, tpl)?;
-    let series = fast_series(&prep, tpl, params);
-    let best: Vec<(f64, usize)> = series.iter().map(|s| best_of(s)).collect();
-    let mut search = |theta: f64| -> f64 {
-        match Templates::for_angles(tpl.layout(), tpl.hop_ms(), params, &[theta]) {
-            Ok(one) => best_of(&fast_series(&prep, &one, params)[0]).0,
+    let factors = params.speed_factors();
+    if factors.len() == 1 {
+        return wss_batch_speeds(images, &[(1.0, tpl)], params);
+    }
+    let mut owned = Vec::with_capacity(factors.len());
+    for &f in &factors {
+        owned.push(
+            Templates::for_angles(tpl.layout(), tpl.hop_ms(), &params.at_speed(f), &tpl.angles())
+                .map_err(|e| StageError::new(format!("wss: {e}")))?,
+        );
+    }
+    let sets: Vec<(f64, &Templates)> = factors.iter().copied().zip(owned.iter()).collect();
+    wss_batch_speeds(images, &sets, params)
+}
+
+/// [`wss_batch`] over templates built for several speeds: `sets` pairs each
+/// speed factor (of `params.speed_mm_s`) with templates built at that speed,
+/// for the same layout, hop and angles (factor 1 alone: the known speed).
+///
+/// Joint speed and angle: every class scores its best over the speeds
+/// (`max_v max_k WSS_{θ,v}(k)`), and eq. 7 picks the class. With
+/// `refine = "search"` the speed is then refined by a golden-section search
+/// around the best class's grid speed (to 0.1 %), and the angle searched at
+/// that speed. The speed matters because the templates' timing is the
+/// normal speed `v·sin θ`: a declared speed 10 % off is matched best by an
+/// angle whose `sin θ` is 10 % off.
+pub fn wss_batch_speeds(
+    images: &SpikeImages,
+    sets: &[(f64, &Templates)],
+    params: &WssParams,
+) -> Result<Estimate, StageError> {
+    let Some(&(_, first)) = sets.first() else {
+        return Err(StageError::new("wss: no templates"));
+    };
+    let prep = prepare(images, first)?;
+    let angles = first.angles();
+    let mut best = vec![(f64::NEG_INFINITY, 0usize); angles.len()];
+    let mut best_f = vec![sets[0].0; angles.len()];
+    for &(f, tpl) in sets {
+        if tpl.angles() != angles || tpl.n_taxels() != first.n_taxels() || tpl.hop_ms() != first.hop_ms() {
+            return Err(StageError::new(
+                "wss: the templates of every speed must share layout, hop and angles",
+            ));
+        }
+        let series = fast_series(&prep, tpl, params);
+        for (c, s) in series.iter().enumerate() {
+            let b = best_of(s);
+            if b.0 > best[c].0 {
+                best[c] = b;
+                best_f[c] = f;
+            }
+        }
+    }
+    for b in &mut best {
+        if b.0 == f64::NEG_INFINITY {
+            *b = (0.0, 0);
+        }
+    }
+    let layout = first.layout();
+    let hop = first.hop_ms();
+    let score = |theta: f64, f: f64| -> f64 {
+        let p = params.at_speed(f);
+        match Templates::for_angles(layout, hop, &p, &[theta]) {
+            Ok(one) => best_of(&fast_series(&prep, &one, &p)[0]).0,
             Err(_) => f64::NEG_INFINITY,
         }
     };
+    let mut b = 0;
+    for (c, &(s, _)) in best.iter().enumerate() {
+        if s > best[b].0 {
+            b = c;
+        }
+    }
+    let mut f_star = best_f[b];
+    if sets.len() > 1 && params.refine == Refine::Search && prep.any_spikes() && best[b].0 >= params.threshold
+    {
+        let tol = params.speed_tolerance;
+        let df = 2.0 * tol / (sets.len() - 1) as f64;
+        let (lo, hi) = ((f_star - df).max(1.0 - tol), (f_star + df).min(1.0 + tol));
+        let theta = angles[b];
+        let (f, v) = golden_max(&mut |f| score(theta, f), lo, hi, 1e-3);
+        if v > best[b].0 {
+            f_star = f;
+        }
+    }
+    let mut search = |theta: f64| -> f64 { score(theta, f_star) };
     Ok(finish(
-        &tpl.angles(),
+        &angles,
         &best,
         prep.any_spikes(),
         prep.end_ms(),

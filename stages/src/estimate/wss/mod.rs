@@ -13,8 +13,8 @@
 //!
 //! with `R` Pearson's correlation over the taxels and `w` the frame's weight
 //! from its spike rate `SR = C_m / max_m C_m` (`C_m` the frame's total count):
-//! `constant` (1), `one_minus_sr` (`1 − SR`, the paper's best and the default) or
-//! `one_plus_sr` (`1 + SR`). The estimate is `argmax_θ max_k WSS_θ(k)` (eq. 7);
+//! `constant` (1), `one_minus_sr` (`1 − SR`, the paper's best) or
+//! `one_plus_sr` (`1 + SR`); the default is `constant` (see below). The estimate is `argmax_θ max_k WSS_θ(k)` (eq. 7);
 //! [`Estimate::scores`] holds every class's `max_k WSS_θ(k)`.
 //!
 //! # Decisions where the paper is silent
@@ -22,10 +22,16 @@
 //! * `R` of an image (or template) with no spatial variance is 0, never NaN
 //!   (variance below 1e-20 of the image's energy counts as none: rounding).
 //! * A window whose weights are all 0 falls back to constant weights.
-//! * Frames before the trial's start (`k − i < 0`) are, by default, not part of
-//!   either sum (`before_start = "exclude"`); `"silent"` counts them as
-//!   spike-free frames instead (correlation 0, weight 1), which keeps a few busy
-//!   frames at a trial's very start from scoring high on their own.
+//! * Frames before the trial's start (`k − i < 0`) are, by default, counted as
+//!   spike-free frames (`before_start = "silent"`: correlation 0, weight 1), so a
+//!   window holding only `m` real frames scores at most `m / k(θ)` of a full
+//!   one and a few busy frames at a trial's very start cannot win on their own.
+//!   `"exclude"` leaves them out of both sums (a window of one frame is then a
+//!   plain correlation, up to 1): on simulated lab trials a start-of-trial
+//!   burst then won 1 trial in 510 at 2 mm/s and 15 in 510 on a 3x3 array,
+//!   with errors of 40 to 165 degrees.
+//! * `distance = "area"` averages `exp(−d²/σ²)` over each taxel's square (the
+//!   default `"centre"` reads eq. 6 literally; see [`Distance`]).
 //! * `sigma_mm` defaults to 1 mm, half the paper's 2 mm taxel: a taxel's
 //!   template value falls to `1/e` as the line reaches the taxel's border, the
 //!   span over which an edge crossing the taxel's area makes it fire. On ideal
@@ -42,14 +48,52 @@
 //!   part (the line nearest leaving the array).
 //! * Continuous angles: `refine = "search"` (golden-section search of
 //!   `max_k WSS_θ` in `θ` between the best class's neighbours, templates built
-//!   per probed angle; within a few tenths of a degree on ideal trials) or
-//!   `"parabola"` (vertex through the best class and its neighbours: free, but
-//!   the score falls faster towards smaller angles than larger ones, so it is
-//!   biased by up to about 2 degrees on the paper's 5-degree grid); `angle_deg`
-//!   then carries the refined value and `class_deg` the grid class. The default
-//!   `"none"` answers the class, as the paper does.
+//!   per probed angle; an end class of the grid searches out to half-way to 0
+//!   or 180 degrees) or `"parabola"` (vertex through the best class and its
+//!   neighbours: free, but the score falls faster towards smaller angles than
+//!   larger ones, so it is biased by up to about 2 degrees on the 5-degree
+//!   grid); `angle_deg` then carries the refined value and `class_deg` the
+//!   grid class. The default `"none"` answers the class, as the paper does.
+//!   Measured bias of the search on the ideal scene (constant weights, one
+//!   trial per angle, `palpate run graphs/quickstart.toml` with
+//!   `scenes/ideal.toml`, `refine=search`): `+1.9·sin 2θ` degrees, towards 90
+//!   (45 -> 46.83, 136.4 -> 134.5, 23.4 -> 23.99), the same with `sigma_mm`
+//!   0.5, 0.7, 1 or 1.5 and with `distance = "area"`: a property of the
+//!   spike images' timing, not of the template's shape. It acts like a
+//!   declared speed ~3 % too low (`speed_mm_s = 2.13` flips its sign); the
+//!   joint speed search does not remove it (it trades angle for speed along
+//!   `v·sin θ`). On the lab scene the skin's spread masks it: 0.78 ± 0.15
+//!   degrees MAE over 13 off-grid angles and 5 seeds (graphs/continuous.toml).
+//! * The default grid is 10 to 170 degrees by 5 (33 classes): both leanings
+//!   of an edge. Edges nearer 0 or 180 than the grid are reached only by the
+//!   refinement; their crossing takes `1/sin θ` long (320 s at 1 degree on
+//!   the paper's array at 2 mm/s), past the templates' cap, and a whole row
+//!   of taxels fires at once, so their class is not reliable: use a grid that
+//!   covers them, and a longer `max_template_s`, if a task has such edges.
+//! * Weighting on the ideal scene: `one_minus_sr` misses classes there (50,
+//!   55 and 75 degrees go 5 degrees high; constant and `one_plus_sr` are
+//!   exact). On that scene a taxel fires only while the edge is over its own
+//!   area, so a template's span holds spike-free frames (correlation 0 by
+//!   the zero-variance rule), and `1 − SR` gives exactly those frames its
+//!   largest weight, 1: the score of a longer template (a smaller angle) is
+//!   diluted more, pulling answers towards 90 degrees. The equations leave no
+//!   room to fix it (R of an empty frame is 0 by SPEC, its weight `1 − 0`
+//!   by eq. 5; no template width or shape tried, `sigma_mm` 0.3 to 1 with
+//!   either `distance`, helps). Adding only the lab's skin spread (0.5 mm) to
+//!   the ideal scene makes `one_minus_sr` exact: spread fills those frames.
+//!   Hence the default is `constant`; the paper graphs set `one_minus_sr`.
 //! * "No edge" (`angle_deg = None`): no frame has a spike, or the best score is
 //!   under `threshold`.
+//!
+//! # Unknown crossing speed
+//!
+//! The templates' timing is the edge's normal speed `v·sin θ`, so a declared
+//! speed 10 % off is matched best by an angle whose `sin θ` is 10 % off. With
+//! `speed_tolerance = e > 0`, templates are built at `speed_steps` speeds over
+//! `v·(1 ± e)`, each class scores its best speed, and with `refine = "search"`
+//! the best class's speed is refined by golden-section search before the
+//! angle is. Cost: `speed_steps` times the classes, plus about 20
+//! single-class evaluations per trial. Batch only.
 //!
 //! # Speed
 //!
@@ -86,8 +130,8 @@ pub mod templates;
 #[cfg(test)]
 mod tests;
 
-pub use batch::{pearson, wss_batch, wss_reference, wss_reference_series, wss_series};
-pub use params::{AngleGrid, BeforeStart, Refine, Weighting, WssParams};
+pub use batch::{pearson, wss_batch, wss_batch_speeds, wss_reference, wss_reference_series, wss_series};
+pub use params::{AngleGrid, BeforeStart, Distance, Refine, Weighting, WssParams};
 pub use stream::WssStream;
 pub use templates::{raw_template, ClassTemplates, Templates};
 
@@ -116,11 +160,13 @@ pub struct WssConfig {
     /// Width of the simulated line, mm. Default 0.2 (the paper's).
     pub line_width_mm: f64,
     /// Class angles, degrees in (0, 180): a list `[10, 20, 30]` or a range
-    /// `{ from = 10, to = 90, step = 5 }` (inclusive). Default the paper's 17
-    /// classes, 10 to 90 by 5.
+    /// `{ from = 10, to = 90, step = 5 }` (inclusive). Default 10 to 170 by 5
+    /// (33 classes: the paper's 17, 10 to 90, and their mirror images).
     pub angles: AngleGrid,
     /// Frame weighting `w` of eq. 5: `constant`, `one_minus_sr` or
-    /// `one_plus_sr`. Default `one_minus_sr` (the paper's best).
+    /// `one_plus_sr`. Default `constant`: exact on the ideal scene, where
+    /// `one_minus_sr` (the paper's best) misses classes, and as good or better
+    /// on the lab scene (RESULTS.md); the paper graphs set `one_minus_sr`.
     pub weighting: Weighting,
     /// Best score (a weighted mean correlation, in [-1, 1]) under which the
     /// answer is "no edge". Default 0.1.
@@ -133,14 +179,29 @@ pub struct WssConfig {
     /// Longest template, s of palpation (crossings near 0 or 180 degrees are
     /// long); a longer crossing keeps its last part. Default 120.
     pub max_template_s: f64,
-    /// Frames before the trial's start: `exclude` (not part of the sums) or
-    /// `silent` (spike-free frames: correlation 0, weight 1). Default `exclude`.
+    /// Frames before the trial's start: `silent` (spike-free frames:
+    /// correlation 0, weight 1, so a partial window at the trial's start cannot
+    /// win) or `exclude` (not part of the sums). Default `silent`.
     pub before_start: BeforeStart,
     /// Stop early, frame by frame, once the best class's score leads the
     /// second best by this margin (and passes `threshold`); `decision_time_ms`
     /// then tells how much palpation was used (ms from the trial's start, to
     /// the end of the stopping frame). Default: none (whole trial).
     pub stop_margin: Option<f64>,
+    /// Where eq. 6's distance `d` is measured from: `centre` (the taxel's
+    /// centre, eq. 6 read literally) or `area` (every point of the taxel's
+    /// square, `exp(−d²/σ²)` averaged over it). Default `centre`.
+    pub distance: Distance,
+    /// Relative error of `speed_mm_s` to allow for, estimating the speed
+    /// jointly with the angle: templates are built at `speed_steps` speeds
+    /// over `speed_mm_s · (1 ± speed_tolerance)`, every class scores its best
+    /// speed, and `refine = "search"` refines the speed too. Costs
+    /// `speed_steps` times the classes. Batch only (not with `stop_margin`).
+    /// In [0, 0.9]; default 0 (the speed is known, as in the paper).
+    pub speed_tolerance: f64,
+    /// Speeds of the grid searched when `speed_tolerance > 0`, 2 to 41.
+    /// Default 5 (steps of 10 % at a tolerance of 20 %).
+    pub speed_steps: usize,
 }
 
 impl Default for WssConfig {
@@ -158,6 +219,9 @@ impl Default for WssConfig {
             max_template_s: p.max_template_s,
             before_start: p.before_start,
             stop_margin: None,
+            distance: p.distance,
+            speed_tolerance: p.speed_tolerance,
+            speed_steps: p.speed_steps,
         }
     }
 }
@@ -176,10 +240,19 @@ impl WssConfig {
             refine_tol_deg: self.refine_tol_deg,
             max_template_s: self.max_template_s,
             before_start: self.before_start,
+            distance: self.distance,
+            speed_tolerance: self.speed_tolerance,
+            speed_steps: self.speed_steps,
         };
         p.validate()?;
         if let Some(m) = self.stop_margin {
             palpate_core::check_range("stop_margin", m, 0.0, 2.0, "")?;
+            if p.speed_tolerance > 0.0 {
+                return Err(ConfigError::key(
+                    "speed_tolerance",
+                    "the joint speed search is batch only: it cannot be combined with stop_margin",
+                ));
+            }
         }
         Ok(p)
     }
@@ -221,15 +294,18 @@ impl Estimator for WssEstimator {
     }
 }
 
+/// Templates of every speed of the grid (the declared speed alone when it is known).
+type SpeedSets = Arc<Vec<(f64, Arc<Templates>)>>;
+
 /// The fitted (model-based) WSS: parameters and templates cached per (layout, hop).
 struct WssModel {
     params: WssParams,
     stop_margin: Option<f64>,
-    cache: Mutex<HashMap<(String, u64), Arc<Templates>>>,
+    cache: Mutex<HashMap<(String, u64), SpeedSets>>,
 }
 
 impl WssModel {
-    fn templates(&self, images: &palpate_core::SpikeImages) -> Result<Arc<Templates>, StageError> {
+    fn templates(&self, images: &palpate_core::SpikeImages) -> Result<SpeedSets, StageError> {
         let key = (
             serde_json::to_string(&images.layout).unwrap_or_default(),
             images.hop_ms.to_bits(),
@@ -239,10 +315,13 @@ impl WssModel {
         }
         // Built outside the lock: two threads may both build the same templates
         // on first use, which costs time but never changes a result.
-        let t = Arc::new(
-            Templates::new(&images.layout, images.hop_ms, &self.params)
-                .map_err(|e| StageError::new(format!("wss: images' {e}")))?,
-        );
+        let mut sets = Vec::new();
+        for f in self.params.speed_factors() {
+            let t = Templates::new(&images.layout, images.hop_ms, &self.params.at_speed(f))
+                .map_err(|e| StageError::new(format!("wss: images' {e}")))?;
+            sets.push((f, Arc::new(t)));
+        }
+        let t = Arc::new(sets);
         let mut c = self.cache.lock().unwrap_or_else(|e| e.into_inner());
         Ok(c.entry(key).or_insert(t).clone())
     }
@@ -251,10 +330,15 @@ impl WssModel {
 impl Model for WssModel {
     fn predict(&self, item: &Item, _ctx: &TrialContext<'_>) -> Result<Estimate, StageError> {
         let images = item.payload.images()?;
-        let tpl = self.templates(images)?;
+        let sets = self.templates(images)?;
         let e = match self.stop_margin {
-            None => wss_batch(images, &tpl, &self.params)?,
+            None => {
+                let refs: Vec<(f64, &Templates)> = sets.iter().map(|(f, t)| (*f, t.as_ref())).collect();
+                wss_batch_speeds(images, &refs, &self.params)?
+            }
             Some(margin) => {
+                // The config allows stop_margin only with a known speed: one set.
+                let tpl = sets[0].1.clone();
                 let mut s = WssStream::new(tpl, self.params.clone(), images.window_ms)?;
                 let mut stopped = None;
                 for k in 0..images.n_frames {

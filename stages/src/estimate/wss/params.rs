@@ -11,10 +11,12 @@ use serde::{Deserialize, Serialize};
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize, JsonSchema, Default)]
 #[serde(rename_all = "snake_case")]
 pub enum Weighting {
-    /// `w = 1`: a plain mean of the correlations.
-    Constant,
-    /// `w = 1 - SR`: the paper's best; the busiest frames count least.
+    /// `w = 1`: a plain mean of the correlations. The default: exact on the
+    /// ideal scene and at least as good as `1 - SR` on the lab scene.
     #[default]
+    Constant,
+    /// `w = 1 - SR`: the paper's best; the busiest frames count least, and a
+    /// spike-free frame (correlation 0) counts most.
     OneMinusSr,
     /// `w = 1 + SR`: the busiest frames count most.
     OnePlusSr,
@@ -43,13 +45,35 @@ pub enum Refine {
 #[serde(rename_all = "snake_case")]
 pub enum BeforeStart {
     /// Left out of both sums: `WSS_θ(k)` is the weighted mean over the
-    /// `min(k, k(θ)) + 1` frames that exist. Early `k` then average few frames.
-    #[default]
+    /// `min(k, k(θ)) + 1` frames that exist. Early `k` then average few frames,
+    /// so a burst of 1 to 8 frames at a trial's start can score up to 1 and win
+    /// (seen on simulated lab trials: errors of 40 to 165 degrees).
     Exclude,
     /// Counted as spike-free frames: correlation 0 (zero variance) with the
     /// weight of a spike-free frame (`SR = 0`: 1 for every weighting), so a short
-    /// run of frames at the trial's start cannot reach a high score alone.
+    /// run of frames at the trial's start cannot reach a high score alone: a
+    /// window of `m` real frames scores at most `m / k(θ)` of a full one. The
+    /// default.
+    #[default]
     Silent,
+}
+
+/// Where eq. 6's distance `d` is measured from: the taxel's centre, or every
+/// point of its area (the taxel then reports the mean of `exp(−d²/σ²)` over its
+/// area, as a pressure sensor integrates the load over its surface).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize, JsonSchema, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum Distance {
+    /// `d` from the taxel's centre to the line (eq. 6 read literally). The
+    /// default.
+    #[default]
+    Centre,
+    /// `exp(−d²/σ²)` averaged over the taxel's square area: the template then
+    /// follows the shape of a real taxel's response, whose width across the
+    /// line grows from `a` at 90 degrees to `a·√2` at 45 (`a` the taxel's side),
+    /// which a centre distance with one `σ` cannot follow. (Measured: it does
+    /// not change the ideal scene's refinement bias, see the module docs.)
+    Area,
 }
 
 /// The class grid: a list of angles or an inclusive range.
@@ -70,11 +94,14 @@ pub enum AngleGrid {
 }
 
 impl Default for AngleGrid {
-    /// The paper's 17 classes: 10, 15, ..., 90 degrees.
+    /// 33 classes, 10, 15, ..., 170 degrees: the paper's 5-degree step over
+    /// both halves of the circle of orientations, so that an edge leaning the
+    /// other way (91 to 170 degrees) is not forced onto the paper's 17 classes
+    /// (10 to 90). Graphs that reproduce the paper set its 17 classes.
     fn default() -> Self {
         AngleGrid::Range {
             from: 10.0,
-            to: 90.0,
+            to: 170.0,
             step: 5.0,
         }
     }
@@ -148,6 +175,12 @@ pub struct WssParams {
     pub max_template_s: f64,
     /// Handling of frames before the trial's start.
     pub before_start: BeforeStart,
+    /// Where eq. 6's distance is measured from.
+    pub distance: Distance,
+    /// Relative error of `speed_mm_s` to search over (0: the speed is known).
+    pub speed_tolerance: f64,
+    /// Speeds of the coarse speed grid when `speed_tolerance > 0`.
+    pub speed_steps: usize,
 }
 
 impl Default for WssParams {
@@ -157,17 +190,42 @@ impl Default for WssParams {
             sigma_mm: 1.0,
             line_width_mm: 0.2,
             angles: AngleGrid::default().resolve().unwrap_or_default(),
-            weighting: Weighting::OneMinusSr,
+            weighting: Weighting::Constant,
             threshold: 0.1,
             refine: Refine::None,
             refine_tol_deg: 0.05,
             max_template_s: 120.0,
-            before_start: BeforeStart::Exclude,
+            before_start: BeforeStart::Silent,
+            distance: Distance::Centre,
+            speed_tolerance: 0.0,
+            speed_steps: 5,
         }
     }
 }
 
 impl WssParams {
+    /// The coarse speed grid as factors of `speed_mm_s`: `[1]` when the speed
+    /// is known (`speed_tolerance = 0`), else `speed_steps` factors evenly
+    /// spaced over `1 ± speed_tolerance`.
+    pub fn speed_factors(&self) -> Vec<f64> {
+        if self.speed_tolerance == 0.0 {
+            return vec![1.0];
+        }
+        let n = self.speed_steps.max(2);
+        (0..n)
+            .map(|j| 1.0 - self.speed_tolerance + 2.0 * self.speed_tolerance * j as f64 / (n - 1) as f64)
+            .collect()
+    }
+
+    /// These parameters with the speed scaled by `factor` and known.
+    pub fn at_speed(&self, factor: f64) -> WssParams {
+        WssParams {
+            speed_mm_s: self.speed_mm_s * factor,
+            speed_tolerance: 0.0,
+            ..self.clone()
+        }
+    }
+
     /// Checks every value, naming the key of the first bad one.
     pub fn validate(&self) -> Result<(), ConfigError> {
         check_positive("speed_mm_s", self.speed_mm_s, "mm/s")?;
@@ -189,6 +247,21 @@ impl WssParams {
             ));
         }
         check_positive("refine_tol_deg", self.refine_tol_deg, "degrees")?;
+        if !(self.speed_tolerance.is_finite() && (0.0..=0.9).contains(&self.speed_tolerance)) {
+            return Err(ConfigError::key(
+                "speed_tolerance",
+                format!(
+                    "must lie in [0, 0.9] (a relative error of speed_mm_s), got {}",
+                    self.speed_tolerance
+                ),
+            ));
+        }
+        if !(2..=41).contains(&self.speed_steps) {
+            return Err(ConfigError::key(
+                "speed_steps",
+                format!("must lie in 2..=41, got {}", self.speed_steps),
+            ));
+        }
         check_positive("max_template_s", self.max_template_s, "s")?;
         if self.max_template_s > 3600.0 {
             return Err(ConfigError::key(

@@ -200,6 +200,11 @@ impl WssStream {
     /// (used only for `decision_time_ms`).
     pub fn new(templates: Arc<Templates>, params: WssParams, window_ms: f64) -> Result<Self, StageError> {
         params.validate()?;
+        if params.speed_tolerance > 0.0 {
+            return Err(StageError::new(
+                "wss: speed_tolerance > 0 (the joint speed search) is batch only; streams need a known speed",
+            ));
+        }
         palpate_core::check_positive("window_ms", window_ms, "ms")?;
         let b = BLOCK;
         let pair = templates.plan(2 * b);

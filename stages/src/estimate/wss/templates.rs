@@ -20,7 +20,7 @@
 //! when it has no spatial variance, so that Pearson's `R(I, S_i) = <Ĩ, S̃_i>`
 //! with `Ĩ` the centred unit-norm frame.
 
-use super::params::WssParams;
+use super::params::{Distance, WssParams};
 use palpate_core::geometry::Edge;
 use palpate_core::{ConfigError, TaxelLayout};
 use realfft::num_complex::Complex;
@@ -117,20 +117,144 @@ pub fn raw_template(
     theta_deg: f64,
     i: usize,
 ) -> Vec<f64> {
-    let edge = Edge::new(theta_deg);
-    let (lo, _) = edge.footprint(layout);
-    let ds = edge.normal_speed(params.speed_mm_s) * hop_ms / 1000.0;
-    let s = lo + i as f64 * ds;
-    let half = params.line_width_mm / 2.0;
-    let inv_s2 = 1.0 / (params.sigma_mm * params.sigma_mm);
-    layout
-        .positions()
-        .into_iter()
-        .map(|p| {
-            let d = ((edge.offset(p) - s).abs() - half).max(0.0);
-            (-d * d * inv_s2).exp()
-        })
-        .collect()
+    ClassShape::new(layout, hop_ms, params, theta_deg).template(i)
+}
+
+/// The raw templates `0..len` of class `theta_deg` ([`raw_template`] each).
+pub(crate) fn raw_templates(
+    layout: &TaxelLayout,
+    hop_ms: f64,
+    params: &WssParams,
+    theta_deg: f64,
+    len: usize,
+) -> Vec<Vec<f64>> {
+    let shape = ClassShape::new(layout, hop_ms, params, theta_deg);
+    (0..len).map(|i| shape.template(i)).collect()
+}
+
+/// What one class's templates share: the edge, the line's first offset and
+/// step, and (for [`Distance::Area`]) the tabulated taxel response.
+struct ClassShape {
+    offsets: Vec<f64>,
+    lo: f64,
+    ds: f64,
+    half: f64,
+    inv_s2: f64,
+    table: Option<AreaTable>,
+}
+
+impl ClassShape {
+    fn new(layout: &TaxelLayout, hop_ms: f64, params: &WssParams, theta_deg: f64) -> ClassShape {
+        let edge = Edge::new(theta_deg);
+        let (lo, _) = edge.footprint(layout);
+        let ds = edge.normal_speed(params.speed_mm_s) * hop_ms / 1000.0;
+        let half = params.line_width_mm / 2.0;
+        let table = (params.distance == Distance::Area)
+            .then(|| AreaTable::new(edge.normal, layout.taxel_mm(), half, params.sigma_mm));
+        ClassShape {
+            offsets: layout.positions().into_iter().map(|p| edge.offset(p)).collect(),
+            lo,
+            ds,
+            half,
+            inv_s2: 1.0 / (params.sigma_mm * params.sigma_mm),
+            table,
+        }
+    }
+
+    /// Template `i`: the line at offset `lo + i·Δs`.
+    fn template(&self, i: usize) -> Vec<f64> {
+        let s = self.lo + i as f64 * self.ds;
+        self.offsets
+            .iter()
+            .map(|&o| match &self.table {
+                Some(t) => t.value(o - s),
+                None => {
+                    let d = ((o - s).abs() - self.half).max(0.0);
+                    (-d * d * self.inv_s2).exp()
+                }
+            })
+            .collect()
+    }
+}
+
+/// [`area_mean`] of one class tabulated over the distance `|c|` of a taxel's
+/// centre from the line, read by linear interpolation: a class's templates need
+/// `k(θ)·taxels` values (tens of thousands near 10 degrees) but only this one
+/// curve. Step `σ/100` (interpolation error below `3e-4`, the curve's second
+/// derivative being at most `2/σ²`), to the distance where the mean is 0.
+struct AreaTable {
+    step: f64,
+    values: Vec<f64>,
+}
+
+impl AreaTable {
+    fn new(n: [f64; 2], a: f64, h: f64, sigma: f64) -> AreaTable {
+        // Beyond the taxel's half-footprint plus the flat top plus 6 σ, every
+        // point of the taxel is farther than 6 σ from the line: exp(−36) ≈ 0.
+        let reach = a / 2.0 * (n[0].abs() + n[1].abs()) + h + 6.0 * sigma;
+        let step = sigma / 100.0;
+        // reach / step is at most ~1e7 for validated inputs (σ, a, h are
+        // checked positive and finite; a/σ is bounded by the layout check).
+        let points = ((reach / step).ceil() as usize + 2).min(1 << 20);
+        let step = reach / (points - 2) as f64;
+        let values = (0..points)
+            .map(|j| area_mean(j as f64 * step, n, a, h, sigma))
+            .collect();
+        AreaTable { step, values }
+    }
+
+    fn value(&self, c: f64) -> f64 {
+        let x = c.abs() / self.step;
+        let j = x.floor() as usize;
+        if j + 1 >= self.values.len() {
+            return 0.0;
+        }
+        let f = x - j as f64;
+        self.values[j] * (1.0 - f) + self.values[j + 1] * f
+    }
+}
+
+/// Points of the midpoint rule across the taxel (along its axis less aligned
+/// with the line's normal; the other axis is integrated exactly).
+const AREA_POINTS: usize = 8;
+
+/// Mean over a square taxel of side `a` whose centre sits at signed distance
+/// `c` from the line's centre, of `f(u) = exp(−max(0, |u| − h)²/σ²)`, `u` the
+/// signed distance of a point of the taxel to the line (unit normal `n`,
+/// line half-width `h`).
+///
+/// `u = c + n₀x + n₁y` over `x, y ∈ [−a/2, a/2]`. Along the axis with the larger
+/// normal component `A` the mean is exact, `(F(c + Aa/2) − F(c − Aa/2)) / (Aa)`
+/// with `F` the antiderivative of `f` (erfc-based, [`flat_gauss_integral`]);
+/// along the other, `B ≤ A`, it is an 8-point midpoint rule (`f` varies over at
+/// most `Ba ≤ a/√2`).
+fn area_mean(c: f64, n: [f64; 2], a: f64, h: f64, sigma: f64) -> f64 {
+    let (p, q) = (n[0].abs(), n[1].abs());
+    let (big, small) = if p >= q { (p, q) } else { (q, p) };
+    let half = big * a / 2.0;
+    let mut sum = 0.0;
+    for j in 0..AREA_POINTS {
+        let x = ((j as f64 + 0.5) / AREA_POINTS as f64 - 0.5) * a;
+        // f is even: work on the left of the line, where F's tail is exact.
+        let cc = -(c + small * x).abs();
+        let (lo, hi) = (cc - half, cc + half);
+        sum += (flat_gauss_integral(hi, h, sigma) - flat_gauss_integral(lo, h, sigma)) / (2.0 * half);
+    }
+    (sum / AREA_POINTS as f64).clamp(0.0, 1.0)
+}
+
+/// `∫_{−∞}^{t} exp(−max(0, |u| − h)²/σ²) du`: a Gaussian of spread `σ` split
+/// at 0 by a flat top of width `2h`.
+fn flat_gauss_integral(t: f64, h: f64, sigma: f64) -> f64 {
+    // ∫_{−∞}^{t} exp(−u²/σ²) du = σ·√π/2 · erfc(−t/σ).
+    let g = |t: f64| sigma * std::f64::consts::PI.sqrt() / 2.0 * crate::scene::special::erfc(-t / sigma);
+    if t <= -h {
+        g(t + h)
+    } else if t <= h {
+        g(0.0) + (t + h)
+    } else {
+        2.0 * h + g(t - h)
+    }
 }
 
 /// `k(θ)` (frames to cross the array, uncapped, as a float) and the number of
@@ -186,8 +310,9 @@ impl Templates {
             .map(|&a| {
                 let (crossing_frames, len) = lengths(layout, hop_ms, params, a);
                 let mut data = Vec::with_capacity(len * n);
+                let shape = ClassShape::new(layout, hop_ms, params, a);
                 for i in 0..len {
-                    let mut t = raw_template(layout, hop_ms, params, a, i);
+                    let mut t = shape.template(i);
                     normalize(&mut t);
                     data.extend_from_slice(&t);
                 }
@@ -321,5 +446,61 @@ impl Templates {
         let s = Arc::new(Soa::from_complex(&out));
         self.lock().stream.insert((c, b), s.clone());
         s
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Brute-force mean over the taxel's square on a fine grid.
+    fn brute(c: f64, n: [f64; 2], a: f64, h: f64, sigma: f64) -> f64 {
+        let m = 400;
+        let mut s = 0.0;
+        for i in 0..m {
+            for j in 0..m {
+                let x = ((i as f64 + 0.5) / m as f64 - 0.5) * a;
+                let y = ((j as f64 + 0.5) / m as f64 - 0.5) * a;
+                let d = ((c + n[0] * x + n[1] * y).abs() - h).max(0.0);
+                s += (-d * d / (sigma * sigma)).exp();
+            }
+        }
+        s / (m * m) as f64
+    }
+
+    #[test]
+    fn area_mean_and_its_table_match_brute_force() {
+        for theta in [1.0f64, 10.0, 30.0, 45.0, 60.0, 90.0, 135.0, 179.0] {
+            let t = theta.to_radians();
+            let n = [t.sin(), -t.cos()];
+            for (sigma, h) in [(1.0, 0.1), (0.5, 0.1), (0.2, 0.0)] {
+                let table = AreaTable::new(n, 2.0, h, sigma);
+                for c in [-3.0, -1.7, -0.4, 0.0, 0.3, 1.0, 1.5, 2.2, 6.0, 40.0] {
+                    let b = brute(c, n, 2.0, h, sigma);
+                    let e = area_mean(c, n, 2.0, h, sigma);
+                    assert!((e - b).abs() < 2e-3, "θ {theta} σ {sigma} c {c}: {e} vs {b}");
+                    let v = table.value(c);
+                    assert!(
+                        (v - e).abs() < 5e-4,
+                        "table θ {theta} σ {sigma} c {c}: {v} vs {e}"
+                    );
+                    assert!(v.is_finite() && (0.0..=1.0).contains(&v));
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn flat_gauss_integral_is_monotone_and_totals_right() {
+        let (h, sigma) = (0.1, 0.7);
+        let total = 2.0 * h + sigma * std::f64::consts::PI.sqrt();
+        let mut last = 0.0;
+        for j in -100..=100 {
+            let v = flat_gauss_integral(j as f64 * 0.1, h, sigma);
+            assert!(v >= last - 1e-15);
+            last = v;
+        }
+        assert!((last - total).abs() < 1e-12);
+        assert!(flat_gauss_integral(-10.0, h, sigma) < 1e-40);
     }
 }

@@ -102,7 +102,7 @@ fn every_paper_class_of_an_ideal_trial_is_exact() {
         let e = wss_batch(&im, &tpl, &params).unwrap();
         assert_eq!(e.class_deg, Some(theta), "trial at {theta}: {:?}", e.scores);
         assert_eq!(e.angle_deg, Some(theta));
-        assert_eq!(e.scores.len(), 17);
+        assert_eq!(e.scores.len(), 33);
         assert!(e.decision_time_ms.unwrap() > 0.0);
     }
 }
@@ -460,9 +460,13 @@ fn stage_is_registered_and_predicts_through_the_estimator_api() {
     assert!(palpate_core::registry::registrations()
         .iter()
         .any(|r| r.type_name == "wss"));
-    let cfg: Box<dyn StageConfig> =
-        toml::from_str("[wss]\nspeed_mm_s = 10.0\nangles = [20, 45, 70, 90, 120]\nstop_margin = 0.5")
-            .unwrap();
+    // The weighting and start rule this early-stop timing was written for (the
+    // defaults before issue 15); the margin builds differently under others.
+    let cfg: Box<dyn StageConfig> = toml::from_str(
+        "[wss]\nspeed_mm_s = 10.0\nangles = [20, 45, 70, 90, 120]\nstop_margin = 0.5\n\
+         weighting = \"one_minus_sr\"\nbefore_start = \"exclude\"",
+    )
+    .unwrap();
     assert_eq!(cfg.inputs(), InputSpec::one(PayloadKind::Images));
     assert_eq!(cfg.output(), Some(PayloadKind::Estimates));
     let ctx = BuildContext {
@@ -744,4 +748,108 @@ fn streams_of_huge_and_tiny_counts_equal_the_batch() {
             }
         }
     }
+}
+
+/// The failing case of issue 15: a burst in the first frames of a trial (the
+/// low-pass start-up transient made every taxel fire ~3 ms in, with uneven
+/// per-taxel gains), whose pattern happens to look like the line leaving the
+/// array at another angle. Under `exclude` the one-frame window at `k = 0` is a
+/// plain correlation and wins; the default `silent` rule keeps it at
+/// `1 / k(θ)` of a full window and the real crossing wins.
+#[test]
+fn a_start_of_trial_burst_cannot_win_by_default() {
+    let layout = TaxelLayout::paper();
+    let params = WssParams::default();
+    assert_eq!(params.before_start, BeforeStart::Silent);
+    let tpl = Templates::new(&layout, 10.0, &params).unwrap();
+    let mut im = paper_trial(45.0);
+    // Frames 0..3: strong firing shaped like 80 degrees' last template.
+    let burst = raw_template(&layout, 10.0, &params, 80.0, 0);
+    let n = layout.len();
+    for k in 0..3 {
+        for t in 0..n {
+            im.counts[k * n + t] = 40.0 * burst[t];
+        }
+    }
+    let exclude = WssParams {
+        before_start: BeforeStart::Exclude,
+        ..params.clone()
+    };
+    let bad = wss_batch(&im, &tpl, &exclude).unwrap();
+    assert_eq!(
+        bad.class_deg,
+        Some(80.0),
+        "the failing case no longer fails: {bad:?}"
+    );
+    assert!(bad.best_frame.unwrap() < 3);
+    let good = wss_batch(&im, &tpl, &params).unwrap();
+    assert_eq!(good.class_deg, Some(45.0), "{:?}", good.scores);
+    assert!(good.best_frame.unwrap() > 100);
+    // The bound the rule guarantees: a window of m real frames reaches at most
+    // m / k(θ) (every correlation is at most 1, every weight at most 1 for 1 - SR).
+    let series = wss_series(&im, &tpl, &params).unwrap();
+    for (c, s) in series.iter().enumerate() {
+        let len = tpl.classes()[c].len as f64;
+        for (k, v) in s.iter().enumerate().take(5) {
+            assert!(*v <= (k + 1) as f64 / len + 1e-12, "class {c} k {k}: {v}");
+        }
+    }
+}
+
+/// A declared speed 15 % high costs the known-speed estimate degrees; the
+/// joint speed search over ±25 % recovers the angle (and finds the speed).
+#[test]
+fn joint_speed_search_tolerates_a_wrong_declared_speed() {
+    let layout = TaxelLayout::paper();
+    for theta in [35.0, 62.5, 118.0] {
+        let im = small_trial(theta); // the edge slides at 10 mm/s
+        let known = WssParams {
+            speed_mm_s: 11.5,
+            refine: Refine::Search,
+            ..small_params()
+        };
+        let known = WssParams {
+            angles: AngleGrid::Range {
+                from: 10.0,
+                to: 170.0,
+                step: 5.0,
+            }
+            .resolve()
+            .unwrap(),
+            ..known
+        };
+        let tpl = Templates::new(&layout, 10.0, &known).unwrap();
+        let e_known = wss_batch(&im, &tpl, &known).unwrap().angle_deg.unwrap();
+        let joint = WssParams {
+            speed_tolerance: 0.25,
+            ..known.clone()
+        };
+        let e_joint = wss_batch(&im, &tpl, &joint).unwrap().angle_deg.unwrap();
+        let exact = WssParams {
+            speed_mm_s: 10.0,
+            ..known.clone()
+        };
+        let tpl10 = Templates::new(&layout, 10.0, &exact).unwrap();
+        let e_exact = wss_batch(&im, &tpl10, &exact).unwrap().angle_deg.unwrap();
+        let (ek, ej, ee) = (
+            (e_known - theta).abs(),
+            (e_joint - theta).abs(),
+            (e_exact - theta).abs(),
+        );
+        assert!(
+            ek > 2.0,
+            "{theta}: a 15 % speed error no longer costs anything? {e_known}"
+        );
+        assert!(
+            ej <= 2.0 * ee.max(0.5),
+            "{theta}: joint {e_joint}, known-speed {e_exact}, wrong speed {e_known}"
+        );
+    }
+    // The stream refuses the joint search rather than silently ignoring it.
+    let p = WssParams {
+        speed_tolerance: 0.2,
+        ..WssParams::default()
+    };
+    let tpl = Arc::new(Templates::new(&layout, 10.0, &WssParams::default()).unwrap());
+    assert!(WssStream::new(tpl, p, 100.0).is_err());
 }
