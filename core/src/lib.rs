@@ -11,6 +11,7 @@
 //! * [`runtime`]: running a graph, in parallel and deterministically;
 //! * [`sweep`]: running a graph across the values of one key (or several series
 //!   of keys), with a cache;
+//! * [`stream`]: the streaming forms of per-trial stages (a trial in blocks);
 //! * [`output`]: atomic report files.
 //!
 //! `core` knows no stage by name: stages register themselves, and the CLI finds
@@ -23,6 +24,7 @@ pub mod payload;
 pub mod registry;
 pub mod runtime;
 pub mod stage;
+pub mod stream;
 pub mod sweep;
 
 pub use graph::{
@@ -45,4 +47,5 @@ pub use stage::{
 pub mod __private {
     pub use inventory;
     pub use schemars;
+    pub use serde_json;
 }
