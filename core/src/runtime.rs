@@ -1,12 +1,14 @@
 //! Running a validated graph.
 //!
-//! The per-trial part of a graph (sources, and the maps downstream of them
-//! before any estimator) runs **depth-first**: one trial at a time through the
-//! whole chain, trials in parallel on rayon's pool, keeping only the outputs an
-//! estimator or a sink reads (see [`chain`]). Peak memory is then O(threads x one
-//! trial) plus what estimators must hold (spike images), not O(trials x
-//! samples) for every stage's output. Estimators and sinks, which need every
-//! trial of their input, then run one at a time in topological order. A stage's
+//! The per-trial part of a graph (sources, and the maps and model-based
+//! estimators downstream of them before any trained estimator) runs
+//! **depth-first**: one trial at a time through the whole chain, trials in
+//! parallel on rayon's pool, keeping only the outputs a trained estimator or a
+//! sink reads (see [`chain`]). Peak memory is then O(threads x one trial) plus
+//! what trained estimators must hold (spike images) and the estimates, not
+//! O(trials x samples) for every stage's output. Trained estimators and sinks,
+//! which need every trial of their input, then run one at a time in
+//! topological order. A stage's
 //! output is computed once and shared by every stage that reads it, then
 //! dropped as soon as its last reader is done.
 //!

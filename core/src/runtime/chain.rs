@@ -1,12 +1,15 @@
 //! Depth-first execution of a graph's per-trial part.
 //!
-//! The *per-trial set* of a graph is every source, and every map whose inputs
-//! are all in the set: the stages whose output for trial `t` depends only on
-//! trial `t`. Its connected components are the *chains* (the quickstart has
-//! one: scene -> filter -> norm -> drive -> enc -> bins). A chain runs one
-//! trial at a time from its sources to its last map, trials in parallel, and
-//! keeps only the outputs something outside the chain reads (an estimator or
-//! a sink: spike images, not signals). Each trial's intermediate payloads are
+//! The *per-trial set* of a graph is every source, and every map and
+//! model-based (untrained) estimator whose inputs are all in the set: the
+//! stages whose output for trial `t` depends only on trial `t`. Its connected
+//! components are the *chains* (the quickstart has one: scene -> filter ->
+//! norm -> drive -> enc -> bins -> wss). A model-based estimator is fitted
+//! once, on nothing, before its chain runs, and predicts each trial inside
+//! it. A chain runs one trial at a time from its sources to its last stage,
+//! trials in parallel, and keeps only the outputs something outside the chain
+//! reads (a trained estimator or a sink: estimates or spike images, never
+//! signals). Each trial's intermediate payloads are
 //! dropped as soon as their last reader in the chain is done, so peak memory
 //! is O(threads x one trial's chain) plus the kept outputs, instead of
 //! O(trials x samples) for every stage's output at once.
@@ -18,8 +21,9 @@
 
 use super::{check_unique_ids, tick, timed, with_provenance, RunError, RunOptions, StageTiming};
 use crate::graph::Graph;
+use crate::payload::Payload;
 use crate::payload::{Item, Provenance, TrialMeta};
-use crate::stage::{derive_seed, settings_json, Stage, TrialContext};
+use crate::stage::{derive_seed, settings_json, FitContext, Model, Stage, TrialContext};
 use rayon::prelude::*;
 use std::time::Duration;
 
@@ -80,10 +84,11 @@ pub(super) fn chains(graph: &Graph) -> Vec<Chain> {
 pub(super) fn per_trial_set(graph: &Graph) -> Vec<bool> {
     let mut per_trial = vec![false; graph.nodes.len()];
     for &i in &graph.order {
-        per_trial[i] = match graph.nodes[i].stage {
+        per_trial[i] = match &graph.nodes[i].stage {
             Stage::Source(_) => true,
             Stage::Map(_) => graph.input_index[i].iter().all(|&j| per_trial[j]),
-            Stage::Estimator(_) | Stage::Sink(_) => false,
+            Stage::Estimator(e) => !e.trained() && graph.input_index[i].iter().all(|&j| per_trial[j]),
+            Stage::Sink(_) => false,
         };
     }
     per_trial
@@ -181,6 +186,26 @@ pub(super) fn run_chain(
         metas[p] = Some(m);
     }
     let n_trials = first.and_then(|f| metas[f].as_ref()).map_or(0, Vec::len);
+
+    // Model-based estimators fit once, on nothing (fold 0, as in a batch run).
+    let mut models: Vec<Option<Box<dyn Model>>> = Vec::with_capacity(len);
+    let mut fit_times: Vec<Option<Duration>> = vec![None; len];
+    for (p, &i) in chain.nodes.iter().enumerate() {
+        let Stage::Estimator(est) = &graph.nodes[i].stage else {
+            models.push(None);
+            continue;
+        };
+        let id = graph.nodes[i].id.as_str();
+        let fctx = FitContext {
+            stage_id: id,
+            fold: 0,
+            seed: derive_seed(seed, &[id, "fold0"]),
+        };
+        let (model, dt) = timed(|| est.fit(&[], &fctx));
+        let model = model.map_err(|e| RunError::new(id, None, format!("fitting fold 0: {}", e.message)))?;
+        models.push(Some(model));
+        fit_times[p] = Some(dt);
+    }
     let label = match (chain.nodes.first(), chain.nodes.last()) {
         (Some(&a), Some(&b)) if a != b => format!("{} .. {}", graph.nodes[a].id, graph.nodes[b].id),
         (Some(&a), _) => graph.nodes[a].id.clone(),
@@ -248,11 +273,30 @@ pub(super) fn run_chain(
                     let payload = payload.map_err(|e| RunError::new(id, Some(&meta.trial_id), e.message))?;
                     (with_provenance(meta, &provs[p], payload), dt)
                 }
-                Stage::Estimator(_) | Stage::Sink(_) => {
+                Stage::Estimator(_) => {
+                    let input = graph.input_index[i].first().ok_or_else(|| {
+                        RunError::new(id, None, "an estimator without input (internal error)")
+                    })?;
+                    let item = slots[at(*input)?].as_ref().ok_or_else(|| {
+                        RunError::new(id, None, "input has no output (internal ordering error)")
+                    })?;
+                    let model = models[p]
+                        .as_ref()
+                        .ok_or_else(|| RunError::new(id, None, "estimator not fitted (internal error)"))?;
+                    let ctx = TrialContext {
+                        stage_id: id,
+                        meta: &item.meta,
+                        seed: derive_seed(seed, &[id, &item.meta.trial_id]),
+                    };
+                    let (est, dt) = timed(|| model.predict(item, &ctx));
+                    let est = est.map_err(|e| RunError::new(id, Some(&item.meta.trial_id), e.message))?;
+                    (with_provenance(&item.meta, &provs[p], Payload::from(est)), dt)
+                }
+                Stage::Sink(_) => {
                     return Err(RunError::new(
                         id,
                         None,
-                        "an estimator or sink in a per-trial chain (internal error)",
+                        "a sink in a per-trial chain (internal error)",
                     ))
                 }
             };
@@ -309,8 +353,9 @@ pub(super) fn run_chain(
             timings[p].per_trial.push(dt);
         }
     }
-    for t in &mut timings {
-        t.total = t.per_trial.iter().sum();
+    for (t, fit) in timings.iter_mut().zip(fit_times) {
+        t.fits.extend(fit);
+        t.total = t.per_trial.iter().sum::<Duration>() + fit.unwrap_or_default();
     }
     Ok(ChainOutput { items, timings })
 }
