@@ -55,6 +55,14 @@ enum Command {
         /// MAE, SD, no edge, decision time, ...).
         #[arg(long)]
         explain: bool,
+        /// Stream every trial through the stages' streaming forms, block by
+        /// block as a board delivers them, printing estimates as they change
+        /// (every stage must stream: see `check --live`).
+        #[arg(long)]
+        live: bool,
+        /// With --live: samples per block (1 = frame by frame).
+        #[arg(long, default_value_t = 1, requires = "live")]
+        block: usize,
     },
     /// Sweep points: list them (number, label, keys).
     Sweep {
@@ -99,6 +107,10 @@ enum Command {
         /// Override a key, as for `run`.
         #[arg(long = "set", value_name = "PATH=VALUE", value_parser = LoadOptions::parse_set)]
         set: Vec<(String, toml::Value)>,
+        /// Also check that every stage can stream (for `run --live`): name each
+        /// stage that cannot, and its causal alternative.
+        #[arg(long)]
+        live: bool,
     },
     /// Print a graph as Graphviz dot or a Mermaid flowchart.
     Graph {
@@ -249,11 +261,20 @@ pub fn main() -> ExitCode {
             graph,
             set,
             out,
+            live: true,
+            block,
+            ..
+        } => cmd_run_live(graph, set, out, block),
+        Command::Run {
+            graph,
+            set,
+            out,
             threads,
             points,
             shard,
             fresh,
             explain,
+            ..
         } => {
             let code = cmd_run(graph, set, out, threads, points.or(shard).unwrap_or_default(), fresh);
             if explain {
@@ -287,7 +308,32 @@ pub fn main() -> ExitCode {
                 cpus,
             },
         ),
-        Command::Check { graph, set } => match load(&graph, set.clone(), None) {
+
+        Command::Check {
+            graph,
+            set,
+            live: true,
+        } => match load(&graph, set, None) {
+            Some(g) => match core::stream::plan(&g) {
+                Ok(p) => {
+                    println!(
+                        "{}: ok, live: every stage streams ({} streaming stages after source `{}`)",
+                        graph.display(),
+                        p.stages.len(),
+                        g.nodes[p.source].id
+                    );
+                    ExitCode::SUCCESS
+                }
+                Err(problems) => {
+                    for p in &problems {
+                        eprintln!("{}: {p}", graph.display());
+                    }
+                    ExitCode::FAILURE
+                }
+            },
+            None => ExitCode::FAILURE,
+        },
+        Command::Check { graph, set, .. } => match load(&graph, set.clone(), None) {
             Some(g) if g.sweep.is_some() && load_sweep_points(&graph, set, &g).is_none() => ExitCode::FAILURE,
             Some(g) => {
                 if let Err(e) = crate::frontier::check(&g) {
@@ -538,6 +584,61 @@ fn cmd_run(
         graph.out_dir.display()
     );
     ExitCode::SUCCESS
+}
+
+/// `run --live`: every trial of the graph's source streamed through the
+/// stages' streaming forms (see `palpate_core::stream::replay`).
+fn cmd_run_live(
+    path: PathBuf,
+    set: Vec<(String, toml::Value)>,
+    out: Option<PathBuf>,
+    block: usize,
+) -> ExitCode {
+    let Some(graph) = load(&path, set, out) else {
+        return ExitCode::FAILURE;
+    };
+    let plan = match core::stream::plan(&graph) {
+        Ok(p) => p,
+        Err(problems) => {
+            for p in &problems {
+                eprintln!("{}: {p}", path.display());
+            }
+            eprintln!("{}: cannot run live", path.display());
+            return ExitCode::FAILURE;
+        }
+    };
+    let t0 = std::time::Instant::now();
+    let result = core::stream::replay(&graph, &plan, block, |u| {
+        let what = if u.last { "final" } else { "now" };
+        match u.estimate.angle_deg {
+            Some(a) => println!(
+                "{:<22} {:>8.2} s  {}: {what} {a:.1} deg",
+                u.trial_id,
+                u.t_ms / 1e3,
+                u.stage
+            ),
+            None => println!(
+                "{:<22} {:>8.2} s  {}: {what} no edge",
+                u.trial_id,
+                u.t_ms / 1e3,
+                u.stage
+            ),
+        }
+    });
+    match result {
+        Ok(reports) => {
+            for (id, report) in &reports {
+                println!("== {id}");
+                print!("{}", report.text);
+            }
+            println!("live replay: {:.2} s wall", t0.elapsed().as_secs_f64());
+            ExitCode::SUCCESS
+        }
+        Err(e) => {
+            eprintln!("{}: live run failed: {e}", graph.file);
+            ExitCode::FAILURE
+        }
+    }
 }
 
 fn cmd_stages(type_name: Option<String>) -> ExitCode {

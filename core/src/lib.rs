@@ -15,6 +15,7 @@
 //!   of keys), with a cache;
 //! * [`shard`]: sweeps beyond one process (points by number, shards,
 //!   completion markers, the manifest `palpate merge` reads);
+//! * [`stream`]: the streaming forms of per-trial stages (a trial in blocks);
 //! * [`output`]: atomic report files.
 //!
 //! `core` knows no stage by name: stages register themselves, and the CLI finds
@@ -29,6 +30,7 @@ pub mod registry;
 pub mod runtime;
 pub mod shard;
 pub mod stage;
+pub mod stream;
 pub mod sweep;
 
 pub use graph::{
@@ -51,4 +53,5 @@ pub use stage::{
 pub mod __private {
     pub use inventory;
     pub use schemars;
+    pub use serde_json;
 }

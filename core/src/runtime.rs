@@ -1,10 +1,20 @@
 //! Running a validated graph.
 //!
-//! Stages run one at a time in topological order; within a stage, trials run in
-//! parallel on rayon's pool. Stage-at-a-time (rather than trial-at-a-time)
-//! because estimators and sinks need every trial of their input, and because it
-//! keeps the runtime small. A stage's output is computed once and shared by every
-//! stage that reads it, then dropped as soon as its last reader is done.
+//! The per-trial part of a graph (sources, and the maps and model-based
+//! estimators downstream of them before any trained estimator) runs
+//! **depth-first**: one trial at a time through the whole chain, trials in
+//! parallel on rayon's pool, keeping only the outputs a trained estimator or a
+//! sink reads (see [`chain`]). Peak memory is then O(threads x one trial) plus
+//! what trained estimators must hold (spike images) and the estimates, not
+//! O(trials x samples) for every stage's output. Trained estimators and sinks,
+//! which need every trial of their input, then run one at a time in
+//! topological order. A stage's
+//! output is computed once and shared by every stage that reads it, then
+//! dropped as soon as its last reader is done.
+//!
+//! With a sweep [`Cache`], every stage runs stage-at-a-time instead and every
+//! output is kept for the next point: reuse across points is worth the memory
+//! there.
 //!
 //! Determinism: every per-trial computation is a pure function of (config, input,
 //! seed), seeds come from [`derive_seed`] over (graph seed, stage id, trial id or
@@ -26,6 +36,8 @@ use rayon::prelude::*;
 use std::collections::HashMap;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
+
+mod chain;
 
 /// Receives progress while a graph runs (the CLI draws a bar with it).
 pub trait Progress: Sync {
@@ -167,10 +179,31 @@ pub fn run(graph: &Graph, opts: &RunOptions<'_>) -> Result<RunResult, RunError> 
     let mut result = RunResult::default();
     let seed = graph.run.seed;
     let mut keys = vec![0u64; n];
+    // Depth-first per-trial chains (not under a sweep cache, which keeps
+    // every output anyway): their kept outputs and timings, by node.
+    let mut depth_first: Vec<Option<StageTiming>> = vec![None; n];
+    if opts.cache.is_none() {
+        let keep = chain::kept(graph, opts.keep_outputs);
+        for c in chain::chains(graph) {
+            let out = chain::run_chain(graph, &c, &keep, opts)?;
+            for ((&i, items), timing) in c.nodes.iter().zip(out.items).zip(out.timings) {
+                outputs[i] = items.map(Arc::new);
+                depth_first[i] = Some(timing);
+            }
+        }
+    }
 
     for &i in &graph.order {
         let node = &graph.nodes[i];
         let id = node.id.as_str();
+        if let Some(timing) = depth_first[i].take() {
+            if let (true, Some(items)) = (opts.keep_outputs, &outputs[i]) {
+                result.outputs.insert(node.id.clone(), items.clone());
+            }
+            result.timings.push(timing);
+            release_inputs(graph, i, &mut readers, &mut outputs);
+            continue;
+        }
         let prov = Provenance {
             stage: node.id.clone(),
             type_name: node.type_name.clone(),

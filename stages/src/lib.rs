@@ -23,6 +23,7 @@ pub mod plot;
 pub mod scene;
 pub mod signal;
 pub mod spikes;
+pub mod stream;
 pub mod wide;
 
 /// Call once from a binary or test that relies on the built-in stages being

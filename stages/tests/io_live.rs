@@ -203,8 +203,7 @@ inputs = ["wss"]
     }
     assert!(fin.score > 0.5 && fin.margin > 0.0, "{fin:?}");
 
-    // graphs/live.toml as a graph (its lab scene cut to this trial): the
-    // `live` stage replays the same computation.
+    // graphs/live.toml as a graph (its lab scene cut to this trial).
     let text = std::fs::read_to_string(root().join("graphs/live.toml")).unwrap();
     let mut doc: toml::Table = toml::from_str(&text).unwrap();
     let scene = doc["stages"]["scene"].as_table().unwrap().clone();
@@ -230,10 +229,14 @@ inputs = ["wss"]
         },
     )
     .unwrap();
-    assert_eq!(
-        *r.outputs["live"][0].payload.estimate().unwrap().as_ref(),
-        fin.estimate
-    );
+    // graphs/live.toml is an ordinary graph of causal stages: its batch WSS
+    // answers as the live pipeline did (scores to the stream's 1e-9).
+    let offline = r.outputs["wss"][0].payload.estimate().unwrap().clone();
+    assert_eq!(offline.angle_deg, fin.estimate.angle_deg);
+    assert_eq!(offline.class_deg, fin.estimate.class_deg);
+    for (a, b) in offline.scores.iter().zip(&fin.estimate.scores) {
+        assert!((a.score - b.score).abs() < 1e-9, "{a:?} vs {b:?}");
+    }
 }
 
 /// (b) End to end: `emulate_pty` plays the trial at 50x real time while

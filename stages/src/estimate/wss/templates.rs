@@ -50,8 +50,10 @@ impl Soa {
 pub(crate) type Spectra = Arc<Soa>;
 
 /// Bytes of batch spectra kept before the cache is emptied (a run over many
-/// trial lengths would otherwise keep one set per length class).
-const BATCH_CACHE_BYTES: usize = 256 << 20;
+/// trial lengths would otherwise keep one set per length class). 64 MiB: with
+/// the depth-first runtime this cache is the largest part of a run's peak
+/// (256 MiB of the quickstart's 345 MB before).
+const BATCH_CACHE_BYTES: usize = 64 << 20;
 
 /// The templates of one class.
 #[derive(Clone, Debug)]

@@ -313,6 +313,79 @@ impl LiveConfig {
         })
     }
 
+    /// The config of an ordinary live graph: the keys of its one stage of
+    /// each type `lowpass` (causal; absent = off), `normalize` (causal),
+    /// `drive` (fixed `gain`), `izhikevich`, `bin` and `wss`; layout and rate
+    /// are the board's defaults (the paper's 4x4 array at 1 kHz).
+    fn from_stage_tables(stages: &toml::Table) -> Result<LiveConfig, ConfigError> {
+        let of_type = |ty: &str| -> Result<Option<toml::Table>, ConfigError> {
+            let found: Vec<&toml::Value> = stages
+                .values()
+                .filter(|v| v.get("type").and_then(|t| t.as_str()) == Some(ty))
+                .collect();
+            match found.as_slice() {
+                [] => Ok(None),
+                [v] => {
+                    let mut t = v.as_table().cloned().unwrap_or_default();
+                    t.remove("type");
+                    t.remove("inputs");
+                    Ok(Some(t))
+                }
+                _ => Err(ConfigError::general(format!(
+                    "a live graph has one `{ty}` stage, found {}",
+                    found.len()
+                ))),
+            }
+        };
+        fn parse<T: serde::de::DeserializeOwned>(ty: &str, t: toml::Table) -> Result<T, ConfigError> {
+            toml::Value::Table(t)
+                .try_into()
+                .map_err(|e: toml::de::Error| ConfigError::key(ty, e.message().trim().to_string()))
+        }
+        let causal = |ty: &str, t: &mut toml::Table| -> Result<(), ConfigError> {
+            match t.remove("mode") {
+                Some(m) if m.as_str() == Some("causal") => Ok(()),
+                _ => Err(ConfigError::key(
+                    format!("{ty}.mode"),
+                    "a live graph needs mode = \"causal\"",
+                )),
+            }
+        };
+        let mut cfg = LiveConfig::default();
+        match of_type("lowpass")? {
+            Some(mut t) => {
+                causal("lowpass", &mut t)?;
+                cfg.lowpass = parse("lowpass", t)?;
+            }
+            None => cfg.lowpass.order = 0,
+        }
+        let mut t = of_type("normalize")?.ok_or_else(|| {
+            ConfigError::general("a live graph needs a `normalize` stage (mode = \"causal\")")
+        })?;
+        causal("normalize", &mut t)?;
+        cfg.normalize = parse("normalize", t)?;
+        let mut t =
+            of_type("drive")?.ok_or_else(|| ConfigError::general("a live graph needs a `drive` stage"))?;
+        if t.remove("kind").is_some_and(|k| k.as_str() != Some("fa_i")) {
+            return Err(ConfigError::key(
+                "drive.kind",
+                "the DAQ path drives FA-I neurons: kind = \"fa_i\"",
+            ));
+        }
+        cfg.drive = parse("drive", t)?;
+        cfg.encoder = parse(
+            "izhikevich",
+            of_type("izhikevich")?
+                .ok_or_else(|| ConfigError::general("a live graph needs an `izhikevich` stage"))?,
+        )?;
+        cfg.bin = parse("bin", of_type("bin")?.unwrap_or_default())?;
+        cfg.wss = parse(
+            "wss",
+            of_type("wss")?.ok_or_else(|| ConfigError::general("a live graph needs a `wss` stage"))?,
+        )?;
+        Ok(cfg)
+    }
+
     /// Parses the text of [`LiveConfig::from_file`].
     pub fn from_toml_str(text: &str) -> Result<LiveConfig, ConfigError> {
         let doc: toml::Table =
@@ -323,6 +396,13 @@ impl LiveConfig {
                     .iter()
                     .filter(|(_, v)| v.get("type").and_then(|t| t.as_str()) == Some("live"))
                     .collect();
+                if live.is_empty() {
+                    // An ordinary live graph (graphs/live.toml): the keys of
+                    // its causal stages, found by type.
+                    let cfg = Self::from_stage_tables(stages)?;
+                    cfg.check()?;
+                    return Ok(cfg);
+                }
                 let [(_, v)] = live.as_slice() else {
                     return Err(ConfigError::general(format!(
                         "a graph used as a live config needs exactly one stage of type \"live\", found {}",

@@ -1,0 +1,529 @@
+//! Streaming: per-trial stages fed one trial in blocks, as a DAQ delivers it.
+//!
+//! Beside its batch form (a [`crate::Map`] or an estimator's model, which sees
+//! a whole trial), a stage type may register a *streaming form*: per trial it
+//! opens a [`StreamState`], is pushed the trial block by block, emits what is
+//! ready after each block, and emits the rest when the trial is flushed. State
+//! (filter memories, membranes, open images) is kept between blocks.
+//!
+//! Blocks are ordinary [`Payload`]s of the stage's kinds, cut in time:
+//!
+//! | kind | one block holds |
+//! |---|---|
+//! | signals | the next samples of every taxel (`data[taxel]`, all of one length, possibly 0); rate, layout and unit as the trial's |
+//! | spikes | the next events, time-sorted; `duration_ms` is the time up to which every event of the trial is known (the last block's is the trial's duration) |
+//! | images | the next complete frames (`n_frames` of them, numbered on from the previous block's) |
+//! | estimates | the running estimate after the images so far; the last one is the trial's |
+//!
+//! The contract, tested for every streamable stage with blocks of 1, 7 and
+//! 1000 samples: [`concat`] of a stage's output blocks equals its batch output
+//! on the whole trial (bit for bit where the arithmetic is the same; each test
+//! states its tolerance otherwise).
+//!
+//! A stage that cannot stream (a zero-phase filter, whole-trial normalization,
+//! a gain set from the trial's peak, a crop by share of a crossing) says so
+//! with [`StreamForm::Batch`], naming why and its causal alternative;
+//! `palpate check --live GRAPH` lists them. Registration is by stage type name,
+//! through `inventory`, like the stage registry: [`register_stream!`](crate::register_stream)
+//! beside the stage's own registration, in a separate file, so the batch
+//! stage's code is untouched.
+
+use crate::payload::{Estimate, Payload, Signals, SpikeImages, SpikeTrain};
+use crate::stage::{BuildContext, ConfigError, StageError, TrialContext};
+
+/// One trial's running state of a streaming stage.
+pub trait StreamState: Send {
+    /// Pushes the next block of the stage's input; appends the output blocks
+    /// that are ready (possibly none) to `out`.
+    fn push(&mut self, block: &Payload, out: &mut Vec<Payload>) -> Result<(), StageError>;
+    /// Ends the trial: appends what is left (the last samples' look-ahead,
+    /// the images that run past the end, the final estimate) to `out`.
+    fn flush(&mut self, out: &mut Vec<Payload>) -> Result<(), StageError>;
+}
+
+/// The streaming form of a built stage: opens one state per trial.
+pub trait StreamStage: Send + Sync {
+    /// A fresh state for one trial (the seed of `ctx` is the batch form's).
+    fn open(&self, ctx: &TrialContext<'_>) -> Result<Box<dyn StreamState>, StageError>;
+}
+
+/// Whether a configured stage can stream.
+pub enum StreamForm {
+    /// It can: its streaming form.
+    Streams(Box<dyn StreamStage>),
+    /// It cannot, with these settings.
+    Batch {
+        /// Why it needs the whole trial, e.g. "zero-phase filtering runs backwards from the trial's end".
+        why: String,
+        /// What to use instead in a live graph, e.g. "mode = \"causal\"".
+        instead: String,
+    },
+}
+
+impl StreamForm {
+    /// A stage that cannot stream: why, and its causal alternative.
+    pub fn batch(why: impl Into<String>, instead: impl Into<String>) -> Self {
+        StreamForm::Batch {
+            why: why.into(),
+            instead: instead.into(),
+        }
+    }
+}
+
+/// A stage type's streaming form, found by its `type` name.
+pub struct StreamRegistration {
+    /// The `type` value in graph files.
+    pub type_name: &'static str,
+    /// Builds the streaming form from the stage's settings (its config
+    /// serialized as `{type_name: {keys}}`, as typetag writes it).
+    pub build: fn(&serde_json::Value, &BuildContext) -> Result<StreamForm, ConfigError>,
+}
+
+inventory::collect!(StreamRegistration);
+
+/// Registers a stage type's streaming form: `register_stream!("lowpass",
+/// LowpassConfig, lowpass_stream)` with `fn lowpass_stream(&LowpassConfig,
+/// &BuildContext) -> Result<StreamForm, ConfigError>`.
+#[macro_export]
+macro_rules! register_stream {
+    ($name:literal, $ty:ty, $build:path) => {
+        $crate::__private::inventory::submit! {
+            $crate::stream::StreamRegistration {
+                type_name: $name,
+                build: |settings, ctx| {
+                    let inner = settings.get($name).cloned().unwrap_or_else(|| settings.clone());
+                    let cfg: $ty = $crate::__private::serde_json::from_value(inner)
+                        .map_err(|e| $crate::ConfigError::general(e.to_string()))?;
+                    $build(&cfg, ctx)
+                },
+            }
+        }
+    };
+}
+
+/// The streaming registration of `type_name`, if it has one.
+pub fn find(type_name: &str) -> Option<&'static StreamRegistration> {
+    inventory::iter::<StreamRegistration>
+        .into_iter()
+        .find(|r| r.type_name == type_name)
+}
+
+/// The streaming form of a stage of type `type_name` with `settings` (its
+/// serialized config); a type without a registration cannot stream.
+pub fn form(
+    type_name: &str,
+    settings: &serde_json::Value,
+    ctx: &BuildContext,
+) -> Result<StreamForm, ConfigError> {
+    match find(type_name) {
+        Some(r) => (r.build)(settings, ctx),
+        None => Ok(StreamForm::batch(
+            format!("stage type `{type_name}` has no streaming form"),
+            "a stage that streams, or run it offline",
+        )),
+    }
+}
+
+/// Joins a stage's output blocks into the payload its batch form gives on the
+/// whole trial (see the module docs); `None` for no blocks or mixed kinds.
+pub fn concat(blocks: &[Payload]) -> Option<Payload> {
+    let first = blocks.first()?;
+    match first {
+        Payload::Signals(s0) => {
+            let mut data: Vec<Vec<f64>> = vec![Vec::new(); s0.data.len()];
+            for b in blocks {
+                let s = b.signals().ok()?;
+                if s.data.len() != data.len() {
+                    return None;
+                }
+                for (d, x) in data.iter_mut().zip(&s.data) {
+                    d.extend_from_slice(x);
+                }
+            }
+            Some(s0.with_data(s0.unit.clone(), data).into())
+        }
+        Payload::Spikes(t0) => {
+            let mut events = Vec::new();
+            let mut duration_ms = t0.duration_ms;
+            for b in blocks {
+                let t = b.spikes().ok()?;
+                events.extend_from_slice(&t.events);
+                duration_ms = t.duration_ms;
+            }
+            Some(
+                SpikeTrain {
+                    layout: t0.layout.clone(),
+                    duration_ms,
+                    events,
+                }
+                .into(),
+            )
+        }
+        Payload::Images(i0) => {
+            let mut counts = Vec::new();
+            let mut n_frames = 0usize;
+            for b in blocks {
+                let i = b.images().ok()?;
+                counts.extend_from_slice(&i.counts);
+                n_frames = n_frames.checked_add(i.n_frames)?;
+            }
+            Some(
+                SpikeImages {
+                    layout: i0.layout.clone(),
+                    window_ms: i0.window_ms,
+                    hop_ms: i0.hop_ms,
+                    n_frames,
+                    counts,
+                }
+                .into(),
+            )
+        }
+        Payload::Estimate(_) => {
+            let last: &Estimate = blocks.last()?.estimate().ok()?;
+            blocks
+                .iter()
+                .all(|b| b.estimate().is_ok())
+                .then(|| last.clone().into())
+        }
+    }
+}
+
+/// Cuts a trial's signals into blocks of `block` samples (the last may be
+/// shorter; `block` 0 is taken as 1), as a stream would deliver them.
+pub fn signal_blocks(s: &Signals, block: usize) -> Vec<Payload> {
+    let n = s.n_samples();
+    let block = block.max(1);
+    (0..n)
+        .step_by(block)
+        .map(|a| {
+            let b = (a + block).min(n);
+            s.with_data(s.unit.clone(), s.data.iter().map(|x| x[a..b].to_vec()).collect())
+                .into()
+        })
+        .collect()
+}
+
+/// Pushes `blocks` through a fresh state of `stage` and flushes it: every
+/// output block, in order. What tests and replays use.
+pub fn run_blocks(
+    stage: &dyn StreamStage,
+    blocks: &[Payload],
+    ctx: &TrialContext<'_>,
+) -> Result<Vec<Payload>, StageError> {
+    let mut state = stage.open(ctx)?;
+    let mut out = Vec::new();
+    for b in blocks {
+        state.push(b, &mut out)?;
+    }
+    state.flush(&mut out)?;
+    Ok(out)
+}
+
+/// A stage of a graph that cannot stream, for `palpate check --live`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LiveProblem {
+    /// The stage's id.
+    pub stage: String,
+    /// Its type.
+    pub type_name: String,
+    /// Why it cannot stream.
+    pub why: String,
+    /// Its causal alternative.
+    pub instead: String,
+}
+
+impl std::fmt::Display for LiveProblem {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "stage `{}` ({}) cannot stream: {}; instead: {}",
+            self.stage, self.type_name, self.why, self.instead
+        )
+    }
+}
+
+/// A graph's streaming plan: its one source, and the streaming form of every
+/// stage between it and the sinks (in execution order).
+pub struct LivePlan {
+    /// The source's node index.
+    pub source: usize,
+    /// (node index, streaming form), in the graph's execution order.
+    pub stages: Vec<(usize, Box<dyn StreamStage>)>,
+}
+
+/// Builds the streaming plan of a graph, or names every stage that cannot
+/// stream (with why, and what to use instead). A live graph has one source;
+/// every other stage but the sinks reads one input and has a streaming form.
+pub fn plan(graph: &crate::Graph) -> Result<LivePlan, Vec<LiveProblem>> {
+    use crate::stage::Stage;
+    let mut problems = Vec::new();
+    let mut source = None;
+    let mut stages = Vec::new();
+    for &i in &graph.order {
+        let node = &graph.nodes[i];
+        let problem = |why: String, instead: &str| LiveProblem {
+            stage: node.id.clone(),
+            type_name: node.type_name.clone(),
+            why,
+            instead: instead.to_string(),
+        };
+        match &node.stage {
+            Stage::Sink(_) => continue,
+            Stage::Source(_) => {
+                if source.is_some() {
+                    problems.push(problem(
+                        "a live graph has one source (the DAQ or the recording it replays)".into(),
+                        "one source stage",
+                    ));
+                }
+                source = Some(i);
+                continue;
+            }
+            Stage::Map(_) | Stage::Estimator(_) => {}
+        }
+        if graph.input_index[i].len() != 1 {
+            problems.push(problem(
+                "a stage of several inputs does not stream yet".into(),
+                "a chain of one-input stages",
+            ));
+            continue;
+        }
+        let ctx = BuildContext {
+            stage_id: node.id.clone(),
+            seed: graph.run.seed,
+            out_dir: graph.out_dir.clone(),
+            base_dir: std::path::PathBuf::from(&graph.file)
+                .parent()
+                .map(std::path::Path::to_path_buf)
+                .unwrap_or_default(),
+        };
+        let settings = serde_json::to_value(node.config.as_ref()).unwrap_or(serde_json::Value::Null);
+        match form(&node.type_name, &settings, &ctx) {
+            Ok(StreamForm::Streams(s)) => stages.push((i, s)),
+            Ok(StreamForm::Batch { why, instead }) => problems.push(problem(why, &instead)),
+            Err(e) => problems.push(problem(e.to_string(), "a valid setting")),
+        }
+    }
+    match (source, problems.is_empty()) {
+        (Some(source), true) => Ok(LivePlan { source, stages }),
+        (None, _) => {
+            problems.push(LiveProblem {
+                stage: String::new(),
+                type_name: String::new(),
+                why: "the graph has no source".into(),
+                instead: "a source stage (a scene, a recording, the DAQ)".into(),
+            });
+            Err(problems)
+        }
+        (_, false) => Err(problems),
+    }
+}
+
+impl LivePlan {
+    /// Streams one trial: pushes `blocks` of the source's output through every
+    /// stage's fresh state, then flushes them in order. `on_block(node, block)`
+    /// sees every output block as it is produced (a live display shows the
+    /// estimates). Returns every node's output blocks when `keep` is set
+    /// (tests), else only the estimators' and maps' last blocks.
+    pub fn run_trial(
+        &self,
+        graph: &crate::Graph,
+        meta: &crate::TrialMeta,
+        blocks: impl IntoIterator<Item = Payload>,
+        keep: bool,
+        mut on_block: impl FnMut(usize, &Payload),
+    ) -> Result<Vec<(usize, Vec<Payload>)>, crate::RunError> {
+        let err = |i: usize, e: StageError| crate::RunError {
+            stage: graph.nodes[i].id.clone(),
+            trial: Some(meta.trial_id.clone()),
+            message: e.message,
+        };
+        let mut states = Vec::with_capacity(self.stages.len());
+        for (i, s) in &self.stages {
+            let id = graph.nodes[*i].id.as_str();
+            let ctx = TrialContext {
+                stage_id: id,
+                meta,
+                seed: crate::derive_seed(graph.run.seed, &[id, &meta.trial_id]),
+            };
+            states.push(s.open(&ctx).map_err(|e| err(*i, e))?);
+        }
+        let n = graph.nodes.len();
+        let mut kept: Vec<Vec<Payload>> = vec![Vec::new(); n];
+        let mut pending: Vec<Vec<Payload>> = vec![Vec::new(); n];
+        let mut step = |pending: &mut Vec<Vec<Payload>>,
+                        kept: &mut Vec<Vec<Payload>>,
+                        states: &mut Vec<Box<dyn StreamState>>,
+                        flush: bool|
+         -> Result<(), crate::RunError> {
+            for (p, (i, _)) in self.stages.iter().enumerate() {
+                let input = graph.input_index[*i][0];
+                let mut out = Vec::new();
+                for b in &pending[input] {
+                    states[p].push(b, &mut out).map_err(|e| err(*i, e))?;
+                }
+                if flush {
+                    states[p].flush(&mut out).map_err(|e| err(*i, e))?;
+                }
+                for b in &out {
+                    on_block(*i, b);
+                }
+                if keep {
+                    kept[*i].extend(out.iter().cloned());
+                } else if let Some(last) = out.last() {
+                    kept[*i] = vec![last.clone()];
+                }
+                pending[*i] = out;
+            }
+            for v in pending.iter_mut() {
+                v.clear();
+            }
+            Ok(())
+        };
+        for b in blocks {
+            if keep {
+                kept[self.source].push(b.clone());
+            }
+            pending[self.source].push(b);
+            step(&mut pending, &mut kept, &mut states, false)?;
+        }
+        step(&mut pending, &mut kept, &mut states, true)?;
+        Ok(kept
+            .into_iter()
+            .enumerate()
+            .filter(|(_, v)| !v.is_empty())
+            .collect())
+    }
+}
+
+/// A running estimate, as `palpate run --live` prints it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LiveUpdate {
+    /// The trial being streamed.
+    pub trial_id: String,
+    /// The estimator stage that answered.
+    pub stage: String,
+    /// Stream time: samples pushed so far over the rate, ms.
+    pub t_ms: f64,
+    /// The estimate.
+    pub estimate: Estimate,
+    /// True for the trial's final estimate (after the flush).
+    pub last: bool,
+}
+
+/// Streams every trial of a graph's source through its [`LivePlan`], in
+/// blocks of `block` samples (1 = frame by frame, as a board delivers them),
+/// trial after trial; `on_update` sees every estimate as it changes. Then the
+/// sinks get each estimator's final estimates, as after a batch run. Memory:
+/// one trial's source payload and the stages' states (the source produces a
+/// trial at a time; a DAQ source would produce its frames as they come).
+pub fn replay(
+    graph: &crate::Graph,
+    plan: &LivePlan,
+    block: usize,
+    mut on_update: impl FnMut(&LiveUpdate),
+) -> Result<Vec<(String, crate::SinkReport)>, crate::RunError> {
+    use crate::stage::Stage;
+    let src_id = graph.nodes[plan.source].id.as_str();
+    let Stage::Source(src) = &graph.nodes[plan.source].stage else {
+        return Err(crate::RunError {
+            stage: src_id.to_string(),
+            trial: None,
+            message: "not a source (internal error)".into(),
+        });
+    };
+    let rerr = |stage: &str, trial: Option<&str>, e: StageError| crate::RunError {
+        stage: stage.to_string(),
+        trial: trial.map(str::to_string),
+        message: e.message,
+    };
+    let mut metas = src.trials().map_err(|e| rerr(src_id, None, e))?;
+    for (k, m) in metas.iter_mut().enumerate() {
+        m.index = k;
+    }
+    let estimators: Vec<usize> = plan
+        .stages
+        .iter()
+        .map(|(i, _)| *i)
+        .filter(|&i| matches!(graph.nodes[i].stage, Stage::Estimator(_)))
+        .collect();
+    let mut finals: Vec<Vec<crate::Item>> = vec![Vec::new(); graph.nodes.len()];
+    for meta in &metas {
+        let ctx = TrialContext {
+            stage_id: src_id,
+            meta,
+            seed: crate::derive_seed(graph.run.seed, &[src_id, &meta.trial_id]),
+        };
+        let payload = src
+            .produce(&ctx)
+            .map_err(|e| rerr(src_id, Some(&meta.trial_id), e))?;
+        let signals = payload
+            .signals()
+            .map_err(|e| rerr(src_id, Some(&meta.trial_id), e))?;
+        let fs = signals.sample_rate_hz;
+        let fed = std::cell::Cell::new(0usize);
+        let blocks = signal_blocks(signals, block).into_iter().inspect(|b| {
+            if let Ok(s) = b.signals() {
+                fed.set(fed.get() + s.n_samples());
+            }
+        });
+        let kept = plan.run_trial(graph, meta, blocks, false, |node, b| {
+            if let (true, Ok(e)) = (estimators.contains(&node), b.estimate()) {
+                on_update(&LiveUpdate {
+                    trial_id: meta.trial_id.clone(),
+                    stage: graph.nodes[node].id.clone(),
+                    t_ms: fed.get() as f64 * 1000.0 / fs,
+                    estimate: (**e).clone(),
+                    last: false,
+                });
+            }
+        })?;
+        for (node, blocks) in kept {
+            if let (true, Some(last)) = (estimators.contains(&node), blocks.last()) {
+                if let Ok(e) = last.estimate() {
+                    on_update(&LiveUpdate {
+                        trial_id: meta.trial_id.clone(),
+                        stage: graph.nodes[node].id.clone(),
+                        t_ms: fed.get() as f64 * 1000.0 / fs,
+                        estimate: (**e).clone(),
+                        last: true,
+                    });
+                }
+                finals[node].push(crate::Item {
+                    meta: std::sync::Arc::new(meta.clone()),
+                    payload: last.clone(),
+                });
+            }
+        }
+    }
+    // Sinks, as after a batch run, on the estimators' final answers.
+    let mut reports = Vec::new();
+    for &i in &graph.order {
+        let node = &graph.nodes[i];
+        let Stage::Sink(sink) = &node.stage else { continue };
+        if !graph.input_index[i].iter().all(|j| estimators.contains(j)) {
+            continue;
+        }
+        std::fs::create_dir_all(&graph.out_dir).map_err(|e| {
+            rerr(
+                &node.id,
+                None,
+                StageError::new(format!("cannot create {}: {e}", graph.out_dir.display())),
+            )
+        })?;
+        let inputs: Vec<crate::SinkInput<'_>> = graph.input_index[i]
+            .iter()
+            .map(|&j| crate::SinkInput {
+                stage_id: &graph.nodes[j].id,
+                items: &finals[j],
+            })
+            .collect();
+        let ctx = crate::SinkContext {
+            stage_id: &node.id,
+            out_dir: &graph.out_dir,
+        };
+        let report = sink.consume(&inputs, &ctx).map_err(|e| rerr(&node.id, None, e))?;
+        reports.push((node.id.clone(), report));
+    }
+    Ok(reports)
+}

@@ -1,0 +1,33 @@
+//! Streaming forms of the built-in per-trial stages (see
+//! [`palpate_core::stream`] for the block contract): each is registered by
+//! its stage type name with [`palpate_core::register_stream!`], beside and
+//! independent of the batch stage, whose code it does not touch.
+//!
+//! | type | streams when | otherwise use |
+//! |---|---|---|
+//! | `lowpass` | `mode = "causal"` | `mode = "causal"` (zero-phase runs backwards from the trial's end) |
+//! | `normalize` | `mode = "causal"` | `mode = "causal"` with a calibrated `span` |
+//! | `drive` | a fixed `gain` (or `kind = "direct"`) | `gain = G` from a calibration palpation |
+//! | `izhikevich` | `input = "hold"` | `input = "hold"` (linear needs the next sample) |
+//! | `bin` | always | - |
+//! | `wss` | always (model-based) | - |
+//!
+//! Every form gives, concatenated over a trial's blocks, its batch stage's
+//! output on the whole trial, bit for bit (WSS: the same answer, scores to
+//! 1e-9; tested in `stages/tests/stream_blocks.rs` with blocks of 1, 7 and
+//! 1000 samples).
+
+mod encode;
+mod signal;
+mod spikes;
+mod wss;
+
+use palpate_core::{Payload, Signals, StageError};
+
+/// The signals of a block, checked like the batch stage checks a trial
+/// (positive rate, one row per taxel, equal lengths, finite samples).
+pub(crate) fn block_signals<'a>(what: &str, block: &'a Payload) -> Result<&'a Signals, StageError> {
+    let s = block.signals()?;
+    crate::signal::check_signals(what, s)?;
+    Ok(s)
+}

@@ -1,0 +1,333 @@
+//! Every streamable stage, fed a trial in blocks of 1, 7 and 1000 samples,
+//! gives its batch output (`palpate_core::stream`'s contract): bit for bit
+//! for the signal stages, the encoder and the binner; the same answer with
+//! scores within 1e-9 for WSS (its streaming form keeps running sums that
+//! round differently from the batch FFT). Also: `stream::plan` names every
+//! stage of the offline quickstart that cannot stream, and hostile blocks
+//! give errors, not panics.
+
+use palpate_core::stream::{self, concat, signal_blocks, StreamForm};
+use palpate_core::{
+    BuildContext, Item, LoadOptions, Payload, RunOptions, Signals, Stage, StageConfig, TaxelLayout,
+    TrialContext, TrialMeta,
+};
+use palpate_stages::encode::izhikevich::IzhikevichConfig;
+use palpate_stages::signal::drive::{DriveConfig, DriveKind};
+use palpate_stages::signal::lowpass::{FilterMode, LowpassConfig};
+use palpate_stages::signal::normalize::{NormalizeConfig, NormalizeMode};
+use palpate_stages::spikes::bin::BinConfig;
+use proptest::prelude::*;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+fn root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
+}
+
+/// The quickstart's chain in its causal form (graphs/live.toml's settings),
+/// on two lab-scene trials.
+fn live_graph() -> String {
+    format!(
+        r#"
+[run]
+seed = 1
+
+[stages.scene]
+type = "scene"
+file = "{}"
+trials_per_angle = 1
+angles = [30.0, 75.0]
+
+[stages.filter]
+type = "lowpass"
+inputs = ["scene"]
+cutoff_hz = 10.0
+mode = "causal"
+
+[stages.norm]
+type = "normalize"
+inputs = ["filter"]
+mode = "causal"
+baseline_ms = 500.0
+span = 1.55
+
+[stages.drive]
+type = "drive"
+inputs = ["norm"]
+gain = 30.0
+
+[stages.enc]
+type = "izhikevich"
+inputs = ["drive"]
+
+[stages.bins]
+type = "bin"
+inputs = ["enc"]
+
+[stages.wss]
+type = "wss"
+inputs = ["bins"]
+weighting = "one_minus_sr"
+
+[stages.mae]
+type = "mae"
+inputs = ["wss"]
+"#,
+        root().join("graphs/scenes/lab.toml").display()
+    )
+}
+
+fn load(text: &str) -> palpate_core::Graph {
+    palpate_stages::link();
+    let opts = LoadOptions {
+        out: Some(std::env::temp_dir().join("palpate-stream-blocks")),
+        ..LoadOptions::default()
+    };
+    palpate_core::load_str(text, "stream_blocks.toml", "stream_blocks", &opts).unwrap()
+}
+
+fn bits(v: &[f64]) -> Vec<u64> {
+    v.iter().map(|x| x.to_bits()).collect()
+}
+
+/// Asserts that a streamed payload equals the batch one (see the module docs).
+fn assert_same(what: &str, streamed: &Payload, batch: &Payload) {
+    match (streamed, batch) {
+        (Payload::Signals(a), Payload::Signals(b)) => {
+            assert_eq!(a.data.len(), b.data.len(), "{what}: taxels");
+            for (t, (x, y)) in a.data.iter().zip(&b.data).enumerate() {
+                assert_eq!(bits(x), bits(y), "{what}: taxel {t}");
+            }
+            assert_eq!(a.unit, b.unit, "{what}: unit");
+        }
+        (Payload::Spikes(a), Payload::Spikes(b)) => {
+            assert_eq!(a.events.len(), b.events.len(), "{what}: spike count");
+            for (x, y) in a.events.iter().zip(&b.events) {
+                assert_eq!((x.taxel, x.t_ms.to_bits()), (y.taxel, y.t_ms.to_bits()), "{what}");
+            }
+            assert_eq!(
+                a.duration_ms.to_bits(),
+                b.duration_ms.to_bits(),
+                "{what}: duration"
+            );
+        }
+        (Payload::Images(a), Payload::Images(b)) => {
+            assert_eq!(a.n_frames, b.n_frames, "{what}: frames");
+            assert_eq!(bits(&a.counts), bits(&b.counts), "{what}: counts");
+        }
+        (Payload::Estimate(a), Payload::Estimate(b)) => {
+            assert_eq!(a.angle_deg, b.angle_deg, "{what}: angle");
+            assert_eq!(a.class_deg, b.class_deg, "{what}: class");
+            assert_eq!(a.scores.len(), b.scores.len());
+            for (x, y) in a.scores.iter().zip(&b.scores) {
+                assert_eq!(x.angle_deg, y.angle_deg);
+                assert!(
+                    (x.score - y.score).abs() <= 1e-9,
+                    "{what}: score {} vs {}",
+                    x.score,
+                    y.score
+                );
+            }
+            match (a.decision_time_ms, b.decision_time_ms) {
+                (Some(x), Some(y)) => assert!((x - y).abs() <= 1e-6, "{what}: decision {x} vs {y}"),
+                (x, y) => assert_eq!(x, y, "{what}: decision time"),
+            }
+        }
+        _ => panic!("{what}: kinds differ"),
+    }
+}
+
+#[test]
+fn every_stage_of_the_live_chain_streams_to_its_batch_output_in_blocks_of_1_7_and_1000() {
+    let g = load(&live_graph());
+    let batch = palpate_core::run(
+        &g,
+        &RunOptions {
+            keep_outputs: true,
+            ..RunOptions::default()
+        },
+    )
+    .unwrap();
+    let plan = stream::plan(&g).unwrap_or_else(|p| panic!("{p:?}"));
+    assert_eq!(plan.stages.len(), 6, "filter, norm, drive, enc, bins, wss stream");
+    let scene = &batch.outputs["scene"];
+    assert_eq!(scene.len(), 2);
+    for (t, item) in scene.iter().enumerate() {
+        let s = item.payload.signals().unwrap();
+        for block in [1usize, 7, 1000] {
+            let kept = plan
+                .run_trial(&g, &item.meta, signal_blocks(s, block), true, |_, _| {})
+                .unwrap();
+            assert_eq!(kept.len(), 7, "source and six stages kept");
+            for (node, blocks) in &kept {
+                let id = &g.nodes[*node].id;
+                let want = &batch.outputs[id][t].payload;
+                let got = concat(blocks).unwrap();
+                assert_same(&format!("{id}, trial {t}, blocks of {block}"), &got, want);
+            }
+        }
+    }
+    // The scenes' answers are right, offline and streamed alike.
+    let wss = &batch.outputs["wss"];
+    for it in wss.iter() {
+        let e = it.payload.estimate().unwrap();
+        assert_eq!(e.class_deg, it.meta.label.angle_deg, "{}", it.meta.trial_id);
+    }
+}
+
+#[test]
+fn the_offline_quickstart_names_each_stage_that_cannot_stream_and_its_alternative() {
+    let text = std::fs::read_to_string(root().join("graphs/quickstart.toml"))
+        .unwrap()
+        .replace(
+            "scenes/lab.toml",
+            &root().join("graphs/scenes/lab.toml").display().to_string(),
+        );
+    let g = load(&text);
+    let problems = match stream::plan(&g) {
+        Ok(_) => panic!("the zero-phase quickstart cannot stream"),
+        Err(p) => p,
+    };
+    let ids: Vec<&str> = problems.iter().map(|p| p.stage.as_str()).collect();
+    assert_eq!(ids, ["filter", "norm", "drive"]);
+    assert!(problems[0].instead.contains("causal"), "{}", problems[0]);
+    assert!(problems[1].instead.contains("span"), "{}", problems[1]);
+    assert!(problems[2].instead.contains("gain"), "{}", problems[2]);
+}
+
+fn ctx() -> BuildContext {
+    BuildContext {
+        stage_id: "s".into(),
+        seed: 7,
+        out_dir: std::env::temp_dir(),
+        base_dir: std::env::temp_dir(),
+    }
+}
+
+/// Batch output of `cfg` on `input`, and its streamed output in `block`s.
+fn both(cfg: &dyn StageConfig, type_name: &str, input: &Signals, block: usize) -> (Payload, Payload) {
+    let meta = TrialMeta {
+        trial_id: "t".into(),
+        ..TrialMeta::default()
+    };
+    let tctx = TrialContext {
+        stage_id: "s",
+        meta: &meta,
+        seed: 1,
+    };
+    let item = Item {
+        meta: Arc::new(meta.clone()),
+        payload: input.clone().into(),
+    };
+    let Ok(Stage::Map(map)) = cfg.build(&ctx()) else {
+        panic!("{type_name} is a map")
+    };
+    let batch = map.process(&[&item], &tctx).unwrap();
+    let settings = serde_json::to_value(cfg).unwrap();
+    let Ok(StreamForm::Streams(s)) = stream::form(type_name, &settings, &ctx()) else {
+        panic!("{type_name} streams")
+    };
+    let out = stream::run_blocks(s.as_ref(), &signal_blocks(input, block), &tctx).unwrap();
+    (concat(&out).unwrap(), batch)
+}
+
+fn signals(data: Vec<Vec<f64>>) -> Signals {
+    let n = data.len();
+    Signals {
+        sample_rate_hz: 1000.0,
+        layout: TaxelLayout::Positions {
+            positions_mm: (0..n).map(|i| [i as f64, 0.0]).collect(),
+            taxel_mm: 1.0,
+        },
+        unit: "V".into(),
+        data,
+    }
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(24))]
+
+    /// Random signals (wild values included), random block sizes: every
+    /// signal stage and the encoder and binner equal their batch output.
+    #[test]
+    fn random_signals_stream_to_the_batch_output(
+        rows in proptest::collection::vec(proptest::collection::vec(-1e6f64..1e6, 2..300), 1..4),
+        block in 1usize..64,
+        fc in 1.0f64..400.0,
+        gain in 0.0f64..1e3,
+    ) {
+        let len = rows.iter().map(Vec::len).min().unwrap_or(0);
+        let s = signals(rows.into_iter().map(|mut r| { r.truncate(len); r }).collect());
+        let lp = LowpassConfig { order: 3, cutoff_hz: fc, mode: FilterMode::Causal };
+        let (a, b) = both(&lp, "lowpass", &s, block);
+        assert_same("lowpass", &a, &b);
+        let nb = NormalizeConfig { mode: NormalizeMode::Causal, baseline_ms: 1.0, span: Some(3.0), min_span: 0.1 };
+        let (a, b) = both(&nb, "normalize", &s, block);
+        assert_same("normalize", &a, &b);
+        for kind in [DriveKind::FaI, DriveKind::SaI] {
+            let d = DriveConfig { kind, gain: Some(gain), target_peak_current: None };
+            let (a, b) = both(&d, "drive", &s, block);
+            assert_same("drive", &a, &b);
+        }
+        let cur = signals(s.data.iter().map(|r| r.iter().map(|x| (x * 1e-4).abs()).collect()).collect());
+        let enc = IzhikevichConfig::default();
+        let (a, b) = both(&enc, "izhikevich", &cur, block);
+        assert_same("izhikevich", &a, &b);
+    }
+}
+
+#[test]
+fn hostile_blocks_are_errors_not_panics() {
+    let settings = serde_json::to_value(&BinConfig::default() as &dyn StageConfig).unwrap();
+    let Ok(StreamForm::Streams(bin)) = stream::form("bin", &settings, &ctx()) else {
+        panic!("bin streams")
+    };
+    let meta = TrialMeta::default();
+    let tctx = TrialContext {
+        stage_id: "bins",
+        meta: &meta,
+        seed: 0,
+    };
+    let layout = TaxelLayout::paper();
+    let huge = palpate_core::SpikeTrain {
+        layout: layout.clone(),
+        duration_ms: 1e300,
+        events: vec![],
+    };
+    assert!(stream::run_blocks(bin.as_ref(), &[huge.into()], &tctx).is_err());
+    let bad_taxel = palpate_core::SpikeTrain {
+        layout,
+        duration_ms: 10.0,
+        events: vec![palpate_core::SpikeEvent { taxel: 99, t_ms: 1.0 }],
+    };
+    assert!(stream::run_blocks(bin.as_ref(), &[bad_taxel.into()], &tctx).is_err());
+    // A non-finite sample is refused by the signal stages, as in batch.
+    let lp = LowpassConfig {
+        order: 2,
+        cutoff_hz: 10.0,
+        mode: FilterMode::Causal,
+    };
+    let settings = serde_json::to_value(&lp as &dyn StageConfig).unwrap();
+    let Ok(StreamForm::Streams(f)) = stream::form("lowpass", &settings, &ctx()) else {
+        panic!("causal lowpass streams")
+    };
+    let s = signals(vec![vec![1.0, f64::NAN, 2.0]]);
+    assert!(stream::run_blocks(f.as_ref(), &signal_blocks(&s, 1), &tctx).is_err());
+    // A cutoff above Nyquist is named.
+    let lp = LowpassConfig {
+        order: 2,
+        cutoff_hz: 900.0,
+        mode: FilterMode::Causal,
+    };
+    let settings = serde_json::to_value(&lp as &dyn StageConfig).unwrap();
+    let Ok(StreamForm::Streams(f)) = stream::form("lowpass", &settings, &ctx()) else {
+        panic!("causal lowpass streams")
+    };
+    let e = stream::run_blocks(
+        f.as_ref(),
+        &signal_blocks(&signals(vec![vec![0.0; 10]]), 3),
+        &tctx,
+    )
+    .unwrap_err();
+    assert!(e.message.contains("cutoff_hz"), "{e}");
+}
