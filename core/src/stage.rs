@@ -106,7 +106,7 @@ pub fn check_range(key: &str, value: f64, min: f64, max: f64, unit: &str) -> Res
     } else {
         Err(ConfigError::key(
             key,
-            format!("must lie in [{min}, {max}] {unit}, got {value}").replace("  ", " "),
+            format!("must lie in [{min:?}, {max:?}] {unit}, got {value:?}").replace("  ", " "),
         ))
     }
 }
@@ -118,7 +118,7 @@ pub fn check_positive(key: &str, value: f64, unit: &str) -> Result<f64, ConfigEr
     } else {
         Err(ConfigError::key(
             key,
-            format!("must be a positive number of {unit}, got {value}"),
+            format!("must be a positive number of {unit}, got {value:?}"),
         ))
     }
 }

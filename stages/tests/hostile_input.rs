@@ -435,3 +435,32 @@ fn an_emulator_whose_reader_stopped_ends_instead_of_hanging() {
     let e = player.join().unwrap().unwrap_err();
     assert!(e.contains("no reader"), "{e}");
 }
+
+#[test]
+fn scene_trial_counts_are_capped_and_many_angles_load() {
+    palpate_stages::link();
+    let g = "[stages.scene]\ntype = \"scene\"\nangles = [45]\ntrials_per_angle = 100000000\n";
+    let e = palpate_core::load_str(g, "g.toml", "g", &Default::default()).unwrap_err();
+    assert!(
+        e.to_string().contains("trials_per_angle") && e.to_string().contains("cap"),
+        "{e}"
+    );
+    // 10,000 distinct angles (the repeat check was pairwise), and a repeat.
+    let g = "[stages.scene]\ntype = \"scene\"\nangles = { start = 0.01, stop = 100.0, step = 0.01 }\ntrials_per_angle = 1\n";
+    assert!(palpate_core::load_str(g, "g.toml", "g", &Default::default()).is_ok());
+    let g = "[stages.scene]\ntype = \"scene\"\nangles = [45, 30, 45.0]\n";
+    let e = palpate_core::load_str(g, "g.toml", "g", &Default::default()).unwrap_err();
+    assert!(e.to_string().contains("listed twice"), "{e}");
+}
+
+#[test]
+fn sweeps_over_the_run_cap_are_refused_at_check() {
+    palpate_stages::link();
+    let values: Vec<String> = (0..1001).map(|v| (v + 1).to_string()).collect();
+    let g = format!(
+        "[stages.scene]\ntype = \"scene\"\nangles = [45]\ntrials_per_angle = 1\n\n[sweep]\nkey = \"stages.scene.trials_per_angle\"\nvalues = [{}]\n",
+        values.join(", ")
+    );
+    let e = palpate_core::load_str(&g, "g.toml", "g", &Default::default()).unwrap_err();
+    assert!(e.to_string().contains("over the cap of 1000"), "{e}");
+}
