@@ -434,6 +434,13 @@ fn check_mat_elements(bytes: &[u8], what: &str) -> Result<(), String> {
             ));
         }
         let ty = u32_at(pos);
+        if ty == 14 && ty >> 16 == 0 {
+            let n = u32_at(pos + 4) as usize;
+            if pos + 8 + n <= bytes.len() {
+                check_mat_tags(&bytes[pos + 8..pos + 8 + n], &u32_at, pos + 8, 0)
+                    .map_err(|at| format!("{what}: variable {}: corrupt data element at byte {at}", k + 1))?;
+            }
+        }
         let len = if ty >> 16 != 0 {
             // Small data element: 4 bytes of data inside the 8-byte tag.
             0
@@ -457,6 +464,40 @@ fn check_mat_elements(bytes: &[u8], what: &str) -> Result<(), String> {
         }
         pos = end;
         k += 1;
+    }
+    Ok(())
+}
+
+/// Walks the data elements inside an uncompressed miMATRIX (`body` starts at
+/// file offset `base`): every tag's length must fit in its parent and leave
+/// room for padding. `matfile` multiplies a length near 2^32 without overflow
+/// checks (a panic in debug builds; found by fuzzing). Nested matrices (cells,
+/// structs) are walked to depth 8. Compressed variables are checked by
+/// `matfile` alone. Returns the offset of the bad tag.
+fn check_mat_tags(
+    body: &[u8],
+    u32_at: &dyn Fn(usize) -> u32,
+    base: usize,
+    depth: usize,
+) -> Result<(), usize> {
+    if depth > 8 {
+        return Err(base);
+    }
+    let mut p = 0usize;
+    while p + 8 <= body.len() {
+        let ty = u32_at(base + p);
+        if ty >> 16 != 0 {
+            p += 8;
+            continue;
+        }
+        let n = u32_at(base + p + 4);
+        if n > u32::MAX - 7 || p + 8 + n as usize > body.len() {
+            return Err(base + p);
+        }
+        if ty == 14 {
+            check_mat_tags(&body[p + 8..p + 8 + n as usize], u32_at, base + p + 8, depth + 1)?;
+        }
+        p += 8 + (n as usize).div_ceil(8) * 8;
     }
     Ok(())
 }
