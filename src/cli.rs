@@ -195,7 +195,7 @@ enum DaqCommand {
         speed: f64,
         /// Seconds to wait after printing the device path before playing, so a
         /// reader (`palpate daq run PATH`) can open it first.
-        #[arg(long, default_value_t = 5.0)]
+        #[arg(long, default_value_t = 5.0, value_parser = parse_seconds)]
         delay: f64,
     },
     /// Estimate edges live from a DAQ on a serial port (or an emulator's
@@ -227,9 +227,27 @@ enum DaqCommand {
         #[arg(long)]
         record: Option<PathBuf>,
         /// Stop after this many seconds.
-        #[arg(long)]
+        #[arg(long, value_parser = parse_seconds)]
         seconds: Option<f64>,
     },
+}
+
+/// Most seconds a duration flag takes (about 31 years): `Duration` panics on
+/// NaN, infinite or overflowing seconds, so those are refused when parsing.
+const MAX_FLAG_SECONDS: f64 = 1e9;
+
+/// Parses a duration flag in seconds: finite, `0..=MAX_FLAG_SECONDS`.
+fn parse_seconds(s: &str) -> Result<f64, String> {
+    let v: f64 = s
+        .trim()
+        .parse()
+        .map_err(|_| format!("`{s}` is not a number of seconds"))?;
+    if !(0.0..=MAX_FLAG_SECONDS).contains(&v) {
+        return Err(format!(
+            "`{s}` must be a number of seconds from 0 to {MAX_FLAG_SECONDS:e}"
+        ));
+    }
+    Ok(v)
 }
 
 #[derive(Clone, Copy, ValueEnum)]

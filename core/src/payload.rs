@@ -94,7 +94,9 @@ impl TaxelLayout {
     /// Number of taxels.
     pub fn len(&self) -> usize {
         match self {
-            TaxelLayout::Grid { rows, cols, .. } => rows * cols,
+            // Saturating: a layout is validated (at most MAX_TAXELS) before use,
+            // but `len` must not panic on one that was not.
+            TaxelLayout::Grid { rows, cols, .. } => rows.saturating_mul(*cols),
             TaxelLayout::Positions { positions_mm, .. } => positions_mm.len(),
         }
     }
@@ -148,8 +150,25 @@ impl TaxelLayout {
         (0..self.len()).map(|i| self.position(i)).collect()
     }
 
-    /// Checks that the layout describes at least one taxel of positive, finite size.
+    /// Most taxels a layout may have (the paper's array has 16; a DAQ frame
+    /// carries at most 1024 channels): a documented cap, so that sizes derived
+    /// from the layout cannot overflow or exhaust memory.
+    pub const MAX_TAXELS: usize = 1 << 16;
+
+    /// Checks that the layout describes at least one and at most
+    /// [`TaxelLayout::MAX_TAXELS`] taxels of positive, finite size.
     pub fn validate(&self) -> Result<(), String> {
+        let n = match self {
+            TaxelLayout::Grid { rows, cols, .. } => rows.checked_mul(*cols),
+            TaxelLayout::Positions { positions_mm, .. } => Some(positions_mm.len()),
+        };
+        if n.is_none_or(|n| n > Self::MAX_TAXELS) {
+            return Err(format!(
+                "{} taxels is over the cap of {}",
+                n.map_or_else(|| "more than 2^64".to_string(), |n| n.to_string()),
+                Self::MAX_TAXELS
+            ));
+        }
         let t = self.taxel_mm();
         if !(t.is_finite() && t > 0.0) {
             return Err(format!("taxel size must be a positive number of mm, got {t}"));

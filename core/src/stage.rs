@@ -138,7 +138,7 @@ pub fn check_positive(key: &str, value: f64, unit: &str) -> Result<f64, ConfigEr
     } else {
         Err(ConfigError::key(
             key,
-            format!("must be a positive number of {unit}, got {value}"),
+            format!("must be a positive number of {unit}, got {value:?}"),
         ))
     }
 }

@@ -14,8 +14,35 @@
 //! * MAT: MATLAB v5/v7 files (`save -v7`, compressed or not) through the
 //!   `matfile` crate; numeric real arrays only (char, cell and struct variables
 //!   are skipped). v7.3 files are HDF5 and are rejected with a hint.
+//!
+//! ## Hostile files (docs/resource-policy.md)
+//!
+//! Sizes written in a file are checked against the file before anything is
+//! allocated: an NPY header may not claim more bytes than the file has, its
+//! Python-literal text may nest brackets at most [`MAX_NPY_NESTING`] deep (the
+//! parser is exponential in the depth), every integer in it must be below
+//! 2^63 and the shape's product (and every partial product) at most
+//! [`MAX_ELEMENTS`]; the data must then hold `product x item size` bytes. So
+//! reading an NPY file allocates at most 8 bytes per element of the file
+//! (elements are at least 1 byte): memory is bounded by 8x the file (16x for
+//! a Fortran-order array, transposed through a copy). An NPZ member is read
+//! into a buffer of at most its declared size, itself capped by
+//! [`MAX_NPZ_MEMBER_BYTES`] (deflate can expand 1000-fold).
 
 use std::io::{Cursor, Read};
+
+/// Deepest bracket nesting accepted in an NPY header (a structured dtype with
+/// a nested record uses 3-4 levels). The header is a Python literal whose
+/// parser backtracks: 20 nested brackets took 13.7 s, 24 over 100 s.
+pub const MAX_NPY_NESTING: usize = 8;
+
+/// Most elements (shape product) an array may declare: 2^31, 16 GiB as `f64`.
+/// Any larger claim is an error before the data is touched; the data must also
+/// actually be in the file.
+pub const MAX_ELEMENTS: u64 = 1 << 31;
+
+/// Most bytes one NPZ member may decompress to (1 GiB).
+pub const MAX_NPZ_MEMBER_BYTES: u64 = 1 << 30;
 
 /// A numeric array in C order.
 #[derive(Clone, Debug, PartialEq)]
@@ -75,8 +102,15 @@ fn supported(ts: &npyz::TypeStr) -> bool {
 }
 
 /// Transposes a column-major (Fortran) buffer of `shape` into C order.
+///
+/// `data` must hold the product of `shape` elements (an internal invariant:
+/// callers check it); a shortfall is an error rather than a panic.
 pub fn fortran_to_c(shape: &[usize], data: &[f64]) -> Vec<f64> {
-    let n: usize = shape.iter().product();
+    let n = shape
+        .iter()
+        .try_fold(1usize, |a, &d| a.checked_mul(d))
+        .filter(|&n| n <= data.len())
+        .unwrap_or(0);
     let mut out = vec![0.0; n];
     let nd = shape.len();
     let mut idx = vec![0usize; nd];
@@ -100,15 +134,109 @@ pub fn fortran_to_c(shape: &[usize], data: &[f64]) -> Vec<f64> {
     out
 }
 
+/// Checks an NPY file's preamble and header text before `npyz` sees them:
+/// `npyz` allocates the header length the file claims (up to 4 GiB), parses
+/// nested brackets in exponential time and multiplies the shape without
+/// overflow checks. Returns nothing; errors name the file.
+fn check_npy_header(bytes: &[u8], what: &str) -> Result<(), String> {
+    let bad = |m: &str| Err(format!("{what}: not a readable NPY file ({m})"));
+    if bytes.len() < 10 || !bytes.starts_with(b"\x93NUMPY") {
+        return bad("no NPY magic, or truncated");
+    }
+    let (start, len) = match bytes[6] {
+        1 => (10usize, usize::from(u16::from_le_bytes([bytes[8], bytes[9]]))),
+        2 | 3 if bytes.len() >= 12 => (
+            12,
+            u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize,
+        ),
+        2 | 3 => return bad("truncated preamble"),
+        v => return bad(&format!("unknown NPY version {v}")),
+    };
+    if len > bytes.len() - start {
+        return Err(format!(
+            "{what}: truncated: the NPY header claims {len} bytes, the file has {} after the preamble",
+            bytes.len() - start
+        ));
+    }
+    let text = &bytes[start..start + len];
+    // Bracket depth and integer literals, outside quoted strings.
+    let (mut depth, mut quote, mut escaped) = (0usize, None::<u8>, false);
+    let mut product: u64 = 1;
+    let mut i = 0;
+    while i < text.len() {
+        let c = text[i];
+        if let Some(q) = quote {
+            if escaped {
+                escaped = false;
+            } else if c == b'\\' {
+                escaped = true;
+            } else if c == q {
+                quote = None;
+            }
+            i += 1;
+            continue;
+        }
+        match c {
+            b'\'' | b'"' => quote = Some(c),
+            b'(' | b'[' | b'{' => {
+                depth += 1;
+                if depth > MAX_NPY_NESTING {
+                    return Err(format!(
+                        "{what}: NPY header nests brackets deeper than {MAX_NPY_NESTING} levels"
+                    ));
+                }
+            }
+            b')' | b']' | b'}' => depth = depth.saturating_sub(1),
+            b'0'..=b'9' => {
+                // A number literal runs over letters, digits and `_` (0x1F, 1_000).
+                let s = i;
+                while i < text.len() && (text[i].is_ascii_alphanumeric() || text[i] == b'_') {
+                    i += 1;
+                }
+                let tok: String = String::from_utf8_lossy(&text[s..i]).replace('_', "");
+                let v = match tok.get(..2) {
+                    Some("0x" | "0X") => u64::from_str_radix(&tok[2..], 16),
+                    Some("0o" | "0O") => u64::from_str_radix(&tok[2..], 8),
+                    Some("0b" | "0B") => u64::from_str_radix(&tok[2..], 2),
+                    _ => tok.parse::<u64>(),
+                }
+                .map_err(|_| format!("{what}: NPY header holds `{tok}`, not a size"))?;
+                if v != 0 {
+                    product = product.saturating_mul(v);
+                }
+                if v >= 1 << 63 || product > MAX_ELEMENTS {
+                    return Err(format!(
+                        "{what}: the NPY header declares more than {MAX_ELEMENTS} elements (the cap)"
+                    ));
+                }
+                continue;
+            }
+            _ => {}
+        }
+        i += 1;
+    }
+    Ok(())
+}
+
 /// Reads an NPY file's bytes; `what` names the file for errors.
 pub fn read_npy(bytes: &[u8], what: &str) -> Result<NpyContent, String> {
+    check_npy_header(bytes, what)?;
     let mut r = bytes;
     let header = npyz::NpyHeader::from_reader(&mut r)
         .map_err(|e| format!("{what}: not a readable NPY file ({e}); truncated or not NumPy's format?"))?;
     let npy = npyz::NpyFile::with_header(header, r);
-    let shape: Vec<usize> = npy.shape().iter().map(|&d| d as usize).collect();
+    // Dimensions fit: `check_npy_header` bounded every integer of the header.
+    let shape: Vec<usize> = npy
+        .shape()
+        .iter()
+        .map(|&d| usize::try_from(d).map_err(|_| format!("{what}: dimension {d} is too large")))
+        .collect::<Result<_, _>>()?;
     let fortran = npy.order() == npyz::Order::Fortran;
-    let n: usize = shape.iter().product();
+    let n: usize = shape
+        .iter()
+        .try_fold(1usize, |a, &d| a.checked_mul(d))
+        .filter(|&n| n as u64 <= MAX_ELEMENTS)
+        .ok_or_else(|| format!("{what}: shape {shape:?} has more than {MAX_ELEMENTS} elements (the cap)"))?;
     let data = r;
     match npy.dtype() {
         npyz::DType::Plain(ts) => {
@@ -118,6 +246,7 @@ pub fn read_npy(bytes: &[u8], what: &str) -> Result<NpyContent, String> {
                 ));
             }
             let size = ts.size_field() as usize;
+            // n <= 2^31 and size <= 8: no overflow.
             let need = n * size;
             if data.len() < need {
                 return Err(format!(
@@ -145,6 +274,7 @@ pub fn read_npy(bytes: &[u8], what: &str) -> Result<NpyContent, String> {
                         layout.push((f.name.clone(), ts.clone(), off));
                         off += ts.size_field() as usize;
                     }
+                    // (field count is bounded by the header, itself by the file)
                     other => {
                         return Err(format!(
                             "{what}: field `{}` has dtype `{}`; only numeric scalar fields are supported",
@@ -155,7 +285,7 @@ pub fn read_npy(bytes: &[u8], what: &str) -> Result<NpyContent, String> {
                 }
             }
             let rec = off;
-            let need = n * rec;
+            let need = n.checked_mul(rec).unwrap_or(usize::MAX);
             if data.len() < need {
                 return Err(format!(
                     "{what}: truncated: {n} records of {rec} bytes need {need} bytes, the file has {}",
@@ -199,9 +329,26 @@ pub fn read_npz(bytes: &[u8], what: &str) -> Result<Vec<(String, NpyContent)>, S
             continue;
         };
         let array = array.to_string();
-        let mut buf = Vec::new();
-        f.read_to_end(&mut buf)
+        // The declared size may lie: read at most it (capped), and one byte more
+        // to notice a member longer than declared. Growing to the exact size
+        // avoids `read_to_end`'s doubling (a 1 GiB array took ~7 GiB to read).
+        let declared = f.size();
+        if declared > MAX_NPZ_MEMBER_BYTES {
+            return Err(format!(
+                "{what}: array `{array}` is {declared} bytes uncompressed, over the cap of {MAX_NPZ_MEMBER_BYTES}"
+            ));
+        }
+        let mut buf = Vec::with_capacity(declared as usize);
+        (&mut f)
+            .take(declared + 1)
+            .read_to_end(&mut buf)
             .map_err(|e| format!("{what}: cannot read array `{array}` ({e}); truncated?"))?;
+        if buf.len() as u64 != declared {
+            return Err(format!(
+                "{what}: array `{array}` holds {} bytes but the archive declares {declared}",
+                buf.len()
+            ));
+        }
         let content = read_npy(&buf, &format!("{what}, array `{array}`"))?;
         out.push((array, content));
     }
@@ -251,7 +398,7 @@ pub fn read_mat(bytes: &[u8], what: &str) -> Result<Vec<(String, NdArray)>, Stri
             ));
         }
         let shape = a.size().clone();
-        if shape.iter().product::<usize>() != real.len() {
+        if shape.iter().try_fold(1usize, |p, &d| p.checked_mul(d)) != Some(real.len()) {
             return Err(format!("{what}: variable `{}` is truncated", a.name()));
         }
         let data = fortran_to_c(&shape, &real);
@@ -287,6 +434,13 @@ fn check_mat_elements(bytes: &[u8], what: &str) -> Result<(), String> {
             ));
         }
         let ty = u32_at(pos);
+        if ty == 14 && ty >> 16 == 0 {
+            let n = u32_at(pos + 4) as usize;
+            if pos + 8 + n <= bytes.len() {
+                check_mat_tags(&bytes[pos + 8..pos + 8 + n], &u32_at, pos + 8, 0)
+                    .map_err(|at| format!("{what}: variable {}: corrupt data element at byte {at}", k + 1))?;
+            }
+        }
         let len = if ty >> 16 != 0 {
             // Small data element: 4 bytes of data inside the 8-byte tag.
             0
@@ -310,6 +464,40 @@ fn check_mat_elements(bytes: &[u8], what: &str) -> Result<(), String> {
         }
         pos = end;
         k += 1;
+    }
+    Ok(())
+}
+
+/// Walks the data elements inside an uncompressed miMATRIX (`body` starts at
+/// file offset `base`): every tag's length must fit in its parent and leave
+/// room for padding. `matfile` multiplies a length near 2^32 without overflow
+/// checks (a panic in debug builds; found by fuzzing). Nested matrices (cells,
+/// structs) are walked to depth 8. Compressed variables are checked by
+/// `matfile` alone. Returns the offset of the bad tag.
+fn check_mat_tags(
+    body: &[u8],
+    u32_at: &dyn Fn(usize) -> u32,
+    base: usize,
+    depth: usize,
+) -> Result<(), usize> {
+    if depth > 8 {
+        return Err(base);
+    }
+    let mut p = 0usize;
+    while p + 8 <= body.len() {
+        let ty = u32_at(base + p);
+        if ty >> 16 != 0 {
+            p += 8;
+            continue;
+        }
+        let n = u32_at(base + p + 4);
+        if n > u32::MAX - 7 || p + 8 + n as usize > body.len() {
+            return Err(base + p);
+        }
+        if ty == 14 {
+            check_mat_tags(&body[p + 8..p + 8 + n as usize], u32_at, base + p + 8, depth + 1)?;
+        }
+        p += 8 + (n as usize).div_ceil(8) * 8;
     }
     Ok(())
 }

@@ -303,6 +303,20 @@ pub fn set_label_cell(labels: &mut TrialLabels, column: &str, cell: &str, what: 
     Ok(())
 }
 
+/// Checks the numbers of labels read from a typed source (a TOML sidecar):
+/// an angle must be finite, a duration finite and positive.
+pub fn check_label_numbers(l: &TrialLabels) -> Result<(), String> {
+    if let Some(a) = l.angle_deg.filter(|a| !a.is_finite()) {
+        return Err(format!("angle_deg = {a} is not a finite number"));
+    }
+    if let Some(d) = l.duration_ms.filter(|d| !(d.is_finite() && *d > 0.0)) {
+        return Err(format!(
+            "duration_ms = {d} must be a finite, positive number of ms"
+        ));
+    }
+    Ok(())
+}
+
 /// Merges two label readings of the same trial (e.g. two rows of a CSV trial),
 /// failing when they disagree.
 pub fn merge_consistent(into: &mut TrialLabels, other: &TrialLabels, what: &str) -> Result<(), String> {
@@ -346,10 +360,25 @@ pub fn read_sidecar(path: &Path) -> Result<BTreeMap<String, TrialLabels>, StageE
         .extension()
         .map(|e| e.to_string_lossy().to_ascii_lowercase())
         .unwrap_or_default();
-    match ext.as_str() {
+    parse_sidecar(&text, &ext, &shown.to_string())
+}
+
+/// Parses a label sidecar's text; `ext` (`toml` or `csv`) picks the syntax and
+/// `shown` names the file in errors.
+pub fn parse_sidecar(
+    text: &str,
+    ext: &str,
+    shown: &str,
+) -> Result<BTreeMap<String, TrialLabels>, StageError> {
+    match ext {
         "toml" => {
             let s: TomlSidecar =
                 toml::from_str(&text).map_err(|e| StageError::new(format!("label sidecar {shown}: {e}")))?;
+            // TOML has `nan` and `inf`: hold its numbers to the CSV rules.
+            for (id, l) in &s.trials {
+                check_label_numbers(l)
+                    .map_err(|m| StageError::new(format!("label sidecar {shown}, trial `{id}`: {m}")))?;
+            }
             Ok(s.trials)
         }
         "csv" => {
@@ -362,7 +391,13 @@ pub fn read_sidecar(path: &Path) -> Result<BTreeMap<String, TrialLabels>, StageE
                 .map_err(|e| StageError::new(format!("label sidecar {shown}: {e}")))?
                 .clone();
             let mut trial_col = None;
+            let mut seen = std::collections::HashSet::new();
             for (i, h) in headers.iter().enumerate() {
+                if !seen.insert(h) {
+                    return Err(StageError::new(format!(
+                        "label sidecar {shown}: column `{h}` appears twice in the header"
+                    )));
+                }
                 if h == "trial" {
                     trial_col = Some(i);
                 } else if !LABEL_COLUMNS.contains(&h) {

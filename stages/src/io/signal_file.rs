@@ -42,7 +42,11 @@
 //! The sample rate comes from the frames' timestamps (median interval). Lost
 //! frames (sequence gaps) and CRC errors are an error naming their count,
 //! unless `fill_gaps = true`, which holds each lost frame at the previous
-//! frame's values (the gap count is still in the error-free report).
+//! frame's values (the gap count is still in the error-free report), for at
+//! most as many lost frames as were received. A recording that ends inside a
+//! frame is an error unless `allow_cut_end = true` (a live recording stopped
+//! mid-frame); frames of another channel count and samples that are not
+//! finite are always errors.
 //!
 //! ## Trials, ids, rates
 //!
@@ -132,6 +136,10 @@ pub struct SignalFileConfig {
     /// DAQ: hold the previous frame's values over lost frames instead of
     /// failing. Default false.
     pub fill_gaps: bool,
+    /// DAQ: accept a recording whose last frame is incomplete (a live
+    /// recording stopped mid-frame); that frame is dropped. Without it a cut
+    /// last frame is an error, as a CSV cut mid-line is. Default false.
+    pub allow_cut_end: bool,
     /// DAQ: decoded value = raw * `daq_scale` + `daq_offset` (e.g. volts per ADC
     /// count). Default 1.
     pub daq_scale: f64,
@@ -153,6 +161,7 @@ impl Default for SignalFileConfig {
             variables: vec![],
             taxel_major: false,
             fill_gaps: false,
+            allow_cut_end: false,
             daq_scale: 1.0,
             daq_offset: 0.0,
         }
@@ -389,6 +398,22 @@ pub fn read_signal_file(
     let shown = path.display().to_string();
     let fmt = format_of(cfg.format, path)?;
     let bytes = std::fs::read(path).map_err(|e| format!("cannot read {shown}: {e}"))?;
+    read_signal_bytes(&bytes, &shown, file_id, fmt, cfg, n_taxels)
+}
+
+/// Reads one recording's bytes (format `fmt`, not `auto`) into trials;
+/// `shown` names the file in errors. What [`read_signal_file`] does after
+/// reading the file; public so that fuzzing and tests reach every reader
+/// without the file system.
+pub fn read_signal_bytes(
+    bytes: &[u8],
+    shown: &str,
+    file_id: &str,
+    fmt: SignalFormat,
+    cfg: &SignalFileConfig,
+    n_taxels: usize,
+) -> Result<Vec<RawTrial>, String> {
+    let shown = shown.to_string();
     let trials = match fmt {
         SignalFormat::Csv => read_csv_signals(&bytes, &shown, file_id, cfg, n_taxels)?,
         SignalFormat::Npy => {
@@ -423,8 +448,16 @@ pub fn read_signal_file(
                 .map_err(|e| format!("{shown}: {e}"))?;
             if rec.data.len() != n_taxels {
                 return Err(format!(
-                    "{shown}: the frames carry {} channels but the layout has {n_taxels} taxels",
+                    "{shown}: channel mismatch: the frames carry {} channels but the layout has {n_taxels} taxels",
                     rec.data.len()
+                ));
+            }
+            if rec.trailing_bytes > 0 && !cfg.allow_cut_end {
+                return Err(format!(
+                    "{shown}: the recording ends inside a frame ({} bytes of an incomplete frame at byte {}): \
+                     cut while being written? Set `allow_cut_end = true` to drop that frame",
+                    rec.trailing_bytes,
+                    bytes.len() - rec.trailing_bytes
                 ));
             }
             vec![RawTrial {
@@ -435,7 +468,7 @@ pub fn read_signal_file(
                 origin: shown.clone(),
             }]
         }
-        SignalFormat::Auto => unreachable!("format_of resolves auto"),
+        SignalFormat::Auto => return Err(format!("{shown}: the format must be resolved before reading")),
     };
     if trials.is_empty() {
         return Err(format!("{shown} holds no trial"));
@@ -594,6 +627,14 @@ fn arrays_to_trials(
             }
         };
         let (st_trial, st_sample, st_taxel) = strides;
+        if a.data.is_empty() {
+            // Checked before the loop: a shape like (2^40, 0, 16) holds no data
+            // but would otherwise make 2^40 empty trials.
+            return Err(format!(
+                "{what}: shape {:?} holds no samples (empty or truncated file?)",
+                a.shape
+            ));
+        }
         for k in 0..n_trials {
             let mut data = vec![Vec::with_capacity(n_samples); n_taxels];
             for (x, row) in data.iter_mut().enumerate() {
@@ -728,9 +769,19 @@ fn read_csv_signals(
         Trial,
         Label,
     }
+    // Hash lookups: a layout of 160k taxels made matching quadratic (32 s).
+    let by_name: std::collections::HashMap<&str, usize> =
+        names.iter().enumerate().map(|(i, n)| (n.as_str(), i)).collect();
+    let mut seen = std::collections::HashSet::new();
     let mut cols = Vec::new();
-    for h in headers.iter() {
-        let c = if let Some(i) = names.iter().position(|n| n == h) {
+    for (k, h) in headers.iter().enumerate() {
+        if !seen.insert(h) {
+            return Err(format!(
+                "{shown}: column `{h}` appears twice in the header (column {} is a repeat)",
+                k + 1
+            ));
+        }
+        let c = if let Some(&i) = by_name.get(h) {
             Col::Taxel(i)
         } else {
             match h {
@@ -754,25 +805,33 @@ fn read_csv_signals(
         };
         cols.push(c);
     }
+    let mut present = vec![false; names.len()];
+    for c in &cols {
+        if let Col::Taxel(j) = c {
+            present[*j] = true;
+        }
+    }
     for (i, n) in names.iter().enumerate() {
-        if !cols.iter().any(|c| matches!(c, Col::Taxel(j) if *j == i)) {
+        if !present[i] {
             return Err(format!(
                 "{shown}: missing taxel column `{n}` (taxel {i} of {n_taxels})"
             ));
         }
     }
     let mut trials: Vec<CsvTrial> = Vec::new();
+    // Trial name -> index in `trials` (a linear search was quadratic in trials).
+    let mut trial_index: std::collections::HashMap<String, usize> = std::collections::HashMap::new();
+    let trial_col = cols.iter().position(|c| matches!(c, Col::Trial));
     for rec in rdr.records() {
         let rec = rec.map_err(|e| csv_error(shown, &e))?;
         let line = rec.position().map_or(0, |p| p.line());
-        let trial_name = cols
-            .iter()
-            .position(|c| matches!(c, Col::Trial))
+        let trial_name = trial_col
             .map(|i| rec.get(i).unwrap_or("").to_string())
             .unwrap_or_default();
-        let k = match trials.iter().position(|t| t.name == trial_name) {
-            Some(k) => k,
+        let k = match trial_index.get(&trial_name) {
+            Some(&k) => k,
             None => {
+                trial_index.insert(trial_name.clone(), trials.len());
                 trials.push(CsvTrial {
                     name: trial_name,
                     labels: TrialLabels::default(),

@@ -276,7 +276,7 @@ impl SpikeFileSource {
                     Some(d) => {
                         if last >= d {
                             return Err(StageError::new(format!(
-                                "{}: an event at {last} ms lies at or after the trial's duration of {d} ms",
+                                "{}: an event at {last:?} ms lies at or after the trial's duration of {d:?} ms",
                                 t.origin
                             )));
                         }
@@ -334,19 +334,19 @@ impl Mapper<'_> {
     fn map(&self, x: f64, y: f64, t: f64, p: Option<f64>, what: &str) -> Result<Option<(u32, f64)>, String> {
         for (name, v) in [("x", x), ("y", y), ("t", t)] {
             if !v.is_finite() {
-                return Err(format!("{what}: `{name}` = {v} is not finite"));
+                return Err(format!("{what}: `{name}` = {v:?} is not finite"));
             }
         }
         if x.fract() != 0.0 || y.fract() != 0.0 {
             return Err(format!(
-                "{what}: coordinates must be whole numbers, got x = {x}, y = {y}"
+                "{what}: coordinates must be whole numbers, got x = {x:?}, y = {y:?}"
             ));
         }
         let taxel = match self.layout.grid() {
             Some((rows, cols)) => {
                 if x < 0.0 || y < 0.0 || x >= cols as f64 || y >= rows as f64 {
                     return Err(format!(
-                        "{what}: event at x = {x}, y = {y} lies outside the {rows} x {cols} grid \
+                        "{what}: event at x = {x:?}, y = {y:?} lies outside the {rows} x {cols} grid \
                          (x is the column, y the row)"
                     ));
                 }
@@ -356,7 +356,7 @@ impl Mapper<'_> {
                 let n = self.layout.len();
                 if x < 0.0 || x >= n as f64 || y != 0.0 {
                     return Err(format!(
-                        "{what}: event at x = {x}, y = {y}: for an explicit layout x is the taxel index \
+                        "{what}: event at x = {x:?}, y = {y:?}: for an explicit layout x is the taxel index \
                          (0..{n}) and y must be 0"
                     ));
                 }
@@ -366,7 +366,7 @@ impl Mapper<'_> {
         let t_ms = t * self.cfg.time_unit.to_ms();
         if t_ms < 0.0 && self.cfg.time_origin == TimeOrigin::Zero {
             return Err(format!(
-                "{what}: negative time {t} (set time_origin = \"first_event\"?)"
+                "{what}: negative time {t:?} (set time_origin = \"first_event\"?)"
             ));
         }
         let keep = match (self.cfg.polarity, p) {
@@ -393,12 +393,40 @@ fn read_spike_file(
     layout: &TaxelLayout,
 ) -> Result<Vec<RawEvents>, String> {
     let shown = path.display().to_string();
+    let fmt = spike_format_of(cfg.format, path)?;
     let bytes = std::fs::read(path).map_err(|e| format!("cannot read {shown}: {e}"))?;
+    read_spike_bytes(&bytes, &shown, file_id, fmt, cfg, layout).map(|t| {
+        t.into_iter()
+            .map(|(id, labels, events, origin)| RawEvents {
+                id,
+                labels,
+                events,
+                origin,
+            })
+            .collect()
+    })
+}
+
+/// One trial's events as read from bytes: `(id, labels, (taxel, t_ms) events
+/// unsorted and before the time origin is applied, origin for messages)`.
+pub type SpikeBytesTrial = (String, TrialLabels, Vec<(u32, f64)>, String);
+
+/// Reads one event file's bytes (format `fmt`, not `auto`); `shown` names the
+/// file in errors. Public so that fuzzing reaches the readers without files.
+pub fn read_spike_bytes(
+    bytes: &[u8],
+    shown: &str,
+    file_id: &str,
+    fmt: SpikeFormat,
+    cfg: &SpikeFileConfig,
+    layout: &TaxelLayout,
+) -> Result<Vec<SpikeBytesTrial>, String> {
+    let shown = shown.to_string();
     let mapper = Mapper { layout, cfg };
-    match spike_format_of(cfg.format, path)? {
-        SpikeFormat::Csv => read_csv_events(&bytes, &shown, file_id, &mapper),
+    let raw = match fmt {
+        SpikeFormat::Csv => read_csv_events(bytes, &shown, file_id, &mapper),
         SpikeFormat::Npy => {
-            let cols: Vec<(String, Vec<f64>)> = match read_npy(&bytes, &shown)? {
+            let cols: Vec<(String, Vec<f64>)> = match read_npy(bytes, &shown)? {
                 NpyContent::Plain(a) => {
                     let ok = a.shape.len() == 2 && (a.shape[1] == 3 || a.shape[1] == 4);
                     if !ok {
@@ -447,8 +475,12 @@ fn read_spike_file(
                 origin: shown,
             }])
         }
-        SpikeFormat::Auto => unreachable!("resolved by spike_format_of"),
-    }
+        SpikeFormat::Auto => Err(format!("{shown}: the format must be resolved before reading")),
+    }?;
+    Ok(raw
+        .into_iter()
+        .map(|r| (r.id, r.labels, r.events, r.origin))
+        .collect())
 }
 
 fn read_csv_events(
@@ -464,7 +496,11 @@ fn read_csv_events(
         .from_reader(bytes);
     let headers = rdr.headers().map_err(|e| csv_error(shown, &e))?.clone();
     let find = |n: &str| headers.iter().position(|h| h == n);
+    let mut seen = std::collections::HashSet::new();
     for h in headers.iter() {
+        if !seen.insert(h) {
+            return Err(format!("{shown}: column `{h}` appears twice in the header"));
+        }
         if !["x", "y", "t", "p", "trial"].contains(&h) && !LABEL_COLUMNS.contains(&h) {
             return Err(format!(
                 "{shown}: unknown column `{h}` (expected x, y, t, optionally p, trial, {})",
@@ -478,6 +514,13 @@ fn read_csv_events(
     let cp = find("p");
     let ctrial = find("trial");
     let mut trials: Vec<CsvEvents> = Vec::new();
+    // Trial name -> index in `trials` (a linear search was quadratic in trials).
+    let mut trial_index: std::collections::HashMap<String, usize> = std::collections::HashMap::new();
+    let label_cols: Vec<(usize, &str)> = headers
+        .iter()
+        .enumerate()
+        .filter(|(_, h)| LABEL_COLUMNS.contains(h))
+        .collect();
     for rec in rdr.records() {
         let rec = rec.map_err(|e| csv_error(shown, &e))?;
         let line = rec.position().map_or(0, |p| p.line());
@@ -494,23 +537,22 @@ fn read_csv_events(
         let name = ctrial
             .map(|i| rec.get(i).unwrap_or("").to_string())
             .unwrap_or_default();
-        let k = match trials.iter().position(|t| t.0 == name) {
-            Some(k) => k,
+        let k = match trial_index.get(&name) {
+            Some(&k) => k,
             None => {
+                trial_index.insert(name.clone(), trials.len());
                 trials.push((name, TrialLabels::default(), Vec::new()));
                 trials.len() - 1
             }
         };
         let mut row_labels = TrialLabels::default();
-        for (i, h) in headers.iter().enumerate() {
-            if LABEL_COLUMNS.contains(&h) {
-                set_label_cell(
-                    &mut row_labels,
-                    h,
-                    rec.get(i).unwrap_or(""),
-                    &format!("{what}, column `{h}`"),
-                )?;
-            }
+        for &(i, h) in &label_cols {
+            set_label_cell(
+                &mut row_labels,
+                h,
+                rec.get(i).unwrap_or(""),
+                &format!("{what}, column `{h}`"),
+            )?;
         }
         merge_consistent(&mut trials[k].1, &row_labels, &what)?;
         let p = cp.map(num).transpose()?;

@@ -371,6 +371,17 @@ impl SceneConfig {
         if trials_per_angle == 0 {
             return Err(ConfigError::key("trials_per_angle", "must be at least 1"));
         }
+        // A documented cap (docs/resource-policy.md): 1e8 passed check, then
+        // the trial list alone aborted the run.
+        if angles.len().saturating_mul(trials_per_angle) > MAX_SCENE_TRIALS {
+            return Err(ConfigError::key(
+                "trials_per_angle",
+                format!(
+                    "{} angles x {trials_per_angle} trials is over the cap of {MAX_SCENE_TRIALS} trials per scene",
+                    angles.len()
+                ),
+            ));
+        }
         let layout = match &self.layout {
             Some(l) => {
                 let positions_mm = l.positions_mm.clone().ok_or_else(|| {
@@ -436,6 +447,9 @@ impl SceneConfig {
     }
 }
 
+/// Most trials (angles x trials per angle) one scene may list.
+pub const MAX_SCENE_TRIALS: usize = 1_000_000;
+
 /// Expands and checks the angles: each in (0, 180), no repeats.
 fn resolve_angles(angles: Option<&Angles>) -> Result<Vec<f64>, ConfigError> {
     let list = match angles {
@@ -450,14 +464,16 @@ fn resolve_angles(angles: Option<&Angles>) -> Result<Vec<f64>, ConfigError> {
     if list.is_empty() {
         return Err(ConfigError::key("angles", "needs at least one angle"));
     }
-    for (i, &a) in list.iter().enumerate() {
+    // Repeats by hash (a pairwise check took 11.6 s on 10,000 angles).
+    let mut seen = std::collections::HashSet::new();
+    for &a in &list {
         if !(a.is_finite() && a > 0.0 && a < 180.0) {
             return Err(ConfigError::key(
                 "angles",
                 format!("every angle must lie strictly between 0 and 180 degrees (0 and 180 are parallel to the motion and never crossed), got {a}"),
             ));
         }
-        if list[..i].iter().any(|&b| angle_id(b) == angle_id(a)) {
+        if !seen.insert(angle_id(a)) {
             return Err(ConfigError::key("angles", format!("angle {a} is listed twice")));
         }
     }

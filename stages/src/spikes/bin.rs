@@ -14,6 +14,16 @@
 //! duration gives one all-zero frame, so downstream stages always see an image.
 //!
 //! Cost: `O(events · window/hop + frames · taxels)`.
+//!
+//! ## Limits (docs/resource-policy.md)
+//!
+//! Both terms are capped so that no input can make `bin` allocate without
+//! bound or spin: `window / hop` (frames per spike) at most
+//! [`MAX_FRAMES_PER_SPIKE`], checked when the graph is built, and the image,
+//! `frames x taxels`, at most [`MAX_IMAGE_CELLS`] counts, checked per trial
+//! before anything is allocated. An outlier spike time (1e12 µs) or a
+//! duration of 1e15 ms is then an error naming the trial's length, never a
+//! capacity overflow.
 
 use palpate_core::{
     check_positive, register_stage, BuildContext, ConfigError, InputSpec, Item, Map, Payload, PayloadKind,
@@ -21,6 +31,13 @@ use palpate_core::{
 };
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
+
+/// Most frames one spike may fall in (`window_ms / hop_ms`); the paper uses 10.
+pub const MAX_FRAMES_PER_SPIKE: f64 = 10_000.0;
+
+/// Most counts (`frames x taxels`) one trial's image may hold: 2^26, 512 MiB
+/// of `f64` (the paper's 10 s trial at a 10 ms hop on 16 taxels holds 16,000).
+pub const MAX_IMAGE_CELLS: usize = 1 << 26;
 
 /// Bins spikes into per-taxel count images: frame k covers [k*hop, k*hop + window) ms.
 ///
@@ -55,6 +72,16 @@ impl StageConfig for BinConfig {
     fn build(&self, _ctx: &BuildContext) -> Result<Stage, ConfigError> {
         check_positive("window_ms", self.window_ms, "ms")?;
         check_positive("hop_ms", self.hop_ms, "ms")?;
+        if self.window_ms / self.hop_ms > MAX_FRAMES_PER_SPIKE {
+            return Err(ConfigError::key(
+                "hop_ms",
+                format!(
+                    "window_ms / hop_ms = {:?} frames per spike is over the cap of {MAX_FRAMES_PER_SPIKE:?} \
+                     (a longer hop, or a shorter window)",
+                    self.window_ms / self.hop_ms
+                ),
+            ));
+        }
         Ok(Stage::Map(Box::new(Binner {
             window_ms: self.window_ms,
             hop_ms: self.hop_ms,
@@ -78,25 +105,47 @@ impl Binner {
         Binner { window_ms, hop_ms }
     }
 
-    /// Number of frames for a trial of `duration_ms`.
+    /// Number of frames for a trial of `duration_ms` (saturating: `usize::MAX`
+    /// for an absurd duration, which [`Binner::bin`] then refuses).
     pub fn n_frames(&self, duration_ms: f64) -> usize {
         if duration_ms.is_finite() && duration_ms > 0.0 {
+            // `as` saturates on overflow (and a NaN ratio cannot occur: hop > 0).
             ((duration_ms / self.hop_ms).ceil() as usize).max(1)
         } else {
             1
         }
     }
 
-    /// Bins one trial.
+    /// Bins one trial; an image over [`MAX_IMAGE_CELLS`] counts, or a window
+    /// over [`MAX_FRAMES_PER_SPIKE`] hops, is an error.
     pub fn bin(&self, train: &SpikeTrain) -> Result<SpikeImages, StageError> {
+        if !(self.hop_ms > 0.0
+            && self.window_ms > 0.0
+            && self.window_ms / self.hop_ms <= MAX_FRAMES_PER_SPIKE)
+        {
+            return Err(StageError::new(format!(
+                "bin: window {:?} ms / hop {:?} ms must be positive with at most {MAX_FRAMES_PER_SPIKE:?} frames per spike",
+                self.window_ms, self.hop_ms
+            )));
+        }
         let n_taxels = train.layout.len();
         let n_frames = self.n_frames(train.duration_ms);
-        let mut counts = vec![0.0; n_frames * n_taxels];
+        let cells = n_frames
+            .checked_mul(n_taxels)
+            .filter(|&c| c <= MAX_IMAGE_CELLS)
+            .ok_or_else(|| {
+                StageError::new(format!(
+                    "bin: a trial of {:?} ms at a hop of {:?} ms needs {n_frames} frames of {n_taxels} taxels, \
+                     over the cap of {MAX_IMAGE_CELLS} counts (an outlier spike time, or a wrong time unit?)",
+                    train.duration_ms, self.hop_ms
+                ))
+            })?;
+        let mut counts = vec![0.0; cells];
         for e in &train.events {
             let taxel = e.taxel as usize;
             if taxel >= n_taxels {
                 return Err(StageError::new(format!(
-                    "bin: spike of taxel {taxel} at {} ms, but the layout has {n_taxels} taxels",
+                    "bin: spike of taxel {taxel} at {:?} ms, but the layout has {n_taxels} taxels",
                     e.t_ms
                 )));
             }

@@ -598,18 +598,88 @@ pub fn open_pty() -> Result<Pty, String> {
     })
 }
 
+/// How long [`emulate_pty`] waits for a reader to take any byte before it
+/// gives up (the reader stopped, or never came).
+pub const PTY_DRAIN_TIMEOUT: Duration = Duration::from_secs(10);
+
+/// The master side of a pseudo-terminal, written without ever blocking for
+/// good: the fd is non-blocking, and a write that makes no progress for
+/// `limit` fails. A blocking write into a full terminal whose reader has
+/// stopped (the slave is held open by the emulator, so no hang-up is seen)
+/// used to wait forever: `daq run --emulate-scene --seconds 0.01` never exited.
+struct DrainWriter<'a> {
+    port: &'a mut serialport::TTYPort,
+    limit: Duration,
+}
+
+impl Write for DrainWriter<'_> {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        let start = Instant::now();
+        loop {
+            // `TTYPort::write` polls for room (100 ms) before writing.
+            match self.port.write(buf) {
+                Err(e)
+                    if matches!(
+                        e.kind(),
+                        std::io::ErrorKind::WouldBlock
+                            | std::io::ErrorKind::TimedOut
+                            | std::io::ErrorKind::Interrupted
+                    ) =>
+                {
+                    if start.elapsed() >= self.limit {
+                        return Err(std::io::Error::new(
+                            std::io::ErrorKind::TimedOut,
+                            format!(
+                                "no reader took a byte for {:.0} s (the reader stopped?)",
+                                self.limit.as_secs_f64()
+                            ),
+                        ));
+                    }
+                }
+                r => return r,
+            }
+        }
+    }
+    fn flush(&mut self) -> std::io::Result<()> {
+        self.port.flush()
+    }
+}
+
 /// Plays `signals` into a new pseudo-terminal: `on_ready` gets the device path
 /// to give to `palpate daq run --port`, then playback starts. The slave side is
 /// held open (never read) so that data written before a reader attaches waits
-/// in the terminal's queue rather than failing.
+/// in the terminal's queue rather than failing; when no reader takes a byte
+/// for [`PTY_DRAIN_TIMEOUT`] (it stopped first), playback ends with an error
+/// instead of blocking for good.
 pub fn emulate_pty(
     signals: &Signals,
     opts: &EmulateOptions,
     on_ready: impl FnOnce(&str),
 ) -> Result<EmulateReport, String> {
+    emulate_pty_drain(signals, opts, PTY_DRAIN_TIMEOUT, on_ready)
+}
+
+/// [`emulate_pty`] with a given drain timeout (`drain`: how long a write may
+/// make no progress before playback fails).
+pub fn emulate_pty_drain(
+    signals: &Signals,
+    opts: &EmulateOptions,
+    drain: Duration,
+    on_ready: impl FnOnce(&str),
+) -> Result<EmulateReport, String> {
     let mut pty = open_pty()?;
+    {
+        use std::os::fd::AsRawFd;
+        let fd = pty.master.as_raw_fd();
+        nix::fcntl::fcntl(fd, nix::fcntl::FcntlArg::F_SETFL(nix::fcntl::OFlag::O_NONBLOCK))
+            .map_err(|e| format!("cannot make the pseudo-terminal non-blocking: {e}"))?;
+    }
     on_ready(&pty.slave_path);
-    let report = emulate(signals, &mut pty.master, opts)?;
+    let mut out = DrainWriter {
+        port: &mut pty.master,
+        limit: drain,
+    };
+    let report = emulate(signals, &mut out, opts)?;
     // Let a reader drain the queue before the terminal closes.
     std::thread::sleep(Duration::from_millis(200));
     drop(pty.slave);

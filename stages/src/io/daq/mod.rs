@@ -17,9 +17,9 @@ pub mod live;
 pub mod protocol;
 
 pub use live::{
-    acquire, acquire_serial, emulate, emulate_pty, open_pty, open_serial, signals_from_recording,
-    AcquireOptions, AcquireReport, DaqError, DaqErrorKind, DaqEvent, EmulateOptions, EmulateReport, Pty,
-    RawRecorder, StopReason,
+    acquire, acquire_serial, emulate, emulate_pty, emulate_pty_drain, open_pty, open_serial,
+    signals_from_recording, AcquireOptions, AcquireReport, DaqError, DaqErrorKind, DaqEvent, EmulateOptions,
+    EmulateReport, Pty, RawRecorder, StopReason,
 };
 pub use protocol::{
     crc32, decode_recording, encode_frame, frame_len, DaqStats, DecodeEvent, DecodedRecording, Decoder,

@@ -31,6 +31,21 @@
 //! frame from the past (a device reset or a replay), counted as `out_of_order`
 //! and accepted, and the count restarts from it. Wrap-around from `2^32 - 1` to
 //! 0 is an ordinary step.
+//!
+//! A frame whose header and CRC are valid but whose channel count differs from
+//! the stream's (a board sending 8 channels to a 16-taxel config) is counted in
+//! `wrong_channels` (with the count it carried) and skipped whole, so the
+//! mismatch is named in every report instead of looking like garbage.
+//!
+//! ## Recordings ([`decode_recording`]) and their limits
+//!
+//! Every decoded sample must be finite (a NaN sent as f32, or a scale that
+//! overflows, is an error naming the frame and channel). `fill_gaps` holds
+//! values over lost frames, but at most as many as were received
+//! ([`decode_recording`] fails otherwise): a reset may restart the sequence
+//! anywhere, and a jump of 2^31 would otherwise ask for 2^31 filled frames
+//! (17 GB per channel) from a 600-byte file. Memory is so bounded by a small
+//! multiple of the file size.
 
 use std::fmt;
 
@@ -195,6 +210,11 @@ pub struct DaqStats {
     pub garbage_bytes: u64,
     /// Times the stream went silent for longer than the stall timeout.
     pub stalls: u64,
+    /// Valid frames (header and CRC) skipped because their channel count is
+    /// not the stream's; their bytes are also counted in `garbage_bytes`.
+    pub wrong_channels: u64,
+    /// The channel count the last such frame carried.
+    pub wrong_channel_count: Option<u16>,
 }
 
 impl fmt::Display for DaqStats {
@@ -210,7 +230,15 @@ impl fmt::Display for DaqStats {
             self.out_of_order,
             self.garbage_bytes,
             self.stalls
-        )
+        )?;
+        if let Some(n) = self.wrong_channel_count.filter(|_| self.wrong_channels > 0) {
+            write!(
+                f,
+                "; channel mismatch: {} valid frames of {n} channels were skipped",
+                self.wrong_channels
+            )?;
+        }
+        Ok(())
     }
 }
 
@@ -283,10 +311,7 @@ impl Decoder {
             }
             let format = SampleFormat::from_code(h[3]);
             let n = usize::from(u16::from_le_bytes([h[4], h[5]]));
-            let header_ok = h[2] == VERSION
-                && format.is_some()
-                && (1..=MAX_CHANNELS).contains(&n)
-                && self.channels.is_none_or(|c| c == n);
+            let header_ok = h[2] == VERSION && format.is_some() && (1..=MAX_CHANNELS).contains(&n);
             let Some(format) = format.filter(|_| header_ok) else {
                 self.stats.garbage_bytes += 1;
                 pos += 1;
@@ -299,7 +324,22 @@ impl Decoder {
             let body = &h[..len - CRC_LEN];
             let crc = u32::from_le_bytes([h[len - 4], h[len - 3], h[len - 2], h[len - 1]]);
             let seq = u32::from_le_bytes([h[6], h[7], h[8], h[9]]);
-            if crc32(body) != crc {
+            let crc_ok = crc32(body) == crc;
+            if self.channels.is_some_and(|c| c != n) {
+                // Another channel count: a wrong board or config when the CRC
+                // holds (skipped whole and counted), else noise (one byte on).
+                let skip = if crc_ok {
+                    self.stats.wrong_channels += 1;
+                    self.stats.wrong_channel_count = u16::try_from(n).ok();
+                    len
+                } else {
+                    1
+                };
+                self.stats.garbage_bytes += skip as u64;
+                pos += skip;
+                continue;
+            }
+            if !crc_ok {
                 self.stats.crc_errors += 1;
                 self.stats.garbage_bytes += 1;
                 pos += 1;
@@ -363,8 +403,11 @@ pub struct DecodedRecording {
 }
 
 /// Decodes a raw recording. Lost frames (gaps) are an error unless
-/// `fill_gaps`, which holds the previous frame's values over each lost frame;
-/// frames from the past are always an error (they cannot be placed).
+/// `fill_gaps`, which holds the previous frame's values over each lost frame
+/// (at most as many lost frames as received ones, see the module docs);
+/// frames from the past, frames of another channel count and samples that are
+/// not finite are always an error. A cut last frame is reported in
+/// `trailing_bytes` for the caller to judge.
 pub fn decode_recording(
     bytes: &[u8],
     scale: f64,
@@ -389,11 +432,34 @@ pub fn decode_recording(
             stats.out_of_order
         ));
     }
+    if stats.wrong_channels > 0 {
+        return Err(format!(
+            "channel mismatch: the first frame carries {} channels but {} valid frames carry another count ({stats})",
+            frames[0].samples.len(),
+            stats.wrong_channels
+        ));
+    }
     if stats.lost_frames > 0 && !fill_gaps {
         return Err(format!(
             "{} frames lost in {} gaps ({} CRC errors); set `fill_gaps = true` to hold values over them ({stats})",
             stats.lost_frames, stats.gaps, stats.crc_errors
         ));
+    }
+    if stats.lost_frames > frames.len() as u64 {
+        return Err(format!(
+            "{} frames lost but only {} received: `fill_gaps` fills at most as many frames as were received \
+             (a sequence jump this long is a device reset or a corrupt file; split the recording) ({stats})",
+            stats.lost_frames,
+            frames.len()
+        ));
+    }
+    for (k, f) in frames.iter().enumerate() {
+        if let Some(ch) = f.samples.iter().position(|v| !v.is_finite()) {
+            return Err(format!(
+                "frame {k} (sequence {}), channel {ch}: sample {:?} is not finite",
+                f.seq, f.samples[ch]
+            ));
+        }
     }
     let n = frames[0].samples.len();
     let mut data = vec![Vec::with_capacity(frames.len() + stats.lost_frames as usize); n];

@@ -1,0 +1,17 @@
+#!/usr/bin/env bash
+# Short fuzz pass (issue 20): every cargo-fuzz target of fuzz/ from its seed
+# corpus, a fixed number of executions each, 2 GB memory cap, 10 s per input.
+# Budget: under 2 minutes of fuzzing in all (11 targets x FUZZ_CI_RUNS); the
+# build of the targets comes on top (a few minutes cold, seconds when
+# target/fuzz is warm). Stable toolchain: RUSTC_BOOTSTRAP=1 (in scripts/fuzz.sh).
+set -euo pipefail
+cd "$(dirname "$0")/../.."
+if ! command -v python3 >/dev/null; then
+  echo "SKIPPED: python3 (for fuzz/make_seeds.py) is not installed and this part does not install system packages"
+  exit 0
+fi
+if ! command -v c++ >/dev/null; then
+  echo "SKIPPED: no C++ compiler for libFuzzer (libfuzzer-sys builds it from source)"
+  exit 0
+fi
+scripts/fuzz.sh "${FUZZ_CI_RUNS:-3000}"

@@ -1,0 +1,73 @@
+//! Hostile command-line values (issue 20): duration flags that used to panic
+//! inside `Duration::from_secs_f64`, and a live run whose emulator outlives the
+//! reader (it used to hang forever).
+
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+fn palpate() -> Command {
+    let mut c = Command::new(env!("CARGO_BIN_EXE_palpate"));
+    c.current_dir(env!("CARGO_MANIFEST_DIR"));
+    c
+}
+
+#[test]
+fn duration_flags_refuse_nan_infinite_and_huge_values() {
+    for (cmd, flag, v) in [
+        ("run", "--seconds", "nan"),
+        ("run", "--seconds", "inf"),
+        ("run", "--seconds", "1e20"),
+        ("run", "--seconds", "-1"),
+        ("emulate", "--delay", "inf"),
+        ("emulate", "--delay", "nan"),
+    ] {
+        let mut c = palpate();
+        c.args(["daq", cmd, flag, v]);
+        if cmd == "run" {
+            c.arg("/dev/null-no-such-port");
+        } else {
+            c.args(["--scene", "graphs/scenes/lab.toml"]);
+        }
+        let out = c.output().unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        // clap's usage error (2), not a panic (101).
+        assert_eq!(out.status.code(), Some(2), "{cmd} {flag} {v}: {err}");
+        assert!(err.contains(flag) && err.contains("seconds"), "{err}");
+    }
+}
+
+/// Waits for a child, failing (and killing it) after `limit`: a hang detector,
+/// not a timing.
+fn wait_or_kill(mut child: std::process::Child, limit: Duration) -> std::process::Output {
+    let start = Instant::now();
+    while child.try_wait().unwrap().is_none() {
+        if start.elapsed() > limit {
+            let _ = child.kill();
+            panic!("still running after {limit:?}: hung");
+        }
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    child.wait_with_output().unwrap()
+}
+
+#[test]
+fn a_live_run_that_stops_before_its_emulator_exits() {
+    let child = palpate()
+        .args(["daq", "run", "--emulate-scene", "graphs/scenes/lab.toml"])
+        .args([
+            "--speed",
+            "1000",
+            "--seconds",
+            "0.01",
+            "--config",
+            "graphs/live.toml",
+        ])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    // The emulator gives up 10 s after the reader stops taking bytes.
+    let out = wait_or_kill(child, Duration::from_secs(120));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!err.contains("panicked"), "{err}");
+}
