@@ -163,6 +163,14 @@ pub fn normalize_trial(xs: &[f64], min_span: f64) -> Vec<f64> {
 
 /// `(x - lo) / (hi - lo)` clamped to [0, 1], for a range that is not flat.
 fn map_range(xs: &[f64], lo: f64, hi: f64) -> Vec<f64> {
+    if !(hi - lo).is_finite() {
+        // A span wider than f64::MAX: halve everything first (else inf * 0 = NaN).
+        let (lo2, inv) = (lo / 2.0, 1.0 / (hi / 2.0 - lo / 2.0));
+        return xs
+            .iter()
+            .map(|&x| ((x / 2.0 - lo2) * inv).clamp(0.0, 1.0))
+            .collect();
+    }
     let inv = 1.0 / (hi - lo);
     xs.iter().map(|&x| ((x - lo) * inv).clamp(0.0, 1.0)).collect()
 }
