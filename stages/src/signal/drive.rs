@@ -8,8 +8,16 @@
 //!   encoder can be compared with other simulators on identical input.
 //!
 //! The gain `G` is either fixed (`gain`) or set per trial from a target peak
-//! current (`target_peak_current`): `G = target / max_{taxel, t} D(t)` where
-//! `D` is the drive before gain (`|dV/dt|` or `V`). A trial whose drive is 0
+//! current (`target_peak_current`): `G = target / P` where `D` is the drive
+//! before gain (`|dV/dt|` or `V`) and, by default (`peak_of =
+//! "median_taxel"`), `P = median_taxel max_t D(t)`: the median over taxels
+//! of each taxel's peak (taxels with no drive left out). `peak_of = "max"`
+//! takes `P = max_{taxel, t} D(t)`, the original rule, under which one taxel
+//! whose drive is far above the others' (a dead taxel's stretched noise, a
+//! clipped or glitching taxel) sets `G` and silences every real crossing
+//! (issue 15). With the median, fewer than half the taxels cannot move `P`;
+//! an outlier taxel gets a current above the target (the encoder clamps
+//! absurd currents) while the others keep theirs. A trial whose drive is 0
 //! everywhere (nothing changes) gives `I = 0`, never NaN.
 //!
 //! Default, when neither key is set: `target_peak_current = 20`. Why: on the
@@ -54,8 +62,9 @@ pub enum DriveKind {
 
 /// Input current of the encoder: FA-I G*|dV/dt| (paper eq. 4), SA-I G*V, or the signal itself.
 ///
-/// `G` is fixed (`gain`) or set per trial so that the largest current over the
-/// trial's taxels equals `target_peak_current` (default 20 when neither is set).
+/// `G` is fixed (`gain`) or set per trial so that the median taxel's peak
+/// current (or, `peak_of = "max"`, the trial's largest current) equals
+/// `target_peak_current` (default 20 when neither is set).
 /// A trial with no change gives zero current.
 #[derive(Clone, Debug, Default, Serialize, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields, default)]
@@ -64,16 +73,32 @@ pub struct DriveConfig {
     pub kind: DriveKind,
     /// Fixed gain G, current units per (signal unit per second) for `fa_i`, per signal unit for `sa_i`. Unset by default.
     pub gain: Option<f64>,
-    /// Sets G per trial so the trial's largest current equals this, current units.
+    /// Sets G per trial so the peak chosen by `peak_of` equals this, current units.
     /// Default 20 when `gain` is unset too.
     pub target_peak_current: Option<f64>,
+    /// Which peak `target_peak_current` sets: `median_taxel` (the median over
+    /// taxels of each one's peak drive) or `max` (the trial's largest drive).
+    /// Default `median_taxel`.
+    pub peak_of: PeakOf,
+}
+
+/// Which peak `target_peak_current` sets.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, JsonSchema, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum PeakOf {
+    /// The median over taxels of each taxel's peak (taxels with no drive at
+    /// all left out): one taxel, dead, clipped or glitching, cannot set the gain.
+    #[default]
+    MedianTaxel,
+    /// The largest drive of any taxel at any time (one outlier sets the gain).
+    Max,
 }
 
 /// How the gain is chosen.
 #[derive(Clone, Copy, Debug, PartialEq)]
 enum Gain {
     Fixed(f64),
-    TargetPeak(f64),
+    TargetPeak(f64, PeakOf),
     None,
 }
 
@@ -115,11 +140,14 @@ impl StageConfig for DriveConfig {
                 }
                 Gain::Fixed(g)
             }
-            (_, None, t) => Gain::TargetPeak(check_positive(
-                "target_peak_current",
-                t.unwrap_or(DEFAULT_TARGET_PEAK_CURRENT),
-                "current units",
-            )?),
+            (_, None, t) => Gain::TargetPeak(
+                check_positive(
+                    "target_peak_current",
+                    t.unwrap_or(DEFAULT_TARGET_PEAK_CURRENT),
+                    "current units",
+                )?,
+                self.peak_of,
+            ),
         };
         Ok(Stage::Map(Box::new(Drive {
             kind: self.kind,
@@ -152,8 +180,8 @@ impl Drive {
         };
         let g = match self.gain {
             Gain::Fixed(g) => g,
-            Gain::TargetPeak(target) => {
-                let peak = raw.iter().flatten().fold(0.0_f64, |m, &v| m.max(v.abs()));
+            Gain::TargetPeak(target, of) => {
+                let peak = reference_peak(&raw, of);
                 // No change anywhere: zero current (not target/0).
                 if peak > 0.0 && peak.is_finite() {
                     target / peak
@@ -170,6 +198,30 @@ impl Drive {
             *v = if x.is_finite() { x } else { f64::MAX.copysign(x) };
         }
         raw
+    }
+}
+
+/// The peak a per-trial gain maps to its target: see [`PeakOf`]. 0 when no
+/// taxel has any drive.
+pub fn reference_peak(raw: &[Vec<f64>], of: PeakOf) -> f64 {
+    let peaks = raw
+        .iter()
+        .map(|xs| xs.iter().fold(0.0_f64, |m, &v| m.max(v.abs())));
+    match of {
+        PeakOf::Max => peaks.fold(0.0, f64::max),
+        PeakOf::MedianTaxel => {
+            let mut p: Vec<f64> = peaks.filter(|&p| p > 0.0).collect();
+            if p.is_empty() {
+                return 0.0;
+            }
+            p.sort_by(f64::total_cmp);
+            let m = p.len();
+            if m % 2 == 1 {
+                p[m / 2]
+            } else {
+                p[m / 2 - 1] / 2.0 + p[m / 2] / 2.0
+            }
+        }
     }
 }
 
@@ -209,21 +261,47 @@ mod tests {
         let mut s = ramps(1000.0, 0.5, 1.0, 0.0, 2.0);
         // Taxel 1 ramps twice as fast: it sets the peak.
         s.data[1] = s.data[1].iter().map(|v| (2.0 * v - 1.0).max(0.0)).collect();
-        let i = drive(DriveKind::FaI, Gain::TargetPeak(20.0)).currents(&s.data, 1000.0);
+        let i = drive(DriveKind::FaI, Gain::TargetPeak(20.0, PeakOf::Max)).currents(&s.data, 1000.0);
         let peak = i.iter().flatten().fold(0.0_f64, |m, &v| m.max(v));
         assert!((peak - 20.0).abs() < 1e-9);
         assert!((i[0][1000] - 10.0).abs() < 1e-6, "{}", i[0][1000]);
-        let sa = drive(DriveKind::SaI, Gain::TargetPeak(4.0)).currents(&s.data, 1000.0);
+        let sa = drive(DriveKind::SaI, Gain::TargetPeak(4.0, PeakOf::Max)).currents(&s.data, 1000.0);
         assert!((sa[0][0] - 4.0).abs() < 1e-12);
+    }
+
+    /// Issue 15: one taxel whose drive is far above the others' (a dead
+    /// taxel's stretched wobble, a clipped or glitching one) no longer sets
+    /// the gain: the median taxel's peak does, so the others keep the target.
+    #[test]
+    fn one_outlier_taxel_does_not_set_the_gain() {
+        let mut s = ramps(1000.0, 0.5, 1.0, 0.0, 2.0);
+        // Taxel 3 changes 10 times faster (a 0.1 s ramp).
+        s.data[3] = (0..2000)
+            .map(|k| (1.0 - (k as f64 - 500.0) / 100.0).clamp(0.0, 1.0))
+            .collect();
+        let med =
+            drive(DriveKind::FaI, Gain::TargetPeak(20.0, PeakOf::MedianTaxel)).currents(&s.data, 1000.0);
+        assert!((med[0][1000] - 20.0).abs() < 1e-9, "{}", med[0][1000]);
+        assert!((med[3][550] - 200.0).abs() < 1e-6, "{}", med[3][550]);
+        let max = drive(DriveKind::FaI, Gain::TargetPeak(20.0, PeakOf::Max)).currents(&s.data, 1000.0);
+        assert!((max[0][1000] - 2.0).abs() < 1e-9, "{}", max[0][1000]);
+        // Taxels with no drive are left out of the median; none at all gives 0.
+        let mut d = vec![vec![0.0; 10]; 16];
+        d[2][4] = 3.0;
+        assert_eq!(reference_peak(&d, PeakOf::MedianTaxel), 3.0);
+        d[7][1] = -5.0;
+        assert_eq!(reference_peak(&d, PeakOf::MedianTaxel), 4.0);
+        assert_eq!(reference_peak(&vec![vec![0.0; 10]; 16], PeakOf::MedianTaxel), 0.0);
+        assert_eq!(DriveConfig::default().peak_of, PeakOf::MedianTaxel);
     }
 
     #[test]
     fn no_change_gives_zero_current_not_nan() {
         let data = vec![vec![1.75; 100]; 16];
-        let i = drive(DriveKind::FaI, Gain::TargetPeak(20.0)).currents(&data, 1000.0);
+        let i = drive(DriveKind::FaI, Gain::TargetPeak(20.0, PeakOf::Max)).currents(&data, 1000.0);
         assert!(i.iter().flatten().all(|&v| v == 0.0));
         let zeros = vec![vec![0.0; 100]; 16];
-        let i = drive(DriveKind::SaI, Gain::TargetPeak(20.0)).currents(&zeros, 1000.0);
+        let i = drive(DriveKind::SaI, Gain::TargetPeak(20.0, PeakOf::Max)).currents(&zeros, 1000.0);
         assert!(i.iter().flatten().all(|&v| v == 0.0));
     }
 

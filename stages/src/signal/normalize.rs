@@ -19,6 +19,18 @@
 //! could live) normalizes to 0 everywhere, never NaN, so it fires nothing
 //! downstream. `min_span` doubles as a noise floor: a taxel that only sees noise
 //! smaller than it stays at 0 rather than having its noise stretched to `[0, 1]`.
+//!
+//! Dead taxels (`trial` mode): a taxel whose span is below `dead_fraction`
+//! times the **median span of the trial's taxels** normalizes to 0 too. Why: a
+//! broken taxel reads a constant plus noise, hum and its neighbours' crosstalk
+//! (on the lab scene 0.05-0.2 V, against ~1.5 V for a taxel the edge crosses);
+//! stretched to `[0, 1]`, that wobble has the steepest slopes of the trial, so
+//! it fires like a crossing and takes over the drive's per-trial auto-gain,
+//! silencing the real crossings (issue 15: one dead taxel made 33 of 170 lab
+//! trials answer "no edge"). The median is a robust statistic across taxels:
+//! fewer than half the taxels being dead cannot move it, and no fixed volt
+//! threshold has to match the sensor. Taxels with no real change at all
+//! (flat, by the rule above) are left out of the median.
 
 use super::check_signals;
 use palpate_core::{
@@ -57,7 +69,14 @@ pub struct NormalizeConfig {
     pub span: Option<f64>,
     /// Noise floor, input units: a taxel whose change never exceeds it normalizes to 0. Default 0.
     pub min_span: f64,
+    /// Trial mode: a taxel whose span (max - min) is below this fraction of
+    /// the median span of the trial's taxels is dead and normalizes to 0
+    /// (dimensionless, in [0, 1]; 0 turns the rule off). Default 0.25.
+    pub dead_fraction: f64,
 }
+
+/// Default [`NormalizeConfig::dead_fraction`].
+pub const DEFAULT_DEAD_FRACTION: f64 = 0.25;
 
 impl Default for NormalizeConfig {
     fn default() -> Self {
@@ -66,6 +85,7 @@ impl Default for NormalizeConfig {
             baseline_ms: 500.0,
             span: None,
             min_span: 0.0,
+            dead_fraction: DEFAULT_DEAD_FRACTION,
         }
     }
 }
@@ -80,6 +100,7 @@ impl StageConfig for NormalizeConfig {
     }
     fn build(&self, _ctx: &BuildContext) -> Result<Stage, ConfigError> {
         check_range("min_span", self.min_span, 0.0, f64::MAX, "input units")?;
+        check_range("dead_fraction", self.dead_fraction, 0.0, 1.0, "")?;
         let span = match self.mode {
             NormalizeMode::Trial => 0.0,
             NormalizeMode::Causal => {
@@ -101,6 +122,7 @@ impl StageConfig for NormalizeConfig {
             baseline_ms: self.baseline_ms,
             span,
             min_span: self.min_span,
+            dead_fraction: self.dead_fraction,
         })))
     }
 }
@@ -112,6 +134,7 @@ pub struct Normalizer {
     baseline_ms: f64,
     span: f64,
     min_span: f64,
+    dead_fraction: f64,
 }
 
 /// True when a range `[lo, hi]` holds no real change: at most `min_span`, or
@@ -121,18 +144,83 @@ fn is_flat(lo: f64, hi: f64, min_span: f64) -> bool {
     !(d > min_span && d > 1e-12 * lo.abs().max(hi.abs()))
 }
 
-/// Normalizes one taxel over the whole trial: min -> 0, max -> 1; flat -> 0.
-pub fn normalize_trial(xs: &[f64], min_span: f64) -> Vec<f64> {
-    let (lo, hi) = xs
-        .iter()
+/// `(min, max)` of a taxel (`(inf, -inf)` when empty).
+pub fn range(xs: &[f64]) -> (f64, f64) {
+    xs.iter()
         .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &x| {
             (lo.min(x), hi.max(x))
-        });
+        })
+}
+
+/// Normalizes one taxel over the whole trial: min -> 0, max -> 1; flat -> 0.
+pub fn normalize_trial(xs: &[f64], min_span: f64) -> Vec<f64> {
+    let (lo, hi) = range(xs);
     if xs.is_empty() || is_flat(lo, hi, min_span) {
         return vec![0.0; xs.len()];
     }
+    map_range(xs, lo, hi)
+}
+
+/// `(x - lo) / (hi - lo)` clamped to [0, 1], for a range that is not flat.
+fn map_range(xs: &[f64], lo: f64, hi: f64) -> Vec<f64> {
+    if !(hi - lo).is_finite() {
+        // A span wider than f64::MAX: halve everything first (else inf * 0 = NaN).
+        let (lo2, inv) = (lo / 2.0, 1.0 / (hi / 2.0 - lo / 2.0));
+        return xs
+            .iter()
+            .map(|&x| ((x / 2.0 - lo2) * inv).clamp(0.0, 1.0))
+            .collect();
+    }
     let inv = 1.0 / (hi - lo);
     xs.iter().map(|&x| ((x - lo) * inv).clamp(0.0, 1.0)).collect()
+}
+
+/// Which taxels of a trial are live, given each one's `(min, max)`: not flat
+/// (span above `min_span` and rounding) and, when `dead_fraction > 0`, a span
+/// of at least `dead_fraction` times the median span of the non-flat taxels.
+pub fn live_taxels(ranges: &[(f64, f64)], min_span: f64, dead_fraction: f64) -> Vec<bool> {
+    let mut live: Vec<bool> = ranges
+        .iter()
+        .map(|&(lo, hi)| !is_flat(lo, hi, min_span))
+        .collect();
+    let mut spans: Vec<f64> = ranges
+        .iter()
+        .zip(&live)
+        .filter(|(_, &l)| l)
+        .map(|(&(lo, hi), _)| hi - lo)
+        .collect();
+    if dead_fraction > 0.0 && !spans.is_empty() {
+        spans.sort_by(f64::total_cmp);
+        let m = spans.len();
+        // The median; an even count takes the mean of the middle two (halved
+        // first: the sum of two spans near f64::MAX would overflow).
+        let median = if m % 2 == 1 {
+            spans[m / 2]
+        } else {
+            spans[m / 2 - 1] / 2.0 + spans[m / 2] / 2.0
+        };
+        for (l, &(lo, hi)) in live.iter_mut().zip(ranges) {
+            *l = *l && hi - lo >= dead_fraction * median;
+        }
+    }
+    live
+}
+
+/// Normalizes every taxel of a trial (`trial` mode): live taxels (see
+/// [`live_taxels`]) map min -> 0 and max -> 1, the others to 0.
+pub fn normalize_trial_taxels(data: &[Vec<f64>], min_span: f64, dead_fraction: f64) -> Vec<Vec<f64>> {
+    let ranges: Vec<(f64, f64)> = data.iter().map(|xs| range(xs)).collect();
+    let live = live_taxels(&ranges, min_span, dead_fraction);
+    data.iter()
+        .zip(ranges.iter().zip(&live))
+        .map(|(xs, (&(lo, hi), &l))| {
+            if l {
+                map_range(xs, lo, hi)
+            } else {
+                vec![0.0; xs.len()]
+            }
+        })
+        .collect()
 }
 
 /// Normalizes one taxel causally: deviation from the mean of the first
@@ -158,11 +246,7 @@ impl Map for Normalizer {
         let s = inputs[0].payload.signals()?;
         check_signals("normalize", s)?;
         let data = match self.mode {
-            NormalizeMode::Trial => s
-                .data
-                .iter()
-                .map(|xs| normalize_trial(xs, self.min_span))
-                .collect(),
+            NormalizeMode::Trial => normalize_trial_taxels(&s.data, self.min_span, self.dead_fraction),
             NormalizeMode::Causal => {
                 let nb = (self.baseline_ms * s.sample_rate_hz / 1000.0).round() as usize;
                 if nb >= s.n_samples() && s.n_samples() > 0 {
@@ -220,6 +304,50 @@ mod tests {
         ys[80] = 100.0;
         let w = normalize_causal(&ys, 20, 0.25, 0.0);
         assert_eq!(v[..80], w[..80]);
+    }
+
+    /// Issue 15's failing case in miniature: 15 taxels swing 1.5 V, a dead
+    /// one 0.15 V of crosstalk and noise near the 3.3 V rail. The dead taxel
+    /// normalizes to 0 (with the rule off it is stretched to [0, 1], whose
+    /// steep wobble took over the drive's gain).
+    #[test]
+    fn a_dead_taxel_normalizes_to_zero() {
+        let mut data: Vec<Vec<f64>> = (0..16)
+            .map(|t| {
+                (0..100)
+                    .map(|k| 1.75 + 1.5 * (k as f64 / 99.0) + 0.01 * t as f64)
+                    .collect()
+            })
+            .collect();
+        data[5] = (0..100)
+            .map(|k| 3.3 - 0.15 * (k as f64 * 0.3).sin().abs())
+            .collect();
+        let v = normalize_trial_taxels(&data, 0.0, DEFAULT_DEAD_FRACTION);
+        assert!(v[5].iter().all(|&x| x == 0.0));
+        for t in (0..16).filter(|&t| t != 5) {
+            assert_eq!((v[t][0], v[t][99]), (0.0, 1.0), "taxel {t}");
+            assert_eq!(v[t], normalize_trial(&data[t], 0.0));
+        }
+        let old = normalize_trial_taxels(&data, 0.0, 0.0);
+        assert_eq!(old[5].iter().fold(0.0_f64, |m, &x| m.max(x)), 1.0);
+    }
+
+    #[test]
+    fn live_taxels_use_the_median_span_of_the_non_flat_ones() {
+        assert!(live_taxels(&[], 0.0, 0.25).is_empty());
+        assert_eq!(live_taxels(&[(1.0, 1.0); 4], 0.0, 0.25), vec![false; 4]);
+        // Spans 1, 2, 0.1, 0.5: median 0.75, so 0.1 < 0.1875 is dead.
+        let r = [(0.0, 1.0), (0.0, 2.0), (0.0, 0.1), (0.0, 0.5)];
+        assert_eq!(live_taxels(&r, 0.0, 0.25), vec![true, true, false, true]);
+        assert_eq!(live_taxels(&r, 0.0, 0.0), vec![true; 4]);
+        // Flat taxels do not pull the median down: spans 1, 1, 0.3 and two flat.
+        let r = [(0.0, 1.0), (0.0, 1.0), (0.0, 0.3), (2.0, 2.0), (2.0, 2.0)];
+        assert_eq!(live_taxels(&r, 0.0, 0.25), vec![true, true, true, false, false]);
+        // Spans that overflow stay live and produce no NaN.
+        let r = [(-1e308, 1e308), (0.0, 1.0), (0.0, f64::MAX)];
+        assert_eq!(live_taxels(&r, 0.0, 0.25), vec![true, false, true]);
+        let v = normalize_trial_taxels(&[vec![-1e308, 1e308], vec![0.0, 1.0]], 0.0, 0.25);
+        assert!(v.iter().flatten().all(|x| (0.0..=1.0).contains(x)));
     }
 
     proptest! {
