@@ -35,6 +35,7 @@ pip install "maturin>=1.5,<2" pytest numpy tonic scikit-learn matplotlib
 
 # Same target dir and profile as the workspace build: only the pyo3 crates and
 # the bindings compile here. PALPATE_CLI is the binary `cargo test` built.
+export PATH="$venv/bin:$PATH"
 export CARGO_TARGET_DIR="$root/target"
 export MATURIN_PEP517_ARGS="--profile dev"
 pip install --no-build-isolation "$root/python"
