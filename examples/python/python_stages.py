@@ -16,13 +16,13 @@ REPO = pathlib.Path(__file__).resolve().parents[2]
 
 @palpate.stage("threshold_encoder", inputs="signals", output="spikes")
 class ThresholdEncoder:
-    """Emits a spike each time a taxel's drive rises through `level`."""
+    """Emits a spike each time a taxel's drive rises through `level` times its largest value."""
 
-    level: float = 0.5  # drive level that makes a spike (the drive's unit)
+    level: float = 0.5  # share of the trial's largest drive that makes a spike
 
     def process(self, signals, ctx):
         x = signals.data  # (samples, taxels)
-        above = x >= self.level
+        above = x >= self.level * max(float(x.max()), 1e-12)
         rising = above[1:] & ~above[:-1]
         k, taxel = np.nonzero(rising)
         t_ms = (k + 1) * 1000.0 / signals.sample_rate_hz
@@ -75,7 +75,7 @@ kind = "fa_i"
 type = "python"
 stage = "threshold_encoder"
 inputs = ["drive"]
-config = {{ level = 2.0 }}
+config = {{ level = 0.3 }}
 
 [stages.bins]
 type = "bin"

@@ -279,7 +279,7 @@ pub fn payload_from_py(obj: &Bound<'_, PyAny>) -> PyResult<Payload> {
         "signals" => {
             let arr: PyReadonlyArray2<'_, f64> = get(d, "data", "signals")?.extract()?;
             let a = arr.as_array();
-            let (m, n) = (a.shape()[0], a.shape()[1]);
+            let n = a.shape()[1];
             let layout = layout_from_py(&get(d, "layout", "signals")?)?;
             if layout.len() != n {
                 return Err(PyValueError::new_err(format!(
@@ -298,7 +298,6 @@ pub fn payload_from_py(obj: &Bound<'_, PyAny>) -> PyResult<Payload> {
                 Some(u) if !u.is_none() => u.extract()?,
                 _ => String::new(),
             };
-            let _ = m;
             Ok(Payload::from(Signals {
                 sample_rate_hz: fs,
                 layout,

@@ -7,7 +7,6 @@ use crate::convert::{
 use crate::{
     no_panic, with_attrs, ConfigError as PyConfigError, GraphError, PalpateError, RunError as PyRunError,
 };
-use numpy::PyArray1;
 use palpate_core::{
     derive_seed, BuildContext, FitContext, Item, LoadErrors, LoadOptions, Progress, RunOptions, Severity,
     Stage, StageConfig, TrialContext,
@@ -17,8 +16,9 @@ use pyo3::types::{PyDict, PyList};
 use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 
-/// A graph given as text, with where it came from.
+/// A graph given as text, with where it came from (a dict with these keys).
 #[derive(FromPyObject)]
+#[pyo3(from_item_all)]
 pub struct GraphText {
     text: String,
     file: String,
@@ -622,14 +622,4 @@ pub fn simulate<'py>(
     })?;
     let items = outs.map_err(|(t, m)| stage_err(py, "scene", t.as_deref(), &m))?;
     items_to_list(py, &items)
-}
-
-// Silence "unused" for helpers only some builds use.
-#[allow(dead_code)]
-fn _unused(py: Python<'_>) -> PyResult<()> {
-    let _ = PyArray1::<f64>::zeros(py, 0, false);
-    let _ = meta_to_py;
-    let _ = payload_to_py;
-    let _ = payload_from_py;
-    Ok(())
 }

@@ -111,6 +111,8 @@ labels = "{tmp_path / 'o' / 'out' / 'labels.toml'}"
 [stages.bins]
 type = "bin"
 inputs = ["src"]
+window_ms = 100.0
+hop_ms = 10.0
 [stages.sink]
 type = "write_images"
 inputs = ["bins"]
