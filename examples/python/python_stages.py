@@ -16,16 +16,18 @@ REPO = pathlib.Path(__file__).resolve().parents[2]
 
 @palpate.stage("threshold_encoder", inputs="signals", output="spikes")
 class ThresholdEncoder:
-    """Emits a spike each time a taxel's drive rises through `level` times its largest value."""
+    """Fires every `period_ms` while a taxel's drive is at or above `level` times its largest value."""
 
-    level: float = 0.5  # share of the trial's largest drive that makes a spike
+    level: float = 0.5  # share of the trial's largest drive above which the taxel fires
+    period_ms: float = 5.0  # time between spikes while above, ms
 
     def process(self, signals, ctx):
         x = signals.data  # (samples, taxels)
         above = x >= self.level * max(float(x.max()), 1e-12)
-        rising = above[1:] & ~above[:-1]
-        k, taxel = np.nonzero(rising)
-        t_ms = (k + 1) * 1000.0 / signals.sample_rate_hz
+        step = max(1, round(self.period_ms * signals.sample_rate_hz / 1000.0))
+        above[np.arange(len(x)) % step != 0] = False  # one spike per period while above
+        k, taxel = np.nonzero(above)
+        t_ms = k * 1000.0 / signals.sample_rate_hz
         order = np.lexsort((taxel, t_ms))
         duration_ms = x.shape[0] * 1000.0 / signals.sample_rate_hz
         return palpate.Spikes(taxel[order], t_ms[order], duration_ms, signals.layout)

@@ -102,11 +102,16 @@ def test_simulate_matches_the_graph_scene_and_is_seeded():
     d = palpate.simulate(GRAPHS / "scenes" / "lab.toml", seed=1, angles=[30.0, 60.0], trials_per_angle=2)
     assert d.signals.ndim == 3 and d.signals.shape[0] == 4 and d.signals.shape[2] == 16
     assert list(d.labels) == [30.0, 30.0, 60.0, 60.0]
-    assert np.isfinite(d.signals).all()
+    # Trials differ in length (the angle sets the crossing time): the stack is
+    # NaN-padded at the end, and each trial's own samples are all finite.
+    for k, t in enumerate(d.trials):
+        n = t.data.shape[0]
+        assert np.isfinite(t.data).all() and np.array_equal(d.signals[k, :n], t.data)
+        assert np.isnan(d.signals[k, n:]).all()
     again = palpate.simulate(GRAPHS / "scenes" / "lab.toml", seed=1, angles=[30.0, 60.0], trials_per_angle=2)
     other = palpate.simulate(GRAPHS / "scenes" / "lab.toml", seed=2, angles=[30.0, 60.0], trials_per_angle=2)
-    assert np.array_equal(d.signals, again.signals)
-    assert not np.array_equal(d.signals, other.signals)
+    assert np.array_equal(d.signals, again.signals, equal_nan=True)
+    assert not np.array_equal(d.signals, other.signals, equal_nan=True)
 
 
 def test_building_blocks_chain_to_the_graph_result(small_graph, tmp_path):

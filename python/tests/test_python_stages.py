@@ -10,13 +10,16 @@ from conftest import GRAPHS
 
 @palpate.stage("test_threshold", inputs="signals", output="spikes")
 class Threshold:
-    level: float = 0.5  # share of the trial's largest drive that makes a spike
+    level: float = 0.5  # share of the trial's largest drive above which the taxel fires
+    period_ms: float = 5.0  # time between spikes while above, ms
 
     def process(self, signals, ctx):
         x = signals.data
         above = x >= self.level * max(float(x.max()), 1e-12)
-        k, taxel = np.nonzero(above[1:] & ~above[:-1])
-        t_ms = (k + 1) * 1000.0 / signals.sample_rate_hz
+        step = max(1, round(self.period_ms * signals.sample_rate_hz / 1000.0))
+        above[np.arange(len(x)) % step != 0] = False  # one spike per period while above
+        k, taxel = np.nonzero(above)
+        t_ms = k * 1000.0 / signals.sample_rate_hz
         order = np.lexsort((taxel, t_ms))
         return palpate.Spikes(taxel[order], t_ms[order], x.shape[0] * 1000.0 / signals.sample_rate_hz, signals.layout)
 

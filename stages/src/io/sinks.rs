@@ -27,7 +27,7 @@
 //! Spikes are written the way `spike_file` reads them: `x` = column, `y` = row
 //! for a grid (`x` = taxel index, `y` = 0 otherwise), `t` in `time_unit`
 //! (µs by default), `p` = 1. Their NPY default is tonic's event dtype
-//! `[('x', '<i2'), ('y', '<i2'), ('t', '<i8'), ('p', '?')]`, a 1-D structured
+//! `[('x', '<i2'), ('y', '<i2'), ('t', '<i8'), ('p', '|b1')]` (`|b1` is NumPy's bool), a 1-D structured
 //! array that `tonic.transforms` take as it is; `t` is then rounded to a whole
 //! number of `time_unit` (µs by default: tonic's convention), so a spike at
 //! 12.3456 ms reads back at 12.346 ms. `npy_layout = "float"` writes the older
@@ -356,7 +356,7 @@ pub enum NpyLayout {
 }
 
 /// tonic's event dtype, as an NPY `descr`.
-pub const TONIC_DESCR: &str = "[('x', '<i2'), ('y', '<i2'), ('t', '<i8'), ('p', '?')]";
+pub const TONIC_DESCR: &str = "[('x', '<i2'), ('y', '<i2'), ('t', '<i8'), ('p', '|b1')]";
 
 /// Encodes events as a 1-D structured NPY array of tonic's dtype ([`TONIC_DESCR`]);
 /// `events` are `(x, y, t, p)` with `t` already in the file's unit. Fails, naming
