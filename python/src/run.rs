@@ -1,9 +1,7 @@
 //! Graphs (check, run) and building blocks (apply one stage, fit a baseline,
 //! simulate a scene), each through the same registered stages the graphs use.
 
-use crate::convert::{
-    item_from_py, item_to_py, json_to_py, meta_to_py, payload_from_py, payload_to_py, py_to_json,
-};
+use crate::convert::{item_from_py, item_to_py, json_to_py, py_to_json};
 use crate::{
     no_panic, with_attrs, ConfigError as PyConfigError, GraphError, PalpateError, RunError as PyRunError,
 };

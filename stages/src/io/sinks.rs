@@ -389,8 +389,8 @@ pub fn tonic_npy(events: &[(f64, f64, f64, bool)]) -> Result<Vec<u8>, StageError
             }
         };
         let t = t.round();
-        // 2^63 is exactly representable; anything at or above it does not fit.
-        if !(t.is_finite() && t >= -9.223_372_036_854_776e18 && t < 9.223_372_036_854_776e18) {
+        // 2^63 is exactly representable; anything at or above it (or NaN) does not fit.
+        if !(-9.223_372_036_854_776e18..9.223_372_036_854_776e18).contains(&t) {
             return Err(StageError::new(format!("cannot write time {t} as int64")));
         }
         out.extend_from_slice(&coord(x, "x")?.to_le_bytes());
