@@ -546,7 +546,7 @@ mod tests {
         assert_eq!(s.coarse, vec![(10.0, Some(10.0 / 3.0))]);
         let md = to_markdown(&[s.clone(), s.clone()]);
         assert!(md.contains("| 40° | 5.00 | 5.00 |"), "{md}");
-        let csv = to_csv(&[s.clone()]);
+        let csv = to_csv(std::slice::from_ref(&s));
         assert_eq!(csv.lines().count(), 4, "{csv}");
         // Every cell after the estimator's name is a number or empty.
         for line in csv.lines().skip(1) {
