@@ -220,12 +220,14 @@ pub struct RunRecord<'a> {
     pub version: &'static str,
     /// Run settings.
     pub run: &'a palpate_core::RunSettings,
-    /// Every stage's config, by id.
-    pub stages: Vec<(String, serde_json::Value)>,
-    /// Timing per stage.
+    /// Every stage's config, an object keyed by stage id (`{"wss": {"wss": {...}}}`:
+    /// each value is the config tagged with its type, as typetag writes it).
+    pub stages: serde_json::Map<String, serde_json::Value>,
+    /// Timing per stage, in execution order.
     pub timing: Vec<TimingRow>,
-    /// Every sink's metrics.
-    pub metrics: Vec<(String, f64)>,
+    /// Every sink's metrics, an object keyed by metric name (`{"wss.mae_deg": 0.12}`);
+    /// a non-finite value is written as `null`, as JSON has no NaN.
+    pub metrics: serde_json::Map<String, serde_json::Value>,
 }
 
 /// Builds the run record.
@@ -248,7 +250,8 @@ pub fn run_record<'a>(graph: &'a Graph, result: &RunResult) -> RunRecord<'a> {
         metrics: result
             .reports
             .iter()
-            .flat_map(|(_, r)| r.metrics.iter().cloned())
+            .flat_map(|(_, r)| r.metrics.iter())
+            .map(|(k, v)| (k.clone(), serde_json::Value::from(*v)))
             .collect(),
     }
 }

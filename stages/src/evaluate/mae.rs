@@ -42,10 +42,11 @@
 //!   0.12° (SD 0.76°) hides.
 //!
 //! Files, in the run's output directory, written atomically: `<sink id>.json`,
-//! `<sink id>.csv` (one row per estimator and class), `<sink id>.md` (the table
+//! `<sink id>.csv` (one row per estimator and class, numeric columns only),
+//! `<sink id>_overall.csv` (one row per estimator), `<sink id>.md` (the table
 //! as Markdown), `<sink id>_trials.csv` (one row per estimator and trial: truth,
-//! answer, error, correct, decision time) and `<sink id>_per_class.svg` (per-class MAE bars, one panel per
-//! estimator on shared axes).
+//! answer, error, correct, decision time) and `<sink id>_per_class.svg`
+//! (per-class MAE bars, one panel per estimator on shared axes).
 
 use palpate_core::output::write_atomic;
 use palpate_core::{
@@ -350,37 +351,54 @@ pub fn with_coarse(mut stats: MaeStats, pairs: &[(Option<f64>, Option<f64>)], ac
     stats
 }
 
-/// The statistics of several estimators as CSV: one row per estimator and class,
-/// then one `all` row per estimator.
+/// The per-class statistics of several estimators as CSV: one row per estimator
+/// and class, every column after `estimator` numeric (an empty cell where a class
+/// has no answered trial), so that `numpy.loadtxt`/pandas read it as numbers.
+/// The overall figures are in [`to_overall_csv`].
 pub fn to_csv(all: &[MaeStats]) -> String {
-    let mut s =
-        String::from("estimator,angle_deg,trials,no_edge,mean_estimate_deg,mae_deg,sd_deg,decision_ms\n");
-    let f = |v: Option<f64>| v.map_or(String::new(), |x| format!("{x}"));
+    let mut s = String::from("estimator,angle_deg,trials,no_edge,mean_estimate_deg,mae_deg\n");
     for st in all {
         for c in &st.classes {
             let _ = writeln!(
                 s,
-                "{},{},{},{},{},{},,",
+                "{},{},{},{},{},{}",
                 st.estimator,
                 c.angle_deg,
                 c.trials,
                 c.no_edge,
-                f(c.mean_estimate_deg),
-                f(c.mae_deg)
+                csv_num(c.mean_estimate_deg),
+                csv_num(c.mae_deg)
             );
         }
+    }
+    s
+}
+
+/// The overall statistics of several estimators as CSV (`<sink id>_overall.csv`):
+/// one row per estimator, every column after `estimator` numeric.
+pub fn to_overall_csv(all: &[MaeStats]) -> String {
+    let mut s =
+        String::from("estimator,trials,no_edge,unlabelled,mae_deg,sd_deg,max_class_mae_deg,decision_ms\n");
+    for st in all {
         let _ = writeln!(
             s,
-            "{},all,{},{},,{},{},{}",
+            "{},{},{},{},{},{},{},{}",
             st.estimator,
             st.trials,
             st.no_edge,
-            f(st.mae_deg),
-            f(st.sd_deg),
-            f(st.decision_ms)
+            st.unlabelled,
+            csv_num(st.mae_deg),
+            csv_num(st.sd_deg),
+            csv_num(st.max_class_mae_deg),
+            csv_num(st.decision_ms)
         );
     }
     s
+}
+
+/// A CSV cell: the number, or empty when there is none.
+fn csv_num(v: Option<f64>) -> String {
+    v.map_or(String::new(), |x| format!("{x}"))
 }
 
 /// A summary row's name and how to fill its cell for one estimator.
@@ -569,9 +587,10 @@ impl Sink for MaeSink {
         }
         let out = |ext: &str| ctx.out_dir.join(format!("{}{ext}", ctx.stage_id));
         let json = serde_json::to_vec_pretty(&all).map_err(|e| StageError::new(e.to_string()))?;
-        let files: [(std::path::PathBuf, Vec<u8>); 4] = [
+        let files: [(std::path::PathBuf, Vec<u8>); 5] = [
             (out(".json"), json),
             (out(".csv"), to_csv(&all).into_bytes()),
+            (out("_overall.csv"), to_overall_csv(&all).into_bytes()),
             (out(".md"), to_markdown(&all).into_bytes()),
             (out("_trials.csv"), trials_csv(&trial_rows).into_bytes()),
         ];
@@ -668,7 +687,15 @@ mod tests {
         assert_eq!(s.coarse, vec![(10.0, Some(10.0 / 3.0))]);
         let md = to_markdown(&[s.clone(), s.clone()]);
         assert!(md.contains("| 40° | 5.00 | 5.00 |"), "{md}");
-        assert!(to_csv(&[s]).lines().count() == 4);
+        let csv = to_csv(std::slice::from_ref(&s));
+        assert_eq!(csv.lines().count(), 4, "{csv}");
+        // Every cell after the estimator's name is a number or empty.
+        for line in csv.lines().skip(1) {
+            for cell in line.split(',').skip(1) {
+                assert!(cell.is_empty() || cell.parse::<f64>().is_ok(), "{line}");
+            }
+        }
+        assert_eq!(to_overall_csv(&[s]).lines().count(), 2);
     }
 
     #[test]
@@ -699,7 +726,7 @@ mod tests {
             text.contains("median 200 ms") && text.contains("1 without a known crossing"),
             "{text}"
         );
-        assert!(to_csv(&[s]).lines().nth(1).unwrap().ends_with(",200"));
+        assert!(to_overall_csv(&[s]).lines().nth(1).unwrap().ends_with(",200"));
     }
 
     #[test]

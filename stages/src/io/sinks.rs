@@ -5,12 +5,14 @@
 //! Every file is written atomically (a temporary file renamed over the target)
 //! into `<run out>/<dir>/`, where `dir` defaults to the sink's id. Numbers in
 //! CSV are written in Rust's shortest round-trip form, so reading them back
-//! gives the same `f64` bits; NPY files are `<f8` (float64), C order.
+//! gives the same `f64` bits; NPY files are `<f8` (float64), C order, except
+//! spike events, which by default use the structured dtype of tonic and other
+//! event-camera tools (see below).
 //!
 //! | sink | files | NPY array | CSV columns |
 //! |---|---|---|---|
 //! | `write_signals` | one per trial, `<trial>.npy`/`.csv` | `(samples, taxels)` | `time_ms, taxel_0 .. taxel_{N-1}` |
-//! | `write_spikes` | one per trial | `(events, 4)`: `x, y, t, p` | `x, y, t, p` |
+//! | `write_spikes` | one per trial | structured `(events,)`: `x, y` int16, `t` int64, `p` bool (tonic's dtype; `npy_layout = "float"`: `(events, 4)` float64) | `x, y, t, p` |
 //! | `write_images` | one per trial | `(frames, rows, cols)` for a grid, else `(frames, taxels)` | `frame, t_start_ms, taxel_0 ..` |
 //! | `write_estimates` | one per run, `estimates.npy`/`.csv` | `(rows, 6 + classes)`, see below | see below |
 //!
@@ -24,7 +26,12 @@
 //!
 //! Spikes are written the way `spike_file` reads them: `x` = column, `y` = row
 //! for a grid (`x` = taxel index, `y` = 0 otherwise), `t` in `time_unit`
-//! (µs by default), `p` = 1.
+//! (µs by default), `p` = 1. Their NPY default is tonic's event dtype
+//! `[('x', '<i2'), ('y', '<i2'), ('t', '<i8'), ('p', '|b1')]` (`|b1` is NumPy's bool), a 1-D structured
+//! array that `tonic.transforms` take as it is; `t` is then rounded to a whole
+//! number of `time_unit` (µs by default: tonic's convention), so a spike at
+//! 12.3456 ms reads back at 12.346 ms. `npy_layout = "float"` writes the older
+//! `(events, 4)` float64 array with unrounded times instead.
 //!
 //! Estimates: one row per (input estimator, trial). CSV columns `source, trial,
 //! stimulus, true_angle_deg, group, angle_deg, class_deg, best_frame,
@@ -323,8 +330,9 @@ impl Sink for ImagesSink {
     }
 }
 
-/// Writes spike events, one NPY `(events, 4)` or CSV file per trial with columns
-/// `x, y, t, p` (x = column, y = row, t in `time_unit`), as `spike_file` reads them.
+/// Writes spike events, one NPY or CSV file per trial with fields `x, y, t, p`
+/// (x = column, y = row, t in `time_unit`), as `spike_file` reads them. NPY
+/// holds tonic's structured event dtype by default.
 #[derive(Clone, Debug, Default, Serialize, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields, default)]
 pub struct WriteSpikesConfig {
@@ -332,8 +340,70 @@ pub struct WriteSpikesConfig {
     pub format: OutFormat,
     /// Folder inside the run's output folder. Default: the sink's id.
     pub dir: Option<String>,
-    /// Unit of `t`: `us`, `ms` or `s`. Default us.
+    /// Unit of `t`: `us`, `ms` or `s`. Default us (tonic's convention).
     pub time_unit: TimeUnit,
+    /// Layout of NPY files: `structured` (tonic's dtype: `x`, `y` int16, `t`
+    /// int64 rounded to whole `time_unit`s, `p` bool; one record per event) or
+    /// `float` (an `(events, 4)` float64 array, times unrounded). Default
+    /// structured. Ignored for CSV.
+    pub npy_layout: NpyLayout,
+}
+
+/// How `write_spikes` lays out NPY files.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum NpyLayout {
+    /// tonic's structured event dtype `[x <i2, y <i2, t <i8, p ?]`.
+    #[default]
+    Structured,
+    /// A plain `(events, 4)` float64 array.
+    Float,
+}
+
+/// tonic's event dtype, as an NPY `descr`.
+pub const TONIC_DESCR: &str = "[('x', '<i2'), ('y', '<i2'), ('t', '<i8'), ('p', '|b1')]";
+
+/// Encodes events as a 1-D structured NPY array of tonic's dtype ([`TONIC_DESCR`]);
+/// `events` are `(x, y, t, p)` with `t` already in the file's unit. Fails, naming
+/// the value, when a coordinate does not fit int16 or a time does not fit int64.
+pub fn tonic_npy(events: &[(f64, f64, f64, bool)]) -> Result<Vec<u8>, StageError> {
+    let header = format!(
+        "{{'descr': {TONIC_DESCR}, 'fortran_order': False, 'shape': ({},), }}",
+        events.len()
+    );
+    // Magic (6) + version (2) + header length (2) + header + '\n', padded with
+    // spaces to a multiple of 64 bytes, as NPY 1.0 asks.
+    let unpadded = 10 + header.len() + 1;
+    let pad = (64 - unpadded % 64) % 64;
+    let hlen = u16::try_from(header.len() + pad + 1)
+        .map_err(|_| StageError::new("cannot encode NPY: header too long"))?;
+    let mut out = Vec::with_capacity(unpadded + pad + events.len() * 13);
+    out.extend_from_slice(b"\x93NUMPY\x01\x00");
+    out.extend_from_slice(&hlen.to_le_bytes());
+    out.extend_from_slice(header.as_bytes());
+    out.extend(std::iter::repeat_n(b' ', pad));
+    out.push(b'\n');
+    for &(x, y, t, p) in events {
+        let coord = |v: f64, name: &str| -> Result<i16, StageError> {
+            if v.fract() == 0.0 && v >= f64::from(i16::MIN) && v <= f64::from(i16::MAX) {
+                Ok(v as i16)
+            } else {
+                Err(StageError::new(format!(
+                    "cannot write `{name}` = {v} as int16 (tonic's dtype); use npy_layout = \"float\""
+                )))
+            }
+        };
+        let t = t.round();
+        // 2^63 is exactly representable; anything at or above it (or NaN) does not fit.
+        if !(-9.223_372_036_854_776e18..9.223_372_036_854_776e18).contains(&t) {
+            return Err(StageError::new(format!("cannot write time {t} as int64")));
+        }
+        out.extend_from_slice(&coord(x, "x")?.to_le_bytes());
+        out.extend_from_slice(&coord(y, "y")?.to_le_bytes());
+        out.extend_from_slice(&(t as i64).to_le_bytes());
+        out.push(u8::from(p));
+    }
+    Ok(out)
 }
 
 #[typetag::serde(name = "write_spikes")]
@@ -373,6 +443,18 @@ impl Sink for SpikesSink {
             let s = it.payload.spikes()?;
             let stem = file_stem_for(&it.meta.trial_id);
             let bytes = match self.cfg.format {
+                OutFormat::Npy if self.cfg.npy_layout == NpyLayout::Structured => {
+                    let events: Vec<(f64, f64, f64, bool)> = s
+                        .events
+                        .iter()
+                        .map(|e| {
+                            let (x, y) = event_xy(&s.layout, e.taxel);
+                            (x, y, e.t_ms * per_ms, true)
+                        })
+                        .collect();
+                    tonic_npy(&events)
+                        .map_err(|e| StageError::new(format!("trial `{}`: {e}", it.meta.trial_id)))?
+                }
                 OutFormat::Npy => {
                     let mut flat = Vec::with_capacity(s.events.len() * 4);
                     for e in &s.events {
@@ -395,7 +477,12 @@ impl Sink for SpikesSink {
         }
         let info = items.first().map(|it| {
             let layout = it.payload.spikes().map(|s| s.layout.clone()).ok();
-            serde_json::json!({ "layout": layout, "time_unit": self.cfg.time_unit, "format": self.cfg.format.ext() })
+            serde_json::json!({
+                "layout": layout,
+                "time_unit": self.cfg.time_unit,
+                "format": self.cfg.format.ext(),
+                "npy_layout": self.cfg.npy_layout,
+            })
         });
         finish_with_sidecar(files, &rows, info, "spikes")
     }
@@ -515,5 +602,55 @@ impl Sink for EstimatesSink {
             }
         }
         files.write(&format!("{n_rows} estimates"))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::arrays::{read_npy, NpyContent};
+    use super::*;
+
+    #[test]
+    fn tonic_npy_reads_back_as_its_structured_dtype() {
+        let events = [
+            (0.0, 3.0, 250.0, true),
+            (3.0, 0.0, 1_000_000.4, true),
+            (1.0, 2.0, 7.6, false),
+        ];
+        let bytes = tonic_npy(&events).unwrap();
+        // NPY 1.0: the data starts on a 64-byte boundary, 13 bytes per record.
+        let hlen = usize::from(u16::from_le_bytes([bytes[8], bytes[9]]));
+        assert_eq!((10 + hlen) % 64, 0);
+        assert_eq!(bytes.len(), 10 + hlen + 3 * 13);
+        let header = std::str::from_utf8(&bytes[10..10 + hlen]).unwrap();
+        assert!(
+            header.contains(TONIC_DESCR) && header.contains("'shape': (3,)"),
+            "{header}"
+        );
+        let NpyContent::Record(cols) = read_npy(&bytes, "e.npy").unwrap() else {
+            panic!("not a structured array")
+        };
+        let names: Vec<&str> = cols.iter().map(|(n, _)| n.as_str()).collect();
+        assert_eq!(names, ["x", "y", "t", "p"]);
+        assert_eq!(cols[0].1, vec![0.0, 3.0, 1.0]);
+        assert_eq!(cols[1].1, vec![3.0, 0.0, 2.0]);
+        // Times are rounded to whole units.
+        assert_eq!(cols[2].1, vec![250.0, 1_000_000.0, 8.0]);
+        assert_eq!(cols[3].1, vec![1.0, 1.0, 0.0]);
+        assert_eq!(tonic_npy(&[]).unwrap().len(), 10 + hlen);
+    }
+
+    #[test]
+    fn tonic_npy_refuses_what_its_dtype_cannot_hold() {
+        for bad in [
+            (40_000.0, 0.0, 0.0, true),
+            (0.5, 0.0, 0.0, true),
+            (0.0, -40_000.0, 0.0, true),
+            (0.0, 0.0, f64::NAN, true),
+            (0.0, 0.0, 1e19, true),
+            (0.0, 0.0, f64::INFINITY, true),
+        ] {
+            assert!(tonic_npy(&[bad]).is_err(), "{bad:?}");
+        }
     }
 }

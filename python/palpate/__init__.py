@@ -1,0 +1,809 @@
+"""palpate for Python: run tactile-sensing graphs, use their stages on NumPy arrays,
+and write stages in Python.
+
+Everything calls the compiled Rust core (``palpate._palpate``): ``run`` loads and
+runs a graph exactly as ``palpate run`` does (same reports, same bits); the
+building blocks (``izhikevich``, ``lif``, ``lowpass``, ``drive``, ``bin``,
+``wss``, ``fit`` ...) build the registered stage of that type from its keys and
+call it, so they are the code the graphs run, not a second implementation.
+
+Spike events use tonic's convention: a 1-D structured array of ``EVENT_DTYPE``
+(``x``, ``y`` int16 -- the taxel's column and row; ``t`` int64 microseconds;
+``p`` bool) with ``sensor_size = (cols, rows, 1)``, so ``tonic.transforms``
+apply directly, and tonic-format events load back with ``Spikes.from_events``.
+
+Example::
+
+    import palpate
+    res = palpate.run("graphs/quickstart.toml")
+    print(res.metrics["wss.mae_deg"])
+    wss = res.estimates["wss"]            # NumPy arrays, one entry per trial
+    print(wss.estimate[:5], wss.label[:5])
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import json
+import os
+import pathlib
+from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple, Union
+
+import numpy as np
+
+from . import _palpate
+from ._palpate import ConfigError, GraphError, PalpateError, RunError
+
+__all__ = [
+    "EVENT_DTYPE",
+    "ConfigError",
+    "Dataset",
+    "Diagnostic",
+    "Estimate",
+    "EstimateTable",
+    "GraphError",
+    "Images",
+    "Model",
+    "PalpateError",
+    "Result",
+    "RunError",
+    "Signals",
+    "Spikes",
+    "apply",
+    "bin",
+    "check",
+    "derivative",
+    "drive",
+    "fit",
+    "grid",
+    "izhikevich",
+    "lif",
+    "lowpass",
+    "normalize",
+    "run",
+    "simulate",
+    "stage",
+    "stage_types",
+    "wss",
+]
+
+__version__ = _palpate.version()
+
+#: tonic's event dtype: taxel column ``x`` and row ``y`` (int16), time ``t`` in
+#: microseconds (int64), polarity ``p`` (bool; palpate's spikes are all ``True``).
+EVENT_DTYPE = np.dtype([("x", "<i2"), ("y", "<i2"), ("t", "<i8"), ("p", "?")])
+
+
+def grid(rows: int = 4, cols: int = 4, pitch_mm: float = 3.0, taxel_mm: float = 2.0) -> dict:
+    """A grid layout (the paper's 4 x 4 array, 3 mm pitch, 2 mm taxels, by default)."""
+    return {"kind": "grid", "rows": rows, "cols": cols, "pitch_mm": pitch_mm, "taxel_mm": taxel_mm}
+
+
+def _n_taxels(layout: dict) -> int:
+    if layout.get("kind") == "grid":
+        return int(layout["rows"]) * int(layout["cols"])
+    return len(layout["positions_mm"])
+
+
+def _meta_of(raw: dict) -> Optional[dict]:
+    return raw.get("meta")
+
+
+# ---------------------------------------------------------------- payloads
+
+
+@dataclasses.dataclass
+class Signals:
+    """Analog taxel signals of one trial: ``data`` is float64 ``(samples, taxels)``."""
+
+    data: np.ndarray
+    sample_rate_hz: float
+    layout: dict = dataclasses.field(default_factory=grid)
+    unit: str = ""
+    meta: Optional[dict] = None
+
+    def __post_init__(self) -> None:
+        self.data = np.ascontiguousarray(np.asarray(self.data, dtype=np.float64))
+        if self.data.ndim != 2:
+            raise ValueError(f"signals: `data` must be 2-D (samples, taxels), got shape {self.data.shape}")
+
+    def to_raw(self) -> dict:
+        return {
+            "kind": "signals",
+            "data": self.data,
+            "sample_rate_hz": float(self.sample_rate_hz),
+            "unit": self.unit,
+            "layout": self.layout,
+            "meta": self.meta,
+        }
+
+    @classmethod
+    def from_raw(cls, r: dict) -> "Signals":
+        return cls(r["data"], r["sample_rate_hz"], r["layout"], r.get("unit", ""), _meta_of(r))
+
+
+@dataclasses.dataclass
+class Spikes:
+    """The spike events of one trial: ``taxel`` (uint32) and exact times ``t_ms``
+    (float64), sorted by time; ``events`` gives them in tonic's convention."""
+
+    taxel: np.ndarray
+    t_ms: np.ndarray
+    duration_ms: float
+    layout: dict = dataclasses.field(default_factory=grid)
+    meta: Optional[dict] = None
+
+    def __post_init__(self) -> None:
+        self.taxel = np.asarray(self.taxel, dtype=np.uint32)
+        self.t_ms = np.asarray(self.t_ms, dtype=np.float64)
+
+    @property
+    def sensor_size(self) -> Tuple[int, int, int]:
+        """tonic's ``(width, height, polarities)``: ``(cols, rows, 1)`` for a grid,
+        ``(taxels, 1, 1)`` for an explicit layout."""
+        if self.layout.get("kind") == "grid":
+            return (int(self.layout["cols"]), int(self.layout["rows"]), 1)
+        return (_n_taxels(self.layout), 1, 1)
+
+    @property
+    def events(self) -> np.ndarray:
+        """The events as a structured array of ``EVENT_DTYPE`` (``t`` rounded to whole
+        microseconds, tonic's unit)."""
+        cols = self.sensor_size[0]
+        ev = np.empty(len(self.taxel), dtype=EVENT_DTYPE)
+        if self.layout.get("kind") == "grid":
+            ev["x"] = self.taxel % cols
+            ev["y"] = self.taxel // cols
+        else:
+            ev["x"] = self.taxel
+            ev["y"] = 0
+        ev["t"] = np.rint(self.t_ms * 1000.0).astype(np.int64)
+        ev["p"] = True
+        return ev
+
+    @classmethod
+    def from_events(
+        cls,
+        events: np.ndarray,
+        sensor_size: Optional[Sequence[int]] = None,
+        duration_ms: Optional[float] = None,
+        layout: Optional[dict] = None,
+        meta: Optional[dict] = None,
+    ) -> "Spikes":
+        """Spikes from tonic-format events (fields ``x``, ``t``, optionally ``y``
+        and ``p``; ``t`` in microseconds). ``sensor_size`` ``(W, H, P)`` gives the
+        grid (``cols = W``, ``rows = H``) unless ``layout`` is given; the duration
+        defaults to just past the last event."""
+        names = events.dtype.names or ()
+        if "x" not in names or "t" not in names:
+            raise ValueError(f"events need fields `x` and `t` (tonic's convention), got {names}")
+        if layout is None:
+            if sensor_size is None:
+                raise ValueError("give `sensor_size` (W, H, P) or `layout`")
+            layout = grid(rows=int(sensor_size[1]), cols=int(sensor_size[0]))
+        x = events["x"].astype(np.int64)
+        y = events["y"].astype(np.int64) if "y" in names else np.zeros_like(x)
+        if layout.get("kind") == "grid":
+            cols, rows = int(layout["cols"]), int(layout["rows"])
+            if len(x) and (x.min() < 0 or y.min() < 0 or x.max() >= cols or y.max() >= rows):
+                raise ValueError(f"events outside the {rows} x {cols} grid (x is the column, y the row)")
+            taxel = y * cols + x
+        else:
+            taxel = x
+        t_ms = events["t"].astype(np.float64) / 1000.0
+        order = np.lexsort((taxel, t_ms))
+        taxel, t_ms = taxel[order], t_ms[order]
+        if duration_ms is None:
+            duration_ms = float(t_ms[-1]) + 0.001 if len(t_ms) else 0.001
+        return cls(taxel, t_ms, float(duration_ms), layout, meta)
+
+    def to_raw(self) -> dict:
+        return {
+            "kind": "spikes",
+            "taxel": self.taxel,
+            "t_ms": self.t_ms,
+            "duration_ms": float(self.duration_ms),
+            "layout": self.layout,
+            "meta": self.meta,
+        }
+
+    @classmethod
+    def from_raw(cls, r: dict) -> "Spikes":
+        return cls(r["taxel"], r["t_ms"], r["duration_ms"], r["layout"], _meta_of(r))
+
+
+@dataclasses.dataclass
+class Images:
+    """Spike images: ``counts`` float64 ``(frames, taxels)``; frame ``k`` covers
+    ``[k * hop_ms, k * hop_ms + window_ms)``. ``frames`` reshapes a grid's
+    counts to ``(frames, rows, cols)``."""
+
+    counts: np.ndarray
+    window_ms: float
+    hop_ms: float
+    layout: dict = dataclasses.field(default_factory=grid)
+    meta: Optional[dict] = None
+
+    def __post_init__(self) -> None:
+        c = np.asarray(self.counts, dtype=np.float64)
+        if c.ndim == 3:
+            c = c.reshape(c.shape[0], -1)
+        self.counts = np.ascontiguousarray(c)
+
+    @property
+    def frames(self) -> np.ndarray:
+        if self.layout.get("kind") == "grid":
+            return self.counts.reshape(-1, int(self.layout["rows"]), int(self.layout["cols"]))
+        return self.counts
+
+    def to_raw(self) -> dict:
+        return {
+            "kind": "images",
+            "counts": self.counts,
+            "window_ms": float(self.window_ms),
+            "hop_ms": float(self.hop_ms),
+            "layout": self.layout,
+            "meta": self.meta,
+        }
+
+    @classmethod
+    def from_raw(cls, r: dict) -> "Images":
+        return cls(r["counts"], r["window_ms"], r["hop_ms"], r["layout"], _meta_of(r))
+
+
+@dataclasses.dataclass
+class Estimate:
+    """An orientation estimate: ``angle_deg`` (None = "no edge"), every class's score."""
+
+    angle_deg: Optional[float]
+    class_angles: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
+    scores: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
+    class_deg: Optional[float] = None
+    best_frame: Optional[int] = None
+    decision_time_ms: Optional[float] = None
+    meta: Optional[dict] = None
+
+    def __post_init__(self) -> None:
+        self.class_angles = np.asarray(self.class_angles, dtype=np.float64)
+        self.scores = np.asarray(self.scores, dtype=np.float64)
+        if self.class_deg is None and self.angle_deg is not None and len(self.class_angles) == 0:
+            self.class_deg = self.angle_deg
+
+    def to_raw(self) -> dict:
+        return {
+            "kind": "estimate",
+            "angle_deg": None if self.angle_deg is None else float(self.angle_deg),
+            "class_deg": None if self.class_deg is None else float(self.class_deg),
+            "class_angles": self.class_angles,
+            "scores": self.scores,
+            "best_frame": self.best_frame,
+            "decision_time_ms": self.decision_time_ms,
+            "meta": self.meta,
+        }
+
+    @classmethod
+    def from_raw(cls, r: dict) -> "Estimate":
+        return cls(
+            r["angle_deg"],
+            r["class_angles"],
+            r["scores"],
+            r["class_deg"],
+            r["best_frame"],
+            r["decision_time_ms"],
+            _meta_of(r),
+        )
+
+
+Payload = Union[Signals, Spikes, Images, Estimate]
+_KINDS = {"signals": Signals, "spikes": Spikes, "images": Images, "estimate": Estimate}
+
+
+def _from_raw(r: dict) -> Payload:
+    return _KINDS[r["kind"]].from_raw(r)
+
+
+def _to_raw(p: Any) -> dict:
+    if isinstance(p, (Signals, Spikes, Images, Estimate)):
+        return p.to_raw()
+    if isinstance(p, dict) and "kind" in p:
+        return p
+    raise TypeError(f"expected a palpate payload (Signals, Spikes, Images, Estimate), got {type(p).__name__}")
+
+
+# ---------------------------------------------------------------- graphs
+
+
+def _graph_text(graph: Any) -> dict:
+    """(text, file, stem, base_dir) of a graph given as a path, TOML text or dict."""
+    if isinstance(graph, dict):
+        text = _palpate_toml(graph)
+        return {"text": text, "file": "<dict>", "stem": "graph", "base_dir": os.getcwd()}
+    if isinstance(graph, pathlib.PurePath) or (
+        isinstance(graph, str) and "\n" not in graph and "=" not in graph
+    ):
+        path = pathlib.Path(graph)
+        try:
+            text = path.read_text(encoding="utf-8")
+        except OSError as e:
+            raise GraphError(f"{graph}: cannot read the graph file: {e}") from None
+        return {"text": text, "file": str(graph), "stem": path.stem, "base_dir": str(path.parent)}
+    if isinstance(graph, str):
+        return {"text": graph, "file": "<string>", "stem": "graph", "base_dir": os.getcwd()}
+    raise TypeError(f"a graph is a path, a TOML string or a dict, got {type(graph).__name__}")
+
+
+def _palpate_toml(d: dict) -> str:
+    """A dict as TOML text (tables after plain keys, as TOML requires)."""
+
+    def value(v: Any) -> str:
+        if isinstance(v, bool):
+            return "true" if v else "false"
+        if isinstance(v, (int, np.integer)):
+            return str(int(v))
+        if isinstance(v, (float, np.floating)):
+            return repr(float(v))
+        if isinstance(v, (str, pathlib.PurePath)):
+            return json.dumps(str(v))
+        if isinstance(v, (list, tuple, np.ndarray)):
+            return "[" + ", ".join(value(x) for x in v) + "]"
+        if isinstance(v, dict):
+            return "{ " + ", ".join(f"{json.dumps(k)} = {value(x)}" for k, x in v.items()) + " }"
+        raise TypeError(f"cannot write a {type(v).__name__} in a graph")
+
+    lines: List[str] = []
+
+    def table(prefix: List[str], t: dict) -> None:
+        plain = {k: v for k, v in t.items() if not isinstance(v, dict) or (prefix and prefix[0] == "stages" and len(prefix) == 2)}
+        sub = {k: v for k, v in t.items() if k not in plain}
+        if prefix:
+            lines.append("[" + ".".join(json.dumps(p) if not p.replace("_", "").replace("-", "").isalnum() else p for p in prefix) + "]")
+        for k, v in plain.items():
+            lines.append(f"{json.dumps(k)} = {value(v)}")
+        for k, v in sub.items():
+            table(prefix + [k], v)
+
+    table([], d)
+    return "\n".join(lines) + "\n"
+
+
+@dataclasses.dataclass
+class Diagnostic:
+    """One problem found while loading a graph (as ``palpate check`` prints it)."""
+
+    severity: str
+    file: str
+    line: Optional[int]
+    stage: Optional[str]
+    key: Optional[str]
+    message: str
+    text: str
+
+    def __str__(self) -> str:
+        return self.text
+
+
+def check(graph: Any, set: Optional[Dict[str, Any]] = None) -> List[Diagnostic]:
+    """Every error and warning of a graph (path, TOML string or dict), as objects
+    with ``file``, ``line``, ``stage``, ``key`` and ``message``; empty when clean."""
+    return [Diagnostic(**d) for d in _palpate.check(_graph_text(graph), set)]
+
+
+class EstimateTable:
+    """One estimator's per-trial estimates as NumPy arrays (one entry per trial,
+    in trial order): ``trial_id``, ``index``, ``group``, ``label`` (true angle,
+    NaN if none), ``estimate`` (NaN = "no edge"), ``class_deg``, ``scores``
+    ``(trials, classes)`` over ``class_angles``, ``decision_time_ms``,
+    ``best_frame`` (-1 if none)."""
+
+    def __init__(self, name: str, raws: List[dict]):
+        self.name = name
+        self.items = [Estimate.from_raw(r) for r in raws]
+        metas = [r["meta"] for r in raws]
+        nan = float("nan")
+        self.trial_id = np.array([m["trial_id"] for m in metas], dtype=object)
+        self.index = np.array([m["index"] for m in metas], dtype=np.int64)
+        self.group = np.array([m["group"] for m in metas], dtype=np.int64)
+        self.label = np.array([nan if m["angle_deg"] is None else m["angle_deg"] for m in metas])
+        self.estimate = np.array([nan if e.angle_deg is None else e.angle_deg for e in self.items])
+        self.class_deg = np.array([nan if e.class_deg is None else e.class_deg for e in self.items])
+        self.decision_time_ms = np.array(
+            [nan if e.decision_time_ms is None else e.decision_time_ms for e in self.items]
+        )
+        self.best_frame = np.array([-1 if e.best_frame is None else e.best_frame for e in self.items], dtype=np.int64)
+        k = max((len(e.scores) for e in self.items), default=0)
+        self.class_angles = next((e.class_angles for e in self.items if len(e.scores) == k), np.zeros(0))
+        self.scores = np.full((len(self.items), k), nan)
+        for i, e in enumerate(self.items):
+            self.scores[i, : len(e.scores)] = e.scores
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def records(self) -> List[dict]:
+        """One dict per trial (``pandas.DataFrame(table.records())``); scores as
+        ``score_<angle>`` columns."""
+        out = []
+        for i in range(len(self)):
+            r = {
+                "trial_id": self.trial_id[i],
+                "index": int(self.index[i]),
+                "group": int(self.group[i]),
+                "label_deg": float(self.label[i]),
+                "estimate_deg": float(self.estimate[i]),
+                "class_deg": float(self.class_deg[i]),
+                "decision_time_ms": float(self.decision_time_ms[i]),
+            }
+            for a, s in zip(self.class_angles, self.scores[i]):
+                r[f"score_{a:g}"] = float(s)
+            out.append(r)
+        return out
+
+    def to_pandas(self):  # pragma: no cover - pandas is optional
+        import pandas as pd
+
+        return pd.DataFrame(self.records())
+
+    def __repr__(self) -> str:
+        return f"EstimateTable({self.name!r}, {len(self)} trials, {len(self.class_angles)} classes)"
+
+
+class Result:
+    """What ``run`` returns: ``metrics`` (every sink's, by name), ``reports`` (per
+    sink: ``text``, ``files``, ``metrics``), ``estimates`` (per estimator, an
+    ``EstimateTable``), ``timing`` (rows of the timing table as dicts) and
+    ``timing_table`` (as the CLI prints it), ``record`` (run.json's content),
+    ``out_dir``."""
+
+    def __init__(self, raw: dict):
+        self.file: str = raw["file"]
+        self.out_dir = pathlib.Path(raw["out_dir"])
+        self.wall_s: float = raw["wall_s"]
+        self.record: dict = raw["record"]
+        self.reports: Dict[str, dict] = raw["reports"]
+        self.metrics: Dict[str, float] = {}
+        for r in self.reports.values():
+            self.metrics.update(r["metrics"])
+        self.timing: List[dict] = self.record["timing"]
+        self.timing_table: str = raw["timing_table"]
+        self.estimates: Dict[str, EstimateTable] = {
+            k: EstimateTable(k, v) for k, v in raw["estimates"].items()
+        }
+
+    def report_text(self) -> str:
+        """Every sink's report as the CLI prints it."""
+        return "".join(f"== {k}\n{r['text']}" for k, r in self.reports.items())
+
+    def __repr__(self) -> str:
+        return f"Result({self.file!r}, metrics={self.metrics})"
+
+
+def run(
+    graph: Any,
+    set: Optional[Dict[str, Any]] = None,
+    threads: Optional[int] = None,
+    out: Union[str, os.PathLike, None] = None,
+    progress: bool = True,
+) -> Result:
+    """Runs a graph (a path, a TOML string or a dict) as ``palpate run`` does, with
+    the same report files in its output folder. ``set`` overrides keys
+    (``{"stages.wss.weighting": "constant"}``), ``threads`` caps the worker
+    threads (default: all cores), ``out`` replaces ``[run] out``. The GIL is
+    released while it runs; progress goes to stderr. Raises ``GraphError``
+    (with ``diagnostics``) when the graph does not load, ``RunError`` when a
+    stage fails."""
+    raw = _palpate.run(_graph_text(graph), set, threads, None if out is None else str(out), progress)
+    return Result(raw)
+
+
+def stage_types() -> List[dict]:
+    """Every registered stage type: ``type``, ``doc`` and ``keys`` (name, type, default, doc)."""
+    return list(_palpate.stage_types())
+
+
+# ---------------------------------------------------------------- scenes
+
+
+@dataclasses.dataclass
+class Dataset:
+    """A simulated scene's trials: ``signals`` float64 ``(trials, samples, taxels)``,
+    ``labels`` (true angle per trial, degrees; NaN if none), ``trial_ids``,
+    ``groups``, ``crossing_ms`` ``(trials, 2)`` (NaN if unknown),
+    ``sample_rate_hz``, ``layout``; ``trials`` holds each trial's ``Signals``
+    (with its metadata) for the building blocks."""
+
+    signals: np.ndarray
+    labels: np.ndarray
+    trial_ids: List[str]
+    groups: np.ndarray
+    crossing_ms: np.ndarray
+    sample_rate_hz: float
+    layout: dict
+    unit: str
+    trials: List[Signals]
+
+    def __len__(self) -> int:
+        return len(self.trials)
+
+
+def simulate(scene: Union[str, os.PathLike, dict], seed: int = 1, **keys: Any) -> Dataset:
+    """Simulates a scene (the graph's ``scene`` stage, stage id ``scene``, run seed
+    ``seed``): ``scene`` is a scene file's path or a dict of the stage's keys;
+    ``keys`` override it (e.g. ``angles=[30, 60], trials_per_angle=2``). The same
+    seed gives the same bits as a graph whose ``[run] seed`` it is."""
+    if isinstance(scene, dict):
+        cfg = dict(scene)
+    else:
+        cfg = {"file": str(pathlib.Path(scene).resolve())}
+    cfg.update(keys)
+    raws = _palpate.simulate(cfg, seed)
+    trials = [Signals.from_raw(r) for r in raws]
+    lens = {t.data.shape[0] for t in trials}
+    if len(lens) > 1:
+        # Trials of different lengths: pad the stacked array with NaN at the end.
+        m = max(lens)
+        stack = np.full((len(trials), m, trials[0].data.shape[1]), np.nan)
+        for i, t in enumerate(trials):
+            stack[i, : t.data.shape[0]] = t.data
+    else:
+        stack = np.stack([t.data for t in trials]) if trials else np.zeros((0, 0, 0))
+    nan = float("nan")
+    metas = [r["meta"] for r in raws]
+    return Dataset(
+        signals=stack,
+        labels=np.array([nan if m["angle_deg"] is None else m["angle_deg"] for m in metas]),
+        trial_ids=[m["trial_id"] for m in metas],
+        groups=np.array([m["group"] for m in metas], dtype=np.int64),
+        crossing_ms=np.array([m["crossing_ms"] if m["crossing_ms"] else (nan, nan) for m in metas], dtype=float).reshape(-1, 2),
+        sample_rate_hz=trials[0].sample_rate_hz if trials else float("nan"),
+        layout=trials[0].layout if trials else grid(),
+        unit=trials[0].unit if trials else "",
+        trials=trials,
+    )
+
+
+# ---------------------------------------------------------------- building blocks
+
+
+def _as_list(x: Any) -> Tuple[List[Any], bool]:
+    if isinstance(x, (list, tuple)):
+        return list(x), True
+    if isinstance(x, Dataset):
+        return list(x.trials), True
+    return [x], False
+
+
+def apply(type: str, *inputs: Any, seed: int = 1, **config: Any) -> Any:
+    """Applies the registered stage ``type`` with keys ``config`` to payloads (one
+    per input of the stage; each a payload or a list of payloads, one per
+    trial). Works for every map stage (filters, drives, encoders, spike stages,
+    binning) and model-based estimator (WSS); returns a payload, or a list when
+    given lists. The stage's seed derives from ``seed``, its id (``stage``) and
+    each trial's id, as in a graph."""
+    if not inputs:
+        raise TypeError("apply needs at least one input payload")
+    lists = [_as_list(i) for i in inputs]
+    n = len(lists[0][0])
+    if any(len(l) != n for l, _ in lists):
+        raise ValueError("every input must hold the same number of trials")
+    trials = [[_to_raw(l[i]) for l, _ in lists] for i in range(n)]
+    out = [_from_raw(r) for r in _palpate.apply(type, config, trials, seed)]
+    return out if lists[0][1] else out[0]
+
+
+def _signals(x: Any, sample_rate_hz: Optional[float]) -> Any:
+    if isinstance(x, np.ndarray):
+        if sample_rate_hz is None:
+            raise TypeError("an array of signals needs `sample_rate_hz`")
+        if x.ndim == 3:
+            return [Signals(a, sample_rate_hz, grid(), "") if x.shape[2] == 16 else Signals(a, sample_rate_hz, _line(x.shape[2])) for a in x]
+        return Signals(x, sample_rate_hz, grid() if x.shape[1] == 16 else _line(x.shape[1]))
+    return x
+
+
+def _line(n: int) -> dict:
+    return grid(rows=1, cols=n)
+
+
+def lowpass(signals: Any, sample_rate_hz: Optional[float] = None, **config: Any) -> Any:
+    """The ``lowpass`` stage (Butterworth, zero phase) on signals."""
+    return apply("lowpass", _signals(signals, sample_rate_hz), **config)
+
+
+def normalize(signals: Any, sample_rate_hz: Optional[float] = None, **config: Any) -> Any:
+    """The ``normalize`` stage on signals."""
+    return apply("normalize", _signals(signals, sample_rate_hz), **config)
+
+
+def derivative(signals: Any, sample_rate_hz: Optional[float] = None, **config: Any) -> Any:
+    """The ``derivative`` stage on signals."""
+    return apply("derivative", _signals(signals, sample_rate_hz), **config)
+
+
+def drive(signals: Any, sample_rate_hz: Optional[float] = None, **config: Any) -> Any:
+    """The ``drive`` stage: signals to neuron input currents (e.g. ``kind="fa_i"``)."""
+    return apply("drive", _signals(signals, sample_rate_hz), **config)
+
+
+def izhikevich(currents: Any, sample_rate_hz: Optional[float] = None, **config: Any) -> Any:
+    """The ``izhikevich`` encoder: input currents (Signals, or an array
+    ``(samples, taxels)`` / ``(trials, samples, taxels)`` with ``sample_rate_hz``)
+    to Spikes."""
+    return apply("izhikevich", _signals(currents, sample_rate_hz), **config)
+
+
+def lif(currents: Any, sample_rate_hz: Optional[float] = None, **config: Any) -> Any:
+    """The ``lif`` encoder: input currents to Spikes."""
+    return apply("lif", _signals(currents, sample_rate_hz), **config)
+
+
+def bin(spikes: Any, window_ms: float = 100.0, hop_ms: float = 10.0, **config: Any) -> Any:
+    """The ``bin`` stage: Spikes (or tonic events with ``sensor_size`` and
+    ``duration_ms`` in ``config``) to Images."""
+    if isinstance(spikes, np.ndarray) and spikes.dtype.names:
+        spikes = Spikes.from_events(
+            spikes, config.pop("sensor_size", None), config.pop("duration_ms", None), config.pop("layout", None)
+        )
+    return apply("bin", spikes, window_ms=window_ms, hop_ms=hop_ms, **config)
+
+
+def wss(images: Any, **config: Any) -> Any:
+    """The ``wss`` estimator (weighted spatiotemporal similarity) on Images:
+    an Estimate per trial."""
+    return apply("wss", images, **config)
+
+
+class Model:
+    """A fitted estimator; ``predict`` takes a payload or a list of them."""
+
+    def __init__(self, inner: Any, type: str):
+        self._inner = inner
+        self.type = type
+
+    def predict(self, x: Any) -> Any:
+        items, many = _as_list(x)
+        out = [Estimate.from_raw(r) for r in self._inner.predict([_to_raw(i) for i in items])]
+        return out if many else out[0]
+
+    def predict_angles(self, x: Any) -> np.ndarray:
+        """The estimated angles (NaN = "no edge") of a list of payloads."""
+        items, _ = _as_list(x)
+        return np.array([np.nan if e.angle_deg is None else e.angle_deg for e in self.predict(items)])
+
+
+def fit(type: str, train: Sequence[Any], labels: Optional[Sequence[float]] = None, seed: int = 1, **config: Any) -> Model:
+    """Fits the registered estimator ``type`` (``ann``, ``edbn``, ``knn``, ``svm``,
+    ``wss`` ...) with keys ``config`` on training payloads; ``labels`` are their
+    true angles (default: each payload's ``meta``). Returns a ``Model``."""
+    raws = []
+    for i, p in enumerate(train):
+        r = dict(_to_raw(p))
+        meta = dict(r.get("meta") or {"trial_id": f"train{i}", "group": 0})
+        if labels is not None:
+            meta["angle_deg"] = float(labels[i])
+        r["meta"] = meta
+        raws.append(r)
+    return Model(_palpate.fit(type, config, raws, seed), type)
+
+
+# ---------------------------------------------------------------- Python stages
+
+
+class _KeyError(ValueError):
+    """A Python stage's config key is wrong (``key`` names it)."""
+
+    def __init__(self, key: str, message: str):
+        super().__init__(message)
+        self.key = key
+
+
+def _stage_keys(cls: type) -> Dict[str, Any]:
+    """A stage class's keys: its annotated class attributes (required when they
+    have no default) and plain class attributes."""
+    missing = object()
+    keys: Dict[str, Any] = {}
+    for klass in reversed(cls.__mro__[:-1]):
+        for name in getattr(klass, "__annotations__", {}):
+            if not name.startswith("_") and name != "trained":
+                keys[name] = klass.__dict__.get(name, missing)
+        for name, v in vars(klass).items():
+            if name.startswith("_") or name == "trained" or callable(v) or isinstance(v, (staticmethod, classmethod, property)):
+                continue
+            keys[name] = v
+    return {k: (None if v is missing else v, v is missing) for k, v in keys.items()}
+
+
+class _MapAdapter:
+    def __init__(self, obj: Any):
+        self.obj = obj
+
+    def process(self, raws: List[dict], ctx: dict) -> dict:
+        out = self.obj.process(*[_from_raw(r) for r in raws], ctx=ctx)
+        return _to_raw(out)
+
+
+class _EstimatorAdapter:
+    def __init__(self, obj: Any):
+        self.obj = obj
+        self.trained = bool(getattr(obj, "trained", True))
+
+    def fit(self, raws: List[dict], ctx: dict) -> "_ModelAdapter":
+        model = copy.deepcopy(self.obj)  # one model per fold; folds may interleave
+        items = [_from_raw(r) for r in raws]
+        labels = np.array([np.nan if r["meta"]["angle_deg"] is None else r["meta"]["angle_deg"] for r in raws])
+        if hasattr(model, "fit"):
+            model.fit(items, labels, ctx=ctx)
+        return _ModelAdapter(model)
+
+
+class _ModelAdapter:
+    def __init__(self, model: Any):
+        self.model = model
+
+    def predict(self, raw: dict, ctx: dict) -> dict:
+        out = self.model.predict(_from_raw(raw), ctx=ctx)
+        if isinstance(out, Estimate):
+            return out.to_raw()
+        if out is None:
+            return Estimate(None).to_raw()
+        return Estimate(float(out)).to_raw()
+
+
+def stage(
+    name: str,
+    inputs: Union[str, Sequence[str]] = "signals",
+    output: str = "spikes",
+    max_inputs: Optional[int] = 1,
+) -> Callable[[type], type]:
+    """Registers a Python class as a stage usable in graphs run from Python::
+
+        @palpate.stage("threshold", inputs="signals", output="spikes")
+        class Threshold:
+            level: float = 0.5                 # a config key with its default
+            def process(self, signals, ctx):   # one trial -> a payload
+                ...
+
+    and in the graph::
+
+        [stages.enc]
+        type = "python"
+        stage = "threshold"
+        inputs = ["drive"]
+        config = { level = 0.3 }
+
+    A map (any ``output`` but ``estimates``) defines ``process(*payloads, ctx)``.
+    An estimator (``output="estimates"``) defines ``fit(train, labels, ctx)``
+    (``train`` a list of payloads, ``labels`` their true angles) and
+    ``predict(payload, ctx)`` returning an ``Estimate``, an angle or None ("no
+    edge"); ``trained = False`` makes it model-based (fit gets no trial). Keys
+    are the class's annotated or plain attributes; an unknown or missing key is
+    an error naming it. ``ctx`` holds ``stage_id``, ``trial_id`` and ``seed``
+    (derived as for built-in stages, for reproducible randomness)."""
+    kinds = [inputs] if isinstance(inputs, str) else list(inputs)
+    role = "estimator" if output == "estimates" else "map"
+
+    def deco(cls: type) -> type:
+        keys = _stage_keys(cls)
+
+        def factory(config: dict) -> Any:
+            for k in config:
+                if k not in keys:
+                    known = ", ".join(f"`{x}`" for x in keys) or "none"
+                    raise _KeyError(k, f"unknown key `{k}` for Python stage `{name}`; its keys are {known}")
+            obj = cls()
+            for k, (default, required) in keys.items():
+                if k in config:
+                    setattr(obj, k, config[k])
+                elif required:
+                    raise _KeyError(k, f"missing key `{k}` of Python stage `{name}`")
+                else:
+                    setattr(obj, k, copy.deepcopy(default))
+            if hasattr(obj, "validate"):
+                obj.validate()
+            return _EstimatorAdapter(obj) if role == "estimator" else _MapAdapter(obj)
+
+        _palpate.register_stage(name, role, kinds, output, factory, 1, max_inputs)
+        cls.palpate_stage_name = name
+        return cls
+
+    return deco

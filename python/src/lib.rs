@@ -1,0 +1,106 @@
+//! `palpate._palpate`: the compiled half of palpate's Python package.
+//!
+//! Everything here calls the same Rust code the graphs and the CLI run: a
+//! graph is loaded by `palpate_core::load_str` and run by `palpate_core::run`;
+//! a building block (an encoder, a filter, binning, WSS, a trained baseline) is
+//! the registered stage of that type, deserialized from its config exactly as
+//! the graph loader does (typetag), built, and called through its `Map`,
+//! `Estimator` or `Source` role. So a Python call and a graph run give the same
+//! bits.
+//!
+//! Data cross the boundary as "raw" dicts of NumPy arrays and plain values (see
+//! [`convert`]); the pure-Python half (`palpate/__init__.py`) turns them into
+//! the user-facing classes (tonic-convention event arrays among them).
+//!
+//! Errors: every failure becomes a Python exception of the `PalpateError`
+//! family carrying the same message as the CLI, and the file, line, stage and
+//! key where there are some. A Rust panic is caught at the boundary and raised
+//! as `PalpateError` ("internal error"), never as a crash. Long calls (runs,
+//! simulations, building blocks) release the GIL.
+
+mod convert;
+mod pystage;
+mod run;
+
+use pyo3::prelude::*;
+
+pyo3::create_exception!(
+    _palpate,
+    PalpateError,
+    pyo3::exceptions::PyException,
+    "Base class of palpate's errors."
+);
+pyo3::create_exception!(
+    _palpate,
+    GraphError,
+    PalpateError,
+    "A graph did not load: `diagnostics` lists every problem (file, line, stage, key, message)."
+);
+pyo3::create_exception!(
+    _palpate,
+    ConfigError,
+    PalpateError,
+    "A stage's config is wrong: `stage` and `key` name where."
+);
+pyo3::create_exception!(
+    _palpate,
+    RunError,
+    PalpateError,
+    "A stage failed while running: `stage` and `trial` name where."
+);
+
+/// Runs `f`, turning a panic into a `PalpateError` (a bug, reported as such)
+/// so that no Rust panic crosses into Python.
+pub(crate) fn no_panic<T>(what: &str, f: impl FnOnce() -> PyResult<T>) -> PyResult<T> {
+    match std::panic::catch_unwind(std::panic::AssertUnwindSafe(f)) {
+        Ok(r) => r,
+        Err(p) => {
+            let msg = p
+                .downcast_ref::<String>()
+                .cloned()
+                .or_else(|| p.downcast_ref::<&str>().map(|s| s.to_string()))
+                .unwrap_or_else(|| "unknown panic".into());
+            Err(PalpateError::new_err(format!(
+                "{what}: internal error (a bug in palpate, please report it): {msg}"
+            )))
+        }
+    }
+}
+
+/// Sets attributes on an exception's value.
+pub(crate) fn with_attrs(py: Python<'_>, err: PyErr, attrs: &[(&str, Option<String>)]) -> PyErr {
+    let v = err.value(py);
+    for (k, val) in attrs {
+        // Setting an attribute on a fresh exception instance cannot fail in
+        // practice; if it did, the message alone still reaches the user.
+        let _ = v.setattr(*k, val.clone());
+    }
+    err
+}
+
+/// The version of the Rust crates this module was built from.
+#[pyfunction]
+fn version() -> &'static str {
+    env!("CARGO_PKG_VERSION")
+}
+
+#[pymodule]
+fn _palpate(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    palpate::link();
+    let py = m.py();
+    m.add("PalpateError", py.get_type::<PalpateError>())?;
+    m.add("GraphError", py.get_type::<GraphError>())?;
+    m.add("ConfigError", py.get_type::<ConfigError>())?;
+    m.add("RunError", py.get_type::<RunError>())?;
+    m.add_function(wrap_pyfunction!(version, m)?)?;
+    m.add_function(wrap_pyfunction!(run::check, m)?)?;
+    m.add_function(wrap_pyfunction!(run::run, m)?)?;
+    m.add_function(wrap_pyfunction!(run::stage_types, m)?)?;
+    m.add_function(wrap_pyfunction!(run::apply, m)?)?;
+    m.add_function(wrap_pyfunction!(run::fit, m)?)?;
+    m.add_function(wrap_pyfunction!(run::simulate, m)?)?;
+    m.add_function(wrap_pyfunction!(pystage::register_stage, m)?)?;
+    m.add_function(wrap_pyfunction!(pystage::unregister_stage, m)?)?;
+    m.add_class::<run::Model>()?;
+    Ok(())
+}

@@ -1,0 +1,623 @@
+//! Graphs (check, run) and building blocks (apply one stage, fit a baseline,
+//! simulate a scene), each through the same registered stages the graphs use.
+
+use crate::convert::{item_from_py, item_to_py, json_to_py, py_to_json};
+use crate::{
+    no_panic, with_attrs, ConfigError as PyConfigError, GraphError, PalpateError, RunError as PyRunError,
+};
+use palpate_core::{
+    derive_seed, BuildContext, FitContext, Item, LoadErrors, LoadOptions, Progress, RunOptions, Severity,
+    Stage, StageConfig, TrialContext,
+};
+use pyo3::prelude::*;
+use pyo3::types::{PyDict, PyList};
+use std::path::PathBuf;
+use std::sync::{Arc, Mutex};
+
+/// A graph given as text, with where it came from (a dict with these keys).
+#[derive(FromPyObject)]
+#[pyo3(from_item_all)]
+pub struct GraphText {
+    text: String,
+    file: String,
+    stem: String,
+    base_dir: Option<PathBuf>,
+}
+
+fn diag_dicts<'py>(py: Python<'py>, e: &LoadErrors) -> PyResult<Bound<'py, PyList>> {
+    let list = PyList::empty(py);
+    for d in &e.0 {
+        let x = PyDict::new(py);
+        x.set_item(
+            "severity",
+            match d.severity {
+                Severity::Error => "error",
+                Severity::Warning => "warning",
+            },
+        )?;
+        x.set_item("file", &d.file)?;
+        x.set_item("line", d.line)?;
+        x.set_item("stage", &d.stage)?;
+        x.set_item("key", &d.key)?;
+        x.set_item("message", &d.message)?;
+        x.set_item("text", d.to_string())?;
+        list.append(x)?;
+    }
+    Ok(list)
+}
+
+fn graph_error(py: Python<'_>, e: &LoadErrors) -> PyErr {
+    let first = e.errors().next();
+    let err = with_attrs(
+        py,
+        GraphError::new_err(e.to_string()),
+        &[
+            ("file", first.map(|d| d.file.clone())),
+            ("stage", first.and_then(|d| d.stage.clone())),
+            ("key", first.and_then(|d| d.key.clone())),
+        ],
+    );
+    let v = err.value(py);
+    let _ = v.setattr("line", first.and_then(|d| d.line));
+    if let Ok(l) = diag_dicts(py, e) {
+        let _ = v.setattr("diagnostics", l);
+    }
+    err
+}
+
+fn overrides(set: Option<&Bound<'_, PyAny>>) -> PyResult<Vec<(String, toml::Value)>> {
+    let mut out = Vec::new();
+    let Some(set) = set.filter(|s| !s.is_none()) else {
+        return Ok(out);
+    };
+    let d = set
+        .downcast::<PyDict>()
+        .map_err(|_| pyo3::exceptions::PyTypeError::new_err("`set` must be a dict of key -> value"))?;
+    for (k, v) in d.iter() {
+        let key: String = k.extract()?;
+        let value = match v.extract::<String>() {
+            // A string is read as `--set` reads it: a TOML value if it parses.
+            Ok(s) => palpate_core::graph::parse_value(&s),
+            Err(_) => toml::Value::try_from(py_to_json(&v)?).map_err(|e| {
+                pyo3::exceptions::PyValueError::new_err(format!("`set` value of `{key}`: {e}"))
+            })?,
+        };
+        out.push((key, value));
+    }
+    Ok(out)
+}
+
+fn load(
+    py: Python<'_>,
+    g: &GraphText,
+    set: Option<&Bound<'_, PyAny>>,
+    out: Option<PathBuf>,
+) -> PyResult<(palpate_core::Graph, LoadOptions)> {
+    let opts = LoadOptions {
+        overrides: overrides(set)?,
+        out,
+        base_dir: g.base_dir.clone(),
+    };
+    let r = no_panic("loading the graph", || {
+        Ok(palpate_core::load_str(&g.text, &g.file, &g.stem, &opts))
+    })?;
+    match r {
+        Ok(graph) => Ok((graph, opts)),
+        Err(e) => Err(graph_error(py, &e)),
+    }
+}
+
+/// Every diagnostic of a graph (errors and warnings), as dicts.
+#[pyfunction]
+#[pyo3(signature = (graph, set=None))]
+pub fn check<'py>(
+    py: Python<'py>,
+    graph: GraphText,
+    set: Option<&Bound<'py, PyAny>>,
+) -> PyResult<Bound<'py, PyList>> {
+    let opts = LoadOptions {
+        overrides: overrides(set)?,
+        out: None,
+        base_dir: graph.base_dir.clone(),
+    };
+    let r = no_panic("checking the graph", || {
+        Ok(palpate_core::load_str(
+            &graph.text,
+            &graph.file,
+            &graph.stem,
+            &opts,
+        ))
+    })?;
+    match r {
+        Ok(g) => diag_dicts(py, &LoadErrors(g.warnings.clone())),
+        Err(e) => diag_dicts(py, &e),
+    }
+}
+
+/// Progress on stderr: indicatif bars when stderr is a terminal, otherwise one
+/// line per stage as it finishes (so a notebook or a log still shows it).
+struct Bars {
+    bar: Mutex<Option<(indicatif::ProgressBar, String, std::time::Instant)>>,
+    tty: bool,
+}
+
+impl Progress for Bars {
+    fn start(&self, stage: &str, total: usize) {
+        let bar = if self.tty {
+            indicatif::ProgressBar::new(total as u64)
+        } else {
+            indicatif::ProgressBar::hidden()
+        };
+        if let Ok(style) =
+            indicatif::ProgressStyle::with_template("{prefix:>14} [{bar:30}] {pos}/{len} {elapsed_precise}")
+        {
+            bar.set_style(style.progress_chars("=> "));
+        }
+        bar.set_prefix(stage.to_string());
+        if let Ok(mut b) = self.bar.lock() {
+            *b = Some((bar, stage.to_string(), std::time::Instant::now()));
+        }
+    }
+    fn tick(&self) {
+        if let Ok(b) = self.bar.lock() {
+            if let Some((bar, _, _)) = b.as_ref() {
+                bar.inc(1);
+            }
+        }
+    }
+    fn finish(&self, _stage: &str) {
+        if let Ok(mut b) = self.bar.lock() {
+            if let Some((bar, stage, t0)) = b.take() {
+                bar.finish_and_clear();
+                if !self.tty {
+                    eprintln!("palpate: {stage} done ({:.2} s)", t0.elapsed().as_secs_f64());
+                }
+            }
+        }
+    }
+}
+
+fn run_error(py: Python<'_>, file: &str, e: &palpate_core::RunError) -> PyErr {
+    with_attrs(
+        py,
+        PyRunError::new_err(format!("{file}: run failed: {e}")),
+        &[
+            ("file", Some(file.to_string())),
+            ("stage", Some(e.stage.clone())),
+            ("trial", e.trial.clone()),
+            ("key", None),
+        ],
+    )
+}
+
+/// Runs a graph; returns reports, metrics, timing and every estimator's
+/// per-trial estimates. Writes the same report files as `palpate run`.
+#[pyfunction]
+#[pyo3(signature = (graph, set=None, threads=None, out=None, progress=true))]
+pub fn run<'py>(
+    py: Python<'py>,
+    graph: GraphText,
+    set: Option<&Bound<'py, PyAny>>,
+    threads: Option<usize>,
+    out: Option<PathBuf>,
+    progress: bool,
+) -> PyResult<Bound<'py, PyDict>> {
+    let (graph, _) = load(py, &graph, set, out)?;
+    if graph.sweep.is_some() {
+        return Err(PalpateError::new_err(format!(
+            "{}: a graph with a [sweep] is run by the CLI (`palpate run`); palpate.run runs single graphs",
+            graph.file
+        )));
+    }
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads.unwrap_or(0))
+        .build()
+        .map_err(|e| PalpateError::new_err(format!("cannot start worker threads: {e}")))?;
+    use std::io::IsTerminal;
+    let bars = Bars {
+        bar: Mutex::new(None),
+        tty: std::io::stderr().is_terminal(),
+    };
+    let t0 = std::time::Instant::now();
+    // The GIL is released while the graph runs; Python-defined stages take it
+    // back for their own calls.
+    let result = py.allow_threads(|| {
+        no_panic("running the graph", || {
+            let opts = RunOptions {
+                progress: progress.then_some(&bars as &dyn Progress),
+                keep_outputs: true,
+                cache: None,
+            };
+            Ok(pool.install(|| palpate_core::run(&graph, &opts)))
+        })
+    })?;
+    let wall_s = t0.elapsed().as_secs_f64();
+    let result = result.map_err(|e| run_error(py, &graph.file, &e))?;
+    let files = palpate::report::write_run_files(&graph, &result)
+        .map_err(|e| PalpateError::new_err(format!("{}: {e}", graph.file)))?;
+
+    let d = PyDict::new(py);
+    d.set_item("file", &graph.file)?;
+    d.set_item("out_dir", graph.out_dir.display().to_string())?;
+    d.set_item("wall_s", wall_s)?;
+    let record = palpate::report::run_record(&graph, &result);
+    let record_json = serde_json::to_value(&record).unwrap_or(serde_json::Value::Null);
+    d.set_item("record", json_to_py(py, &record_json)?)?;
+    let reports = PyDict::new(py);
+    for (id, r) in &result.reports {
+        let x = PyDict::new(py);
+        x.set_item("text", &r.text)?;
+        x.set_item(
+            "files",
+            r.files
+                .iter()
+                .map(|f| f.display().to_string())
+                .collect::<Vec<_>>(),
+        )?;
+        let m = PyDict::new(py);
+        for (k, v) in &r.metrics {
+            m.set_item(k, v)?;
+        }
+        x.set_item("metrics", m)?;
+        reports.set_item(id, x)?;
+    }
+    d.set_item("reports", reports)?;
+    d.set_item(
+        "run_files",
+        files.iter().map(|f| f.display().to_string()).collect::<Vec<_>>(),
+    )?;
+    d.set_item(
+        "timing_table",
+        palpate::report::timing_table(&palpate::report::timing_rows(&result)),
+    )?;
+    // Every estimator's output, in trial order.
+    let estimates = PyDict::new(py);
+    for node in &graph.nodes {
+        if !matches!(node.stage, Stage::Estimator(_)) {
+            continue;
+        }
+        if let Some(items) = result.outputs.get(&node.id) {
+            estimates.set_item(&node.id, items_to_list(py, items)?)?;
+        }
+    }
+    d.set_item("estimates", estimates)?;
+    Ok(d)
+}
+
+fn items_to_list<'py>(py: Python<'py>, items: &[Item]) -> PyResult<Bound<'py, PyList>> {
+    let l = PyList::empty(py);
+    for it in items {
+        l.append(item_to_py(py, it)?)?;
+    }
+    Ok(l)
+}
+
+/// Every registered stage type with its docs and keys.
+#[pyfunction]
+pub fn stage_types(py: Python<'_>) -> PyResult<Bound<'_, PyList>> {
+    let l = PyList::empty(py);
+    for reg in palpate_core::registry::registrations() {
+        let doc = palpate_core::registry::stage_doc(reg);
+        let d = PyDict::new(py);
+        d.set_item("type", &doc.type_name)?;
+        d.set_item("doc", &doc.doc)?;
+        let keys = PyList::empty(py);
+        for k in &doc.keys {
+            let kd = PyDict::new(py);
+            kd.set_item("name", &k.name)?;
+            kd.set_item("type", &k.type_desc)?;
+            kd.set_item("default", &k.default)?;
+            kd.set_item("doc", &k.doc)?;
+            keys.append(kd)?;
+        }
+        d.set_item("keys", keys)?;
+        l.append(d)?;
+    }
+    Ok(l)
+}
+
+/// Deserializes and builds a registered stage from its type and keys, exactly
+/// as the graph loader does; errors name the stage and key.
+fn build_stage(
+    py: Python<'_>,
+    type_name: &str,
+    config: &Bound<'_, PyAny>,
+    seed: u64,
+    stage_id: &str,
+    base_dir: Option<PathBuf>,
+) -> PyResult<(Box<dyn StageConfig>, Stage)> {
+    if palpate_core::registry::find(type_name).is_none() {
+        let close = palpate_core::registry::close_matches(type_name);
+        let hint = if close.is_empty() {
+            String::new()
+        } else {
+            format!("; did you mean {}?", close.join(" or "))
+        };
+        return Err(with_attrs(
+            py,
+            PyConfigError::new_err(format!("unknown stage type `{type_name}`{hint}")),
+            &[
+                ("stage", Some(stage_id.to_string())),
+                ("key", Some("type".into())),
+            ],
+        ));
+    }
+    let cfg = py_to_json(config)?;
+    let tagged = serde_json::json!({ type_name: cfg });
+    let config: Box<dyn StageConfig> = serde_path_to_error::deserialize(tagged).map_err(|e| {
+        let path: Vec<String> = e.path().iter().skip(1).map(|s| s.to_string()).collect();
+        let key = (!path.is_empty()).then(|| path.join("."));
+        let msg = format!(
+            "stage `{stage_id}` ({type_name}): {}{}",
+            key.as_ref().map(|k| format!("key `{k}`: ")).unwrap_or_default(),
+            e.inner()
+        );
+        with_attrs(
+            py,
+            PyConfigError::new_err(msg),
+            &[("stage", Some(stage_id.to_string())), ("key", key)],
+        )
+    })?;
+    let ctx = BuildContext {
+        stage_id: stage_id.to_string(),
+        seed,
+        out_dir: std::env::temp_dir(),
+        base_dir: base_dir.unwrap_or_else(|| std::env::current_dir().unwrap_or_default()),
+    };
+    let stage = config.build(&ctx).map_err(|e| {
+        with_attrs(
+            py,
+            PyConfigError::new_err(format!("stage `{stage_id}` ({type_name}): {e}")),
+            &[("stage", Some(stage_id.to_string())), ("key", e.key.clone())],
+        )
+    })?;
+    Ok((config, stage))
+}
+
+fn stage_err(py: Python<'_>, stage_id: &str, trial: Option<&str>, msg: &str) -> PyErr {
+    with_attrs(
+        py,
+        PyRunError::new_err(format!(
+            "stage `{stage_id}`{}: {msg}",
+            trial.map(|t| format!(", trial `{t}`")).unwrap_or_default()
+        )),
+        &[
+            ("stage", Some(stage_id.to_string())),
+            ("trial", trial.map(str::to_string)),
+            ("key", None),
+        ],
+    )
+}
+
+/// Applies one registered map stage (an encoder, a filter, binning, ...) or a
+/// model-based estimator (WSS) to a list of trials; each trial is a list of
+/// raw payloads, one per input. Returns one raw payload per trial.
+#[pyfunction]
+#[pyo3(signature = (type_name, config, trials, seed=1, stage_id="stage", base_dir=None))]
+pub fn apply<'py>(
+    py: Python<'py>,
+    type_name: &str,
+    config: &Bound<'py, PyAny>,
+    trials: &Bound<'py, PyList>,
+    seed: u64,
+    stage_id: &str,
+    base_dir: Option<PathBuf>,
+) -> PyResult<Bound<'py, PyList>> {
+    let (_, stage) = build_stage(py, type_name, config, seed, stage_id, base_dir)?;
+    let mut inputs: Vec<Vec<Item>> = Vec::with_capacity(trials.len());
+    for (i, t) in trials.iter().enumerate() {
+        let t = t.downcast::<PyList>().map_err(|_| {
+            pyo3::exceptions::PyTypeError::new_err("each trial must be a list of payloads (one per input)")
+        })?;
+        inputs.push(t.iter().map(|p| item_from_py(&p, i)).collect::<PyResult<_>>()?);
+    }
+    let outs: Vec<Result<Item, (Option<String>, String)>> = py.allow_threads(|| {
+        no_panic(stage_id, || {
+            Ok(match &stage {
+                Stage::Map(m) => inputs
+                    .iter()
+                    .map(|items| {
+                        let meta = items.first().map(|i| i.meta.clone()).unwrap_or_default();
+                        let refs: Vec<&Item> = items.iter().collect();
+                        let ctx = TrialContext {
+                            stage_id,
+                            meta: &meta,
+                            seed: derive_seed(seed, &[stage_id, &meta.trial_id]),
+                        };
+                        m.process(&refs, &ctx)
+                            .map(|payload| Item {
+                                meta: meta.clone(),
+                                payload,
+                            })
+                            .map_err(|e| (Some(meta.trial_id.clone()), e.message))
+                    })
+                    .collect(),
+                Stage::Estimator(est) if !est.trained() => {
+                    let fctx = FitContext {
+                        stage_id,
+                        fold: 0,
+                        seed: derive_seed(seed, &[stage_id, "fold0"]),
+                    };
+                    match est.fit(&[], &fctx) {
+                        Err(e) => vec![Err((None, format!("fitting: {}", e.message)))],
+                        Ok(model) => predict_all(model.as_ref(), &inputs, stage_id, seed),
+                    }
+                }
+                Stage::Estimator(_) => vec![Err((
+                    None,
+                    "a trained estimator: use palpate.fit(...) then .predict(...)".into(),
+                ))],
+                Stage::Source(_) | Stage::Sink(_) => vec![Err((
+                    None,
+                    format!("a {} cannot be applied to payloads", stage.role()),
+                ))],
+            })
+        })
+    })?;
+    let l = PyList::empty(py);
+    for o in outs {
+        match o {
+            Ok(item) => l.append(item_to_py(py, &item)?)?,
+            Err((trial, msg)) => return Err(stage_err(py, stage_id, trial.as_deref(), &msg)),
+        }
+    }
+    Ok(l)
+}
+
+fn predict_all(
+    model: &dyn palpate_core::Model,
+    inputs: &[Vec<Item>],
+    stage_id: &str,
+    seed: u64,
+) -> Vec<Result<Item, (Option<String>, String)>> {
+    inputs
+        .iter()
+        .map(|items| {
+            let Some(item) = items.first() else {
+                return Err((None, "an estimator takes one payload per trial".to_string()));
+            };
+            let ctx = TrialContext {
+                stage_id,
+                meta: &item.meta,
+                seed: derive_seed(seed, &[stage_id, &item.meta.trial_id]),
+            };
+            model
+                .predict(item, &ctx)
+                .map(|e| Item {
+                    meta: item.meta.clone(),
+                    payload: e.into(),
+                })
+                .map_err(|e| (Some(item.meta.trial_id.clone()), e.message))
+        })
+        .collect()
+}
+
+/// A fitted estimator (a trained baseline, or WSS): `predict` estimates trials.
+#[pyclass(module = "palpate._palpate")]
+pub struct Model {
+    model: Arc<dyn palpate_core::Model>,
+    stage_id: String,
+    seed: u64,
+}
+
+#[pymethods]
+impl Model {
+    /// Estimates each raw payload; returns raw estimates.
+    fn predict<'py>(&self, py: Python<'py>, trials: &Bound<'py, PyList>) -> PyResult<Bound<'py, PyList>> {
+        let inputs: Vec<Vec<Item>> = trials
+            .iter()
+            .enumerate()
+            .map(|(i, p)| item_from_py(&p, i).map(|it| vec![it]))
+            .collect::<PyResult<_>>()?;
+        let model = self.model.clone();
+        let (stage_id, seed) = (self.stage_id.clone(), self.seed);
+        let outs = py.allow_threads(|| {
+            no_panic(&stage_id, || {
+                Ok(predict_all(model.as_ref(), &inputs, &stage_id, seed))
+            })
+        })?;
+        let l = PyList::empty(py);
+        for o in outs {
+            match o {
+                Ok(item) => l.append(item_to_py(py, &item)?)?,
+                Err((trial, msg)) => return Err(stage_err(py, &self.stage_id, trial.as_deref(), &msg)),
+            }
+        }
+        Ok(l)
+    }
+}
+
+/// Fits a registered estimator on raw payloads (each with `meta` carrying its
+/// label). Returns a [`Model`].
+#[pyfunction]
+#[pyo3(signature = (type_name, config, train, seed=1, stage_id="stage"))]
+pub fn fit<'py>(
+    py: Python<'py>,
+    type_name: &str,
+    config: &Bound<'py, PyAny>,
+    train: &Bound<'py, PyList>,
+    seed: u64,
+    stage_id: &str,
+) -> PyResult<Model> {
+    let (_, stage) = build_stage(py, type_name, config, seed, stage_id, None)?;
+    let Stage::Estimator(est) = stage else {
+        return Err(with_attrs(
+            py,
+            PyConfigError::new_err(format!("stage type `{type_name}` is not an estimator")),
+            &[
+                ("stage", Some(stage_id.to_string())),
+                ("key", Some("type".into())),
+            ],
+        ));
+    };
+    let items: Vec<Item> = train
+        .iter()
+        .enumerate()
+        .map(|(i, p)| item_from_py(&p, i))
+        .collect::<PyResult<_>>()?;
+    let sid = stage_id.to_string();
+    let model = py.allow_threads(|| {
+        no_panic(&sid, || {
+            let refs: Vec<&Item> = if est.trained() {
+                items.iter().collect()
+            } else {
+                Vec::new()
+            };
+            let fctx = FitContext {
+                stage_id: &sid,
+                fold: 0,
+                seed: derive_seed(seed, &[&sid, "fold0"]),
+            };
+            Ok(est.fit(&refs, &fctx))
+        })
+    })?;
+    let model = model.map_err(|e| stage_err(py, stage_id, None, &format!("fitting: {}", e.message)))?;
+    Ok(Model {
+        model: Arc::from(model),
+        stage_id: stage_id.to_string(),
+        seed,
+    })
+}
+
+/// Simulates a scene (the `scene` stage with these keys, stage id `scene`, the
+/// given run seed): every trial's raw signals with its metadata.
+#[pyfunction]
+#[pyo3(signature = (config, seed=1, base_dir=None))]
+pub fn simulate<'py>(
+    py: Python<'py>,
+    config: &Bound<'py, PyAny>,
+    seed: u64,
+    base_dir: Option<PathBuf>,
+) -> PyResult<Bound<'py, PyList>> {
+    let (_, stage) = build_stage(py, "scene", config, seed, "scene", base_dir)?;
+    let Stage::Source(src) = stage else {
+        return Err(PalpateError::new_err("the scene stage is not a source"));
+    };
+    let outs = py.allow_threads(|| {
+        no_panic("scene", || {
+            let metas = match src.trials() {
+                Ok(m) => m,
+                Err(e) => return Ok(Err((None, e.message))),
+            };
+            let mut items = Vec::with_capacity(metas.len());
+            for (k, mut meta) in metas.into_iter().enumerate() {
+                meta.index = k;
+                let ctx = TrialContext {
+                    stage_id: "scene",
+                    meta: &meta,
+                    seed: derive_seed(seed, &["scene", &meta.trial_id]),
+                };
+                match src.produce(&ctx) {
+                    Ok(p) => items.push(Item {
+                        meta: Arc::new(meta.clone()),
+                        payload: p,
+                    }),
+                    Err(e) => return Ok(Err((Some(meta.trial_id.clone()), e.message))),
+                }
+            }
+            Ok(Ok(items))
+        })
+    })?;
+    let items = outs.map_err(|(t, m)| stage_err(py, "scene", t.as_deref(), &m))?;
+    items_to_list(py, &items)
+}

@@ -1,0 +1,192 @@
+"""palpate's Python API: graphs, diagnostics, scenes, building blocks, errors."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+import palpate
+
+from conftest import GRAPHS
+
+
+def test_run_returns_estimates_metrics_and_timing(small_graph, tmp_path):
+    res = palpate.run(small_graph, threads=2, progress=False)
+    wss = res.estimates["wss"]
+    assert len(wss) == 9
+    assert wss.scores.shape == (9, 17)
+    assert set(np.unique(wss.label)) == {30.0, 60.0, 90.0}
+    assert np.isfinite(wss.estimate).all()
+    # The metric is the mean absolute error of these very estimates.
+    mae = np.mean(np.abs(wss.estimate - wss.label))
+    assert res.metrics["wss.mae_deg"] == pytest.approx(mae, abs=1e-12)
+    assert [r["stage"] for r in res.timing] == ["scene", "filter", "norm", "drive", "enc", "bins", "wss", "mae"]
+    recs = wss.records()
+    assert recs[0]["trial_id"] == wss.trial_id[0] and "score_10" in recs[0]
+    # run.json: objects keyed by name (issue 18).
+    record = json.loads((tmp_path / "out" / "run.json").read_text())
+    assert isinstance(record["metrics"], dict) and record["metrics"]["wss.mae_deg"] == res.metrics["wss.mae_deg"]
+    assert isinstance(record["stages"], dict) and "wss" in record["stages"]
+
+
+def test_per_class_csv_is_numeric_and_overall_row_is_separate(small_graph, tmp_path):
+    palpate.run(small_graph, progress=False)
+    per_class = np.genfromtxt(tmp_path / "out" / "mae.csv", delimiter=",", names=True, dtype=None, encoding="utf-8")
+    assert per_class["angle_deg"].dtype.kind in "if"
+    assert per_class["mae_deg"].dtype.kind == "f"
+    assert list(per_class["angle_deg"]) == [30.0, 60.0, 90.0]
+    overall = (tmp_path / "out" / "mae_overall.csv").read_text().splitlines()
+    assert overall[0].startswith("estimator,trials,") and overall[1].startswith("wss,9,")
+
+
+def test_run_accepts_a_dict_and_set_overrides(tmp_path):
+    g = {
+        "run": {"seed": 3, "out": str(tmp_path / "o")},
+        "stages": {
+            "scene": {"type": "scene", "file": str(GRAPHS / "scenes" / "ideal.toml"), "angles": [45.0], "trials_per_angle": 2},
+            "drive": {"type": "drive", "inputs": ["scene"], "kind": "fa_i"},
+            "enc": {"type": "izhikevich", "inputs": ["drive"]},
+            "bins": {"type": "bin", "inputs": ["enc"], "window_ms": 100.0, "hop_ms": 10.0},
+            "wss": {"type": "wss", "inputs": ["bins"]},
+            "mae": {"type": "mae", "inputs": ["wss"]},
+        },
+    }
+    a = palpate.run(g, progress=False)
+    b = palpate.run(g, set={"stages.wss.weighting": "constant"}, progress=False)
+    assert len(a.estimates["wss"]) == 2
+    assert a.record["stages"]["wss"]["wss"]["weighting"] != b.record["stages"]["wss"]["wss"]["weighting"]
+
+
+def test_check_gives_diagnostics_with_line_stage_and_key():
+    bad = """
+[run]
+seed = 1
+
+[stages.scene]
+type = "scene"
+
+[stages.enc]
+type = "izhikevich"
+inputs = ["scene"]
+dt_ms = "fast"
+
+[stages.est]
+type = "wss"
+inputs = ["enc"]
+sigma = 2
+"""
+    diags = palpate.check(bad)
+    errors = [d for d in diags if d.severity == "error"]
+    by_stage = {d.stage: d for d in errors}
+    assert by_stage["enc"].key == "dt_ms" and by_stage["enc"].line == 11
+    assert by_stage["est"].key == "sigma" and "sigma_mm" in by_stage["est"].message
+    assert all(d.file == "<string>" for d in diags)
+    assert palpate.check(GRAPHS / "quickstart.toml") == []
+
+
+def test_graph_errors_are_exceptions_carrying_file_line_stage_key(tmp_path):
+    p = tmp_path / "bad.toml"
+    p.write_text('[stages.a]\ntype = "scene"\n\n[stages.b]\ntype = "mea"\ninputs = ["a"]\n')
+    with pytest.raises(palpate.GraphError) as e:
+        palpate.run(p, progress=False)
+    err = e.value
+    assert err.file == str(p) and err.line == 5 and err.stage == "b" and err.key == "type"
+    assert "did you mean `mae`" in str(err)
+    assert any(d["stage"] == "b" for d in err.diagnostics)
+    with pytest.raises(palpate.GraphError):
+        palpate.run(tmp_path / "missing.toml")
+
+
+def test_simulate_matches_the_graph_scene_and_is_seeded():
+    d = palpate.simulate(GRAPHS / "scenes" / "lab.toml", seed=1, angles=[30.0, 60.0], trials_per_angle=2)
+    assert d.signals.ndim == 3 and d.signals.shape[0] == 4 and d.signals.shape[2] == 16
+    assert list(d.labels) == [30.0, 30.0, 60.0, 60.0]
+    # Trials differ in length (the angle sets the crossing time): the stack is
+    # NaN-padded at the end, and each trial's own samples are all finite.
+    for k, t in enumerate(d.trials):
+        n = t.data.shape[0]
+        assert np.isfinite(t.data).all() and np.array_equal(d.signals[k, :n], t.data)
+        assert np.isnan(d.signals[k, n:]).all()
+    again = palpate.simulate(GRAPHS / "scenes" / "lab.toml", seed=1, angles=[30.0, 60.0], trials_per_angle=2)
+    other = palpate.simulate(GRAPHS / "scenes" / "lab.toml", seed=2, angles=[30.0, 60.0], trials_per_angle=2)
+    assert np.array_equal(d.signals, again.signals, equal_nan=True)
+    assert not np.array_equal(d.signals, other.signals, equal_nan=True)
+
+
+def test_building_blocks_chain_to_the_graph_result(small_graph, tmp_path):
+    """filter -> normalize -> drive -> izhikevich -> bin -> wss through the
+    building blocks gives exactly the graph's estimates (same code, same bits)."""
+    res = palpate.run(small_graph, progress=False)
+    d = palpate.simulate(GRAPHS / "scenes" / "lab.toml", seed=1, angles=[30.0, 60.0, 90.0], trials_per_angle=3)
+    x = palpate.lowpass(d.trials, cutoff_hz=10.0, order=2)
+    x = palpate.normalize(x, min_span=0.1)
+    x = palpate.drive(x, kind="fa_i")
+    spikes = palpate.izhikevich(x, preset="fa_i")
+    images = palpate.bin(spikes, window_ms=100.0, hop_ms=10.0)
+    est = palpate.wss(images, weighting="one_minus_sr")
+    got = np.array([e.angle_deg for e in est])
+    assert np.array_equal(got, res.estimates["wss"].estimate)
+    assert np.array_equal(np.stack([e.scores for e in est]), res.estimates["wss"].scores)
+
+
+def test_encoders_on_plain_arrays():
+    fs = 1000.0
+    currents = np.zeros((2000, 16))
+    currents[:, 5] = 10.0  # one taxel driven well above rheobase
+    s = palpate.izhikevich(currents, sample_rate_hz=fs)
+    assert isinstance(s, palpate.Spikes)
+    assert len(s.taxel) > 5 and set(s.taxel.tolist()) == {5}
+    assert np.all(np.diff(s.t_ms) >= 0) and s.duration_ms == pytest.approx(2000.0)
+    l = palpate.lif(currents * 10, sample_rate_hz=fs)
+    assert set(l.taxel.tolist()) <= {5}
+    batch = palpate.izhikevich(np.stack([currents, currents]), sample_rate_hz=fs)
+    assert len(batch) == 2 and np.array_equal(batch[0].t_ms, batch[1].t_ms)
+
+
+def test_bad_config_and_bad_arrays_raise_named_errors():
+    with pytest.raises(palpate.ConfigError) as e:
+        palpate.izhikevich(np.zeros((10, 16)), sample_rate_hz=1000.0, dt_ms="fast")
+    assert e.value.key == "dt_ms"
+    with pytest.raises(palpate.ConfigError) as e:
+        palpate.apply("izhikevik", palpate.Signals(np.zeros((10, 16)), 1000.0))
+    assert "did you mean" in str(e.value)
+    with pytest.raises(ValueError, match="columns"):
+        palpate.izhikevich(palpate.Signals(np.zeros((10, 15)), 1000.0))
+    with pytest.raises(ValueError, match="outside"):
+        palpate.bin(palpate.Spikes([99], [1.0], 10.0))
+    with pytest.raises(ValueError, match="outside"):
+        palpate.bin(palpate.Spikes([1], [float("nan")], 10.0))
+    with pytest.raises(palpate.ConfigError):
+        palpate.bin(palpate.Spikes([1], [1.0], 10.0), window_ms=-1.0)
+
+
+def test_hostile_values_give_no_nan_and_no_panic():
+    for value in (np.inf, -np.inf, np.nan, 1e300, -1e300):
+        x = np.full((50, 16), value)
+        try:
+            s = palpate.izhikevich(x, sample_rate_hz=1000.0)
+        except (ValueError, palpate.PalpateError):
+            continue  # refused, with a message: fine
+        assert np.isfinite(s.t_ms).all()
+
+
+def test_stage_types_lists_keys_with_docs():
+    types = {t["type"]: t for t in palpate.stage_types()}
+    assert {"scene", "izhikevich", "lif", "bin", "wss", "ann", "python"} <= set(types)
+    keys = {k["name"]: k for k in types["bin"]["keys"]}
+    assert "window_ms" in keys and "ms" in keys["window_ms"]["doc"]
+
+
+def test_trained_baseline_fit_predict_matches_its_graph():
+    d = palpate.simulate(GRAPHS / "scenes" / "ideal.toml", seed=1, angles=[30.0, 60.0, 90.0], trials_per_angle=4)
+    spikes = palpate.izhikevich(palpate.drive(d.trials, kind="fa_i"))
+    images = palpate.bin(spikes, window_ms=100.0, hop_ms=10.0)
+    train = [im for im, g in zip(images, d.groups) if g != 0]
+    test = [im for im, g in zip(images, d.groups) if g == 0]
+    model = palpate.fit("knn", train, seed=1)
+    pred = model.predict_angles(test)
+    assert pred.shape == (3,)
+    assert np.isfinite(pred).all()
+    # Refitting with the same seed gives the same model.
+    assert np.array_equal(pred, palpate.fit("knn", train, seed=1).predict_angles(test))

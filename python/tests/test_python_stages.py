@@ -1,0 +1,146 @@
+"""Stages written in Python, run inside TOML graphs."""
+
+import numpy as np
+import pytest
+
+import palpate
+
+from conftest import GRAPHS
+
+
+@palpate.stage("test_threshold", inputs="signals", output="spikes")
+class Threshold:
+    level: float = 0.5  # share of the trial's largest drive above which the taxel fires
+    period_ms: float = 5.0  # time between spikes while above, ms
+
+    def process(self, signals, ctx):
+        x = signals.data
+        above = x >= self.level * max(float(x.max()), 1e-12)
+        step = max(1, round(self.period_ms * signals.sample_rate_hz / 1000.0))
+        above[np.arange(len(x)) % step != 0] = False  # one spike per period while above
+        k, taxel = np.nonzero(above)
+        t_ms = k * 1000.0 / signals.sample_rate_hz
+        order = np.lexsort((taxel, t_ms))
+        return palpate.Spikes(taxel[order], t_ms[order], x.shape[0] * 1000.0 / signals.sample_rate_hz, signals.layout)
+
+
+@palpate.stage("test_centroid", inputs="images", output="estimates")
+class Centroid:
+    calls = 0
+
+    def fit(self, train, labels, ctx):
+        feats = np.stack([im.counts.sum(axis=0) for im in train])
+        self.classes = np.unique(labels)
+        self.centroids = np.stack([feats[labels == c].mean(axis=0) for c in self.classes])
+        self.fold = ctx["fold"]
+
+    def predict(self, images, ctx):
+        d = np.linalg.norm(self.centroids - images.counts.sum(axis=0), axis=1)
+        return palpate.Estimate(float(self.classes[np.argmin(d)]), self.classes, -d)
+
+
+@palpate.stage("test_needs_key", inputs="signals", output="signals")
+class NeedsKey:
+    gain: float  # required: no default
+
+    def process(self, signals, ctx):
+        return palpate.Signals(signals.data * self.gain, signals.sample_rate_hz, signals.layout, signals.unit)
+
+
+@palpate.stage("test_broken", inputs="signals", output="signals")
+class Broken:
+    def process(self, signals, ctx):
+        raise RuntimeError("deliberately broken")
+
+
+def graph(tmp_path, enc_cfg="config = { level = 0.3 }", extra=""):
+    return f"""
+[run]
+seed = 1
+out = "{tmp_path / 'out'}"
+
+[stages.scene]
+type = "scene"
+file = "{GRAPHS / 'scenes' / 'ideal.toml'}"
+angles = [30.0, 60.0, 90.0]
+trials_per_angle = 3
+
+[stages.drive]
+type = "drive"
+inputs = ["scene"]
+kind = "fa_i"
+
+[stages.enc]
+type = "python"
+stage = "test_threshold"
+inputs = ["drive"]
+{enc_cfg}
+
+[stages.bins]
+type = "bin"
+inputs = ["enc"]
+window_ms = 100.0
+hop_ms = 10.0
+
+[stages.centroid]
+type = "python"
+stage = "test_centroid"
+inputs = ["bins"]
+
+[stages.wss]
+type = "wss"
+inputs = ["bins"]
+
+[stages.mae]
+type = "mae"
+inputs = ["wss", "centroid"]
+{extra}
+"""
+
+
+def test_python_encoder_and_estimator_run_in_a_graph(tmp_path):
+    res = palpate.run(graph(tmp_path), threads=2, progress=False)
+    c = res.estimates["centroid"]
+    assert len(c) == 9
+    assert np.isfinite(c.estimate).all() and set(np.unique(c.estimate)) <= {30.0, 60.0, 90.0}
+    assert "centroid.mae_deg" in res.metrics and "wss.mae_deg" in res.metrics
+    # The encoder made spikes the graph binned: WSS answered every trial.
+    assert np.isfinite(res.estimates["wss"].estimate).mean() > 0.5
+    # Same graph, same bits, on one thread or many.
+    again = palpate.run(graph(tmp_path), threads=1, progress=False)
+    assert np.array_equal(again.estimates["centroid"].scores, c.scores)
+    assert np.array_equal(again.estimates["wss"].scores, res.estimates["wss"].scores)
+
+
+def test_python_stage_key_errors_name_the_key(tmp_path):
+    with pytest.raises(palpate.GraphError) as e:
+        palpate.run(graph(tmp_path, "config = { levle = 2.0 }"), progress=False)
+    assert e.value.stage == "enc" and e.value.key == "config.levle"
+    assert "unknown key `levle`" in str(e.value) and "`level`" in str(e.value)
+    with pytest.raises(palpate.GraphError) as e:
+        palpate.run(graph(tmp_path, 'stage = "nope"'), progress=False)
+    with pytest.raises(palpate.GraphError) as e:
+        palpate.run(graph(tmp_path).replace('stage = "test_threshold"', 'stage = "nope"'), progress=False)
+    assert "no Python stage `nope`" in str(e.value) and "test_threshold" in str(e.value)
+    extra = '[stages.gain]\ntype = "python"\nstage = "test_needs_key"\ninputs = ["scene"]\n'
+    with pytest.raises(palpate.GraphError) as e:
+        palpate.run(graph(tmp_path, extra=extra), progress=False)
+    assert e.value.key == "config.gain" and "missing key `gain`" in str(e.value)
+
+
+def test_a_failing_python_stage_is_a_run_error_naming_stage_and_trial(tmp_path):
+    extra = (
+        '[stages.bad]\ntype = "python"\nstage = "test_broken"\ninputs = ["scene"]\n'
+        '[stages.sink]\ntype = "write_signals"\ninputs = ["bad"]\n'
+    )
+    with pytest.raises(palpate.RunError) as e:
+        palpate.run(graph(tmp_path, extra=extra), progress=False)
+    assert e.value.stage == "bad" and e.value.trial is not None
+    assert "deliberately broken" in str(e.value)
+
+
+def test_python_stage_kinds_are_checked_when_the_graph_loads(tmp_path):
+    # The centroid estimator takes images: wiring signals into it is a load error.
+    bad = graph(tmp_path).replace('stage = "test_centroid"\ninputs = ["bins"]', 'stage = "test_centroid"\ninputs = ["drive"]')
+    diags = palpate.check(bad)
+    assert any(d.stage == "centroid" and "spike images" in d.message for d in diags)
