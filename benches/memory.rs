@@ -5,7 +5,7 @@
 //! (the lab scene's 45-degree palpations back to back; see
 //! `benches/common/memory.rs` for the input and what is counted).
 //!
-//! Target (issue 8): batch memory linear in the input's length, streaming
+//! Target: batch memory linear in the input's length, streaming
 //! memory constant. Peaks are counted by a `#[global_allocator]` that wraps
 //! `System` and tracks live heap bytes, so they are exact and repeatable.
 //!

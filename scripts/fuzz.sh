@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Runs every cargo-fuzz target of fuzz/ for a fixed number of executions
-# (issue 20; docs/resource-policy.md).
+# (docs/resource-policy.md).
 #
 #   scripts/fuzz.sh [RUNS] [TARGET...]     default: 20000 runs, every target
 #

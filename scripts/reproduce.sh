@@ -2,9 +2,9 @@
 # Reproduces the paper's findings in one command:
 #   1. builds the release binary,
 #   2. runs every graph in graphs/paper/ (table2.toml included when present)
-#      and graphs/continuous.toml (issue 15),
+#      and graphs/continuous.toml,
 #      writing its reports into out/paper/<name>/,
-#   3. runs graphs/accuracy_vs_time.toml (issue 8's accuracy-time frontier)
+#   3. runs graphs/accuracy_vs_time.toml (the accuracy-time frontier)
 #      into out/accuracy_vs_time/ and the memory study (`cargo bench --bench
 #      memory`, peak heap at 10/100/1000 s of input) into out/paper/memory.json,
 #      and the WSS batch bench (criterion, one estimate per trial length),

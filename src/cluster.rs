@@ -49,8 +49,11 @@ impl SweepJob<'_> {
     }
 }
 
+/// A sweep's (point, repeat, graph) list, as `load_points` gives it.
+type PointGraphs = Vec<(usize, usize, Graph)>;
+
 /// Every (point, repeat) graph of the sweep the manifest describes, checked.
-fn load_all(manifest: &Manifest, out: &Path) -> Result<(Graph, Vec<(usize, usize, Graph)>), String> {
+fn load_all(manifest: &Manifest, out: &Path) -> Result<(Graph, PointGraphs), String> {
     let (base, opts) = manifest.load(out).map_err(|e| e.to_string())?;
     let sweep = base
         .sweep

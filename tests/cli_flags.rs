@@ -1,4 +1,4 @@
-//! Hostile command-line values (issue 20): duration flags that used to panic
+//! Hostile command-line values: duration flags that used to panic
 //! inside `Duration::from_secs_f64`, and a live run whose emulator outlives the
 //! reader (it used to hang forever).
 

@@ -1,4 +1,4 @@
-//! Memory against input length (issue 8): the batch pipeline grows linearly
+//! Memory against input length: the batch pipeline grows linearly
 //! with the input, the streaming path not at all. Its own test binary, so the
 //! counting allocator (`benches/common/memory.rs`) sees nothing else.
 //!

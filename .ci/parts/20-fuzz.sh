@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Short fuzz pass (issue 20): every cargo-fuzz target of fuzz/ from its seed
+# Short fuzz pass: every cargo-fuzz target of fuzz/ from its seed
 # corpus, a fixed number of executions each, 2 GB memory cap, 10 s per input.
 # Budget: under 2 minutes of fuzzing in all (11 targets x FUZZ_CI_RUNS); the
 # build of the targets comes on top (a few minutes cold, seconds when

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# CI part: palpate's Python package (issue 18). Builds python/ with maturin into a
+# CI part: palpate's Python package. Builds python/ with maturin into a
 # fresh venv, reusing the workspace's target/ (cargo's dev profile, whose
 # dependencies `cargo test --workspace` just built), then runs its pytest suite,
 # tonic and scikit-learn tests included, against the CLI binary the same build made.

@@ -1,4 +1,4 @@
-//! palpate's side of the peer comparison (`benches/peers/`, issue 8): exports
+//! palpate's side of the peer comparison (`benches/peers/`): exports
 //! identical inputs for Brian2 and scikit-learn, and runs and times palpate's own
 //! kernels on exactly those inputs. `benches/peers/run.py` reads the export, runs
 //! the peers and compares (see `benches/peers/README.md`).

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Peer comparison, Python side (issue 8): Brian2 and scikit-learn on the exact
+"""Peer comparison, Python side: Brian2 and scikit-learn on the exact
 inputs palpate exported (`cargo run --release --example peers -- --out WORK`).
 
     python benches/peers/run.py --work benches/peers/work

@@ -24,7 +24,7 @@ def test_run_returns_estimates_metrics_and_timing(small_graph, tmp_path):
     assert [r["stage"] for r in res.timing] == ["scene", "filter", "norm", "drive", "enc", "bins", "wss", "mae"]
     recs = wss.records()
     assert recs[0]["trial_id"] == wss.trial_id[0] and "score_10" in recs[0]
-    # run.json: objects keyed by name (issue 18).
+    # run.json: objects keyed by name.
     record = json.loads((tmp_path / "out" / "run.json").read_text())
     assert isinstance(record["metrics"], dict) and record["metrics"]["wss.mae_deg"] == res.metrics["wss.mae_deg"]
     assert isinstance(record["stages"], dict) and "wss" in record["stages"]

@@ -1,4 +1,4 @@
-//! Regression tests for issue 20: each reproducer of the fuzzing campaign (a
+//! Regression tests: each reproducer of the fuzzing campaign (a
 //! panic, unbounded memory, a hang, or a silent acceptance), rebuilt here and
 //! held to an error that names the file or key. docs/resource-policy.md lists
 //! which test holds which guarantee.

@@ -110,7 +110,7 @@ fn crossing_takes_the_time_geometry_predicts() {
 #[test]
 fn the_skin_spreads_the_crossing_to_the_13_mm_active_area() {
     // A 1 mm skin (sigma 0.5 mm) widens each taxel's response by ~2 sigma = 1 mm
-    // on each side: 13 mm at 2 mm/s is SPEC's "about 6.5 s at 90 degrees". A
+    // on each side: 13 mm at 2 mm/s is the paper's "about 6.5 s at 90 degrees". A
     // departure of 0.2 % of full scale marks where the response starts.
     let items = items("angles = [90]\ntrials_per_angle = 1\neffects = [{ kind = \"skin\", sigma_mm = 0.5 }]");
     let (first, last) = active_span(data(&items[0]), 0.002);

@@ -1,4 +1,4 @@
-//! Regression tests for issue 15's signal failures, built from the failing
+//! Regression tests for the signal failures, built from the failing
 //! cases on the lab scene (`graphs/scenes/lab.toml`):
 //!
 //! * the zero-phase low-pass reflected about each taxel's noisy first sample,

@@ -261,11 +261,11 @@ proptest! {
         let lp = LowpassConfig { order: 3, cutoff_hz: fc, mode: FilterMode::Causal };
         let (a, b) = both(&lp, "lowpass", &s, block);
         assert_same("lowpass", &a, &b);
-        let nb = NormalizeConfig { mode: NormalizeMode::Causal, baseline_ms: 1.0, span: Some(3.0), min_span: 0.1 };
+        let nb = NormalizeConfig { mode: NormalizeMode::Causal, baseline_ms: 1.0, span: Some(3.0), min_span: 0.1, dead_fraction: 0.25 };
         let (a, b) = both(&nb, "normalize", &s, block);
         assert_same("normalize", &a, &b);
         for kind in [DriveKind::FaI, DriveKind::SaI] {
-            let d = DriveConfig { kind, gain: Some(gain), target_peak_current: None };
+            let d = DriveConfig { kind, gain: Some(gain), target_peak_current: None, peak_of: Default::default() };
             let (a, b) = both(&d, "drive", &s, block);
             assert_same("drive", &a, &b);
         }

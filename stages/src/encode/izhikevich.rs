@@ -21,7 +21,7 @@
 //! * `euler`: forward Euler, `v += dt · f(v, u, I)` and
 //!   `u += dt · a (b v_old - u)`.
 //!
-//! Numerical guards (SPEC.md section 6; they never act in the regime the
+//! Numerical guards (the user guide's "Numerical hard cases"; they never act in the regime the
 //! presets are meant for, and make every other input safe):
 //!
 //! * The spike is detected at (half-)step ends. Once `v` reaches `v_peak` in a

@@ -1,4 +1,4 @@
-//! `lif`: leaky integrate-and-fire neuron, one per taxel (SPEC.md 2.5).
+//! `lif`: leaky integrate-and-fire neuron, one per taxel.
 //!
 //! ```text
 //! tau dv/dt = -(v - v_rest) + R I

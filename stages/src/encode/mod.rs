@@ -1,4 +1,4 @@
-//! Spiking encoders: analog taxel signals to spike events (SPEC.md section 2).
+//! Spiking encoders: analog taxel signals to spike events.
 //!
 //! An encoder reads [`Signals`] whose values are the input current of one
 //! neuron per taxel (usually made by the `drive` stage) and gives a
@@ -21,7 +21,7 @@
 //!   (`input = "linear"`; looks ahead by less than one sample).
 //! * Currents are clamped to `±1e12` before integration: far beyond any value at
 //!   which a neuron already fires on every step, and it keeps every product
-//!   finite (SPEC.md section 6).
+//!   finite (the user guide's "Numerical hard cases").
 //! * A spike's time is interpolated linearly within the step (or half-step) in
 //!   which the membrane crossed threshold, so spike times are not quantized to
 //!   `dt`. A spike whose time would fall at or after the trial's end (possible

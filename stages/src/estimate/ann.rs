@@ -1,4 +1,4 @@
-//! ANN baseline (paper section 3.2, SPEC.md section 5): a one-hidden-layer
+//! ANN baseline (paper section 3.2): a one-hidden-layer
 //! perceptron over spike images, trained per fold, with the paper's
 //! winner-take-all vote over the trial.
 //!

@@ -1,5 +1,5 @@
-//! Classical baselines (SVM by our own SMO; forest and logistic from smartcore 0.4) on the same features as the ANN
-//! (SPEC.md section 5): stage types `svm`, `random_forest`, `knn` and `logistic`.
+//! Classical baselines (SVM by our own SMO; forest and logistic from smartcore 0.4) on the same features as the ANN:
+//! stage types `svm`, `random_forest`, `knn` and `logistic`.
 //!
 //! Design: one stage type per model (rather than one `classic` type with a
 //! `model` key), so that each type's keys are exactly the ones that model has

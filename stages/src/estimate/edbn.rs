@@ -1,7 +1,6 @@
 //! Event-based deep belief network after O'Connor et al. 2013 ("Real-time
 //! classification and sensor fusion with a spiking deep belief network",
-//! Front. Neurosci. 7:178), the paper's EDBN baseline (section 3.2, SPEC.md
-//! section 5).
+//! Front. Neurosci. 7:178), the paper's EDBN baseline (section 3.2).
 //!
 //! # Training (generative, layer by layer)
 //!

@@ -1,4 +1,4 @@
-//! Orientation estimators: WSS (SPEC.md section 4) and trained baselines (section 5).
+//! Orientation estimators: WSS and trained baselines.
 //!
 //! # Decision time
 //!

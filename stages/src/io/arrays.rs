@@ -285,7 +285,7 @@ pub fn read_npy(bytes: &[u8], what: &str) -> Result<NpyContent, String> {
                 }
             }
             let rec = off;
-            let need = n.checked_mul(rec).unwrap_or(usize::MAX);
+            let need = n.saturating_mul(rec);
             if data.len() < need {
                 return Err(format!(
                     "{what}: truncated: {n} records of {rec} bytes need {need} bytes, the file has {}",

@@ -373,7 +373,7 @@ pub fn parse_sidecar(
     match ext {
         "toml" => {
             let s: TomlSidecar =
-                toml::from_str(&text).map_err(|e| StageError::new(format!("label sidecar {shown}: {e}")))?;
+                toml::from_str(text).map_err(|e| StageError::new(format!("label sidecar {shown}: {e}")))?;
             // TOML has `nan` and `inf`: hold its numbers to the CSV rules.
             for (id, l) in &s.trials {
                 check_label_numbers(l)
@@ -440,7 +440,7 @@ pub fn parse_sidecar(
             }
             Ok(out)
         }
-        "json" => read_trials_json(&text).map_err(|e| StageError::new(format!("label sidecar {shown}: {e}"))),
+        "json" => read_trials_json(text).map_err(|e| StageError::new(format!("label sidecar {shown}: {e}"))),
         _ => Err(StageError::new(format!(
             "label sidecar {shown}: unknown extension (use .toml, .csv, or the trials.json `palpate simulate` writes)"
         ))),

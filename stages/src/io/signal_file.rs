@@ -415,9 +415,9 @@ pub fn read_signal_bytes(
 ) -> Result<Vec<RawTrial>, String> {
     let shown = shown.to_string();
     let trials = match fmt {
-        SignalFormat::Csv => read_csv_signals(&bytes, &shown, file_id, cfg, n_taxels)?,
+        SignalFormat::Csv => read_csv_signals(bytes, &shown, file_id, cfg, n_taxels)?,
         SignalFormat::Npy => {
-            let a = read_npy_plain(&bytes, &shown)?;
+            let a = read_npy_plain(bytes, &shown)?;
             arrays_to_trials(
                 vec![(String::new(), a)],
                 &shown,
@@ -430,7 +430,7 @@ pub fn read_signal_bytes(
             )?
         }
         SignalFormat::Npz => {
-            let arrays = read_npz(&bytes, &shown)?
+            let arrays = read_npz(bytes, &shown)?
                 .into_iter()
                 .map(|(n, c)| match c {
                     NpyContent::Plain(a) => Ok((n, a)),
@@ -440,11 +440,11 @@ pub fn read_signal_bytes(
             named_arrays_to_trials(arrays, &shown, file_id, cfg, n_taxels, false)?
         }
         SignalFormat::Mat => {
-            let arrays = read_mat(&bytes, &shown)?;
+            let arrays = read_mat(bytes, &shown)?;
             named_arrays_to_trials(arrays, &shown, file_id, cfg, n_taxels, true)?
         }
         SignalFormat::Daq => {
-            let rec = super::daq::decode_recording(&bytes, cfg.daq_scale, cfg.daq_offset, cfg.fill_gaps)
+            let rec = super::daq::decode_recording(bytes, cfg.daq_scale, cfg.daq_offset, cfg.fill_gaps)
                 .map_err(|e| format!("{shown}: {e}"))?;
             if rec.data.len() != n_taxels {
                 return Err(format!(

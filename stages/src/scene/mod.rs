@@ -1,5 +1,5 @@
-//! Simulated scenes: an edge or a ridge crossing a taxel array (SPEC.md
-//! sections 1 and 8). No recordings of the paper's sensor are public, so most
+//! Simulated scenes: an edge or a ridge crossing a taxel array (the paper's
+//! protocol, and the effects a lab scene may call for). No recordings of the paper's sensor are public, so most
 //! experiments draw their data from here; the simulator is exact where it can
 //! be, and says what it models where it cannot.
 //!

@@ -19,7 +19,7 @@
 //!   11 mm footprint at 2 mm/s, growing like `1 + |cot θ|`. The skin spreads
 //!   each taxel's response by about 2σ on each side (1 mm for σ = 0.5 mm, the
 //!   paper's 1 mm skin), which makes the response span 13 mm, the paper's active
-//!   area: the "about 6.5 s at 90 degrees" of SPEC section 1.
+//!   area: the "about 6.5 s at 90 degrees" of the paper's protocol.
 //!
 //! Trial variation (when listed) perturbs the *actual* trial, not the plan: the
 //! object is rotated by `δθ` about the point the array's centre passes at

@@ -15,7 +15,7 @@
 //! takes `P = max_{taxel, t} D(t)`, the original rule, under which one taxel
 //! whose drive is far above the others' (a dead taxel's stretched noise, a
 //! clipped or glitching taxel) sets `G` and silences every real crossing
-//! (issue 15). With the median, fewer than half the taxels cannot move `P`;
+//!. With the median, fewer than half the taxels cannot move `P`;
 //! an outlier taxel gets a current above the target (the encoder clamps
 //! absurd currents) while the others keep theirs. A trial whose drive is 0
 //! everywhere (nothing changes) gives `I = 0`, never NaN.

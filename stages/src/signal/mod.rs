@@ -1,4 +1,4 @@
-//! Signal stages: normalization, filters, derivatives and drives (SPEC.md section 2).
+//! Signal stages: normalization, filters, derivatives and drives.
 //!
 //! Every stage here maps [`Signals`] to [`Signals`] of the same rate and layout,
 //! one taxel at a time:
@@ -11,7 +11,7 @@
 //! | `drive` | the neuron's input current: FA-I `G·|dV/dt|` (paper eq. 4), SA-I `G·V`, or the signal itself |
 //!
 //! Input samples must be finite: a NaN or infinite sample is a [`StageError`]
-//! naming the stage, taxel and sample index (SPEC.md section 6), never a NaN
+//! naming the stage, taxel and sample index (the user guide's "Numerical hard cases"), never a NaN
 //! that travels on.
 
 pub mod derivative;

@@ -1,4 +1,4 @@
-//! `normalize`: each taxel's signal to `[0, 1]` (paper section 2.4, SPEC.md 2.1).
+//! `normalize`: each taxel's signal to `[0, 1]` (paper section 2.4).
 //!
 //! Two modes:
 //!
@@ -26,7 +26,7 @@
 //! (on the lab scene 0.05-0.2 V, against ~1.5 V for a taxel the edge crosses);
 //! stretched to `[0, 1]`, that wobble has the steepest slopes of the trial, so
 //! it fires like a crossing and takes over the drive's per-trial auto-gain,
-//! silencing the real crossings (issue 15: one dead taxel made 33 of 170 lab
+//! silencing the real crossings ( one dead taxel made 33 of 170 lab
 //! trials answer "no edge"). The median is a robust statistic across taxels:
 //! fewer than half the taxels being dead cannot move it, and no fixed volt
 //! threshold has to match the sensor. Taxels with no real change at all

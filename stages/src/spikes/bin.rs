@@ -1,4 +1,4 @@
-//! `bin`: spike events to count images (paper section 2.5, SPEC.md section 3).
+//! `bin`: spike events to count images (paper section 2.5).
 //!
 //! Frame `k` covers `[k·hop, k·hop + window)` ms and holds, per taxel, the
 //! number of spikes in it. With the paper's `window = 100`, `hop = 10`,

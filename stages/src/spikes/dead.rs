@@ -1,4 +1,4 @@
-//! `dead_taxels`: remove the spikes of dead taxels (SPEC.md section 8).
+//! `dead_taxels`: remove the spikes of dead taxels.
 //!
 //! Dead taxels are given by index (`taxels`), by grid cell (`cells`, `[row,
 //! col]`), and/or drawn at random per trial (`random_count` distinct taxels,

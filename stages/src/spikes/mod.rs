@@ -1,5 +1,5 @@
 //! Spike-level stages: binning, the perturbations of the paper's robustness
-//! studies, and spike plots (SPEC.md sections 3 and 8).
+//! studies, and spike plots.
 //!
 //! | type | in -> out | what it does |
 //! |---|---|---|

@@ -14,7 +14,7 @@
 //! sum of weights, from prefix sums. Cost per trial:
 //! `O(n_taxels·K·log L)` for the inputs plus `O(classes·(n_taxels·K + K·log L))`.
 //!
-//! Exact fallbacks (the stability rules of SPEC section 4):
+//! Exact fallbacks (the stability rules in the user guide's "Numerical hard cases"):
 //! * a window whose weights are all 0 (only `one_minus_sr`, when every frame in
 //!   it has the trial's largest count) uses constant weights: the plain mean of
 //!   its correlations (from a second, unweighted convolution, or direct sums

@@ -1,5 +1,5 @@
 //! WSS: weighted spatiotemporal similarity against simulated edge templates
-//! (Kumar et al. 2020, section 2.5; SPEC.md section 4).
+//! (Kumar et al. 2020, section 2.5).
 //!
 //! # The method
 //!
@@ -77,7 +77,7 @@
 //!   the zero-variance rule), and `1 − SR` gives exactly those frames its
 //!   largest weight, 1: the score of a longer template (a smaller angle) is
 //!   diluted more, pulling answers towards 90 degrees. The equations leave no
-//!   room to fix it (R of an empty frame is 0 by SPEC, its weight `1 − 0`
+//!   room to fix it (R of an empty frame is 0 by palpate's rule, its weight `1 − 0`
 //!   by eq. 5; no template width or shape tried, `sigma_mm` 0.3 to 1 with
 //!   either `distance`, helps). Adding only the lab's skin spread (0.5 mm) to
 //!   the ideal scene makes `one_minus_sr` exact: spread fills those frames.

@@ -461,7 +461,7 @@ fn stage_is_registered_and_predicts_through_the_estimator_api() {
         .iter()
         .any(|r| r.type_name == "wss"));
     // The weighting and start rule this early-stop timing was written for (the
-    // defaults before issue 15); the margin builds differently under others.
+    // earlier defaults); the margin builds differently under others.
     let cfg: Box<dyn StageConfig> = toml::from_str(
         "[wss]\nspeed_mm_s = 10.0\nangles = [20, 45, 70, 90, 120]\nstop_margin = 0.5\n\
          weighting = \"one_minus_sr\"\nbefore_start = \"exclude\"",
@@ -750,7 +750,7 @@ fn streams_of_huge_and_tiny_counts_equal_the_batch() {
     }
 }
 
-/// The failing case of issue 15: a burst in the first frames of a trial (the
+/// The failing case: a burst in the first frames of a trial (the
 /// low-pass start-up transient made every taxel fire ~3 ms in, with uneven
 /// per-taxel gains), whose pattern happens to look like the line leaving the
 /// array at another angle. Under `exclude` the one-frame window at `k = 0` is a
