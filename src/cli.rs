@@ -294,7 +294,14 @@ pub fn main() -> ExitCode {
             explain,
             ..
         } => {
-            let code = cmd_run(graph, set, out, threads, points.or(shard).unwrap_or_default(), fresh);
+            let code = cmd_run(
+                graph,
+                set,
+                out,
+                threads,
+                points.or(shard).unwrap_or_default(),
+                fresh,
+            );
             if explain {
                 print!("\n{}", crate::guide::EXPLAIN);
             }

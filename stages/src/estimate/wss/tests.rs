@@ -767,8 +767,8 @@ fn a_start_of_trial_burst_cannot_win_by_default() {
     let burst = raw_template(&layout, 10.0, &params, 80.0, 0);
     let n = layout.len();
     for k in 0..3 {
-        for t in 0..n {
-            im.counts[k * n + t] = 40.0 * burst[t];
+        for (c, b) in im.counts[k * n..(k + 1) * n].iter_mut().zip(&burst) {
+            *c = 40.0 * b;
         }
     }
     let exclude = WssParams {
