@@ -22,7 +22,8 @@ fn duration_flags_refuse_nan_infinite_and_huge_values() {
         ("emulate", "--delay", "nan"),
     ] {
         let mut c = palpate();
-        c.args(["daq", cmd, flag, v]);
+        // `--flag=value`: clap would read a bare `-1` as a flag of its own.
+        c.args(["daq", cmd, &format!("{flag}={v}")]);
         if cmd == "run" {
             c.arg("/dev/null-no-such-port");
         } else {

@@ -34,13 +34,18 @@ fn batch_memory_is_linear_and_streaming_memory_constant() {
     assert_eq!(a.stream_built_bytes, c.stream_built_bytes);
     for r in &rows {
         assert!(
-            r.stream_peak_bytes <= r.stream_built_bytes + 64 * 1024,
+            // Kept alignments (48 B each, in a doubling Vec): up to ~1900 with the
+            // default 33-class grid before the edge arrives.
+            r.stream_peak_bytes <= r.stream_built_bytes + 256 * 1024,
             "{} s: peak {} B, built {} B",
             r.seconds,
             r.stream_peak_bytes,
             r.stream_built_bytes
         );
-        assert!(r.stream_wss_candidates <= 40 * 17, "{}", r.stream_wss_candidates);
+        // At most a few dozen alignments per class of the default 33-class
+        // grid (10..170 by 5), whatever the input's length: 1872 at 10 s, before
+        // the edge has crossed (nothing dominates yet), ~190 after.
+        assert!(r.stream_wss_candidates <= 64 * 33, "{}", r.stream_wss_candidates);
     }
     assert!(
         c.stream_peak_bytes <= a.stream_peak_bytes + 64 * 1024,

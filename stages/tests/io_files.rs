@@ -647,10 +647,11 @@ fn signals_round_trip_through_csv_and_npy_sinks() {
 #[test]
 fn spikes_round_trip_through_csv_and_npy_sinks() {
     for format in ["csv", "npy"] {
+        // Whole microseconds: the NPY default is tonic's int64 microsecond times.
         let d = tempfile::tempdir().unwrap();
         let p = d.path();
         let mut s = String::from("trial,x,y,t,angle_deg\n");
-        for (k, (x, y, t)) in [(0, 0, 100.5), (1, 1, 2000.0), (1, 0, 77.25), (0, 1, 999.0)]
+        for (k, (x, y, t)) in [(0, 0, 100.0), (1, 1, 2000.0), (1, 0, 77.0), (0, 1, 999.0)]
             .iter()
             .enumerate()
         {

@@ -484,8 +484,10 @@ fn check_mat_tags(
         return Err(base);
     }
     let mut p = 0usize;
+    let mut idx = 0usize;
     while p + 8 <= body.len() {
         let ty = u32_at(base + p);
+        idx += 1;
         if ty >> 16 != 0 {
             p += 8;
             continue;
@@ -493,6 +495,16 @@ fn check_mat_tags(
         let n = u32_at(base + p + 4);
         if n > u32::MAX - 7 || p + 8 + n as usize > body.len() {
             return Err(base + p);
+        }
+        // The 2nd element of a matrix is its dimensions (miINT32): `matfile`
+        // multiplies them as i32 unchecked (a panic in debug builds; found by
+        // fuzzing), so their product must fit, and none may be negative.
+        if idx == 2 && ty == 5 {
+            let mut prod: i32 = 1;
+            for k in 0..(n as usize / 4) {
+                let d = u32_at(base + p + 8 + 4 * k) as i32;
+                prod = prod.checked_mul(d).filter(|_| d >= 0).ok_or(base + p)?;
+            }
         }
         if ty == 14 {
             check_mat_tags(&body[p + 8..p + 8 + n as usize], u32_at, base + p + 8, depth + 1)?;
