@@ -482,3 +482,17 @@ fn a_mat_tag_length_near_four_gigabytes_is_an_error() {
     );
     assert!(r.unwrap_err().contains("m.mat"));
 }
+
+/// A MAT file whose matrix dimensions multiply past `i32::MAX` (found by this
+/// repository's CI fuzz pass): `matfile` multiplies them unchecked (a panic with
+/// overflow checks on), so the reader refuses them first.
+#[test]
+fn mat_dimensions_whose_product_overflows_are_an_error() {
+    let bytes = include_bytes!("data/mat_dims_overflow.mat");
+    let cfg = SignalFileConfig {
+        fill_gaps: true,
+        ..Default::default()
+    };
+    let r = read_signal_bytes(bytes, "crash.mat", "crash", SignalFormat::Mat, &cfg, 16);
+    assert!(r.is_err(), "accepted: {:?}", r.map(|t| t.len()));
+}
