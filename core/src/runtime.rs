@@ -501,15 +501,7 @@ fn aligned_len(id: &str, graph: &Graph, i: usize, inputs: &[Arc<Vec<Item>>]) -> 
                 .zip(first.iter())
                 .all(|(a, b)| a.meta.trial_id == b.meta.trial_id);
         if !same {
-            return Err(RunError::new(
-                id,
-                None,
-                format!(
-                    "inputs `{}` and `{}` carry different trials; a per-trial stage needs inputs from the same source",
-                    graph.nodes[graph.input_index[i][0]].id,
-                    graph.nodes[graph.input_index[i][k]].id
-                ),
-            ));
+            return Err(mixed_trials(graph, id, i, k));
         }
     }
     Ok(first.len())
@@ -524,6 +516,20 @@ pub fn median_p95(times: &[Duration]) -> (Duration, Duration) {
     v.sort_unstable();
     let q = |p: f64| v[((v.len() - 1) as f64 * p).round() as usize];
     (q(0.5), q(0.95))
+}
+
+/// The error for a per-trial stage whose inputs `0` and `k` carry different
+/// trials (shared by the stage-at-a-time and the depth-first runners).
+pub(crate) fn mixed_trials(graph: &Graph, id: &str, i: usize, k: usize) -> RunError {
+    RunError::new(
+        id,
+        None,
+        format!(
+            "inputs `{}` and `{}` carry different trials; a per-trial stage needs inputs from the same source",
+            graph.nodes[graph.input_index[i][0]].id,
+            graph.nodes[graph.input_index[i][k]].id
+        ),
+    )
 }
 
 #[cfg(test)]

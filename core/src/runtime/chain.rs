@@ -254,15 +254,7 @@ pub(super) fn run_chain(
                     }
                     let meta = &items[0].meta;
                     if let Some(k) = items.iter().position(|it| it.meta.trial_id != meta.trial_id) {
-                        return Err(RunError::new(
-                            id,
-                            None,
-                            format!(
-                                "inputs `{}` and `{}` carry different trials; a per-trial stage needs inputs from the same source",
-                                graph.nodes[graph.input_index[i][0]].id,
-                                graph.nodes[graph.input_index[i][k]].id
-                            ),
-                        ));
+                        return Err(super::mixed_trials(graph, id, i, k));
                     }
                     let ctx = TrialContext {
                         stage_id: id,
