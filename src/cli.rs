@@ -495,6 +495,7 @@ fn cmd_slurm(
     }
     let job = crate::cluster::SweepJob {
         path: &path,
+        source: None,
         graph: &graph,
         set: &set,
     };
@@ -561,6 +562,7 @@ fn cmd_run(
         }
         let job = crate::cluster::SweepJob {
             path: &path,
+            source: None,
             graph: &graph,
             set: &set,
         };

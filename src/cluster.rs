@@ -14,10 +14,13 @@ use crate::core::{self, Graph, RunOptions};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
-/// A sweep as run from the command line.
+/// A sweep as run from the command line (or from Python).
 pub struct SweepJob<'a> {
-    /// The graph file.
+    /// The graph file (for a graph given as text: its name in messages).
     pub path: &'a Path,
+    /// The graph's text and the folder its relative paths resolve against,
+    /// when it did not come from `path` (Python's `palpate.run` on a string).
+    pub source: Option<(&'a str, &'a Path)>,
     /// Its base graph (loaded with the overrides and output folder).
     pub graph: &'a Graph,
     /// `--set` overrides.
@@ -30,8 +33,14 @@ fn absolute(p: &Path) -> PathBuf {
 
 impl SweepJob<'_> {
     fn manifest(&self) -> Result<Manifest, String> {
-        let text = std::fs::read_to_string(self.path)
-            .map_err(|e| format!("{}: cannot read the graph file: {e}", self.path.display()))?;
+        let (text, base_dir) = match self.source {
+            Some((text, base)) => (text.to_string(), absolute(base)),
+            None => (
+                std::fs::read_to_string(self.path)
+                    .map_err(|e| format!("{}: cannot read the graph file: {e}", self.path.display()))?,
+                absolute(self.path.parent().unwrap_or(Path::new(""))),
+            ),
+        };
         let sweep = self
             .graph
             .sweep
@@ -41,7 +50,7 @@ impl SweepJob<'_> {
             format: 1,
             file: self.graph.file.clone(),
             text,
-            base_dir: absolute(self.path.parent().unwrap_or(Path::new(""))),
+            base_dir,
             overrides: self.set.iter().map(|(k, v)| (k.clone(), v.to_string())).collect(),
             points: sweep.points().len(),
             repeats: sweep.repeats,
@@ -65,30 +74,38 @@ fn load_all(manifest: &Manifest, out: &Path) -> Result<(Graph, PointGraphs), Str
     Ok((base, graphs))
 }
 
-/// `palpate run GRAPH` on a sweep: runs the selected points that are not yet
-/// complete (all of them with `fresh`), then, when every point of the sweep is
-/// complete, writes the sweep's report.
-pub fn run_sweep(job: &SweepJob<'_>, selection: &Selection, fresh: bool, opts: &RunOptions<'_>) -> ExitCode {
-    let t0 = std::time::Instant::now();
-    let manifest = match job.manifest() {
-        Ok(m) => m,
-        Err(e) => {
-            eprintln!("{e}");
-            return ExitCode::FAILURE;
-        }
-    };
+/// What [`run_points`] leaves: every run of the sweep, rebuilt from the
+/// completion markers, or how many are still missing.
+pub enum SweepOutcome {
+    /// Every (point, repeat) is complete: the base graph and the runs.
+    Complete(Box<Graph>, Vec<SweepRun>),
+    /// Some (point, repeat) runs are missing (other shards' work).
+    Partial {
+        /// Runs complete.
+        complete: usize,
+        /// Runs in the sweep.
+        total: usize,
+    },
+}
+
+/// Runs the selected points of a sweep that are not yet complete (all of them
+/// with `fresh`), each writing its reports and completion marker; then gathers
+/// the whole sweep from the markers. `on_point(i, n, label)` is called before
+/// each point runs. Errors are messages naming the graph file and the point.
+pub fn run_points(
+    job: &SweepJob<'_>,
+    selection: &Selection,
+    fresh: bool,
+    opts: &RunOptions<'_>,
+    on_point: &dyn Fn(usize, usize, &str),
+) -> Result<(SweepOutcome, usize, usize), String> {
+    let manifest = job.manifest()?;
     let out = job.graph.out_dir.clone();
-    let (base, graphs) = match load_all(&manifest, &out) {
-        Ok(g) => g,
-        Err(e) => {
-            eprintln!("{e}");
-            return ExitCode::FAILURE;
-        }
-    };
+    let (base, graphs) = load_all(&manifest, &out)?;
     let total = manifest.points;
     let missing = selection.out_of_range(total);
     if !missing.is_empty() {
-        eprintln!(
+        return Err(format!(
             "{}: --points names {} but the sweep has points 0..{} (see `palpate sweep list {}`)",
             job.graph.file,
             missing
@@ -98,13 +115,9 @@ pub fn run_sweep(job: &SweepJob<'_>, selection: &Selection, fresh: bool, opts: &
                 .join(", "),
             total.saturating_sub(1),
             job.path.display()
-        );
-        return ExitCode::FAILURE;
+        ));
     }
-    if let Err(e) = manifest.write(&out) {
-        eprintln!("{e}");
-        return ExitCode::FAILURE;
-    }
+    manifest.write(&out)?;
     let chosen: Vec<&(usize, usize, Graph)> = graphs
         .iter()
         .filter(|(p, ..)| selection.contains(*p, total))
@@ -118,47 +131,61 @@ pub fn run_sweep(job: &SweepJob<'_>, selection: &Selection, fresh: bool, opts: &
             skipped += 1;
             continue;
         }
-        eprintln!("point {p} ({label}), repeat {r}: {}/{}", i + 1, chosen.len());
+        on_point(i, chosen.len(), &format!("point {p} ({label}), repeat {r}"));
         let o = RunOptions {
             progress: opts.progress,
             cache: Some(&cache),
             keep_outputs: false,
         };
-        let result = match core::run(g, &o) {
-            Ok(r) => r,
-            Err(e) => {
-                eprintln!("{}: sweep point {p} ({label}), repeat {r}: {e}", job.graph.file);
-                return ExitCode::FAILURE;
-            }
-        };
-        if let Err(e) = crate::report::write_run_files(g, &result) {
-            eprintln!("{e}");
-            return ExitCode::FAILURE;
-        }
-        if let Err(e) = PointRecord::new(g, *p, *r, &label, &result).write(&g.out_dir) {
-            eprintln!("{e}");
-            return ExitCode::FAILURE;
-        }
+        let result = core::run(g, &o)
+            .map_err(|e| format!("{}: sweep point {p} ({label}), repeat {r}: {e}", job.graph.file))?;
+        crate::report::write_run_files(g, &result)?;
+        PointRecord::new(g, *p, *r, &label, &result).write(&g.out_dir)?;
         ran += 1;
     }
+    let count = graphs.len();
+    let outcome = match gather(&base, graphs) {
+        Ok(runs) => SweepOutcome::Complete(Box::new(base), runs),
+        Err(missing) => SweepOutcome::Partial {
+            complete: count - missing.len(),
+            total: count,
+        },
+    };
+    Ok((outcome, ran, skipped))
+}
+
+/// `palpate run GRAPH` on a sweep: [`run_points`], then, when every point of
+/// the sweep is complete, the sweep's report.
+pub fn run_sweep(job: &SweepJob<'_>, selection: &Selection, fresh: bool, opts: &RunOptions<'_>) -> ExitCode {
+    let t0 = std::time::Instant::now();
+    let announce = |i: usize, n: usize, what: &str| eprintln!("{what}: {}/{n}", i + 1);
+    let (outcome, ran, skipped) = match run_points(job, selection, fresh, opts, &announce) {
+        Ok(x) => x,
+        Err(e) => {
+            eprintln!("{e}");
+            return ExitCode::FAILURE;
+        }
+    };
     eprintln!(
         "ran {ran} point run{}, skipped {skipped} already complete ({:.1} s)",
         if ran == 1 { "" } else { "s" },
         t0.elapsed().as_secs_f64()
     );
-    let count = graphs.len();
-    match gather(&base, graphs) {
-        Ok(runs) => {
-            let code = crate::report::sweep_report(&base, &runs);
+    match outcome {
+        SweepOutcome::Complete(base, runs) => {
+            let (text, ok) = crate::report::sweep_report(&base, &runs);
+            print!("{text}");
             println!("sweep wall time: {:.1} s", t0.elapsed().as_secs_f64());
-            code
+            if ok {
+                ExitCode::SUCCESS
+            } else {
+                ExitCode::FAILURE
+            }
         }
-        Err(missing) => {
+        SweepOutcome::Partial { complete, total } => {
             println!(
-                "{} of {} point runs complete; when every shard has finished, write the sweep's report with\n  palpate merge {}",
-                count - missing.len(),
-                count,
-                out.display()
+                "{complete} of {total} point runs complete; when every shard has finished, write the sweep's report with\n  palpate merge {}",
+                job.graph.out_dir.display()
             );
             ExitCode::SUCCESS
         }
@@ -219,7 +246,15 @@ pub fn merge(out: &Path) -> ExitCode {
     };
     let count = graphs.len();
     match gather(&base, graphs) {
-        Ok(runs) => crate::report::sweep_report(&base, &runs),
+        Ok(runs) => {
+            let (text, ok) = crate::report::sweep_report(&base, &runs);
+            print!("{text}");
+            if ok {
+                ExitCode::SUCCESS
+            } else {
+                ExitCode::FAILURE
+            }
+        }
         Err(missing) => {
             eprintln!(
                 "{}: {} of {} point runs are not complete (no valid {} in their folder); nothing merged:",

@@ -266,24 +266,26 @@ pub fn run_record<'a>(graph: &'a Graph, result: &RunResult) -> RunRecord<'a> {
 /// no x axis), one `sweep_<series>_<metric>.svg` per series with numeric values
 /// and per metric listed in `metrics` (none when `metrics` is empty: a series
 /// sweep reports many metrics, and the frontier plots are its summary).
-pub fn sweep_report(graph: &Graph, runs: &[palpate_core::sweep::SweepRun]) -> std::process::ExitCode {
+pub fn sweep_report(graph: &Graph, runs: &[palpate_core::sweep::SweepRun]) -> (String, bool) {
     use palpate_core::output::write_atomic;
+    let mut text = String::new();
     let Some(sweep) = &graph.sweep else {
-        return std::process::ExitCode::FAILURE;
+        return (format!("{}: the graph has no [sweep] table\n", graph.file), false);
     };
     let mut failed = false;
     for r in runs {
         let value = palpate_core::sweep::label(&r.value);
         match &r.series {
-            Some(s) => println!(
-                "== {s}: {} = {value} (repeat {}, seed {})",
-                r.key, r.repeat, r.seed
-            ),
-            None => println!("== {} = {value} (repeat {}, seed {})", r.key, r.repeat, r.seed),
+            Some(s) => {
+                let _ = writeln!(text, "== {s}: {} = {value} (repeat {}, seed {})", r.key, r.repeat, r.seed);
+            }
+            None => {
+                let _ = writeln!(text, "== {} = {value} (repeat {}, seed {})", r.key, r.repeat, r.seed);
+            }
         }
         for (id, rep) in &r.result.reports {
-            println!("-- {id}");
-            print!("{}", rep.text);
+            let _ = writeln!(text, "-- {id}");
+            text.push_str(&rep.text);
         }
         if let Err(e) = write_run_files(&r.graph, &r.result) {
             eprintln!("{e}");
@@ -292,7 +294,8 @@ pub fn sweep_report(graph: &Graph, runs: &[palpate_core::sweep::SweepRun]) -> st
     }
     let rows = palpate_core::sweep::summarize(runs, &sweep.metrics);
     let points = sweep.points().len();
-    println!(
+    let _ = writeln!(
+        text,
         "== sweep over {} ({points} points x {} repeats; per-point timing in <point>/timing.md)",
         sweep.describe(),
         sweep.repeats
@@ -302,7 +305,7 @@ pub fn sweep_report(graph: &Graph, runs: &[palpate_core::sweep::SweepRun]) -> st
     } else {
         "point"
     };
-    print!("{}", palpate_core::sweep::render(head, &rows));
+    text.push_str(&palpate_core::sweep::render(head, &rows));
     let out = &graph.out_dir;
     let mut csv = String::from("value,metric,mean,sd,runs\n");
     for r in &rows {
@@ -365,11 +368,12 @@ pub fn sweep_report(graph: &Graph, runs: &[palpate_core::sweep::SweepRun]) -> st
     }
     if !sweep.frontier.is_empty() {
         match crate::frontier::report(graph, runs) {
-            Ok(text) => {
-                println!(
+            Ok(frontier) => {
+                let _ = writeln!(
+                    text,
                     "== accuracy-time frontier (compute ms: median per trial summed over the estimator's upstream stages, sources left out; decision ms: median palpation from first contact)"
                 );
-                print!("{text}");
+                text.push_str(&frontier);
             }
             Err(e) => {
                 eprintln!("frontier: {e}");
@@ -377,10 +381,6 @@ pub fn sweep_report(graph: &Graph, runs: &[palpate_core::sweep::SweepRun]) -> st
             }
         }
     }
-    println!("reports in {}", out.display());
-    if failed {
-        std::process::ExitCode::FAILURE
-    } else {
-        std::process::ExitCode::SUCCESS
-    }
+    let _ = writeln!(text, "reports in {}", out.display());
+    (text, !failed)
 }

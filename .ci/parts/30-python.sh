@@ -62,3 +62,8 @@ fi
 cd "$root"
 "$venv/bin/python" examples/python/python_stages.py > "$root/target/py-example.log"
 grep -q "centroid" "$root/target/py-example.log"
+# The quickstart example on a cut scene (2 trials per angle): it checks that the
+# building blocks give the graph's WSS scores bit for bit, and draws its plot.
+"$venv/bin/python" examples/python/quickstart.py --trials-per-angle 2 --out "$root/target/py-quickstart" > "$root/target/py-quickstart.log"
+grep -q "bit for bit" "$root/target/py-quickstart.log"
+test -s "$root/target/py-quickstart/wss_vs_sklearn.png"

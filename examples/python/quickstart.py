@@ -26,11 +26,22 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default="out/python-quickstart", help="output folder")
     ap.add_argument("--folds", type=int, default=10, help="repetitions held out in turn (<= 10)")
+    ap.add_argument(
+        "--trials-per-angle",
+        type=int,
+        default=None,
+        help="trials per angle (default: the scene's 10; fewer for a quick look)",
+    )
     args = ap.parse_args()
     out = pathlib.Path(args.out)
 
     # 1. The graph, as the CLI runs it.
-    res = palpate.run(REPO / "graphs" / "quickstart.toml", out=out)
+    keys = {} if args.trials_per_angle is None else {"trials_per_angle": args.trials_per_angle}
+    res = palpate.run(
+        REPO / "graphs" / "quickstart.toml",
+        out=out,
+        set={f"stages.scene.{k}": v for k, v in keys.items()},
+    )
     print(res.report_text())
     print(res.timing_table)
     wss = res.estimates["wss"]
@@ -41,11 +52,19 @@ def main() -> None:
     from sklearn.pipeline import make_pipeline
     from sklearn.preprocessing import StandardScaler
 
-    d = palpate.simulate(REPO / "graphs" / "scenes" / "lab.toml", seed=1)
+    d = palpate.simulate(REPO / "graphs" / "scenes" / "lab.toml", seed=1, **keys)
+    # The building blocks give the graph's own images: WSS on them answers as
+    # the graph did, bit for bit.
+    assert d.trial_ids == list(res.estimates["wss"].trial_id), "trial order differs from the graph's"
     x = palpate.lowpass(d.trials, cutoff_hz=10.0, order=2)
     x = palpate.normalize(x, min_span=0.1)
     x = palpate.drive(x, kind="fa_i")
     images = palpate.bin(palpate.izhikevich(x, preset="fa_i"), window_ms=100.0, hop_ms=10.0)
+    again = palpate.wss(images, weighting="one_minus_sr", angles={"from": 10, "to": 90, "step": 5})
+    same = np.array_equal(np.stack([e.scores for e in again]), wss.scores)
+    print(f"building blocks -> WSS: {'the same scores as the graph, bit for bit' if same else 'DIFFERENT scores'}")
+    if not same:
+        raise SystemExit("the building blocks disagree with the graph")
     n = min(len(im.counts) for im in images)
     X = np.stack([im.counts[:n].ravel() for im in images])
     y = d.labels

@@ -47,6 +47,7 @@ __all__ = [
     "Model",
     "PalpateError",
     "Result",
+    "SweepResult",
     "RunError",
     "Signals",
     "Spikes",
@@ -478,21 +479,58 @@ class Result:
         return f"Result({self.file!r}, metrics={self.metrics})"
 
 
+class SweepResult:
+    """What ``run`` returns for a graph with a ``[sweep]``: ``text`` (the sweep
+    report as the CLI prints it), ``rows`` (per point: ``label``, ``series``,
+    ``x`` and ``metrics`` as ``(name, mean, sd, runs)``), ``runs`` (per point
+    and repeat: ``point``, ``repeat``, ``label``, ``key``, ``value``, ``seed``,
+    ``out_dir`` and ``metrics`` by name), ``out_dir`` (where sweep.csv,
+    sweep.json, the curves and each point's folder are)."""
+
+    def __init__(self, raw: dict):
+        self.file: str = raw["file"]
+        self.out_dir = pathlib.Path(raw["out_dir"])
+        self.wall_s: float = raw["wall_s"]
+        self.text: str = raw["text"]
+        self.rows: List[dict] = raw["rows"]
+        self.runs: List[dict] = raw["runs"]
+
+    def summary(self, metric: str) -> List[Tuple[str, float, float, int]]:
+        """``(point label, mean, sd, runs)`` of one metric at every point that has it."""
+        out = []
+        for r in self.rows:
+            for name, mean, sd, n in r["metrics"]:
+                if name == metric:
+                    out.append((r["label"], mean, sd, n))
+        return out
+
+    def __repr__(self) -> str:
+        return f"SweepResult({self.file!r}, points={len(self.rows)}, runs={len(self.runs)})"
+
+
 def run(
     graph: Any,
     set: Optional[Dict[str, Any]] = None,
     threads: Optional[int] = None,
     out: Union[str, os.PathLike, None] = None,
     progress: bool = True,
-) -> Result:
+    fresh: bool = False,
+) -> Union[Result, SweepResult]:
     """Runs a graph (a path, a TOML string or a dict) as ``palpate run`` does, with
     the same report files in its output folder. ``set`` overrides keys
     (``{"stages.wss.weighting": "constant"}``), ``threads`` caps the worker
     threads (default: all cores), ``out`` replaces ``[run] out``. The GIL is
     released while it runs; progress goes to stderr. Raises ``GraphError``
     (with ``diagnostics``) when the graph does not load, ``RunError`` when a
-    stage fails."""
-    raw = _palpate.run(_graph_text(graph), set, threads, None if out is None else str(out), progress)
+    stage fails.
+
+    A graph with a ``[sweep]`` runs every point (through the CLI's code: each
+    point's folder and completion marker, then the sweep report) and returns a
+    ``SweepResult``; points already complete in ``out`` from an earlier run of
+    the same graph are reused unless ``fresh``."""
+    raw = _palpate.run(_graph_text(graph), set, threads, None if out is None else str(out), progress, fresh)
+    if "runs" in raw:
+        return SweepResult(raw)
     return Result(raw)
 
 

@@ -58,6 +58,7 @@ def run(
     threads: Optional[int] = None,
     out: Optional[str] = None,
     progress: bool = True,
+    fresh: bool = False,
 ) -> Dict[str, Any]: ...
 def stage_types() -> List[Dict[str, Any]]: ...
 def apply(

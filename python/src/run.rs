@@ -193,7 +193,7 @@ fn run_error(py: Python<'_>, file: &str, e: &palpate_core::RunError) -> PyErr {
 /// Runs a graph; returns reports, metrics, timing and every estimator's
 /// per-trial estimates. Writes the same report files as `palpate run`.
 #[pyfunction]
-#[pyo3(signature = (graph, set=None, threads=None, out=None, progress=true))]
+#[pyo3(signature = (graph, set=None, threads=None, out=None, progress=true, fresh=false))]
 pub fn run<'py>(
     py: Python<'py>,
     graph: GraphText,
@@ -201,14 +201,11 @@ pub fn run<'py>(
     threads: Option<usize>,
     out: Option<PathBuf>,
     progress: bool,
+    fresh: bool,
 ) -> PyResult<Bound<'py, PyDict>> {
-    let (graph, _) = load(py, &graph, set, out)?;
-    if graph.sweep.is_some() {
-        return Err(PalpateError::new_err(format!(
-            "{}: a graph with a [sweep] is run by the CLI (`palpate run`); palpate.run runs single graphs",
-            graph.file
-        )));
-    }
+    let text = graph.text.clone();
+    let base_dir = graph.base_dir.clone();
+    let (graph, opts) = load(py, &graph, set, out)?;
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(threads.unwrap_or(0))
         .build()
@@ -218,6 +215,22 @@ pub fn run<'py>(
         bar: Mutex::new(None),
         tty: std::io::stderr().is_terminal(),
     };
+    if graph.sweep.is_some() {
+        let base = match base_dir {
+            Some(b) => b,
+            None => std::env::current_dir()
+                .map_err(|e| PalpateError::new_err(format!("cannot read the working folder: {e}")))?,
+        };
+        return run_sweep(
+            py,
+            &graph,
+            (&text, &base),
+            &opts.overrides,
+            &pool,
+            progress.then_some(&bars as &dyn Progress),
+            fresh,
+        );
+    }
     let t0 = std::time::Instant::now();
     // The GIL is released while the graph runs; Python-defined stages take it
     // back for their own calls.
@@ -281,6 +294,94 @@ pub fn run<'py>(
         }
     }
     d.set_item("estimates", estimates)?;
+    Ok(d)
+}
+
+/// A sweep through the CLI's own code path ([`palpate::cluster::run_points`]
+/// and the sweep report): every point that is not yet complete runs (all with
+/// `fresh`), each writes its folder and marker, and the sweep's report is
+/// written from the markers. Returns the report's text, its summary rows and
+/// every run's metrics.
+fn run_sweep<'py>(
+    py: Python<'py>,
+    graph: &palpate_core::Graph,
+    source: (&str, &std::path::Path),
+    set: &[(String, toml::Value)],
+    pool: &rayon::ThreadPool,
+    progress: Option<&dyn Progress>,
+    fresh: bool,
+) -> PyResult<Bound<'py, PyDict>> {
+    let path = PathBuf::from(&graph.file);
+    let job = palpate::cluster::SweepJob {
+        path: &path,
+        source: Some(source),
+        graph,
+        set,
+    };
+    let t0 = std::time::Instant::now();
+    let announce = |i: usize, n: usize, what: &str| {
+        if progress.is_some() {
+            eprintln!("{what}: {}/{n}", i + 1);
+        }
+    };
+    let outcome = py.allow_threads(|| {
+        no_panic("running the sweep", || {
+            let opts = RunOptions {
+                progress,
+                keep_outputs: false,
+                cache: None,
+            };
+            Ok(pool.install(|| {
+                palpate::cluster::run_points(&job, &palpate_core::shard::Selection::All, fresh, &opts, &announce)
+            }))
+        })
+    })?;
+    let (outcome, _, _) = outcome.map_err(PalpateError::new_err)?;
+    let palpate::cluster::SweepOutcome::Complete(base, runs) = outcome else {
+        // Selection::All runs every point, so nothing can be missing.
+        return Err(PalpateError::new_err(format!(
+            "{}: the sweep ended with points missing",
+            graph.file
+        )));
+    };
+    let (text, ok) = palpate::report::sweep_report(&base, &runs);
+    if !ok {
+        return Err(PalpateError::new_err(format!(
+            "{}: the sweep ran but its report could not be written in full:\n{text}",
+            graph.file
+        )));
+    }
+    let d = PyDict::new(py);
+    d.set_item("file", &graph.file)?;
+    d.set_item("out_dir", graph.out_dir.display().to_string())?;
+    d.set_item("wall_s", t0.elapsed().as_secs_f64())?;
+    d.set_item("text", &text)?;
+    let metrics = base.sweep.as_ref().map(|s| s.metrics.clone()).unwrap_or_default();
+    let rows = palpate_core::sweep::summarize(&runs, &metrics);
+    let rows_json = serde_json::to_value(&rows).unwrap_or(serde_json::Value::Null);
+    d.set_item("rows", json_to_py(py, &rows_json)?)?;
+    let list = PyList::empty(py);
+    for r in &runs {
+        let x = PyDict::new(py);
+        x.set_item("point", r.point)?;
+        x.set_item("repeat", r.repeat)?;
+        x.set_item("label", &r.label)?;
+        x.set_item("series", r.series.clone())?;
+        x.set_item("key", &r.key)?;
+        let v = serde_json::to_value(&r.value).unwrap_or(serde_json::Value::Null);
+        x.set_item("value", json_to_py(py, &v)?)?;
+        x.set_item("seed", r.seed)?;
+        x.set_item("out_dir", r.graph.out_dir.display().to_string())?;
+        let m = PyDict::new(py);
+        for (_, rep) in &r.result.reports {
+            for (k, v) in &rep.metrics {
+                m.set_item(k, v)?;
+            }
+        }
+        x.set_item("metrics", m)?;
+        list.append(x)?;
+    }
+    d.set_item("runs", list)?;
     Ok(d)
 }
 
