@@ -5,6 +5,7 @@ import os
 import pathlib
 import shutil
 import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -219,3 +220,17 @@ def test_sweep_through_python_equals_the_cli(small_graph, tmp_path):
     # fresh=True runs every point again.
     palpate.run(path, out=tmp_path / "py", progress=False, fresh=True)
     assert marker.stat().st_mtime_ns != before
+
+
+def test_readme_example_runs_verbatim(tmp_path):
+    """The README's Python example, as printed there, from the repository root:
+    it runs and its WSS answers equal the simulated labels."""
+    text = (REPO / "README.md").read_text()
+    start = text.index("```python", text.index("## From Python")) + len("```python")
+    code = text[start : text.index("```", start)]
+    env = dict(os.environ, PYTHONPATH="")
+    out = subprocess.run(
+        [sys.executable, "-c", code], cwd=REPO, env=env, capture_output=True, text=True, check=True
+    ).stdout.splitlines()
+    answers, labels = out[-1].split("] [")
+    assert [float(a) for a in answers.strip("[]").split(",")] == [float(v) for v in labels.strip("[]").split()]
