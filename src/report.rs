@@ -277,10 +277,18 @@ pub fn sweep_report(graph: &Graph, runs: &[palpate_core::sweep::SweepRun]) -> (S
         let value = palpate_core::sweep::label(&r.value);
         match &r.series {
             Some(s) => {
-                let _ = writeln!(text, "== {s}: {} = {value} (repeat {}, seed {})", r.key, r.repeat, r.seed);
+                let _ = writeln!(
+                    text,
+                    "== {s}: {} = {value} (repeat {}, seed {})",
+                    r.key, r.repeat, r.seed
+                );
             }
             None => {
-                let _ = writeln!(text, "== {} = {value} (repeat {}, seed {})", r.key, r.repeat, r.seed);
+                let _ = writeln!(
+                    text,
+                    "== {} = {value} (repeat {}, seed {})",
+                    r.key, r.repeat, r.seed
+                );
             }
         }
         for (id, rep) in &r.result.reports {

@@ -891,6 +891,19 @@ impl<'t> Loader<'t> {
                 return None;
             }
         };
+        // A type defined at run time (a Python stage) stands for a table of a
+        // registered type.
+        let aliased;
+        let (type_name, table) = match registry::find(&type_name) {
+            Some(_) => (type_name, table),
+            None => match registry::rewrite_alias(&type_name, table) {
+                Some((target, t)) => {
+                    aliased = t;
+                    (target, &aliased)
+                }
+                None => (type_name, table),
+            },
+        };
         let Some(reg) = registry::find(&type_name) else {
             let close = registry::close_matches(&type_name);
             let hint = if close.is_empty() {

@@ -56,6 +56,77 @@ pub fn find(type_name: &str) -> Option<&'static StageRegistration> {
         .find(|r| r.type_name == type_name)
 }
 
+/// A stage type defined while the program runs rather than by
+/// `register_stage!`: a graph may say `type = "<name>"` with the type's own
+/// keys beside it, and the loader rewrites the stage's table into one of the
+/// registered type `target`, with `name_key = "<name>"` and every other key
+/// (all but `type` and `inputs`) moved into the table `keys_into`. The Python
+/// package registers each `@palpate.stage` class so (`target = "python"`,
+/// `name_key = "stage"`, `keys_into = "config"`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Alias {
+    /// The registered type the stage becomes.
+    pub target: &'static str,
+    /// The key of `target` that receives the alias's name.
+    pub name_key: &'static str,
+    /// The key of `target` that receives the stage's other keys, as a table.
+    pub keys_into: &'static str,
+}
+
+fn aliases() -> &'static std::sync::RwLock<std::collections::BTreeMap<String, Alias>> {
+    static A: std::sync::OnceLock<std::sync::RwLock<std::collections::BTreeMap<String, Alias>>> =
+        std::sync::OnceLock::new();
+    A.get_or_init(Default::default)
+}
+
+/// Registers (or replaces) the alias `name`. A name of a built-in type is
+/// refused: a graph's `type` must keep meaning what `palpate stages` says.
+pub fn register_alias(name: &str, alias: Alias) -> Result<(), String> {
+    if find(name).is_some() {
+        return Err(format!(
+            "`{name}` is a built-in stage type; choose another name for this stage"
+        ));
+    }
+    if find(alias.target).is_none() {
+        return Err(format!("alias `{name}`: no stage type `{}`", alias.target));
+    }
+    let mut a = aliases().write().unwrap_or_else(|e| e.into_inner());
+    a.insert(name.to_string(), alias);
+    Ok(())
+}
+
+/// Every alias registered so far, by name.
+pub fn registered_aliases() -> Vec<(String, Alias)> {
+    let a = aliases().read().unwrap_or_else(|e| e.into_inner());
+    a.iter().map(|(k, v)| (k.clone(), *v)).collect()
+}
+
+/// The stage table an alias stands for (see [`Alias`]): `None` when
+/// `type_name` is not an alias.
+pub fn rewrite_alias(type_name: &str, table: &toml::Table) -> Option<(String, toml::Table)> {
+    let alias = {
+        let a = aliases().read().unwrap_or_else(|e| e.into_inner());
+        *a.get(type_name)?
+    };
+    let mut out = toml::Table::new();
+    let mut keys = toml::Table::new();
+    for (k, v) in table {
+        match k.as_str() {
+            "type" => {}
+            "inputs" => {
+                out.insert(k.clone(), v.clone());
+            }
+            _ => {
+                keys.insert(k.clone(), v.clone());
+            }
+        }
+    }
+    out.insert("type".into(), toml::Value::String(alias.target.to_string()));
+    out.insert(alias.name_key.into(), toml::Value::String(type_name.to_string()));
+    out.insert(alias.keys_into.into(), toml::Value::Table(keys));
+    Some((alias.target.to_string(), out))
+}
+
 /// True when `candidate` is a plausible misspelling of `name` (or the reverse):
 /// similar by Jaro-Winkler, or at most a couple of edits apart (transpositions
 /// count as one), as in `scr` for `src`.

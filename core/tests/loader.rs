@@ -330,3 +330,50 @@ fn graph_schema_describes_every_type_and_the_run_table() {
         assert!(s.pointer(r.trim_start_matches('#')).is_some(), "dangling {r}");
     }
 }
+
+#[test]
+fn a_run_time_alias_stands_for_its_target_type() {
+    use palpate_core::registry::{register_alias, Alias};
+    let alias = Alias {
+        target: "t_dynamic",
+        name_key: "stage",
+        keys_into: "config",
+    };
+    register_alias("my_gain", alias).unwrap();
+    // A built-in name cannot be taken, nor can a missing target be named.
+    assert!(register_alias("t_scale", alias).unwrap_err().contains("built-in"));
+    assert!(register_alias(
+        "x",
+        Alias {
+            target: "nope",
+            ..alias
+        }
+    )
+    .is_err());
+    let direct = GOOD.replace(
+        "[stages.est]",
+        "[stages.gain]\ntype = \"t_dynamic\"\ninputs = [\"src\"]\nstage = \"my_gain\"\nconfig = { factor = 3.0 }\n\n[stages.est]",
+    )
+    .replace("inputs = [\"src\"]\n\n[stages.sink]", "inputs = [\"gain\"]\n\n[stages.sink]");
+    let via_alias = GOOD
+        .replace(
+            "[stages.est]",
+            "[stages.gain]\ntype = \"my_gain\"\ninputs = [\"src\"]\nfactor = 3.0\n\n[stages.est]",
+        )
+        .replace(
+            "inputs = [\"src\"]\n\n[stages.sink]",
+            "inputs = [\"gain\"]\n\n[stages.sink]",
+        );
+    let a = load(&direct).unwrap();
+    let b = load(&via_alias).unwrap();
+    let gain = |g: &palpate_core::Graph| {
+        let n = g.nodes.iter().find(|n| n.id == "gain").unwrap();
+        (n.type_name.clone(), format!("{:?}", n.config))
+    };
+    assert_eq!(gain(&a), gain(&b));
+    assert_eq!(gain(&b).0, "t_dynamic");
+    // A key the run-time stage does not have is named, on its stage.
+    let d = only(&via_alias.replace("factor = 3.0", "factr = 3.0"));
+    assert_eq!(d.stage.as_deref(), Some("gain"));
+    assert!(d.message.contains("factr"), "{}", d.message);
+}

@@ -74,10 +74,9 @@ inputs = ["norm"]
 kind = "fa_i"
 
 [stages.enc]
-type = "python"
-stage = "threshold_encoder"
+type = "threshold_encoder"   # the name the class was registered under
 inputs = ["drive"]
-config = {{ level = 0.3 }}
+level = 0.3
 
 [stages.bins]
 type = "bin"
@@ -88,8 +87,7 @@ type = "wss"
 inputs = ["bins"]
 
 [stages.centroid]
-type = "python"
-stage = "nearest_centroid"
+type = "nearest_centroid"
 inputs = ["bins"]
 
 [stages.mae]

@@ -804,10 +804,12 @@ def stage(
     and in the graph::
 
         [stages.enc]
-        type = "python"
-        stage = "threshold"
+        type = "threshold"                     # the registered name is a stage type
         inputs = ["drive"]
-        config = { level = 0.3 }
+        level = 0.3
+
+    (the long form ``type = "python"``, ``stage = "threshold"``, ``config = {
+    level = 0.3 }`` is the same stage). A built-in type's name is refused.
 
     A map (any ``output`` but ``estimates``) defines ``process(*payloads, ctx)``.
     An estimator (``output="estimates"``) defines ``fit(train, labels, ctx)``

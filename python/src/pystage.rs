@@ -1,16 +1,20 @@
 //! `python`: a stage written in Python, usable in any graph run from Python.
 //!
 //! A Python class decorated with `@palpate.stage("name", inputs=..., output=...)`
-//! is registered here under its name with its role and payload kinds; a graph
+//! is registered here under its name with its role and payload kinds, and its
+//! name becomes a stage type (a [`palpate_core::registry::Alias`]); a graph
 //! then uses it as
 //!
 //! ```toml
 //! [stages.enc]
-//! type = "python"
-//! stage = "threshold_encoder"       # the name it was registered under
+//! type = "threshold_encoder"        # the name it was registered under
 //! inputs = ["drive"]
-//! config = { threshold = 0.5 }      # the class's own keys
+//! threshold = 0.5                   # the class's own keys
 //! ```
+//!
+//! which the loader reads as the long form `type = "python"`, `stage =
+//! "threshold_encoder"`, `config = { threshold = 0.5 }` (also accepted). A
+//! name of a built-in type is refused.
 //!
 //! Building the stage calls the Python factory with `config` (the Python side
 //! checks the keys against the class's declared ones and raises an error naming
@@ -80,6 +84,18 @@ pub fn register_stage(
             "an estimator's output must be `estimates`",
         ));
     }
+    // The name becomes a stage type of its own: `type = "<name>"` with the
+    // class's keys beside it stands for `type = "python"`, `stage = "<name>"`,
+    // `config = { .. }`.
+    palpate_core::registry::register_alias(
+        &name,
+        palpate_core::registry::Alias {
+            target: "python",
+            name_key: "stage",
+            keys_into: "config",
+        },
+    )
+    .map_err(pyo3::exceptions::PyValueError::new_err)?;
     let mut r = registry()
         .lock()
         .map_err(|_| pyo3::exceptions::PyRuntimeError::new_err("stage registry poisoned"))?;

@@ -332,7 +332,13 @@ fn run_sweep<'py>(
                 cache: None,
             };
             Ok(pool.install(|| {
-                palpate::cluster::run_points(&job, &palpate_core::shard::Selection::All, fresh, &opts, &announce)
+                palpate::cluster::run_points(
+                    &job,
+                    &palpate_core::shard::Selection::All,
+                    fresh,
+                    &opts,
+                    &announce,
+                )
             }))
         })
     })?;

@@ -144,3 +144,29 @@ def test_python_stage_kinds_are_checked_when_the_graph_loads(tmp_path):
     bad = graph(tmp_path).replace('stage = "test_centroid"\ninputs = ["bins"]', 'stage = "test_centroid"\ninputs = ["drive"]')
     diags = palpate.check(bad)
     assert any(d.stage == "centroid" and "spike images" in d.message for d in diags)
+
+
+def test_a_python_stage_is_a_stage_type_of_its_own(tmp_path):
+    """`type = "<registered name>"` with the class's keys beside it is the same
+    stage as the long form `type = "python"`, `stage = ..., config = {...}`."""
+    long = palpate.run(graph(tmp_path), progress=False)
+    short_text = (
+        graph(tmp_path)
+        .replace('type = "python"\nstage = "test_threshold"\ninputs = ["drive"]\nconfig = { level = 0.3 }',
+                 'type = "test_threshold"\ninputs = ["drive"]\nlevel = 0.3')
+        .replace('type = "python"\nstage = "test_centroid"', 'type = "test_centroid"')
+    )
+    assert 'type = "python"' not in short_text
+    short = palpate.run(short_text, progress=False)
+    for est in ("centroid", "wss"):
+        assert np.array_equal(short.estimates[est].scores, long.estimates[est].scores)
+    with pytest.raises(palpate.GraphError) as e:
+        palpate.run(short_text.replace("level = 0.3", "levle = 0.3"), progress=False)
+    assert e.value.stage == "enc" and "unknown key `levle`" in str(e.value)
+    # A built-in type's name cannot be taken.
+    with pytest.raises(ValueError, match="built-in"):
+
+        @palpate.stage("bin", inputs="spikes", output="images")
+        class Shadow:
+            def process(self, spikes, ctx):
+                return spikes

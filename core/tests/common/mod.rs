@@ -299,3 +299,38 @@ pub fn outputs(graph: &Graph) -> Arc<Vec<Item>> {
     .unwrap();
     r.outputs["est"].clone()
 }
+
+/// Test map standing for stages defined at run time (as Python's are): a
+/// `stage` name and that stage's own keys in `config`; scales signals by
+/// `config.factor` (default 1).
+#[derive(Clone, Debug, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct TDynamic {
+    /// The run-time stage's name.
+    pub stage: String,
+    /// Its keys. Default empty.
+    #[serde(default)]
+    pub config: std::collections::BTreeMap<String, f64>,
+}
+
+#[typetag::serde(name = "t_dynamic")]
+impl StageConfig for TDynamic {
+    fn inputs(&self) -> InputSpec {
+        InputSpec::one(PayloadKind::Signals)
+    }
+    fn output(&self) -> Option<PayloadKind> {
+        Some(PayloadKind::Signals)
+    }
+    fn build(&self, _ctx: &BuildContext) -> Result<Stage, ConfigError> {
+        if let Some(k) = self.config.keys().find(|k| k.as_str() != "factor") {
+            return Err(ConfigError::key(
+                format!("config.{k}"),
+                format!("`{}` has no key `{k}`", self.stage),
+            ));
+        }
+        Ok(Stage::Map(Box::new(TScale {
+            factor: self.config.get("factor").copied().unwrap_or(1.0),
+        })))
+    }
+}
+register_stage!("t_dynamic", TDynamic);
