@@ -262,6 +262,13 @@ pub struct TrialMeta {
     /// When the edge crosses the array, `[start, end]` in ms from the trial's
     /// start, if the source knows it (simulated scenes do).
     pub crossing_ms: Option<[f64; 2]>,
+    /// The conditions the trial was recorded under, by name, e.g.
+    /// `condition = "fast"` for a scene's `conditions` table, or a label
+    /// file's extra keys (`speed_mm_s = "1.5"`): what
+    /// `leave_one_condition_out` and `train_test` protocols split on. Empty
+    /// by default.
+    #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
+    pub conditions: std::collections::BTreeMap<String, String>,
     /// Which stages made this payload, source first.
     pub provenance: Vec<Provenance>,
 }

@@ -22,7 +22,15 @@
 //! * `leave_one_condition_out`: fold per distinct value of a label `key`:
 //!   `group` (the repetition: the same folds as leave-one-trial-out),
 //!   `angle` (leave one class out: the test class is never seen in training),
-//!   or `stimulus`.
+//!   `stimulus`, or any key of the trials' `conditions` (a scene's
+//!   `conditions` table sets `condition`; a label file's extra keys set
+//!   theirs): fold `v` tests every trial recorded under value `v` and trains on
+//!   every other condition, so no estimator sees the test condition in training.
+//! * `train_test`: one fold for a shift: trained estimators fit on every trial
+//!   whose `key` (as above) is one of the `train` values and are scored on every
+//!   other trial; model-based estimators are scored on those same test trials
+//!   and see no training trial (the paper's case for WSS: nothing to retrain
+//!   when the conditions change). Only the test trials are scored.
 
 use crate::payload::Item;
 use crate::stage::derive_seed;
@@ -60,18 +68,64 @@ pub enum Protocol {
         #[serde(default)]
         seed: u64,
     },
-    /// One fold per distinct value of a label key: "group", "angle" or "stimulus".
+    /// One fold per distinct value of a label key: "group", "angle",
+    /// "stimulus" or a key of the trials' `conditions`.
     LeaveOneConditionOut {
         /// The label key.
         key: String,
+    },
+    /// Train on the trials whose label `key` is one of `train`, score every
+    /// other trial (one fold; model-based estimators see only the test trials).
+    TrainTest {
+        /// The label key: "group", "angle", "stimulus" or a key of the trials'
+        /// `conditions` (e.g. "condition").
+        key: String,
+        /// The values of `key` trained on; every other value is tested.
+        train: Vec<String>,
     },
 }
 
 /// One fold: trial indices to train on and to test.
 pub type Fold = (Vec<usize>, Vec<usize>);
 
-/// The label keys `leave_one_condition_out` accepts.
+/// The label keys every trial has; `leave_one_condition_out` and
+/// `train_test` also accept any key of the trials' `conditions`.
 pub const CONDITION_KEYS: [&str; 3] = ["group", "angle", "stimulus"];
+
+/// The value of label `key` for a trial: a built-in key ([`CONDITION_KEYS`])
+/// or one of its `conditions`.
+fn label_value(item: &Item, key: &str) -> Option<String> {
+    let m = &item.meta;
+    match key {
+        "group" => Some(m.group.to_string()),
+        "angle" => Some(
+            m.label
+                .angle_deg
+                .map_or("none".into(), |a| format!("{}", (a * 1e6).round() as i64)),
+        ),
+        "stimulus" => Some(format!("{:?}", m.label.stimulus)),
+        _ => m.conditions.get(key).cloned(),
+    }
+}
+
+/// Every trial's value of `key`, or an error naming the key, a trial without
+/// it and the condition keys the trials do have.
+fn label_values(items: &[Item], key: &str, protocol: &str) -> Result<Vec<String>, String> {
+    items
+        .iter()
+        .map(|it| {
+            label_value(it, key).ok_or_else(|| {
+                let mut have: Vec<&str> = CONDITION_KEYS.to_vec();
+                have.extend(it.meta.conditions.keys().map(String::as_str));
+                format!(
+                    "protocol.{protocol}.key: trial `{}` has no label `{key}`; its labels are {}",
+                    it.meta.trial_id,
+                    have.iter().map(|k| format!("`{k}`")).collect::<Vec<_>>().join(", ")
+                )
+            })
+        })
+        .collect()
+}
 
 impl Protocol {
     /// Checks the protocol's values, naming the key.
@@ -84,11 +138,24 @@ impl Protocol {
                 "protocol.hold_out.test_share: must lie in (0, 1), got {test_share}"
             )),
             Protocol::HoldOut { .. } => Ok(()),
-            Protocol::LeaveOneConditionOut { key } if !CONDITION_KEYS.contains(&key.as_str()) => Err(format!(
-                "protocol.leave_one_condition_out.key: unknown label key `{key}`; expected one of {CONDITION_KEYS:?}"
-            )),
+            Protocol::LeaveOneConditionOut { key } if key.trim().is_empty() => Err(
+                "protocol.leave_one_condition_out.key: empty; name a label (\"group\", \"angle\", \"stimulus\" or a condition key)".into(),
+            ),
             Protocol::LeaveOneConditionOut { .. } => Ok(()),
+            Protocol::TrainTest { key, .. } if key.trim().is_empty() => Err(
+                "protocol.train_test.key: empty; name a label (\"group\", \"angle\", \"stimulus\" or a condition key)".into(),
+            ),
+            Protocol::TrainTest { train, .. } if train.is_empty() => {
+                Err("protocol.train_test.train: no value to train on".into())
+            }
+            Protocol::TrainTest { .. } => Ok(()),
         }
+    }
+
+    /// True when only some trials are scored (hold-out, train/test): one fold
+    /// by design, and the runtime passes on only the scored trials.
+    pub fn scores_a_subset(&self) -> bool {
+        matches!(self, Protocol::HoldOut { .. } | Protocol::TrainTest { .. })
     }
 }
 
@@ -127,9 +194,10 @@ pub fn folds(trained: bool, protocol: &Protocol, items: &[Item]) -> Result<Vec<F
     if !trained {
         // A model-based estimator is scored on every trial a trained one is:
         // all of them, except under a hold-out (the held-out trials only).
-        let test = match protocol {
-            Protocol::HoldOut { .. } => folds(true, protocol, items)?.remove(0).1,
-            _ => (0..items.len()).collect(),
+        let test = if protocol.scores_a_subset() {
+            folds(true, protocol, items)?.remove(0).1
+        } else {
+            (0..items.len()).collect()
         };
         return Ok(vec![(Vec::new(), test)]);
     }
@@ -144,17 +212,28 @@ pub fn folds(trained: bool, protocol: &Protocol, items: &[Item]) -> Result<Vec<F
             .collect()
     };
     Ok(match protocol {
-        Protocol::LeaveOneTrialOut => condition_folds(items, |it| it.meta.group.to_string()),
-        Protocol::LeaveOneConditionOut { key } => match key.as_str() {
-            "group" => condition_folds(items, |it| it.meta.group.to_string()),
-            "angle" => condition_folds(items, |it| {
-                it.meta
-                    .label
-                    .angle_deg
-                    .map_or("none".into(), |a| format!("{}", (a * 1e6).round() as i64))
-            }),
-            _ => condition_folds(items, |it| format!("{:?}", it.meta.label.stimulus)),
-        },
+        Protocol::LeaveOneTrialOut => condition_folds(label_values(items, "group", "leave_one_trial_out")?),
+        Protocol::LeaveOneConditionOut { key } => {
+            condition_folds(label_values(items, key, "leave_one_condition_out")?)
+        }
+        Protocol::TrainTest { key, train } => {
+            let values = label_values(items, key, "train_test")?;
+            let (tr, te): (Vec<usize>, Vec<usize>) = (0..n).partition(|&t| train.contains(&values[t]));
+            if tr.is_empty() {
+                let mut seen = values.clone();
+                seen.sort();
+                seen.dedup();
+                return Err(format!(
+                    "protocol.train_test.train: no trial has `{key}` in {train:?}; the trials' values are {seen:?}"
+                ));
+            }
+            if te.is_empty() {
+                return Err(format!(
+                    "protocol.train_test.train: every trial has `{key}` in {train:?}, so none is left to test"
+                ));
+            }
+            vec![(tr, te)]
+        }
         Protocol::KFold { k, seed } => {
             if *k > n {
                 return Err(format!(
@@ -200,8 +279,7 @@ pub fn folds(trained: bool, protocol: &Protocol, items: &[Item]) -> Result<Vec<F
 
 /// One fold per distinct value of `value` (in sorted order): test that value,
 /// train on the rest.
-fn condition_folds(items: &[Item], value: impl Fn(&Item) -> String) -> Vec<Fold> {
-    let values: Vec<String> = items.iter().map(&value).collect();
+fn condition_folds(values: Vec<String>) -> Vec<Fold> {
     let mut distinct = values.clone();
     distinct.sort_by(|a, b| match (a.parse::<i64>(), b.parse::<i64>()) {
         (Ok(x), Ok(y)) => x.cmp(&y),
@@ -211,7 +289,7 @@ fn condition_folds(items: &[Item], value: impl Fn(&Item) -> String) -> Vec<Fold>
     distinct
         .iter()
         .map(|v| {
-            let (test, train): (Vec<usize>, Vec<usize>) = (0..items.len()).partition(|&t| values[t] == *v);
+            let (test, train): (Vec<usize>, Vec<usize>) = (0..values.len()).partition(|&t| values[t] == *v);
             (train, test)
         })
         .collect()
@@ -259,6 +337,10 @@ mod tests {
             Protocol::LeaveOneConditionOut {
                 key: "stimulus".into(),
             },
+            Protocol::TrainTest {
+                key: "group".into(),
+                train: vec!["0".into(), "2".into()],
+            },
         ]
     }
 
@@ -281,7 +363,7 @@ mod tests {
             }
         }
         prop_assert!(tested.iter().all(|&c| c <= 1), "{p:?}: a trial tested twice");
-        if !matches!(p, Protocol::HoldOut { .. }) {
+        if !p.scores_a_subset() {
             prop_assert!(tested.iter().all(|&c| c == 1), "{p:?}: a trial never tested");
         }
         Ok(())
@@ -394,5 +476,73 @@ mod tests {
                 ),
             }
         }
+    }
+
+    fn with_condition(mut it: Item, key: &str, value: &str) -> Item {
+        let mut m = (*it.meta).clone();
+        m.conditions.insert(key.into(), value.into());
+        it.meta = Arc::new(m);
+        it
+    }
+
+    #[test]
+    fn conditions_split_folds_and_train_test_never_leaks() {
+        // 3 classes x 4 reps under "slow", the same under "fast".
+        let items: Vec<Item> = data(3, 4)
+            .into_iter()
+            .map(|it| with_condition(it, "condition", "slow"))
+            .chain(data(3, 4).into_iter().enumerate().map(|(i, it)| {
+                let mut it = with_condition(it, "condition", "fast");
+                let mut m = (*it.meta).clone();
+                m.trial_id = format!("fast{i}");
+                it.meta = Arc::new(m);
+                it
+            }))
+            .collect();
+        let loco = Protocol::LeaveOneConditionOut {
+            key: "condition".into(),
+        };
+        let f = folds(true, &loco, &items).unwrap();
+        assert_eq!(f.len(), 2);
+        for (train, test) in &f {
+            let tc = &items[test[0]].meta.conditions["condition"];
+            assert!(test.iter().all(|&t| &items[t].meta.conditions["condition"] == tc));
+            assert!(train.iter().all(|&t| &items[t].meta.conditions["condition"] != tc));
+        }
+        check_no_leak(&loco, &items).unwrap();
+        let tt = Protocol::TrainTest {
+            key: "condition".into(),
+            train: vec!["slow".into()],
+        };
+        let f = folds(true, &tt, &items).unwrap();
+        assert_eq!(f, vec![((0..12).collect(), (12..24).collect())]);
+        check_no_leak(&tt, &items).unwrap();
+        // Model-based estimators are scored on the same test trials only.
+        assert_eq!(folds(false, &tt, &items).unwrap(), vec![(vec![], (12..24).collect())]);
+        // A key no trial has, or a split that leaves nothing to train or to
+        // test, is an error naming the key.
+        let e = folds(
+            true,
+            &Protocol::LeaveOneConditionOut { key: "speed".into() },
+            &items,
+        )
+        .unwrap_err();
+        assert!(e.contains("no label `speed`") && e.contains("`condition`"), "{e}");
+        let none = Protocol::TrainTest {
+            key: "condition".into(),
+            train: vec!["medium".into()],
+        };
+        assert!(folds(true, &none, &items).unwrap_err().contains("\"fast\""));
+        let all = Protocol::TrainTest {
+            key: "condition".into(),
+            train: vec!["slow".into(), "fast".into()],
+        };
+        assert!(folds(true, &all, &items).unwrap_err().contains("none is left to test"));
+        assert!(Protocol::TrainTest {
+            key: "condition".into(),
+            train: vec![]
+        }
+        .check()
+        .is_err());
     }
 }

@@ -306,8 +306,9 @@ pub fn run(graph: &Graph, opts: &RunOptions<'_>) -> Result<RunResult, RunError> 
                 let items = &inputs[0];
                 let folds = folds(est.trained(), &graph.run.protocol, items)
                     .map_err(|e| RunError::new(id, None, e))?;
-                // A hold-out is one fold by design; every other protocol needs two.
-                let hold_out = matches!(graph.run.protocol, crate::protocol::Protocol::HoldOut { .. });
+                // A hold-out or train/test split is one fold by design; every
+                // other protocol needs two.
+                let hold_out = graph.run.protocol.scores_a_subset();
                 if est.trained() && folds.len() < 2 && !hold_out {
                     return Err(RunError::new(
                         id,

@@ -219,6 +219,30 @@ pub struct TrialLabels {
     pub group: Option<usize>,
     /// Trial length, ms (spike files).
     pub duration_ms: Option<f64>,
+    /// Conditions the trial was recorded under (`conditions = { speed_mm_s =
+    /// 1.5, skin = "thick" }`: strings, numbers or booleans), which the
+    /// `leave_one_condition_out` and `train_test` protocols split on.
+    #[serde(default, deserialize_with = "de_conditions")]
+    pub conditions: BTreeMap<String, String>,
+}
+
+fn de_conditions<'de, D: serde::Deserializer<'de>>(d: D) -> Result<BTreeMap<String, String>, D::Error> {
+    let raw = BTreeMap::<String, serde_json::Value>::deserialize(d)?;
+    raw.into_iter()
+        .map(|(k, v)| {
+            let s = match v {
+                serde_json::Value::String(s) => s,
+                serde_json::Value::Number(n) => n.to_string(),
+                serde_json::Value::Bool(b) => b.to_string(),
+                other => {
+                    return Err(serde::de::Error::custom(format!(
+                        "condition `{k}` must be a string, number or boolean, got {other}"
+                    )))
+                }
+            };
+            Ok((k, s))
+        })
+        .collect()
 }
 
 fn de_stimulus<'de, D: serde::Deserializer<'de>>(d: D) -> Result<Option<Stimulus>, D::Error> {
@@ -234,6 +258,11 @@ impl TrialLabels {
             stimulus: other.stimulus.or(self.stimulus),
             group: other.group.or(self.group),
             duration_ms: other.duration_ms.or(self.duration_ms),
+            conditions: {
+                let mut c = self.conditions.clone();
+                c.extend(other.conditions.clone());
+                c
+            },
         }
     }
 
@@ -455,6 +484,8 @@ struct JsonTrial {
     label: JsonLabel,
     #[serde(default)]
     group: Option<usize>,
+    #[serde(default, deserialize_with = "de_conditions")]
+    conditions: BTreeMap<String, String>,
 }
 
 #[derive(Deserialize)]
@@ -482,6 +513,7 @@ fn read_trials_json(text: &str) -> Result<BTreeMap<String, TrialLabels>, String>
             stimulus: t.label.stimulus,
             group: t.group,
             duration_ms: None,
+            conditions: t.conditions,
         };
         if out.insert(t.trial_id.clone(), labels).is_some() {
             return Err(format!("trial `{}` appears twice", t.trial_id));
@@ -570,6 +602,7 @@ pub fn build_metas(
                 label,
                 group,
                 crossing_ms: None,
+                conditions: l.conditions.clone(),
                 provenance: vec![],
             }
         })
@@ -594,6 +627,11 @@ pub fn sidecar_toml(rows: &[(String, &TrialMeta, Option<f64>)]) -> String {
         ));
         if let Some(d) = d {
             s.push_str(&format!("duration_ms = {d:?}\n"));
+        }
+        if !m.conditions.is_empty() {
+            let q = |x: &str| format!("\"{}\"", x.replace('\\', "\\\\").replace('"', "\\\""));
+            let items: Vec<String> = m.conditions.iter().map(|(k, v)| format!("{} = {}", q(k), q(v))).collect();
+            s.push_str(&format!("conditions = {{ {} }}\n", items.join(", ")));
         }
     }
     s

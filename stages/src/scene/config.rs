@@ -85,6 +85,24 @@ pub struct SceneConfig {
     #[serde(skip_serializing_if = "Option::is_none")]
     #[schemars(extend("default" = []))]
     pub effects: Option<Vec<EffectConfig>>,
+    /// Which simulated copy of the array to draw: every copy has its own
+    /// manufacturing draws (mismatch, dead taxels, per-taxel dynamics...), the
+    /// same for every trial of the copy; copy 0 is the one the run seed gives.
+    /// A condition with `array_copy = 1` is "a second array". Default 0.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    #[schemars(extend("default" = 0))]
+    pub array_copy: Option<u32>,
+    /// Conditions to simulate, by name: each a table of this scene's keys that
+    /// override the scene for that condition's trials (tables merged key by
+    /// key; a list such as `effects` is replaced). Every condition gets every
+    /// angle and repetition; its trial ids start with `<name>-` and its trials
+    /// carry the label `condition = "<name>"`, which the `train_test` and
+    /// `leave_one_condition_out` protocols split on. E.g. `conditions = { base
+    /// = {}, fast = { motion = { speed_mm_s = 3.0 } } }`. Names hold letters,
+    /// digits, `_` and `-` (so `--set stages.scene.conditions.<name>.<key>`
+    /// can address them). Default: none (one condition, plain ids).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub conditions: Option<std::collections::BTreeMap<String, SceneConfig>>,
 }
 
 /// The kind of stimulus a scene presents.
@@ -190,6 +208,11 @@ pub struct MotionKeys {
     /// at the end of the slide, mm, before the effects' reach is added. Default 1.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub margin_mm: Option<f64>,
+    /// Mean normal force relative to the one the scene describes (which
+    /// scales the contact pressure, like `variation`'s per-trial draw):
+    /// 1.3 presses 30 % harder. Unitless, in [0.01, 100]. Default 1.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub force_rel: Option<f64>,
 }
 
 /// The palpation, resolved.
@@ -205,6 +228,8 @@ pub struct Motion {
     pub sample_rate_hz: f64,
     /// mm.
     pub margin_mm: f64,
+    /// Mean normal force relative to the scene's, unitless.
+    pub force_rel: f64,
 }
 
 /// A ridge, resolved.
@@ -344,17 +369,68 @@ impl SceneConfig {
 
     /// Resolves the file (if any) and every default, and checks every value.
     pub fn resolve(&self, ctx: &BuildContext) -> Result<Scene, ConfigError> {
-        let merged = match &self.file {
+        self.merged(ctx)?.check()
+    }
+
+    /// This config over its file's keys (if any), unchecked.
+    pub fn merged(&self, ctx: &BuildContext) -> Result<SceneConfig, ConfigError> {
+        match &self.file {
             Some(f) => {
                 let path = ctx.resolve(f);
                 let base = SceneConfig::from_file(&path)?;
                 let mut inline = self.clone();
                 inline.file = None;
-                inline.over(&base)?
+                inline.over(&base)
             }
-            None => self.clone(),
+            None => Ok(self.clone()),
+        }
+    }
+
+    /// The scene of every condition, resolved and checked: `(name, scene
+    /// config)` in name order, or one unnamed entry without `conditions`.
+    /// Errors name `conditions.<name>.<key>`.
+    pub fn resolve_conditions(
+        &self,
+        ctx: &BuildContext,
+    ) -> Result<Vec<(Option<String>, SceneConfig, Scene)>, ConfigError> {
+        let mut merged = self.merged(ctx)?;
+        let Some(conditions) = merged.conditions.take() else {
+            let scene = merged.check()?;
+            return Ok(vec![(None, merged, scene)]);
         };
-        merged.check()
+        if conditions.is_empty() {
+            return Err(ConfigError::key(
+                "conditions",
+                "an empty table; leave `conditions` out for a single condition",
+            ));
+        }
+        let mut out = Vec::with_capacity(conditions.len());
+        for (name, cond) in conditions {
+            let key = |k: &str| format!("conditions.{name}{}{k}", if k.is_empty() { "" } else { "." });
+            if name.is_empty()
+                || !name
+                    .chars()
+                    .all(|c| c.is_ascii_alphanumeric() || matches!(c, '_' | '-'))
+            {
+                return Err(ConfigError::key(
+                    key(""),
+                    format!("condition name `{name}`: use letters, digits, `_` and `-` (it starts trial ids)"),
+                ));
+            }
+            if cond.file.is_some() {
+                return Err(ConfigError::key(key("file"), "a condition cannot name a scene `file`"));
+            }
+            if cond.conditions.is_some() {
+                return Err(ConfigError::key(key("conditions"), "conditions cannot nest"));
+            }
+            let cfg = cond.over(&merged)?;
+            let scene = cfg.check().map_err(|e| match &e.key {
+                Some(k) => ConfigError::key(key(k), e.message.clone()),
+                None => ConfigError::key(key(""), e.message.clone()),
+            })?;
+            out.push((Some(name), cfg, scene));
+        }
+        Ok(out)
     }
 
     /// Fills defaults and checks values (no file handling).
@@ -434,6 +510,7 @@ impl SceneConfig {
                 "Hz",
             )?,
             margin_mm: check_range("motion.margin_mm", m.margin_mm.unwrap_or(1.0), 0.0, 1e3, "mm")?,
+            force_rel: check_range("motion.force_rel", m.force_rel.unwrap_or(1.0), 0.01, 100.0, "")?,
         };
         Ok(Scene {
             stimulus,

@@ -74,23 +74,35 @@ impl StageConfig for SceneConfig {
         Some(PayloadKind::Signals)
     }
     fn build(&self, ctx: &BuildContext) -> Result<Stage, ConfigError> {
-        let scene = self.resolve(ctx)?;
-        let array_seed = derive_seed(ctx.seed, &[&ctx.stage_id, "array"]);
-        let sim = Simulator::new(scene, array_seed)?;
-        Ok(Stage::Source(Box::new(SceneSource { sim: Arc::new(sim) })))
+        let mut sims = Vec::new();
+        for (name, cfg, scene) in self.resolve_conditions(ctx)? {
+            let sim = Simulator::new(scene, array_seed(ctx, cfg.array_copy.unwrap_or(0)))?;
+            sims.push((name, Arc::new(sim)));
+        }
+        Ok(Stage::Source(Box::new(SceneSource { sims })))
     }
 }
 register_stage!("scene", SceneConfig);
 
-/// The runtime `scene` source.
+/// The seed of the array's manufacturing draws: copy 0 is the run seed's own
+/// (as before copies existed), copy `c` another independent draw.
+fn array_seed(ctx: &BuildContext, copy: u32) -> u64 {
+    if copy == 0 {
+        derive_seed(ctx.seed, &[&ctx.stage_id, "array"])
+    } else {
+        derive_seed(ctx.seed, &[&ctx.stage_id, "array", &copy.to_string()])
+    }
+}
+
+/// The runtime `scene` source: one simulator per condition.
 pub struct SceneSource {
-    sim: Arc<Simulator>,
+    sims: Vec<(Option<String>, Arc<Simulator>)>,
 }
 
 impl SceneSource {
-    /// The simulator behind the source.
+    /// The simulator behind the source (the first condition's).
     pub fn simulator(&self) -> &Simulator {
-        &self.sim
+        &self.sims[0].1
     }
 }
 
@@ -105,14 +117,20 @@ pub fn trial_id(stimulus: StimulusKind, angle: f64, rep: usize) -> String {
 
 impl Source for SceneSource {
     fn trials(&self) -> Result<Vec<TrialMeta>, StageError> {
-        let sc = &self.sim.scene;
-        let mut out = Vec::with_capacity(sc.angles.len() * sc.trials_per_angle);
-        for &angle in &sc.angles {
-            let plan = self.sim.plan(angle)?;
-            let crossing = self.sim.crossing_ms(&plan);
-            for rep in 0..sc.trials_per_angle {
-                out.push(TrialMeta {
-                    trial_id: trial_id(sc.stimulus, angle, rep),
+        let mut out = Vec::new();
+        for (name, sim) in &self.sims {
+            let sc = &sim.scene;
+            let conditions: std::collections::BTreeMap<String, String> = name
+                .iter()
+                .map(|n| ("condition".to_string(), n.clone()))
+                .collect();
+            let prefix = name.as_ref().map(|n| format!("{n}-")).unwrap_or_default();
+            for &angle in &sc.angles {
+                let plan = sim.plan(angle)?;
+                let crossing = sim.crossing_ms(&plan);
+                for rep in 0..sc.trials_per_angle {
+                    out.push(TrialMeta {
+                        trial_id: format!("{prefix}{}", trial_id(sc.stimulus, angle, rep)),
                     index: out.len(),
                     label: Label {
                         stimulus: match sc.stimulus {
@@ -123,8 +141,10 @@ impl Source for SceneSource {
                     },
                     group: rep,
                     crossing_ms: Some(crossing),
+                    conditions: conditions.clone(),
                     provenance: Vec::new(),
                 });
+                }
             }
         }
         Ok(out)
@@ -137,7 +157,19 @@ impl Source for SceneSource {
                 ctx.meta.trial_id
             ))
         })?;
-        Ok(self.sim.simulate(angle, ctx.seed)?.into())
+        let want = ctx.meta.conditions.get("condition");
+        let sim = self
+            .sims
+            .iter()
+            .find(|(name, _)| name.as_ref() == want || self.sims.len() == 1 && name.is_none())
+            .map(|(_, sim)| sim)
+            .ok_or_else(|| {
+                StageError::new(format!(
+                    "trial `{}` names condition {want:?}, which this scene does not simulate",
+                    ctx.meta.trial_id
+                ))
+            })?;
+        Ok(sim.simulate(angle, ctx.seed)?.into())
     }
 }
 
@@ -172,13 +204,17 @@ pub fn simulate_to_dir(
         out_dir: out.to_path_buf(),
         base_dir: PathBuf::from("."),
     };
-    let scene = config.resolve(&ctx).map_err(|e| StageError::new(e.message))?;
-    let sim = Simulator::new(scene, derive_seed(seed, &["scene", "array"]))
-        .map_err(|e| StageError::new(format!("scene file {}: {e}", scene_file.display())))?;
-    let source = SceneSource { sim: Arc::new(sim) };
+    // The same simulators a graph's `scene` stage builds, every condition included.
+    let mut sims = Vec::new();
+    for (name, cfg, scene) in config.resolve_conditions(&ctx).map_err(|e| StageError::new(e.to_string()))? {
+        let sim = Simulator::new(scene, array_seed(&ctx, cfg.array_copy.unwrap_or(0)))
+            .map_err(|e| StageError::new(format!("scene file {}: {e}", scene_file.display())))?;
+        sims.push((name, Arc::new(sim)));
+    }
+    let source = SceneSource { sims };
     let metas = source.trials()?;
     std::fs::create_dir_all(out).map_err(|e| StageError::new(format!("creating {}: {e}", out.display())))?;
-    let names = taxel_names(&source.sim.scene.layout);
+    let names = taxel_names(&source.simulator().scene.layout);
     // The files `write_signals` writes, so `signal_file` reads them back:
     // NPY `(samples, taxels)`, or CSV `time_ms, taxel_0 ..`; one per trial,
     // named after the trial id (scene ids are safe file names).
@@ -210,12 +246,12 @@ pub fn simulate_to_dir(
     write_file(&labels, crate::io::common::sidecar_toml(&rows).as_bytes())?;
     files.push(labels);
 
-    let sc = &source.sim.scene;
+    let sc = &source.simulator().scene;
     let json = serde_json::json!({
         "scene_file": scene_file.display().to_string(),
         "seed": seed,
         "sample_rate_hz": sc.motion.sample_rate_hz,
-        "unit": source.sim.unit,
+        "unit": source.simulator().unit,
         "layout": sc.layout,
         "taxels": names,
         "columns": (0..names.len()).map(|i| format!("taxel_{i}")).collect::<Vec<_>>(),

@@ -279,7 +279,7 @@ impl Simulator {
         // through a table of exact values and slopes (error bound in `field`).
         let (exact, smooth) = profile.split();
         let table = smooth.as_ref().map(Table::new);
-        let force = draw.force;
+        let force = draw.force * m.force_rel;
         let (sup_lo, sup_hi) = profile.support();
         let (left, right) = (profile.value(sup_lo - 1.0), profile.value(sup_hi + 1.0));
         // Sleeves: the shear u(k) (mm) by which the pattern lags the array,

@@ -262,3 +262,72 @@ fn the_sleeve_delays_the_pattern_by_its_shear() {
     let (ka, kb) = (half(&a), half(&b));
     assert!(kb > ka, "shear must delay the crossing: {ka} vs {kb}");
 }
+
+#[test]
+fn conditions_simulate_each_scene_variant_with_labels_and_prefixed_ids() {
+    let src = build(
+        "angles = [45]\ntrials_per_angle = 2\n\
+         effects = [{ kind = \"mismatch\", gain_sd = 0.2, offset_sd = 0.0 }]\n\
+         [conditions.base]\n\
+         [conditions.fast]\nmotion = { speed_mm_s = 4.0 }\n\
+         [conditions.hard]\nmotion = { force_rel = 1.3 }\n\
+         [conditions.other]\narray_copy = 1\n",
+    );
+    let metas = src.trials().unwrap();
+    let ids: Vec<&str> = metas.iter().map(|m| m.trial_id.as_str()).collect();
+    assert_eq!(
+        ids,
+        [
+            "base-edge-45deg-r00",
+            "base-edge-45deg-r01",
+            "fast-edge-45deg-r00",
+            "fast-edge-45deg-r01",
+            "hard-edge-45deg-r00",
+            "hard-edge-45deg-r01",
+            "other-edge-45deg-r00",
+            "other-edge-45deg-r01"
+        ]
+    );
+    for m in &metas {
+        assert_eq!(m.conditions["condition"], m.trial_id.split('-').next().unwrap());
+    }
+    // Same trial seed in each: only the condition's keys differ.
+    let base = produce(src.as_ref(), 0);
+    let fast = produce(src.as_ref(), 2);
+    let hard = produce(src.as_ref(), 4);
+    let other = produce(src.as_ref(), 6);
+    // Twice the speed: the slide takes about half as long (holds unchanged).
+    assert!(fast.n_samples() < base.n_samples() * 3 / 4, "{} vs {}", fast.n_samples(), base.n_samples());
+    // 30 % more force: 30 % more pressure in full contact (the ideal response
+    // scaled, before the mismatch gain of the same array).
+    let full = |s: &Signals| s.data.iter().map(|t| t[0]).fold(0.0, f64::max);
+    assert!((full(&hard) / full(&base) - 1.3).abs() < 1e-9, "{}", full(&hard) / full(&base));
+    // A second array: another gain draw, so the same pressure reads differently.
+    assert_eq!(other.n_samples(), base.n_samples());
+    assert_ne!(other.data, base.data);
+}
+
+#[test]
+fn bad_conditions_are_named_errors() {
+    let ctx = BuildContext {
+        stage_id: "scene".into(),
+        seed: 3,
+        out_dir: std::env::temp_dir(),
+        base_dir: std::path::PathBuf::from("."),
+    };
+    let err = |keys: &str| {
+        let cfg: SceneConfig = toml::from_str(keys).unwrap();
+        match cfg.build(&ctx) {
+            Ok(_) => panic!("built: {keys}"),
+            Err(e) => e,
+        }
+    };
+    let e = err("[conditions.\"a/b\"]\n");
+    assert!(e.message.contains("letters, digits"), "{e}");
+    let e = err("[conditions.fast]\nmotion = { speed_mm_s = -1.0 }\n");
+    assert_eq!(e.key.as_deref(), Some("conditions.fast.motion.speed_mm_s"), "{e}");
+    let e = err("[conditions.x]\nconditions = { y = {} }\n");
+    assert_eq!(e.key.as_deref(), Some("conditions.x.conditions"), "{e}");
+    let e = err("conditions = {}\n");
+    assert_eq!(e.key.as_deref(), Some("conditions"), "{e}");
+}
