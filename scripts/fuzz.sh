@@ -41,7 +41,7 @@ for t in "${targets[@]}"; do
     echo "fuzz $t: ok, $done_runs executions in $(( $(date +%s) - t0 )) s"
   else
     echo "fuzz $t: FAILED after $(( $(date +%s) - t0 )) s; log:"
-    grep -E 'ERROR|panicked|Test unit written|SUMMARY|deadly|out-of-memory|timeout' "$log" | head -20
+    grep -E 'ERROR|panicked|Test unit written|SUMMARY|deadly|out-of-memory|timeout|error' "$log" | head -20 || true
     status=1
   fi
   rm -f "$log"
