@@ -202,6 +202,11 @@ pub struct WssConfig {
     /// Speeds of the grid searched when `speed_tolerance > 0`, 2 to 41.
     /// Default 5 (steps of 10 % at a tolerance of 20 %).
     pub speed_steps: usize,
+    /// The answer is flagged `uncertain` when a class that is not the best
+    /// class's grid neighbour scores within this much of the best score
+    /// (scores are weighted mean correlations; the margin is their
+    /// difference, no unit). 0 never flags. Default 0.05 (see the module docs).
+    pub uncertain_margin: f64,
 }
 
 impl Default for WssConfig {
@@ -222,6 +227,7 @@ impl Default for WssConfig {
             distance: p.distance,
             speed_tolerance: p.speed_tolerance,
             speed_steps: p.speed_steps,
+            uncertain_margin: p.uncertain_margin,
         }
     }
 }
@@ -243,6 +249,7 @@ impl WssConfig {
             distance: self.distance,
             speed_tolerance: self.speed_tolerance,
             speed_steps: self.speed_steps,
+            uncertain_margin: self.uncertain_margin,
         };
         p.validate()?;
         if let Some(m) = self.stop_margin {
