@@ -392,6 +392,13 @@ pub struct Estimate {
     pub best_frame: Option<usize>,
     /// How much palpation the answer needed, ms from the trial's start.
     pub decision_time_ms: Option<f64>,
+    /// The estimator flags its answer as unreliable (each estimator documents
+    /// its rule; WSS: a class that is not the best's grid neighbour scores
+    /// nearly as well, or the answer's crossing is longer than its templates).
+    /// An uncertain answer is still an answer: sinks count it, never drop it.
+    /// Absent in older files: false.
+    #[serde(default)]
+    pub uncertain: bool,
 }
 
 /// A payload of any kind. Large payloads are shared, never copied, between the

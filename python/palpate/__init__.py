@@ -264,6 +264,9 @@ class Estimate:
     best_frame: Optional[int] = None
     decision_time_ms: Optional[float] = None
     meta: Optional[dict] = None
+    # The estimator flags the answer as unreliable (WSS: a rival class far from
+    # the best scores nearly as well; see the `wss` stage's `uncertain_margin`).
+    uncertain: bool = False
 
     def __post_init__(self) -> None:
         self.class_angles = np.asarray(self.class_angles, dtype=np.float64)
@@ -280,6 +283,7 @@ class Estimate:
             "scores": self.scores,
             "best_frame": self.best_frame,
             "decision_time_ms": self.decision_time_ms,
+            "uncertain": bool(self.uncertain),
             "meta": self.meta,
         }
 
@@ -293,6 +297,7 @@ class Estimate:
             r["best_frame"],
             r["decision_time_ms"],
             _meta_of(r),
+            uncertain=bool(r.get("uncertain", False)),
         )
 
 

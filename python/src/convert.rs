@@ -8,7 +8,7 @@
 //! | `signals` | `data` float64 `(samples, taxels)`, `sample_rate_hz`, `unit`, `layout` |
 //! | `spikes` | `taxel` uint32 `(n,)`, `t_ms` float64 `(n,)`, `duration_ms`, `layout` |
 //! | `images` | `counts` float64 `(frames, taxels)`, `window_ms`, `hop_ms`, `layout` |
-//! | `estimate` | `angle_deg`, `class_deg` (float or None), `class_angles`, `scores` float64 `(classes,)`, `best_frame`, `decision_time_ms` |
+//! | `estimate` | `angle_deg`, `class_deg` (float or None), `class_angles`, `scores` float64 `(classes,)`, `best_frame`, `decision_time_ms`, `uncertain` (bool; absent: false) |
 //!
 //! `layout` is the JSON form of [`TaxelLayout`] as a dict (`{"kind": "grid",
 //! "rows": 4, ...}`); `meta` is `{"trial_id", "index", "angle_deg", "stimulus",
@@ -244,6 +244,7 @@ pub fn payload_to_py<'py>(py: Python<'py>, p: &Payload) -> PyResult<Bound<'py, P
             )?;
             d.set_item("best_frame", e.best_frame)?;
             d.set_item("decision_time_ms", e.decision_time_ms)?;
+            d.set_item("uncertain", e.uncertain)?;
         }
     }
     Ok(d)
@@ -411,6 +412,10 @@ pub fn payload_from_py(obj: &Bound<'_, PyAny>) -> PyResult<Payload> {
                 scores,
                 best_frame,
                 decision_time_ms: opt_f64(d, "decision_time_ms")?,
+                uncertain: match d.get_item("uncertain")? {
+                    Some(v) if !v.is_none() => v.extract::<bool>()?,
+                    _ => false,
+                },
             }))
         }
         other => Err(PyValueError::new_err(format!(

@@ -771,6 +771,7 @@ fn images_and_estimates_sinks_write_what_they_get() {
             .collect(),
         best_frame: a.map(|_| 4),
         decision_time_ms: Some(512.5),
+        uncertain: false,
     };
     let wss = vec![
         Item {

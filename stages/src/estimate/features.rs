@@ -782,6 +782,7 @@ impl Accumulator {
             scores,
             best_frame: Some(self.peak[w].1),
             decision_time_ms: self.last_frame.map(|k| k as f64 * spec.hop_ms + spec.window_ms),
+            uncertain: false,
         }
     }
 }

@@ -41,11 +41,16 @@
 //!   every miss costs at least 5°, so "4 of 170 wrong" says what an MAE of
 //!   0.12° (SD 0.76°) hides.
 //!
+//! * uncertain answers (metric `<id>.uncertain`): trials whose estimate flags
+//!   itself `uncertain` (each estimator documents its rule; WSS: a rival class
+//!   scores nearly as well). Counted, and kept in the MAE like any answer: the
+//!   count says how many of the errors the estimator warned about.
+//!
 //! Files, in the run's output directory, written atomically: `<sink id>.json`,
 //! `<sink id>.csv` (one row per estimator and class, numeric columns only),
 //! `<sink id>_overall.csv` (one row per estimator), `<sink id>.md` (the table
 //! as Markdown), `<sink id>_trials.csv` (one row per estimator and trial: truth,
-//! answer, error, correct, decision time) and `<sink id>_per_class.svg`
+//! answer, error, correct, decision time, uncertain) and `<sink id>_per_class.svg`
 //! (per-class MAE bars, one panel per estimator on shared axes).
 
 use palpate_core::output::write_atomic;
@@ -149,6 +154,8 @@ pub struct MaeStats {
     pub max_class_mae_deg: Option<f64>,
     /// Trials answered "no edge".
     pub no_edge: usize,
+    /// Trials whose estimate flags itself uncertain (kept in the MAE).
+    pub uncertain: usize,
     /// Trials without a true angle (left out).
     pub unlabelled: usize,
     /// Trials in all.
@@ -193,11 +200,13 @@ pub fn with_accuracy(mut stats: MaeStats, pairs: &[(Option<f64>, Option<f64>)], 
 }
 
 /// One row per trial as CSV: `estimator, trial, true_angle_deg, estimate_deg,
-/// abs_error_deg, correct, decision_ms` (empty cell: not known, or "no edge";
-/// `decision_ms` from first contact as in the summary).
+/// abs_error_deg, correct, decision_ms, uncertain` (empty cell: not known, or
+/// "no edge"; `decision_ms` from first contact as in the summary; `uncertain`
+/// true or false).
 pub fn trials_csv(rows: &[TrialRow]) -> String {
-    let mut s =
-        String::from("estimator,trial,true_angle_deg,estimate_deg,abs_error_deg,correct,decision_ms\n");
+    let mut s = String::from(
+        "estimator,trial,true_angle_deg,estimate_deg,abs_error_deg,correct,decision_ms,uncertain\n",
+    );
     let f = |v: Option<f64>| v.map_or(String::new(), |x| format!("{x}"));
     for r in rows {
         let err = r.truth.zip(r.estimate).map(|(t, e)| (e - t).abs());
@@ -206,14 +215,15 @@ pub fn trials_csv(rows: &[TrialRow]) -> String {
         });
         let _ = writeln!(
             s,
-            "{},{},{},{},{},{},{}",
+            "{},{},{},{},{},{},{},{}",
             csv_field(&r.estimator),
             csv_field(&r.trial),
             f(r.truth),
             f(r.estimate),
             f(err),
             correct,
-            f(r.decision_ms)
+            f(r.decision_ms),
+            r.uncertain
         );
     }
     s
@@ -243,6 +253,8 @@ pub struct TrialRow {
     pub decision_ms: Option<f64>,
     /// The tolerance of "correct", degrees.
     pub tolerance: f64,
+    /// The estimate flags itself uncertain.
+    pub uncertain: bool,
 }
 
 /// One trial's decision time from first contact: `(ms, timed from the start?)`,
@@ -377,12 +389,13 @@ pub fn to_csv(all: &[MaeStats]) -> String {
 /// The overall statistics of several estimators as CSV (`<sink id>_overall.csv`):
 /// one row per estimator, every column after `estimator` numeric.
 pub fn to_overall_csv(all: &[MaeStats]) -> String {
-    let mut s =
-        String::from("estimator,trials,no_edge,unlabelled,mae_deg,sd_deg,max_class_mae_deg,decision_ms\n");
+    let mut s = String::from(
+        "estimator,trials,no_edge,unlabelled,mae_deg,sd_deg,max_class_mae_deg,decision_ms,uncertain\n",
+    );
     for st in all {
         let _ = writeln!(
             s,
-            "{},{},{},{},{},{},{},{}",
+            "{},{},{},{},{},{},{},{},{}",
             st.estimator,
             st.trials,
             st.no_edge,
@@ -390,7 +403,8 @@ pub fn to_overall_csv(all: &[MaeStats]) -> String {
             csv_num(st.mae_deg),
             csv_num(st.sd_deg),
             csv_num(st.max_class_mae_deg),
-            csv_num(st.decision_ms)
+            csv_num(st.decision_ms),
+            st.uncertain
         );
     }
     s
@@ -432,7 +446,7 @@ pub fn to_markdown(all: &[MaeStats]) -> String {
         }
         s.push('\n');
     }
-    let rows: [SummaryCell; 6] = [
+    let rows: [SummaryCell; 7] = [
         ("accuracy (wrong trials)", |st| match st.accuracy {
             Some(a) => format!("{:.1}% ({})", a * 100.0, st.labelled - st.correct),
             None => "-".to_string(),
@@ -442,6 +456,9 @@ pub fn to_markdown(all: &[MaeStats]) -> String {
         }),
         ("largest per-class MAE", |st| fmt_opt(st.max_class_mae_deg, 2)),
         ("no edge", |st| st.no_edge.to_string()),
+        ("uncertain (flagged by the estimator)", |st| {
+            st.uncertain.to_string()
+        }),
         ("decision time, median ms from contact", |st| {
             fmt_opt(st.decision_ms, 0)
         }),
@@ -501,11 +518,12 @@ pub fn render(stats: &MaeStats, per_class: bool) -> String {
     }
     let _ = writeln!(
         s,
-        "  MAE {}° (SD {}°), largest per-class MAE {}°, no edge {}{}",
+        "  MAE {}° (SD {}°), largest per-class MAE {}°, no edge {}, uncertain {}{}",
         fmt_opt(stats.mae_deg, 2),
         fmt_opt(stats.sd_deg, 2),
         fmt_opt(stats.max_class_mae_deg, 2),
         stats.no_edge,
+        stats.uncertain,
         if stats.unlabelled > 0 {
             format!(", {} unlabelled trials left out", stats.unlabelled)
         } else {
@@ -538,11 +556,13 @@ impl Sink for MaeSink {
         for input in inputs {
             let mut pairs = Vec::with_capacity(input.items.len());
             let mut times = Vec::with_capacity(input.items.len());
+            let mut uncertain = 0;
             for item in input.items {
                 let est = item.payload.estimate()?;
                 pairs.push((item.meta.label.angle_deg, est.angle_deg));
                 let time = decision_from_contact(est.decision_time_ms, item.meta.crossing_ms);
                 times.extend(time);
+                uncertain += usize::from(est.uncertain);
                 trial_rows.push(TrialRow {
                     estimator: input.stage_id.to_string(),
                     trial: item.meta.trial_id.clone(),
@@ -550,11 +570,13 @@ impl Sink for MaeSink {
                     estimate: est.angle_deg,
                     decision_ms: time.map(|t| t.0),
                     tolerance: self.correct_within_deg,
+                    uncertain: est.uncertain,
                 });
             }
             let stats = with_coarse(mae_stats(input.stage_id, &pairs), &pairs, &self.acuity_deg);
             let stats = with_decision(stats, &times);
-            let stats = with_accuracy(stats, &pairs, self.correct_within_deg);
+            let mut stats = with_accuracy(stats, &pairs, self.correct_within_deg);
+            stats.uncertain = uncertain;
             report.text.push_str(&render(&stats, self.per_class));
             let id = input.stage_id;
             if let Some(m) = stats.mae_deg {
@@ -569,6 +591,9 @@ impl Sink for MaeSink {
             report
                 .metrics
                 .push((format!("{id}.no_edge"), stats.no_edge as f64));
+            report
+                .metrics
+                .push((format!("{id}.uncertain"), stats.uncertain as f64));
             if let Some(a) = stats.accuracy {
                 report.metrics.push((format!("{id}.accuracy"), a));
                 report
@@ -726,7 +751,7 @@ mod tests {
             text.contains("median 200 ms") && text.contains("1 without a known crossing"),
             "{text}"
         );
-        assert!(to_overall_csv(&[s]).lines().nth(1).unwrap().ends_with(",200"));
+        assert!(to_overall_csv(&[s]).lines().nth(1).unwrap().ends_with(",200,0"));
     }
 
     #[test]
@@ -764,23 +789,25 @@ mod tests {
 
     #[test]
     fn per_trial_table_has_one_row_per_trial() {
-        let row = |trial: &str, truth, estimate| TrialRow {
+        let row = |trial: &str, truth, estimate, uncertain| TrialRow {
             estimator: "wss".into(),
             trial: trial.into(),
             truth,
             estimate,
             decision_ms: Some(1500.0),
             tolerance: 0.0,
+            uncertain,
         };
         let csv = trials_csv(&[
-            row("a", Some(45.0), Some(50.0)),
-            row("b,c", Some(45.0), None),
-            row("d", None, Some(30.0)),
+            row("a", Some(45.0), Some(50.0), false),
+            row("b,c", Some(45.0), None, false),
+            row("d", None, Some(30.0), true),
         ]);
         let lines: Vec<&str> = csv.lines().collect();
         assert_eq!(lines.len(), 4);
-        assert_eq!(lines[1], "wss,a,45,50,5,false,1500");
-        assert_eq!(lines[2], "wss,\"b,c\",45,,,false,1500");
-        assert_eq!(lines[3], "wss,d,,30,,,1500");
+        assert!(lines[0].ends_with(",decision_ms,uncertain"));
+        assert_eq!(lines[1], "wss,a,45,50,5,false,1500,false");
+        assert_eq!(lines[2], "wss,\"b,c\",45,,,false,1500,false");
+        assert_eq!(lines[3], "wss,d,,30,,,1500,true");
     }
 }

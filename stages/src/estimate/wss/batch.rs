@@ -605,10 +605,20 @@ pub(crate) fn finish(
             scores,
             best_frame: any_spikes.then_some(best[b].1),
             decision_time_ms,
+            uncertain: false,
         };
     }
     let class = angles[b];
     let mut angle = class;
+    // A rival: the best score of the classes that are not the best's grid
+    // neighbours (nor the best itself).
+    let rival = best
+        .iter()
+        .enumerate()
+        .filter(|(c, _)| c.abs_diff(b) > 1)
+        .map(|(_, s)| s.0)
+        .fold(f64::NEG_INFINITY, f64::max);
+    let uncertain = best[b].0 - rival < params.uncertain_margin;
     let neighbours = (b > 0 && b + 1 < angles.len()).then(|| {
         (
             [angles[b - 1], angles[b], angles[b + 1]],
@@ -643,6 +653,7 @@ pub(crate) fn finish(
         scores,
         best_frame: Some(best[b].1),
         decision_time_ms,
+        uncertain,
     }
 }
 

@@ -64,6 +64,24 @@
 //!   joint speed search does not remove it (it trades angle for speed along
 //!   `v·sin θ`). On the lab scene the skin's spread masks it: 0.78 ± 0.15
 //!   degrees MAE over 13 off-grid angles and 5 seeds (graphs/continuous.toml).
+//!   Its cause is the ends of the crossing, not the middle: the score of an
+//!   ideal 45-degree trial over classes 43 to 49 by 0.1 (`refine = "none"`,
+//!   `angles = { from = 43, to = 49, step = 0.1 }`, a `write_estimates`
+//!   sink) rises smoothly to 46.8 (0.9668) and then falls along another
+//!   curve (46.9: 0.9664, 47: 0.9650): a kink, not a smooth peak. At 45 the
+//!   best alignment pairs the template's first ~27 frames (the line over
+//!   the last corner taxel) with spike-free frames, whose correlation is 0:
+//!   the encoder needs the edge well onto a corner taxel before it fires, so
+//!   the observed activity is shorter than the template's span. Eq. 5
+//!   divides by the template's length `k(θ) + 1`, so a faster template (an
+//!   angle nearer 90) that drops those frames scores higher, up to where its
+//!   length equals the activity's: the kink. Near 90 degrees the length
+//!   barely changes with `θ`, and the opposite end effect (activity that
+//!   outlasts the template: the low-pass tail and the 100 ms bins) is what
+//!   is left. Dividing by a fixed length instead (the sum of eq. 5's
+//!   numerator) or comparing every probed angle on the same interior
+//!   frames of the best class's match removes most of the bias at 20 to 70
+//!   degrees but moves 84.1 by about −1.2 degrees; neither is the default.
 //! * The default grid is 10 to 170 degrees by 5 (33 classes): both leanings
 //!   of an edge. Edges nearer 0 or 180 than the grid are reached only by the
 //!   refinement; their crossing takes `1/sin θ` long (320 s at 1 degree on
@@ -84,6 +102,18 @@
 //!   Hence the default is `constant`; the paper graphs set `one_minus_sr`.
 //! * "No edge" (`angle_deg = None`): no frame has a spike, or the best score is
 //!   under `threshold`.
+//! * Uncertain answers ([`Estimate::uncertain`]): when a class that is not the
+//!   best class's grid neighbour scores within `uncertain_margin` (default
+//!   0.05) of the best, the answer is kept but flagged. Edges nearer 0 or 180
+//!   than a few degrees cross the array with a whole row of taxels at once
+//!   and score low and flat over the grid: on the ideal scene 3 degrees is
+//!   answered 157.6 (best 0.246, a rival 0.246) and 177 degrees 22.4; on the
+//!   lab scene (seeds 1 and 2, 5 trials each of 5 and 175 degrees next to
+//!   the 13 angles of graphs/continuous.toml, `write_estimates`) every such
+//!   trial off by more than 5 degrees (10 of 20, 11.7 to 27.4 degrees off
+//!   as orientations) had a rival within 0.031, while no trial at 7.7 to
+//!   172.3 degrees (130) had one closer than 0.069. So a wrong answer near 0 or 180 is flagged, not
+//!   silent; some right ones near 0 or 180 are flagged too.
 //!
 //! # Unknown crossing speed
 //!
@@ -202,6 +232,11 @@ pub struct WssConfig {
     /// Speeds of the grid searched when `speed_tolerance > 0`, 2 to 41.
     /// Default 5 (steps of 10 % at a tolerance of 20 %).
     pub speed_steps: usize,
+    /// The answer is flagged `uncertain` when a class that is not the best
+    /// class's grid neighbour scores within this much of the best score
+    /// (scores are weighted mean correlations; the margin is their
+    /// difference, no unit). 0 never flags. Default 0.05 (see the module docs).
+    pub uncertain_margin: f64,
 }
 
 impl Default for WssConfig {
@@ -222,6 +257,7 @@ impl Default for WssConfig {
             distance: p.distance,
             speed_tolerance: p.speed_tolerance,
             speed_steps: p.speed_steps,
+            uncertain_margin: p.uncertain_margin,
         }
     }
 }
@@ -243,6 +279,7 @@ impl WssConfig {
             distance: self.distance,
             speed_tolerance: self.speed_tolerance,
             speed_steps: self.speed_steps,
+            uncertain_margin: self.uncertain_margin,
         };
         p.validate()?;
         if let Some(m) = self.stop_margin {

@@ -181,6 +181,9 @@ pub struct WssParams {
     pub speed_tolerance: f64,
     /// Speeds of the coarse speed grid when `speed_tolerance > 0`.
     pub speed_steps: usize,
+    /// Score margin under which a rival class (not the best's grid neighbour)
+    /// makes the answer uncertain.
+    pub uncertain_margin: f64,
 }
 
 impl Default for WssParams {
@@ -199,6 +202,7 @@ impl Default for WssParams {
             distance: Distance::Centre,
             speed_tolerance: 0.0,
             speed_steps: 5,
+            uncertain_margin: 0.05,
         }
     }
 }
@@ -260,6 +264,15 @@ impl WssParams {
             return Err(ConfigError::key(
                 "speed_steps",
                 format!("must lie in 2..=41, got {}", self.speed_steps),
+            ));
+        }
+        if !(self.uncertain_margin.is_finite() && (0.0..=2.0).contains(&self.uncertain_margin)) {
+            return Err(ConfigError::key(
+                "uncertain_margin",
+                format!(
+                    "must lie in [0, 2] (a difference of scores in [-1, 1]), got {}",
+                    self.uncertain_margin
+                ),
             ));
         }
         check_positive("max_template_s", self.max_template_s, "s")?;

@@ -853,3 +853,62 @@ fn joint_speed_search_tolerates_a_wrong_declared_speed() {
     let tpl = Arc::new(Templates::new(&layout, 10.0, &WssParams::default()).unwrap());
     assert!(WssStream::new(tpl, p, 100.0).is_err());
 }
+
+/// The uncertainty rule: a rival class that is not the best's grid neighbour
+/// within `uncertain_margin` of the best score flags the answer; neighbours
+/// never do; "no edge" is never flagged; an ideal trial is certain.
+#[test]
+fn a_close_rival_class_flags_the_answer_uncertain() {
+    let params = WssParams::default();
+    let angles = [10.0, 15.0, 20.0, 25.0, 160.0];
+    let est = |scores: [f64; 5]| {
+        let best: Vec<(f64, usize)> = scores.iter().map(|&s| (s, 3)).collect();
+        batch::finish(&angles, &best, true, Some(1000.0), &params, None)
+    };
+    // The neighbour (15) nearly ties the best (10): still certain.
+    let e = est([0.8, 0.79, 0.3, 0.2, 0.1]);
+    assert_eq!(e.class_deg, Some(10.0));
+    assert!(!e.uncertain);
+    // A far class (160) within 0.05 of the best: uncertain, answer kept.
+    let e = est([0.30, 0.2, 0.1, 0.1, 0.27]);
+    assert_eq!(e.class_deg, Some(10.0));
+    assert!(e.uncertain);
+    // Just outside the margin: certain.
+    let e = est([0.30, 0.2, 0.1, 0.1, 0.24]);
+    assert!(!e.uncertain);
+    // Margin 0 never flags.
+    let p0 = WssParams {
+        uncertain_margin: 0.0,
+        ..WssParams::default()
+    };
+    let best: Vec<(f64, usize)> = [0.3, 0.2, 0.1, 0.1, 0.3].iter().map(|&s| (s, 3)).collect();
+    assert!(!batch::finish(&angles, &best, true, None, &p0, None).uncertain);
+    // "No edge" is not flagged.
+    let e = est([0.05, 0.04, 0.03, 0.02, 0.05]);
+    assert_eq!(e.angle_deg, None);
+    assert!(!e.uncertain);
+    // A clean ideal trial is certain.
+    let tpl = Templates::new(&TaxelLayout::paper(), 10.0, &params).unwrap();
+    let e = wss_batch(&paper_trial(45.0), &tpl, &params).unwrap();
+    assert_eq!(e.class_deg, Some(45.0));
+    assert!(!e.uncertain);
+}
+
+#[test]
+fn uncertain_margin_is_checked_and_estimates_without_it_read_as_certain() {
+    let bad = WssConfig {
+        uncertain_margin: f64::NAN,
+        ..WssConfig::default()
+    };
+    assert!(bad.params().unwrap_err().to_string().contains("uncertain_margin"));
+    let e: palpate_core::Estimate = serde_json::from_str(
+        r#"{"angle_deg":45.0,"class_deg":45.0,"scores":[],"best_frame":null,"decision_time_ms":null}"#,
+    )
+    .unwrap();
+    assert!(!e.uncertain);
+    let back: palpate_core::Estimate = serde_json::from_str(
+        &serde_json::to_string(&palpate_core::Estimate { uncertain: true, ..e }).unwrap(),
+    )
+    .unwrap();
+    assert!(back.uncertain);
+}
