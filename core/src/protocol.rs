@@ -81,7 +81,8 @@ impl Protocol {
             Protocol::KFold { k, .. } if *k < 2 => Err(format!("protocol.k_fold.k: must be at least 2, got {k}")),
             Protocol::KFold { .. } => Ok(()),
             Protocol::HoldOut { test_share, .. } if !(*test_share > 0.0 && *test_share < 1.0) => Err(format!(
-                "protocol.hold_out.test_share: must lie in (0, 1), got {test_share}"
+                "protocol.hold_out.test_share: must lie in (0, 1), got {}",
+                crate::fmt_num(*test_share)
             )),
             Protocol::HoldOut { .. } => Ok(()),
             Protocol::LeaveOneConditionOut { key } if !CONDITION_KEYS.contains(&key.as_str()) => Err(format!(

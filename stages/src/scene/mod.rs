@@ -58,8 +58,8 @@ pub use sim::Simulator;
 
 use palpate_core::output::write_atomic;
 use palpate_core::{
-    derive_seed, register_stage, BuildContext, ConfigError, InputSpec, Label, Payload, PayloadKind, Source,
-    Stage, StageConfig, StageError, Stimulus, TrialContext, TrialMeta,
+    derive_seed, register_stage, BuildContext, ConfigError, InputSpec, Inspection, Label, OutputFacts,
+    Payload, PayloadKind, Source, Stage, StageConfig, StageError, Stimulus, TrialContext, TrialMeta,
 };
 use rayon::prelude::*;
 use std::path::{Path, PathBuf};
@@ -78,6 +78,22 @@ impl StageConfig for SceneConfig {
         let array_seed = derive_seed(ctx.seed, &[&ctx.stage_id, "array"]);
         let sim = Simulator::new(scene, array_seed)?;
         Ok(Stage::Source(Box::new(SceneSource { sim: Arc::new(sim) })))
+    }
+    /// The sample rate (`motion.sample_rate_hz`), for the stages downstream
+    /// (a low-pass checks its cutoff against it), and the deprecation
+    /// warnings of the scene's keys and file.
+    fn inspect(&self, ctx: &BuildContext, _inputs: &[OutputFacts]) -> Inspection {
+        match self.resolve_with_warnings(ctx) {
+            Ok((scene, warnings)) => Inspection {
+                facts: OutputFacts {
+                    sample_rate_hz: Some(scene.motion.sample_rate_hz),
+                },
+                errors: Vec::new(),
+                warnings,
+            },
+            // `build` reported it already.
+            Err(_) => Inspection::default(),
+        }
     }
 }
 register_stage!("scene", SceneConfig);
@@ -172,7 +188,7 @@ pub fn simulate_to_dir(
         out_dir: out.to_path_buf(),
         base_dir: PathBuf::from("."),
     };
-    let scene = config.resolve(&ctx).map_err(|e| StageError::new(e.message))?;
+    let scene = config.resolve(&ctx).map_err(|e| StageError::new(e.to_string()))?;
     let sim = Simulator::new(scene, derive_seed(seed, &["scene", "array"]))
         .map_err(|e| StageError::new(format!("scene file {}: {e}", scene_file.display())))?;
     let source = SceneSource { sim: Arc::new(sim) };

@@ -91,7 +91,7 @@ fn unlisted_effects_are_never_constructed_nor_computed() {
 
 #[test]
 fn trials_are_listed_angle_by_angle_with_groups_and_ids() {
-    let src = build("angles = { start = 10, stop = 20, step = 2.5 }\ntrials_per_angle = 2");
+    let src = build("angles = { from = 10, to = 20, step = 2.5 }\ntrials_per_angle = 2");
     let t = src.trials().unwrap();
     let ids: Vec<&str> = t.iter().map(|m| m.trial_id.as_str()).collect();
     assert_eq!(

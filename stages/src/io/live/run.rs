@@ -308,8 +308,9 @@ pub fn run_live_serial(
         r.ended = LiveEnd::Daq(DaqError {
             kind: DaqErrorKind::Disconnected,
             message: format!(
-                "serial port {port} closed after {} frames were received ({})",
-                r.stats.frames, r.stats
+                "serial port {port} closed after {} received ({})",
+                crate::io::daq::protocol::count(r.stats.frames, "frame was", "frames were"),
+                r.stats
             ),
             stats: r.stats.clone(),
             recorded_bytes: r.recorded_bytes,
