@@ -591,10 +591,7 @@ fn cmd_run(
         println!("== {id}");
         // A report is text lines; one that forgot its last line end must not
         // run into the next report's header.
-        print!("{}", report.text);
-        if !report.text.is_empty() && !report.text.ends_with('\n') {
-            println!();
-        }
+        crate::report::print_lines(&report.text);
     }
     let rows = crate::report::timing_rows(&result);
     println!(
@@ -656,7 +653,7 @@ fn cmd_run_live(
         Ok(reports) => {
             for (id, report) in &reports {
                 println!("== {id}");
-                print!("{}", report.text);
+                crate::report::print_lines(&report.text);
             }
             println!("live replay: {:.2} s wall", t0.elapsed().as_secs_f64());
             ExitCode::SUCCESS
@@ -875,7 +872,14 @@ fn cmd_daq(command: DaqCommand) -> ExitCode {
                 }
                 other => eprintln!("daq: {}", describe_update(other)),
             });
-            if let Some(p) = player {
+            // The in-process emulator has played every frame when the run
+            // took them all; a run stopped earlier (--seconds) leaves it
+            // waiting for a reader, which is no error: it ends with palpate.
+            let took_all = matches!(
+                &result,
+                Ok(r) if r.ended == live::LiveEnd::Acquisition(daq::StopReason::MaxFrames)
+            );
+            if let Some(p) = player.filter(|_| took_all) {
                 if let Ok(Err(e)) = p.join() {
                     eprintln!("emulator: {e}");
                 }
@@ -885,6 +889,12 @@ fn cmd_daq(command: DaqCommand) -> ExitCode {
                     if let Some(err) = report.error() {
                         eprintln!("{port}: {err}");
                         return ExitCode::FAILURE;
+                    }
+                    if report.ended == live::LiveEnd::Acquisition(daq::StopReason::EndOfStream) {
+                        eprintln!(
+                            "{port}: end of playback after {}",
+                            plural(report.stats.frames, "frame", "frames")
+                        );
                     }
                     ExitCode::SUCCESS
                 }

@@ -283,7 +283,7 @@ pub fn sweep_report(graph: &Graph, runs: &[palpate_core::sweep::SweepRun]) -> st
         }
         for (id, rep) in &r.result.reports {
             println!("-- {id}");
-            print!("{}", rep.text);
+            print_lines(&rep.text);
         }
         if let Err(e) = write_run_files(&r.graph, &r.result) {
             eprintln!("{e}");
@@ -293,9 +293,10 @@ pub fn sweep_report(graph: &Graph, runs: &[palpate_core::sweep::SweepRun]) -> st
     let rows = palpate_core::sweep::summarize(runs, &sweep.metrics);
     let points = sweep.points().len();
     println!(
-        "== sweep over {} ({points} points x {} repeats; per-point timing in <point>/timing.md)",
+        "== sweep over {} ({} x {}; per-point timing in <point>/timing.md)",
         sweep.describe(),
-        sweep.repeats
+        crate::stages::io::daq::protocol::count(points as u64, "point", "points"),
+        crate::stages::io::daq::protocol::count(sweep.repeats as u64, "repeat", "repeats")
     );
     let head = if sweep.series.is_empty() {
         sweep.key.as_str()
@@ -369,7 +370,7 @@ pub fn sweep_report(graph: &Graph, runs: &[palpate_core::sweep::SweepRun]) -> st
                 println!(
                     "== accuracy-time frontier (compute ms: median per trial summed over the estimator's upstream stages, sources left out; decision ms: median palpation from first contact)"
                 );
-                print!("{text}");
+                print_lines(&text);
             }
             Err(e) => {
                 eprintln!("frontier: {e}");
@@ -382,5 +383,14 @@ pub fn sweep_report(graph: &Graph, runs: &[palpate_core::sweep::SweepRun]) -> st
         std::process::ExitCode::FAILURE
     } else {
         std::process::ExitCode::SUCCESS
+    }
+}
+
+/// Prints text lines, ending with a newline even when the text forgot its
+/// last one (so the next line never runs into it).
+pub fn print_lines(text: &str) {
+    print!("{text}");
+    if !text.is_empty() && !text.ends_with('\n') {
+        println!();
     }
 }
