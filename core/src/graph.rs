@@ -456,7 +456,9 @@ struct Pending {
     type_name: String,
     inputs: Vec<String>,
     config: Box<dyn StageConfig>,
-    stage: Stage,
+    /// `None` when `build` refused the config (its errors are reported); the
+    /// stage is still wired and inspected, so that every error shows at once.
+    stage: Option<Stage>,
     line: Option<usize>,
 }
 
@@ -586,20 +588,27 @@ impl<'t> Loader<'t> {
             base_dir: base_dir.clone(),
         };
         self.inspect(&pending, &order, &input_index, &ctx, &lines);
+        // In file order, so that a reader goes down the file once; those
+        // without a line (overrides, the graph as a whole) first.
+        self.diags.sort_by_key(|d| d.line.unwrap_or(0));
         if self.diags.iter().any(|d| d.severity == Severity::Error) {
             return Err(LoadErrors(self.diags));
         }
-        let nodes = pending
-            .into_iter()
-            .map(|p| StageNode {
+        let mut nodes = Vec::with_capacity(pending.len());
+        for p in pending {
+            let Some(stage) = p.stage else {
+                // Unreachable: a refused build reported an error above.
+                return Err(LoadErrors(self.diags));
+            };
+            nodes.push(StageNode {
                 id: p.id,
                 type_name: p.type_name,
                 inputs: p.inputs,
                 config: p.config,
-                stage: p.stage,
+                stage,
                 line: p.line,
-            })
-            .collect();
+            });
+        }
         Ok(Graph {
             file: self.file,
             run,
@@ -1039,20 +1048,21 @@ impl<'t> Loader<'t> {
             out_dir: out_dir.to_path_buf(),
             base_dir: base_dir.to_path_buf(),
         };
-        match config.build(&ctx) {
-            Ok(stage) => Some(Pending {
-                id: id.to_string(),
-                type_name,
-                inputs,
-                config,
-                stage,
-                line,
-            }),
+        let stage = match config.build(&ctx) {
+            Ok(stage) => Some(stage),
             Err(e) => {
                 self.config_problems(Severity::Error, &e, id, lines);
                 None
             }
-        }
+        };
+        Some(Pending {
+            id: id.to_string(),
+            type_name,
+            inputs,
+            config,
+            stage,
+            line,
+        })
     }
 
     /// One diagnostic per problem a config reported, each at its key's line.

@@ -86,9 +86,10 @@ fn every_wrong_scene_key_is_reported_not_only_the_first() {
     );
     let d = load(&text).unwrap_err();
     let keys: Vec<&str> = errors(&d).iter().filter_map(|d| d.key.as_deref()).collect();
+    // In file order: `motion` is written before `ridge`.
     assert_eq!(
         keys,
-        ["ridge.width_mm", "motion.speed_mm_s", "motion.hold_before_s"],
+        ["motion.speed_mm_s", "motion.hold_before_s", "ridge.width_mm"],
         "{d:#?}"
     );
 }
@@ -104,6 +105,10 @@ fn a_cutoff_at_or_above_nyquist_is_refused_at_check_time() {
         assert_eq!(e[0].key.as_deref(), Some("cutoff_hz"));
         assert!(e[0].message.contains("Nyquist frequency 500 Hz"), "{}", e[0]);
     }
+    // Beside another error of the stage's own build: both are reported.
+    let d = load(&graph("angles = [45]", "order = 0\ncutoff_hz = 600.0", "")).unwrap_err();
+    let keys: Vec<&str> = errors(&d).iter().filter_map(|d| d.key.as_deref()).collect();
+    assert_eq!(keys, ["order", "cutoff_hz"], "{d:#?}");
     // Below it, or with another scene rate, the graph loads.
     assert!(load(&graph("angles = [45]", "cutoff_hz = 499.0", "")).is_ok());
     let text = graph(

@@ -99,7 +99,8 @@ impl StageConfig for BinConfig {
     /// frames are counted by none.
     fn inspect(&self, _ctx: &BuildContext, _inputs: &[OutputFacts]) -> Inspection {
         let mut out = Inspection::default();
-        if self.window_ms < self.hop_ms {
+        // A window that is not positive is an error of `build` already.
+        if self.window_ms > 0.0 && self.window_ms < self.hop_ms {
             out.warnings.push(ConfigError::key(
                 "window_ms",
                 format!(
