@@ -217,9 +217,11 @@ enum DaqCommand {
         /// Playback speed of the emulated trial: 1 = real time.
         #[arg(long, default_value_t = 1.0)]
         speed: f64,
-        /// The live pipeline's settings (a graph with a `live` stage, or a file of its keys).
-        #[arg(long, default_value = "graphs/live.toml")]
-        config: PathBuf,
+        /// The live pipeline's settings (a graph with a `live` stage, or a file of
+        /// its keys). Default: the shipped graphs/live.toml, built into palpate,
+        /// so the command works from any folder.
+        #[arg(long)]
+        config: Option<PathBuf>,
         /// Baud rate (USB CDC devices ignore it).
         #[arg(long, default_value_t = 921_600)]
         baud: u32,
@@ -591,10 +593,7 @@ fn cmd_run(
         println!("== {id}");
         // A report is text lines; one that forgot its last line end must not
         // run into the next report's header.
-        print!("{}", report.text);
-        if !report.text.is_empty() && !report.text.ends_with('\n') {
-            println!();
-        }
+        crate::report::print_lines(&report.text);
     }
     let rows = crate::report::timing_rows(&result);
     println!(
@@ -656,7 +655,7 @@ fn cmd_run_live(
         Ok(reports) => {
             for (id, report) in &reports {
                 println!("== {id}");
-                print!("{}", report.text);
+                crate::report::print_lines(&report.text);
             }
             println!("live replay: {:.2} s wall", t0.elapsed().as_secs_f64());
             ExitCode::SUCCESS
@@ -774,7 +773,7 @@ fn cmd_daq(command: DaqCommand) -> ExitCode {
             });
             match result {
                 Ok(report) => {
-                    println!("done: {report:?}");
+                    println!("{}", describe_playback(&report));
                     ExitCode::SUCCESS
                 }
                 Err(e) => {
@@ -794,10 +793,15 @@ fn cmd_daq(command: DaqCommand) -> ExitCode {
             record,
             seconds,
         } => {
-            let cfg = match live::LiveConfig::from_file(&config) {
+            let loaded = match &config {
+                Some(path) => live::LiveConfig::from_file(path),
+                None => live::LiveConfig::from_toml_str(DEFAULT_LIVE_CONFIG)
+                    .map_err(|e| e.context("graphs/live.toml (built in)")),
+            };
+            let cfg = match loaded {
                 Ok(c) => c,
                 Err(e) => {
-                    eprintln!("{}: {e}", config.display());
+                    eprintln!("{e}");
                     return ExitCode::FAILURE;
                 }
             };
@@ -868,9 +872,16 @@ fn cmd_daq(command: DaqCommand) -> ExitCode {
                         None => println!("{:>9.1} s  {what}: no edge", e.t_ms / 1e3),
                     }
                 }
-                other => eprintln!("daq: {other:?}"),
+                other => eprintln!("daq: {}", describe_update(other)),
             });
-            if let Some(p) = player {
+            // The in-process emulator has played every frame when the run
+            // took them all; a run stopped earlier (--seconds) leaves it
+            // waiting for a reader, which is no error: it ends with palpate.
+            let took_all = matches!(
+                &result,
+                Ok(r) if r.ended == live::LiveEnd::Acquisition(daq::StopReason::MaxFrames)
+            );
+            if let Some(p) = player.filter(|_| took_all) {
                 if let Ok(Err(e)) = p.join() {
                     eprintln!("emulator: {e}");
                 }
@@ -881,6 +892,12 @@ fn cmd_daq(command: DaqCommand) -> ExitCode {
                         eprintln!("{port}: {err}");
                         return ExitCode::FAILURE;
                     }
+                    if report.ended == live::LiveEnd::Acquisition(daq::StopReason::EndOfStream) {
+                        eprintln!(
+                            "{port}: end of playback after {}",
+                            plural(report.stats.frames, "frame", "frames")
+                        );
+                    }
                     ExitCode::SUCCESS
                 }
                 Err(e) => {
@@ -889,6 +906,67 @@ fn cmd_daq(command: DaqCommand) -> ExitCode {
                 }
             }
         }
+    }
+}
+
+/// graphs/live.toml, built in: the default `--config` of `palpate daq run`,
+/// so that it does not depend on the folder palpate runs in.
+const DEFAULT_LIVE_CONFIG: &str = include_str!("../graphs/live.toml");
+
+/// "1 frame", "2 frames".
+fn plural(n: u64, one: &str, many: &str) -> String {
+    format!("{n} {}", if n == 1 { one } else { many })
+}
+
+/// One line on a finished playback, for people (not a struct dump).
+fn describe_playback(r: &crate::stages::io::daq::EmulateReport) -> String {
+    let mut s = format!(
+        "played {} ({}) in {:.1} s",
+        plural(r.frames, "frame", "frames"),
+        plural(r.bytes, "byte", "bytes"),
+        r.elapsed.as_secs_f64()
+    );
+    if r.clamped > 0 {
+        s.push_str(&format!(
+            "; {} clamped to the u16 range",
+            plural(r.clamped, "sample", "samples")
+        ));
+    }
+    s
+}
+
+/// One line on a stream anomaly of a live run.
+fn describe_update(u: &crate::stages::io::live::LiveUpdate) -> String {
+    use crate::stages::io::live::LiveUpdate;
+    match u {
+        LiveUpdate::Estimate(e) | LiveUpdate::Final(e) => format!("estimate at {:.1} s", e.t_ms / 1e3),
+        LiveUpdate::Lost {
+            expected,
+            got,
+            count,
+            held,
+        } => format!(
+            "{} lost (sequence {expected} due, {got} received){}",
+            plural(*count, "frame", "frames"),
+            if *held {
+                "; held the previous frame in their place"
+            } else {
+                "; the gap is over max_gap_ms"
+            }
+        ),
+        LiveUpdate::CrcError { total } => format!(
+            "a frame failed its CRC and was dropped ({} so far)",
+            plural(*total, "CRC error", "CRC errors")
+        ),
+        LiveUpdate::OutOfOrder { total } => format!(
+            "a frame from the past (device reset?) ({} so far)",
+            plural(*total, "out-of-order frame", "out-of-order frames")
+        ),
+        LiveUpdate::Stall { silent_ms } => format!("no frame for {:.1} s", silent_ms / 1e3),
+        LiveUpdate::NonFinite { total } => format!(
+            "non-finite samples replaced by the previous values ({} so far)",
+            plural(*total, "sample", "samples")
+        ),
     }
 }
 

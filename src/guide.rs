@@ -15,6 +15,7 @@ const PAGES: &[(&str, &str)] = &[
     ("scene", "stages/sources.md"),
     ("signal_file", "stages/sources.md"),
     ("spike_file", "stages/sources.md"),
+    ("image_file", "stages/sources.md"),
     ("lowpass", "stages/signals.md"),
     ("normalize", "stages/signals.md"),
     ("derivative", "stages/signals.md"),

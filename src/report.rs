@@ -293,7 +293,7 @@ pub fn sweep_report(graph: &Graph, runs: &[palpate_core::sweep::SweepRun]) -> (S
         }
         for (id, rep) in &r.result.reports {
             let _ = writeln!(text, "-- {id}");
-            text.push_str(&rep.text);
+            push_lines(&mut text, &rep.text);
         }
         if let Err(e) = write_run_files(&r.graph, &r.result) {
             eprintln!("{e}");
@@ -304,9 +304,10 @@ pub fn sweep_report(graph: &Graph, runs: &[palpate_core::sweep::SweepRun]) -> (S
     let points = sweep.points().len();
     let _ = writeln!(
         text,
-        "== sweep over {} ({points} points x {} repeats; per-point timing in <point>/timing.md)",
+        "== sweep over {} ({} x {}; per-point timing in <point>/timing.md)",
         sweep.describe(),
-        sweep.repeats
+        crate::stages::io::daq::protocol::count(points as u64, "point", "points"),
+        crate::stages::io::daq::protocol::count(sweep.repeats as u64, "repeat", "repeats")
     );
     let head = if sweep.series.is_empty() {
         sweep.key.as_str()
@@ -381,7 +382,7 @@ pub fn sweep_report(graph: &Graph, runs: &[palpate_core::sweep::SweepRun]) -> (S
                     text,
                     "== accuracy-time frontier (compute ms: median per trial summed over the estimator's upstream stages, sources left out; decision ms: median palpation from first contact)"
                 );
-                text.push_str(&frontier);
+                push_lines(&mut text, &frontier);
             }
             Err(e) => {
                 eprintln!("frontier: {e}");
@@ -391,4 +392,21 @@ pub fn sweep_report(graph: &Graph, runs: &[palpate_core::sweep::SweepRun]) -> (S
     }
     let _ = writeln!(text, "reports in {}", out.display());
     (text, !failed)
+}
+
+/// Appends text lines to `out`, ending with a newline even when the text
+/// forgot its last one (so the next line never runs into it).
+pub fn push_lines(out: &mut String, text: &str) {
+    out.push_str(text);
+    if !text.is_empty() && !text.ends_with('\n') {
+        out.push('\n');
+    }
+}
+
+/// Prints `text`, ending it with a newline if it lacks one.
+pub fn print_lines(text: &str) {
+    print!("{text}");
+    if !text.is_empty() && !text.ends_with('\n') {
+        println!();
+    }
 }

@@ -21,13 +21,19 @@
 //! order: TOML syntax; unknown top-level tables; `[run]` keys; per stage, its
 //! `type` (unknown types list close matches), unknown and missing keys (against
 //! the config's schema), mistyped keys (serde's error, located by
-//! `serde_path_to_error`), the config's own range checks (`build`); then the
-//! graph: unknown inputs, input counts, payload-kind mismatches on edges, cycles
-//! (naming their stages), the absence of a source, and (a warning) stages whose
-//! output nobody reads. Nothing runs on a graph with an error.
+//! `serde_path_to_error`), the config's own range checks (`build`: every wrong
+//! key of a stage, each its own diagnostic); then the graph: unknown inputs,
+//! input counts, payload-kind mismatches on edges, cycles (naming their
+//! stages), the absence of a source, and (a warning) stages whose output
+//! nobody reads; last, in data-flow order, each stage's
+//! [`inspect`](crate::StageConfig::inspect) against what is known of its
+//! inputs before anything runs (a low-pass cutoff at or above the Nyquist
+//! frequency of a scene's sample rate is an error here, not at run time), with
+//! its warnings (deprecated key spellings, a bin window shorter than its hop).
+//! Nothing runs on a graph with an error.
 
 use crate::registry;
-use crate::stage::{BuildContext, InputSpec, Stage, StageConfig};
+use crate::stage::{BuildContext, ConfigError, InputSpec, OutputFacts, Stage, StageConfig};
 use petgraph::graph::{DiGraph, NodeIndex};
 use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
@@ -450,7 +456,9 @@ struct Pending {
     type_name: String,
     inputs: Vec<String>,
     config: Box<dyn StageConfig>,
-    stage: Stage,
+    /// `None` when `build` refused the config (its errors are reported); the
+    /// stage is still wired and inspected, so that every error shows at once.
+    stage: Option<Stage>,
     line: Option<usize>,
 }
 
@@ -573,20 +581,34 @@ impl<'t> Loader<'t> {
 
         let (order, input_index) =
             self.check_graph(&pending, &lines, stages_declared(&doc), &inputs_declared(&doc));
+        let ctx = BuildContext {
+            stage_id: String::new(),
+            seed: run.seed,
+            out_dir: out_dir.clone(),
+            base_dir: base_dir.clone(),
+        };
+        self.inspect(&pending, &order, &input_index, &ctx, &lines);
+        // In file order, so that a reader goes down the file once; those
+        // without a line (overrides, the graph as a whole) first.
+        self.diags.sort_by_key(|d| d.line.unwrap_or(0));
         if self.diags.iter().any(|d| d.severity == Severity::Error) {
             return Err(LoadErrors(self.diags));
         }
-        let nodes = pending
-            .into_iter()
-            .map(|p| StageNode {
+        let mut nodes = Vec::with_capacity(pending.len());
+        for p in pending {
+            let Some(stage) = p.stage else {
+                // Unreachable: a refused build reported an error above.
+                return Err(LoadErrors(self.diags));
+            };
+            nodes.push(StageNode {
                 id: p.id,
                 type_name: p.type_name,
                 inputs: p.inputs,
                 config: p.config,
-                stage: p.stage,
+                stage,
                 line: p.line,
-            })
-            .collect();
+            });
+        }
         Ok(Graph {
             file: self.file,
             run,
@@ -1039,24 +1061,74 @@ impl<'t> Loader<'t> {
             out_dir: out_dir.to_path_buf(),
             base_dir: base_dir.to_path_buf(),
         };
-        match config.build(&ctx) {
-            Ok(stage) => Some(Pending {
-                id: id.to_string(),
-                type_name,
-                inputs,
-                config,
-                stage,
-                line,
-            }),
+        let stage = match config.build(&ctx) {
+            Ok(stage) => Some(stage),
             Err(e) => {
-                let l = e
-                    .key
-                    .as_deref()
-                    .map(|k| key_line(k.split(['.', '[']).next().unwrap_or(k)))
-                    .unwrap_or(line);
-                self.error(l, Some(id), e.key.as_deref(), e.to_string());
+                self.config_problems(Severity::Error, &e, id, lines);
                 None
             }
+        };
+        Some(Pending {
+            id: id.to_string(),
+            type_name,
+            inputs,
+            config,
+            stage,
+            line,
+        })
+    }
+
+    /// One diagnostic per problem a config reported, each at its key's line.
+    fn config_problems(&mut self, severity: Severity, e: &ConfigError, id: &str, lines: &Lines) {
+        for (key, message) in e.problems() {
+            let line = key
+                .map(|k| k.split(['.', '[']).next().unwrap_or(k))
+                .and_then(|k| lines.keys.get(&(id.to_string(), k.to_string())))
+                .or_else(|| lines.stages.get(id))
+                .copied();
+            self.diags.push(Diagnostic {
+                severity,
+                file: self.file.clone(),
+                line,
+                stage: Some(id.to_string()),
+                key: key.map(str::to_string),
+                message: match key {
+                    Some(k) => format!("key `{k}`: {message}"),
+                    None => message.to_string(),
+                },
+            });
+        }
+    }
+
+    /// Runs every stage's [`StageConfig::inspect`] in data-flow order, each
+    /// with what is known of its inputs (their sample rate, ...), and reports
+    /// its errors and warnings.
+    fn inspect(
+        &mut self,
+        nodes: &[Pending],
+        order: &[usize],
+        input_index: &[Vec<usize>],
+        ctx: &BuildContext,
+        lines: &Lines,
+    ) {
+        let mut facts: Vec<OutputFacts> = vec![OutputFacts::default(); nodes.len()];
+        for &i in order {
+            let n = &nodes[i];
+            let inputs: Vec<OutputFacts> = input_index[i].iter().map(|&j| facts[j].clone()).collect();
+            let ctx = BuildContext {
+                stage_id: n.id.clone(),
+                ..ctx.clone()
+            };
+            let found = n.config.inspect(&ctx, &inputs);
+            for (severity, list) in [
+                (Severity::Error, &found.errors),
+                (Severity::Warning, &found.warnings),
+            ] {
+                if let Some(e) = ConfigError::join(list.clone()) {
+                    self.config_problems(severity, &e, &n.id, lines);
+                }
+            }
+            facts[i] = found.facts;
         }
     }
 

@@ -43,9 +43,9 @@ pub use payload::{
 };
 pub use runtime::{run, Cache, Progress, RunError, RunOptions, RunResult, StageTiming};
 pub use stage::{
-    check_positive, check_range, derive_seed, BuildContext, ConfigError, Estimator, FitContext, InputSpec,
-    Map, Model, Sink, SinkContext, SinkInput, SinkReport, Source, Stage, StageConfig, StageError,
-    TrialContext,
+    check_positive, check_range, derive_seed, fmt_num, BuildContext, ConfigChecks, ConfigError, Estimator,
+    FitContext, InputSpec, Inspection, Map, Model, OutputFacts, Sink, SinkContext, SinkInput, SinkReport,
+    Source, Stage, StageConfig, StageError, TrialContext,
 };
 
 /// Re-exports used by [`register_stage!`]; not part of the public API.

@@ -171,7 +171,10 @@ impl TaxelLayout {
         }
         let t = self.taxel_mm();
         if !(t.is_finite() && t > 0.0) {
-            return Err(format!("taxel size must be a positive number of mm, got {t}"));
+            return Err(format!(
+                "taxel size must be a positive number of mm, got {}",
+                crate::fmt_num(t)
+            ));
         }
         match self {
             TaxelLayout::Grid {
@@ -183,7 +186,10 @@ impl TaxelLayout {
                     ));
                 }
                 if !(pitch_mm.is_finite() && *pitch_mm > 0.0) {
-                    return Err(format!("pitch must be a positive number of mm, got {pitch_mm}"));
+                    return Err(format!(
+                        "pitch must be a positive number of mm, got {}",
+                        crate::fmt_num(*pitch_mm)
+                    ));
                 }
             }
             TaxelLayout::Positions { positions_mm, .. } => {

@@ -120,7 +120,10 @@ fn label_values(items: &[Item], key: &str, protocol: &str) -> Result<Vec<String>
                 format!(
                     "protocol.{protocol}.key: trial `{}` has no label `{key}`; its labels are {}",
                     it.meta.trial_id,
-                    have.iter().map(|k| format!("`{k}`")).collect::<Vec<_>>().join(", ")
+                    have.iter()
+                        .map(|k| format!("`{k}`"))
+                        .collect::<Vec<_>>()
+                        .join(", ")
                 )
             })
         })
@@ -135,7 +138,8 @@ impl Protocol {
             Protocol::KFold { k, .. } if *k < 2 => Err(format!("protocol.k_fold.k: must be at least 2, got {k}")),
             Protocol::KFold { .. } => Ok(()),
             Protocol::HoldOut { test_share, .. } if !(*test_share > 0.0 && *test_share < 1.0) => Err(format!(
-                "protocol.hold_out.test_share: must lie in (0, 1), got {test_share}"
+                "protocol.hold_out.test_share: must lie in (0, 1), got {}",
+                crate::fmt_num(*test_share)
             )),
             Protocol::HoldOut { .. } => Ok(()),
             Protocol::LeaveOneConditionOut { key } if key.trim().is_empty() => Err(
@@ -507,7 +511,9 @@ mod tests {
         for (train, test) in &f {
             let tc = &items[test[0]].meta.conditions["condition"];
             assert!(test.iter().all(|&t| &items[t].meta.conditions["condition"] == tc));
-            assert!(train.iter().all(|&t| &items[t].meta.conditions["condition"] != tc));
+            assert!(train
+                .iter()
+                .all(|&t| &items[t].meta.conditions["condition"] != tc));
         }
         check_no_leak(&loco, &items).unwrap();
         let tt = Protocol::TrainTest {
@@ -518,7 +524,10 @@ mod tests {
         assert_eq!(f, vec![((0..12).collect(), (12..24).collect())]);
         check_no_leak(&tt, &items).unwrap();
         // Model-based estimators are scored on the same test trials only.
-        assert_eq!(folds(false, &tt, &items).unwrap(), vec![(vec![], (12..24).collect())]);
+        assert_eq!(
+            folds(false, &tt, &items).unwrap(),
+            vec![(vec![], (12..24).collect())]
+        );
         // A key no trial has, or a split that leaves nothing to train or to
         // test, is an error naming the key.
         let e = folds(
@@ -537,7 +546,9 @@ mod tests {
             key: "condition".into(),
             train: vec!["slow".into(), "fast".into()],
         };
-        assert!(folds(true, &all, &items).unwrap_err().contains("none is left to test"));
+        assert!(folds(true, &all, &items)
+            .unwrap_err()
+            .contains("none is left to test"));
         assert!(Protocol::TrainTest {
             key: "condition".into(),
             train: vec![]

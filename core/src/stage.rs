@@ -71,14 +71,39 @@ impl InputSpec {
 }
 
 /// A problem with a stage's config, naming the key when there is one.
-#[derive(Clone, Debug, PartialEq, thiserror::Error)]
-#[error("{}{message}", key.as_ref().map(|k| format!("key `{k}`: ")).unwrap_or_default())]
+///
+/// A config with several wrong keys reports them all in one error: the first
+/// problem is `key` and `message`, every further one is in `more` (each with
+/// its own key; gather them with [`ConfigChecks`]). `palpate check` prints
+/// each problem as its own diagnostic, with its key's line.
+#[derive(Clone, Debug, PartialEq)]
 pub struct ConfigError {
     /// The offending key (a dotted path for nested keys), if any.
     pub key: Option<String>,
     /// What is wrong and what would be right.
     pub message: String,
+    /// Further problems of the same config, found by the same check; empty
+    /// when there is one problem.
+    pub more: Vec<ConfigError>,
 }
+
+impl fmt::Display for ConfigError {
+    /// Every problem, each as "key `k`: message", separated by "; ".
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        for (i, (key, message)) in self.problems().into_iter().enumerate() {
+            if i > 0 {
+                f.write_str("; ")?;
+            }
+            if let Some(k) = key {
+                write!(f, "key `{k}`: ")?;
+            }
+            f.write_str(message)?;
+        }
+        Ok(())
+    }
+}
+
+impl std::error::Error for ConfigError {}
 
 impl ConfigError {
     /// A problem with `key`.
@@ -86,6 +111,7 @@ impl ConfigError {
         ConfigError {
             key: Some(key.into()),
             message: message.into(),
+            more: Vec::new(),
         }
     }
 
@@ -94,7 +120,113 @@ impl ConfigError {
         ConfigError {
             key: None,
             message: message.into(),
+            more: Vec::new(),
         }
+    }
+
+    /// Every problem this error holds, first one first, as (key, message).
+    pub fn problems(&self) -> Vec<(Option<&str>, &str)> {
+        let mut out = vec![(self.key.as_deref(), self.message.as_str())];
+        for m in &self.more {
+            out.extend(m.problems());
+        }
+        out
+    }
+
+    /// One error holding every problem of `errors` (in order); `None` when
+    /// there is none.
+    pub fn join(errors: Vec<ConfigError>) -> Option<ConfigError> {
+        let mut it = errors.into_iter();
+        let mut first = it.next()?;
+        first.more.extend(it);
+        Some(first)
+    }
+
+    /// The same problems with every message prefixed by `what: ` (e.g. the
+    /// file they were found in).
+    pub fn context(mut self, what: &str) -> ConfigError {
+        self.message = format!("{what}: {}", self.message);
+        self.more = self.more.into_iter().map(|m| m.context(what)).collect();
+        self
+    }
+
+    /// The same problems with every key prefixed by `prefix.` (a key of a
+    /// nested table: `ridge` + `width_mm` gives `ridge.width_mm`).
+    pub fn within(mut self, prefix: &str) -> ConfigError {
+        self.key = Some(match self.key.take() {
+            Some(k) => format!("{prefix}.{k}"),
+            None => prefix.to_string(),
+        });
+        self.more = self.more.into_iter().map(|m| m.within(prefix)).collect();
+        self
+    }
+}
+
+/// Gathers every problem of a config, so that `build` reports them all at
+/// once instead of stopping at the first:
+///
+/// ```
+/// # use palpate_core::{check_positive, check_range, ConfigChecks, ConfigError};
+/// fn check(order: f64, cutoff_hz: f64) -> Result<(), ConfigError> {
+///     let mut c = ConfigChecks::new();
+///     c.take(check_range("order", order, 1.0, 16.0, ""));
+///     c.take(check_positive("cutoff_hz", cutoff_hz, "Hz"));
+///     c.finish()
+/// }
+/// let e = check(0.0, -1.0).unwrap_err();
+/// assert_eq!(e.problems().len(), 2);
+/// ```
+#[derive(Debug, Default)]
+pub struct ConfigChecks {
+    errors: Vec<ConfigError>,
+}
+
+impl ConfigChecks {
+    /// No problem yet.
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// The value of a check that passed; a failed check's problem is kept
+    /// (and `None` returned) so that the next checks still run.
+    pub fn take<T>(&mut self, result: Result<T, ConfigError>) -> Option<T> {
+        match result {
+            Ok(v) => Some(v),
+            Err(e) => {
+                self.errors.push(e);
+                None
+            }
+        }
+    }
+
+    /// Records a problem.
+    pub fn push(&mut self, e: ConfigError) {
+        self.errors.push(e);
+    }
+
+    /// True while no check failed.
+    pub fn is_ok(&self) -> bool {
+        self.errors.is_empty()
+    }
+
+    /// `Ok` when every check passed, else one error holding every problem.
+    pub fn finish(self) -> Result<(), ConfigError> {
+        match ConfigError::join(self.errors) {
+            None => Ok(()),
+            Some(e) => Err(e),
+        }
+    }
+}
+
+/// A number as messages print it: Rust's shortest round-trip form, or
+/// exponent form when that would be long (magnitude at least 1e15 or below
+/// 1e-6, so `f64::MAX` prints as `1.7976931348623157e308`, not 309 digits).
+pub fn fmt_num(v: f64) -> String {
+    let a = v.abs();
+    if v.is_finite() && a != 0.0 && !(1e-6..1e15).contains(&a) {
+        format!("{v:e}")
+    } else {
+        format!("{v}")
     }
 }
 
@@ -106,28 +238,28 @@ pub fn check_range(key: &str, value: f64, min: f64, max: f64, unit: &str) -> Res
     } else {
         // Bounds print readably: an open upper end (f64::MAX) is said in
         // words, and a huge bound in exponent form, never as 309 digits.
-        let num = |v: f64| {
-            if v.abs() >= 1e15 {
-                format!("{v:e}")
-            } else {
-                format!("{v}")
-            }
+        let num = fmt_num;
+        // A unitless key says no unit (no stray space before the comma).
+        let unit = if unit.is_empty() {
+            String::new()
+        } else {
+            format!(" {unit}")
         };
         let msg = if max == f64::MAX {
             format!(
-                "must be a finite number of at least {} {unit}, got {}",
+                "must be a finite number of at least {}{unit}, got {}",
                 num(min),
                 num(value)
             )
         } else {
             format!(
-                "must lie in [{}, {}] {unit}, got {}",
+                "must lie in [{}, {}]{unit}, got {}",
                 num(min),
                 num(max),
                 num(value)
             )
         };
-        Err(ConfigError::key(key, msg.replace("  ", " ")))
+        Err(ConfigError::key(key, msg))
     }
 }
 
@@ -138,7 +270,15 @@ pub fn check_positive(key: &str, value: f64, unit: &str) -> Result<f64, ConfigEr
     } else {
         Err(ConfigError::key(
             key,
-            format!("must be a positive number of {unit}, got {value:?}"),
+            format!(
+                "must be a positive number{}, got {}",
+                if unit.is_empty() {
+                    String::new()
+                } else {
+                    format!(" of {unit}")
+                },
+                fmt_num(value)
+            ),
         ))
     }
 }
@@ -215,6 +355,55 @@ pub trait StageConfig: Send + Sync + fmt::Debug {
     /// Checks the config and builds the runtime stage. Must be cheap: heavy
     /// precomputation belongs in the first use, cached.
     fn build(&self, ctx: &BuildContext) -> Result<Stage, ConfigError>;
+    /// Checks the config against what is known of its inputs before anything
+    /// runs (their sample rate, ...), says what is known of its own output,
+    /// and gives warnings (deprecated spellings, settings that run but are
+    /// probably not meant). The graph loader calls it after every stage
+    /// built, in data-flow order; `inputs` holds one [`OutputFacts`] per
+    /// declared input. Must be cheap, like `build`.
+    ///
+    /// The default checks nothing and passes the sample rate on when the
+    /// stage turns signals into signals and its inputs agree on it.
+    fn inspect(&self, _ctx: &BuildContext, inputs: &[OutputFacts]) -> Inspection {
+        let mut out = Inspection::default();
+        if self.output() == Some(PayloadKind::Signals) && self.inputs().kinds == [PayloadKind::Signals] {
+            out.facts = OutputFacts::agreed(inputs);
+        }
+        out
+    }
+}
+
+/// What the graph loader knows of a stage's output before anything runs.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct OutputFacts {
+    /// Samples per second of the signals, Hz, when the source knows it from
+    /// its config (a scene's `motion.sample_rate_hz`, a file source's
+    /// `sample_rate_hz`); `None` when it is known only from the data.
+    pub sample_rate_hz: Option<f64>,
+}
+
+impl OutputFacts {
+    /// The facts every input agrees on (an unknown input makes them unknown).
+    pub fn agreed(inputs: &[OutputFacts]) -> OutputFacts {
+        let rate = match inputs.split_first() {
+            Some((first, rest)) if rest.iter().all(|f| f.sample_rate_hz == first.sample_rate_hz) => {
+                first.sample_rate_hz
+            }
+            _ => None,
+        };
+        OutputFacts { sample_rate_hz: rate }
+    }
+}
+
+/// What [`StageConfig::inspect`] found.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Inspection {
+    /// What is known of the stage's output.
+    pub facts: OutputFacts,
+    /// Problems that stop the graph from running (each names its key).
+    pub errors: Vec<ConfigError>,
+    /// Problems `check` and `run` print without stopping.
+    pub warnings: Vec<ConfigError>,
 }
 
 /// A runtime stage, by role.

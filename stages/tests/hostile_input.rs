@@ -446,7 +446,7 @@ fn scene_trial_counts_are_capped_and_many_angles_load() {
         "{e}"
     );
     // 10,000 distinct angles (the repeat check was pairwise), and a repeat.
-    let g = "[stages.scene]\ntype = \"scene\"\nangles = { start = 0.01, stop = 100.0, step = 0.01 }\ntrials_per_angle = 1\n";
+    let g = "[stages.scene]\ntype = \"scene\"\nangles = { from = 0.01, to = 100.0, step = 0.01 }\ntrials_per_angle = 1\n";
     // (Other scene checks may refuse so fine a range; no repeat is reported.)
     if let Err(e) = palpate_core::load_str(g, "g.toml", "g", &Default::default()) {
         assert!(!e.to_string().contains("listed twice"), "{e}");

@@ -421,7 +421,7 @@ fn bad_angles_are_errors_naming_the_key() {
         "[-5]",
         "[45, 45]",
         "[]",
-        "{ start = 10, stop = 5 }",
+        "{ from = 10, to = 5 }",
         "{ step = 0 }",
     ] {
         let e = load_err(&format!("angles = {bad}"));

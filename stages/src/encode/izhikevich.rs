@@ -57,8 +57,8 @@
 
 use super::{block_input, check_input, fmax, fmin, interleave, sort_events, InputMode, StepInput, LANES};
 use palpate_core::{
-    check_range, register_stage, BuildContext, ConfigError, InputSpec, Item, Map, Payload, PayloadKind,
-    SpikeEvent, SpikeTrain, Stage, StageConfig, StageError, TrialContext,
+    check_range, register_stage, BuildContext, ConfigChecks, ConfigError, InputSpec, Item, Map, Payload,
+    PayloadKind, SpikeEvent, SpikeTrain, Stage, StageConfig, StageError, TrialContext,
 };
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
@@ -202,13 +202,19 @@ impl IzhikevichConfig {
     /// The checked parameters, or an error naming the key.
     pub fn params(&self) -> Result<IzhParams, ConfigError> {
         let [pa, pb, pc, pd] = self.preset.params();
-        let p = IzhParams {
-            a: check_range("a", self.a.unwrap_or(pa), 0.0, 10.0, "1/ms")?,
-            b: check_range("b", self.b.unwrap_or(pb), -10.0, 10.0, "")?,
-            c: check_range("c", self.c.unwrap_or(pc), -1000.0, 1000.0, "mV")?,
-            d: check_range("d", self.d.unwrap_or(pd), -1000.0, 1000.0, "")?,
-            v_peak: check_range("v_peak", self.v_peak, -1000.0, 1000.0, "mV")?,
+        let mut k = ConfigChecks::new();
+        let a = k.take(check_range("a", self.a.unwrap_or(pa), 0.0, 10.0, "1/ms"));
+        let b = k.take(check_range("b", self.b.unwrap_or(pb), -10.0, 10.0, ""));
+        let c = k.take(check_range("c", self.c.unwrap_or(pc), -1000.0, 1000.0, "mV"));
+        let d = k.take(check_range("d", self.d.unwrap_or(pd), -1000.0, 1000.0, ""));
+        let v_peak = k.take(check_range("v_peak", self.v_peak, -1000.0, 1000.0, "mV"));
+        let (Some(a), Some(b), Some(c), Some(d), Some(v_peak)) = (a, b, c, d, v_peak) else {
+            return Err(k
+                .finish()
+                .err()
+                .unwrap_or_else(|| ConfigError::general("bad parameters")));
         };
+        let p = IzhParams { a, b, c, d, v_peak };
         if p.c >= p.v_peak {
             return Err(ConfigError::key(
                 "c",
@@ -228,8 +234,13 @@ impl StageConfig for IzhikevichConfig {
         Some(PayloadKind::Spikes)
     }
     fn build(&self, _ctx: &BuildContext) -> Result<Stage, ConfigError> {
-        let params = self.params()?;
-        check_range("dt_ms", self.dt_ms, 1e-4, 10.0, "ms")?;
+        let mut k = ConfigChecks::new();
+        let params = k.take(self.params());
+        let dt = k.take(check_range("dt_ms", self.dt_ms, 1e-4, 10.0, "ms"));
+        k.finish()?;
+        let (Some(params), Some(_)) = (params, dt) else {
+            return Err(ConfigError::general("bad parameters"));
+        };
         if params.a * self.dt_ms > 1.0 {
             return Err(ConfigError::key(
                 "dt_ms",

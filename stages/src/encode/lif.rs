@@ -25,8 +25,8 @@
 
 use super::{block_input, check_input, fmax, interleave, sort_events, InputMode, StepInput, LANES};
 use palpate_core::{
-    check_positive, check_range, register_stage, BuildContext, ConfigError, InputSpec, Item, Map, Payload,
-    PayloadKind, SpikeEvent, SpikeTrain, Stage, StageConfig, StageError, TrialContext,
+    check_positive, check_range, register_stage, BuildContext, ConfigChecks, ConfigError, InputSpec, Item,
+    Map, Payload, PayloadKind, SpikeEvent, SpikeTrain, Stage, StageConfig, StageError, TrialContext,
 };
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
@@ -80,28 +80,31 @@ impl StageConfig for LifConfig {
         Some(PayloadKind::Spikes)
     }
     fn build(&self, _ctx: &BuildContext) -> Result<Stage, ConfigError> {
-        check_positive("tau_ms", self.tau_ms, "ms")?;
-        check_range("dt_ms", self.dt_ms, 1e-4, 10.0, "ms")?;
-        check_range("refractory_ms", self.refractory_ms, 0.0, 1e6, "ms")?;
-        check_range(
+        let mut c = ConfigChecks::new();
+        c.take(check_positive("tau_ms", self.tau_ms, "ms"));
+        c.take(check_range("dt_ms", self.dt_ms, 1e-4, 10.0, "ms"));
+        c.take(check_range("refractory_ms", self.refractory_ms, 0.0, 1e6, "ms"));
+        c.take(check_range(
             "resistance",
             self.resistance,
             0.0,
             1e12,
             "membrane units per current unit",
-        )?;
-        check_range("threshold", self.threshold, -1e6, 1e6, "")?;
-        check_range("v_rest", self.v_rest, -1e6, 1e6, "")?;
-        check_range("reset", self.reset, -1e6, 1e6, "")?;
-        if self.reset >= self.threshold {
-            return Err(ConfigError::key(
+        ));
+        let threshold = c.take(check_range("threshold", self.threshold, -1e6, 1e6, ""));
+        c.take(check_range("v_rest", self.v_rest, -1e6, 1e6, ""));
+        let reset = c.take(check_range("reset", self.reset, -1e6, 1e6, ""));
+        if threshold.is_some() && reset.is_some() && self.reset >= self.threshold {
+            c.push(ConfigError::key(
                 "reset",
                 format!(
                     "must lie below threshold = {}, got {}",
-                    self.threshold, self.reset
+                    palpate_core::fmt_num(self.threshold),
+                    palpate_core::fmt_num(self.reset)
                 ),
             ));
         }
+        c.finish()?;
         Ok(Stage::Map(Box::new(Lif {
             tau_ms: self.tau_ms,
             threshold: self.threshold,

@@ -39,8 +39,8 @@ use super::features::{
 };
 use crate::estimate::features::{FitBaseline, TrainedEstimator};
 use palpate_core::{
-    check_positive, check_range, register_stage, BuildContext, ConfigError, FitContext, InputSpec, Item,
-    PayloadKind, Stage, StageConfig, StageError,
+    check_positive, check_range, register_stage, BuildContext, ConfigChecks, ConfigError, FitContext,
+    InputSpec, Item, PayloadKind, Stage, StageConfig, StageError,
 };
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
@@ -152,24 +152,25 @@ impl AnnConfig {
 
     /// Checks every key, naming the wrong one.
     pub fn check(&self) -> Result<(), ConfigError> {
-        self.feature_keys().check()?;
+        let mut c = ConfigChecks::new();
+        c.take(self.feature_keys().check());
         if self.hidden == 0 || self.hidden > 100_000 {
-            return Err(ConfigError::key(
+            c.push(ConfigError::key(
                 "hidden",
                 format!("must be 1..=100000, got {}", self.hidden),
             ));
         }
-        check_positive("learning_rate", self.learning_rate, "")?;
-        check_range("momentum", self.momentum, 0.0, 0.999, "")?;
-        check_range("l2", self.l2, 0.0, 1e3, "")?;
+        c.take(check_positive("learning_rate", self.learning_rate, ""));
+        c.take(check_range("momentum", self.momentum, 0.0, 0.999, ""));
+        c.take(check_range("l2", self.l2, 0.0, 1e3, ""));
         if self.batch_size == 0 {
-            return Err(ConfigError::key("batch_size", "must be at least 1"));
+            c.push(ConfigError::key("batch_size", "must be at least 1"));
         }
         if self.max_epochs == 0 {
-            return Err(ConfigError::key("max_epochs", "must be at least 1"));
+            c.push(ConfigError::key("max_epochs", "must be at least 1"));
         }
-        check_range("val_fraction", self.val_fraction, 0.0, 0.5, "")?;
-        Ok(())
+        c.take(check_range("val_fraction", self.val_fraction, 0.0, 0.5, ""));
+        c.finish()
     }
 
     /// Fits the ANN on a fold's training trials.

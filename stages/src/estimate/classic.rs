@@ -62,8 +62,8 @@ use super::features::{
 use super::smo;
 use crate::estimate::features::{FitBaseline, TrainedEstimator};
 use palpate_core::{
-    check_positive, check_range, register_stage, BuildContext, ConfigError, FitContext, InputSpec, Item,
-    PayloadKind, Stage, StageConfig, StageError,
+    check_positive, check_range, register_stage, BuildContext, ConfigChecks, ConfigError, FitContext,
+    InputSpec, Item, PayloadKind, Stage, StageConfig, StageError,
 };
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
@@ -319,17 +319,18 @@ impl SvmConfig {
 
     /// Checks every key, naming the wrong one.
     pub fn check(&self) -> Result<(), ConfigError> {
-        self.keys().check()?;
-        check_positive("c", self.c, "")?;
-        check_range("gamma", self.gamma, 0.0, 1e6, "")?;
-        check_positive("tol", self.tol, "")?;
+        let mut c = ConfigChecks::new();
+        c.take(self.keys().check());
+        c.take(check_positive("c", self.c, ""));
+        c.take(check_range("gamma", self.gamma, 0.0, 1e6, ""));
+        c.take(check_positive("tol", self.tol, ""));
         if self.max_iter == 0 {
-            return Err(ConfigError::key("max_iter", "must be at least 1"));
+            c.push(ConfigError::key("max_iter", "must be at least 1"));
         }
         if self.cache_mb == 0 || self.cache_mb > 1 << 20 {
-            return Err(ConfigError::key("cache_mb", "must be in 1..=1048576 (MiB)"));
+            c.push(ConfigError::key("cache_mb", "must be in 1..=1048576 (MiB)"));
         }
-        Ok(())
+        c.finish()
     }
 
     /// Fits the one-vs-one SVM on a fold's training trials.
@@ -593,14 +594,15 @@ impl RandomForestConfig {
 
     /// Checks every key, naming the wrong one.
     pub fn check(&self) -> Result<(), ConfigError> {
-        self.keys().check()?;
+        let mut c = ConfigChecks::new();
+        c.take(self.keys().check());
         if self.n_trees == 0 {
-            return Err(ConfigError::key("n_trees", "must be at least 1"));
+            c.push(ConfigError::key("n_trees", "must be at least 1"));
         }
         if self.min_samples_leaf == 0 {
-            return Err(ConfigError::key("min_samples_leaf", "must be at least 1"));
+            c.push(ConfigError::key("min_samples_leaf", "must be at least 1"));
         }
-        Ok(())
+        c.finish()
     }
 
     /// Fits the forest on a fold's training trials.
@@ -841,11 +843,12 @@ impl KnnConfig {
 
     /// Checks every key, naming the wrong one.
     pub fn check(&self) -> Result<(), ConfigError> {
-        self.keys().check()?;
+        let mut c = ConfigChecks::new();
+        c.take(self.keys().check());
         if self.k == 0 {
-            return Err(ConfigError::key("k", "must be at least 1"));
+            c.push(ConfigError::key("k", "must be at least 1"));
         }
-        Ok(())
+        c.finish()
     }
 
     /// Fits k-NN on a fold's training trials (`k` is capped at the vectors available).
@@ -994,9 +997,10 @@ impl LogisticConfig {
 
     /// Checks every key, naming the wrong one.
     pub fn check(&self) -> Result<(), ConfigError> {
-        self.keys().check()?;
-        check_range("alpha", self.alpha, 0.0, 1e9, "")?;
-        Ok(())
+        let mut c = ConfigChecks::new();
+        c.take(self.keys().check());
+        c.take(check_range("alpha", self.alpha, 0.0, 1e9, ""));
+        c.finish()
     }
 
     /// Fits logistic regression on a fold's training trials.

@@ -57,8 +57,8 @@ use super::ann::softmax;
 use super::features::{Classifier, FeatureKeys, FittedModel, TrainSet, TrainingLog, Vote, MODEL_FORMAT};
 use crate::estimate::features::{FitBaseline, TrainedEstimator};
 use palpate_core::{
-    check_positive, check_range, register_stage, BuildContext, ConfigError, FitContext, InputSpec, Item,
-    PayloadKind, Stage, StageConfig, StageError,
+    check_positive, check_range, register_stage, BuildContext, ConfigChecks, ConfigError, FitContext,
+    InputSpec, Item, PayloadKind, Stage, StageConfig, StageError,
 };
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
@@ -597,9 +597,10 @@ impl EdbnConfig {
 
     /// Checks every key, naming the wrong one.
     pub fn check(&self) -> Result<(), ConfigError> {
-        self.keys().check()?;
+        let mut c = ConfigChecks::new();
+        c.take(self.keys().check());
         if self.layers.is_empty() || self.layers.iter().any(|&n| n == 0 || n > 100_000) {
-            return Err(ConfigError::key(
+            c.push(ConfigError::key(
                 "layers",
                 format!(
                     "must list one or more layer sizes in 1..=100000, got {:?}",
@@ -608,19 +609,19 @@ impl EdbnConfig {
             ));
         }
         if self.epochs == 0 {
-            return Err(ConfigError::key("epochs", "must be at least 1"));
+            c.push(ConfigError::key("epochs", "must be at least 1"));
         }
         if self.batch_size == 0 {
-            return Err(ConfigError::key("batch_size", "must be at least 1"));
+            c.push(ConfigError::key("batch_size", "must be at least 1"));
         }
-        check_positive("learning_rate", self.learning_rate, "")?;
-        check_range("l2", self.l2, 0.0, 1e3, "")?;
-        check_range("discriminative", self.discriminative, 0.0, 1e3, "")?;
-        check_positive("input_rate_hz", self.input_rate_hz, "Hz")?;
-        check_positive("duration_ms", self.duration_ms, "ms")?;
-        check_positive("dt_ms", self.dt_ms, "ms")?;
-        if self.input_rate_hz * self.dt_ms / 1000.0 > 1.0 {
-            return Err(ConfigError::key(
+        c.take(check_positive("learning_rate", self.learning_rate, ""));
+        c.take(check_range("l2", self.l2, 0.0, 1e3, ""));
+        c.take(check_range("discriminative", self.discriminative, 0.0, 1e3, ""));
+        let rate = c.take(check_positive("input_rate_hz", self.input_rate_hz, "Hz"));
+        c.take(check_positive("duration_ms", self.duration_ms, "ms"));
+        let dt = c.take(check_positive("dt_ms", self.dt_ms, "ms"));
+        if rate.is_some() && dt.is_some() && self.input_rate_hz * self.dt_ms / 1000.0 > 1.0 {
+            c.push(ConfigError::key(
                 "dt_ms",
                 format!(
                     "input_rate_hz x dt_ms must be at most one spike per step, got {}",
@@ -628,7 +629,7 @@ impl EdbnConfig {
                 ),
             ));
         }
-        Ok(())
+        c.finish()
     }
 
     /// Fits the DBN on a fold's training trials.

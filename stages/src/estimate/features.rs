@@ -125,23 +125,27 @@ pub struct FeatureKeys {
 impl FeatureKeys {
     /// Checks the keys, naming the wrong one.
     pub fn check(&self) -> Result<(), palpate_core::ConfigError> {
-        use palpate_core::ConfigError;
+        use palpate_core::{ConfigChecks, ConfigError};
+        let mut c = ConfigChecks::new();
         if self.frames == 0 || self.frames > 1000 {
-            return Err(ConfigError::key(
+            c.push(ConfigError::key(
                 "frames",
                 format!("must be 1..=1000, got {}", self.frames),
             ));
         }
         if !(self.min_spikes.is_finite() && self.min_spikes >= 0.0) {
-            return Err(ConfigError::key(
+            c.push(ConfigError::key(
                 "min_spikes",
-                format!("must be a finite count >= 0, got {}", self.min_spikes),
+                format!(
+                    "must be a finite count >= 0, got {}",
+                    palpate_core::fmt_num(self.min_spikes)
+                ),
             ));
         }
         if self.max_train_frames == 0 {
-            return Err(ConfigError::key("max_train_frames", "must be at least 1"));
+            c.push(ConfigError::key("max_train_frames", "must be at least 1"));
         }
-        Ok(())
+        c.finish()
     }
 
     /// Resolves the auto values against the training images.

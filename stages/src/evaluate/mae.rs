@@ -99,18 +99,20 @@ impl StageConfig for MaeConfig {
         None
     }
     fn build(&self, _ctx: &BuildContext) -> Result<Stage, ConfigError> {
+        let mut c = palpate_core::ConfigChecks::new();
         for a in &self.acuity_deg {
-            palpate_core::check_positive("acuity_deg", *a, "degrees")?;
+            c.take(palpate_core::check_positive("acuity_deg", *a, "degrees"));
         }
         if !(self.correct_within_deg.is_finite() && self.correct_within_deg >= 0.0) {
-            return Err(ConfigError::key(
+            c.push(ConfigError::key(
                 "correct_within_deg",
                 format!(
                     "must be a finite number of degrees >= 0, got {}",
-                    self.correct_within_deg
+                    palpate_core::fmt_num(self.correct_within_deg)
                 ),
             ));
         }
+        c.finish()?;
         Ok(Stage::Sink(Box::new(MaeSink {
             per_class: self.per_class,
             acuity_deg: self.acuity_deg.clone(),

@@ -117,10 +117,11 @@ register_stage!("spike_timing", SpikeTimingConfig);
 
 impl SpikeTimingConfig {
     fn check(&self) -> Result<(), ConfigError> {
-        palpate_core::check_positive("bin_ms", self.bin_ms, "ms")?;
-        palpate_core::check_positive("range_ms", self.range_ms, "ms")?;
-        if 2.0 * self.range_ms / self.bin_ms > MAX_BINS {
-            return Err(ConfigError::key(
+        let mut c = palpate_core::ConfigChecks::new();
+        let bin = c.take(palpate_core::check_positive("bin_ms", self.bin_ms, "ms"));
+        let range = c.take(palpate_core::check_positive("range_ms", self.range_ms, "ms"));
+        if bin.is_some() && range.is_some() && 2.0 * self.range_ms / self.bin_ms > MAX_BINS {
+            c.push(ConfigError::key(
                 "bin_ms",
                 format!(
                     "2 range_ms / bin_ms = {:.0} bins, more than the limit of {MAX_BINS:.0}",
@@ -128,27 +129,35 @@ impl SpikeTimingConfig {
                 ),
             ));
         }
-        palpate_core::check_range("stimulus_width_mm", self.stimulus_width_mm, 0.0, 1e3, "mm")?;
+        c.take(palpate_core::check_range(
+            "stimulus_width_mm",
+            self.stimulus_width_mm,
+            0.0,
+            1e3,
+            "mm",
+        ));
         match (self.speed_mm_s, self.centre_crossing_ms) {
             (Some(v), Some(t)) => {
-                palpate_core::check_positive("speed_mm_s", v, "mm/s")?;
-                palpate_core::check_range("centre_crossing_ms", t, -1e12, 1e12, "ms")?;
+                c.take(palpate_core::check_positive("speed_mm_s", v, "mm/s"));
+                c.take(palpate_core::check_range(
+                    "centre_crossing_ms",
+                    t,
+                    -1e12,
+                    1e12,
+                    "ms",
+                ));
             }
             (None, None) => {}
-            (Some(_), None) => {
-                return Err(ConfigError::key(
-                    "centre_crossing_ms",
-                    "needed with `speed_mm_s`: when the edge crosses the array's centre",
-                ))
-            }
-            (None, Some(_)) => {
-                return Err(ConfigError::key(
-                    "speed_mm_s",
-                    "needed with `centre_crossing_ms`: the palpation speed",
-                ))
-            }
+            (Some(_), None) => c.push(ConfigError::key(
+                "centre_crossing_ms",
+                "needed with `speed_mm_s`: when the edge crosses the array's centre",
+            )),
+            (None, Some(_)) => c.push(ConfigError::key(
+                "speed_mm_s",
+                "needed with `centre_crossing_ms`: the palpation speed",
+            )),
         }
-        Ok(())
+        c.finish()
     }
 
     /// When the stimulus' centre line crosses each taxel's centre in this

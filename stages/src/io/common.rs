@@ -630,7 +630,11 @@ pub fn sidecar_toml(rows: &[(String, &TrialMeta, Option<f64>)]) -> String {
         }
         if !m.conditions.is_empty() {
             let q = |x: &str| format!("\"{}\"", x.replace('\\', "\\\\").replace('"', "\\\""));
-            let items: Vec<String> = m.conditions.iter().map(|(k, v)| format!("{} = {}", q(k), q(v))).collect();
+            let items: Vec<String> = m
+                .conditions
+                .iter()
+                .map(|(k, v)| format!("{} = {}", q(k), q(v)))
+                .collect();
             s.push_str(&format!("conditions = {{ {} }}\n", items.join(", ")));
         }
     }

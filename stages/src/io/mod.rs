@@ -4,6 +4,7 @@
 //! |---|---|---|---|
 //! | `signal_file` | source | -> signals | [`signal_file`]: CSV, NPY, NPZ, MATLAB .mat, raw DAQ streams |
 //! | `spike_file` | source | -> spikes | [`spike_file`]: `(x, y, t[, p])` events from CSV or NPY |
+//! | `image_file` | source | -> images | [`image_file`]: the folder `write_images` wrote, read back |
 //! | `write_signals` | sink | signals | [`sinks`]: NPY or CSV, one file per trial |
 //! | `write_spikes` | sink | spikes | [`sinks`]: NPY or CSV, one file per trial |
 //! | `write_images` | sink | images | [`sinks`]: NPY or CSV, one file per trial |
@@ -22,12 +23,14 @@
 pub mod arrays;
 pub mod common;
 pub mod daq;
+pub mod image_file;
 pub mod live;
 pub mod signal_file;
 pub mod sinks;
 pub mod spike_file;
 
 pub use common::LayoutConfig;
+pub use image_file::ImageFileConfig;
 pub use signal_file::SignalFileConfig;
 pub use sinks::{WriteEstimatesConfig, WriteImagesConfig, WriteSignalsConfig, WriteSpikesConfig};
 pub use spike_file::SpikeFileConfig;

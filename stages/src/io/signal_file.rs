@@ -68,8 +68,9 @@ use super::common::{
     LayoutConfig, TrialLabels, LABEL_COLUMNS,
 };
 use palpate_core::{
-    check_positive, register_stage, BuildContext, ConfigError, InputSpec, Payload, PayloadKind, Signals,
-    Source, Stage, StageConfig, StageError, TaxelLayout, TrialContext, TrialMeta,
+    check_positive, register_stage, BuildContext, ConfigChecks, ConfigError, InputSpec, Inspection,
+    OutputFacts, Payload, PayloadKind, Signals, Source, Stage, StageConfig, StageError, TaxelLayout,
+    TrialContext, TrialMeta,
 };
 use rayon::prelude::*;
 use schemars::JsonSchema;
@@ -179,47 +180,64 @@ impl StageConfig for SignalFileConfig {
     fn build(&self, ctx: &BuildContext) -> Result<Stage, ConfigError> {
         Ok(Stage::Source(Box::new(self.source(ctx)?)))
     }
+    /// The sample rate when the `sample_rate_hz` key gives it (the files
+    /// must then agree with it); unknown until the files are read otherwise.
+    fn inspect(&self, _ctx: &BuildContext, _inputs: &[OutputFacts]) -> Inspection {
+        Inspection {
+            facts: OutputFacts {
+                sample_rate_hz: self.sample_rate_hz,
+            },
+            ..Inspection::default()
+        }
+    }
 }
 register_stage!("signal_file", SignalFileConfig);
 
 impl SignalFileConfig {
     /// Checks the config and makes the (not yet loaded) source.
     fn source(&self, ctx: &BuildContext) -> Result<SignalFileSource, ConfigError> {
-        let layout = self.layout.to_layout("layout")?;
+        let mut c = ConfigChecks::new();
+        let layout = c.take(self.layout.to_layout("layout"));
         if let Some(r) = self.sample_rate_hz {
-            check_positive("sample_rate_hz", r, "Hz")?;
+            c.take(check_positive("sample_rate_hz", r, "Hz"));
         }
-        if !self.columns.is_empty() && self.columns.len() != layout.len() {
-            return Err(ConfigError::key(
+        let n_taxels = layout.as_ref().map_or(self.columns.len(), TaxelLayout::len);
+        if !self.columns.is_empty() && self.columns.len() != n_taxels {
+            c.push(ConfigError::key(
                 "columns",
                 format!(
                     "lists {} names but the layout has {} taxels",
                     self.columns.len(),
-                    layout.len()
+                    n_taxels
                 ),
             ));
         }
         if !(self.daq_scale.is_finite() && self.daq_scale != 0.0 && self.daq_offset.is_finite()) {
-            return Err(ConfigError::key(
+            c.push(ConfigError::key(
                 "daq_scale",
                 "scale must be finite and non-zero, offset finite",
             ));
         }
         let entries: Vec<String> = self.path.iter().chain(&self.paths).cloned().collect();
         let key = if self.path.is_some() { "path" } else { "paths" };
-        let files = expand_paths(&entries, |p| ctx.resolve(p), key)?;
-        for f in &files {
-            format_of(self.format, f).map_err(|m| ConfigError::key("format", m))?;
+        let files = c
+            .take(expand_paths(&entries, |p| ctx.resolve(p), key))
+            .unwrap_or_default();
+        // One message for the format, however many files it cannot tell.
+        if let Some(m) = files.iter().find_map(|f| format_of(self.format, f).err()) {
+            c.push(ConfigError::key("format", m));
         }
         let labels = self.labels.as_ref().map(|l| ctx.resolve(Path::new(l)));
         if let Some(l) = &labels {
             if !l.is_file() {
-                return Err(ConfigError::key(
+                c.push(ConfigError::key(
                     "labels",
                     format!("file {} not found", l.display()),
                 ));
             }
         }
+        c.finish()?;
+        let layout = layout.ok_or_else(|| ConfigError::key("layout", "not a layout"))?;
         Ok(SignalFileSource {
             cfg: self.clone(),
             layout,

@@ -22,7 +22,8 @@
 //! spikes) in the label-sidecar format `signal_file` and `spike_file` read, keyed
 //! by the ids those sources will give the files. So writing then reading back
 //! gives the same data and labels. `info.json` records the rest (sample rate,
-//! unit and layout of signals; layout, window and hop of images).
+//! unit and layout of signals; layout, window, hop and the trials' order of
+//! images, which `image_file` reads back).
 //!
 //! Spikes are written the way `spike_file` reads them: `x` = column, `y` = row
 //! for a grid (`x` = taxel index, `y` = 0 otherwise), `t` in `time_unit`
@@ -202,7 +203,8 @@ simple_sink_config!(
 
 simple_sink_config!(
     /// Writes spike images, one NPY `(frames, rows, cols)` or CSV
-    /// (`frame, t_start_ms, taxel_0..`) file per trial.
+    /// (`frame, t_start_ms, taxel_0..`) file per trial, with `labels.toml` and
+    /// `info.json`, which `image_file` reads back.
     WriteImagesConfig,
     "write_images",
     PayloadKind::Images,
@@ -325,6 +327,11 @@ impl Sink for ImagesSink {
                     "format": self.format.ext(),
                 })
             });
+        }
+        // The trials' order, so that `image_file` gives them back in it.
+        if let Some(serde_json::Value::Object(o)) = info.as_mut() {
+            let stems: Vec<&str> = rows.iter().map(|(s, _, _)| s.as_str()).collect();
+            o.insert("trials".into(), serde_json::json!(stems));
         }
         finish_with_sidecar(files, &rows, info, "spike images")
     }

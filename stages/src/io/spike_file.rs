@@ -165,25 +165,31 @@ impl StageConfig for SpikeFileConfig {
         Some(PayloadKind::Spikes)
     }
     fn build(&self, ctx: &BuildContext) -> Result<Stage, ConfigError> {
-        let layout = self.layout.to_layout("layout")?;
+        let mut c = palpate_core::ConfigChecks::new();
+        let layout = c.take(self.layout.to_layout("layout"));
         if let Some(d) = self.duration_ms {
-            check_positive("duration_ms", d, "ms")?;
+            c.take(check_positive("duration_ms", d, "ms"));
         }
         let entries: Vec<String> = self.path.iter().chain(&self.paths).cloned().collect();
         let key = if self.path.is_some() { "path" } else { "paths" };
-        let files = expand_paths(&entries, |p| ctx.resolve(p), key)?;
-        for f in &files {
-            spike_format_of(self.format, f).map_err(|m| ConfigError::key("format", m))?;
+        let files = c
+            .take(expand_paths(&entries, |p| ctx.resolve(p), key))
+            .unwrap_or_default();
+        // One message for the format, however many files it cannot tell.
+        if let Some(m) = files.iter().find_map(|f| spike_format_of(self.format, f).err()) {
+            c.push(ConfigError::key("format", m));
         }
         let labels = self.labels.as_ref().map(|l| ctx.resolve(Path::new(l)));
         if let Some(l) = &labels {
             if !l.is_file() {
-                return Err(ConfigError::key(
+                c.push(ConfigError::key(
                     "labels",
                     format!("file {} not found", l.display()),
                 ));
             }
         }
+        c.finish()?;
+        let layout = layout.ok_or_else(|| ConfigError::key("layout", "not a layout"))?;
         Ok(Stage::Source(Box::new(SpikeFileSource {
             cfg: self.clone(),
             layout,

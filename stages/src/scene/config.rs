@@ -9,7 +9,7 @@
 //! nowhere take the paper's values, stated in each key's doc comment.
 
 use super::effects::EffectConfig;
-use palpate_core::{check_positive, check_range, BuildContext, ConfigError, TaxelLayout};
+use palpate_core::{check_positive, check_range, BuildContext, ConfigChecks, ConfigError, TaxelLayout};
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
@@ -51,10 +51,11 @@ pub struct SceneConfig {
     #[schemars(extend("default" = {"width_mm": 2.0, "height_mm": 2.0, "indent_mm": 1.0}))]
     pub ridge: Option<RidgeKeys>,
     /// Edge orientations, degrees from the array's horizontal axis, each in
-    /// (0, 180): a list (`[30, 45]`) or a range (`{ start = 10, stop = 90, step = 5 }`,
-    /// stop included). Default: the paper's 17 classes, 10 to 90 by 5.
+    /// (0, 180): a list (`[30, 45]`) or a range (`{ from = 10, to = 90, step = 5 }`,
+    /// `to` included; the old spelling `start`/`stop` is read with a
+    /// deprecation warning). Default: the paper's 17 classes, 10 to 90 by 5.
     #[serde(skip_serializing_if = "Option::is_none")]
-    #[schemars(extend("default" = {"start": 10.0, "stop": 90.0, "step": 5.0}))]
+    #[schemars(extend("default" = {"from": 10.0, "to": 90.0, "step": 5.0}))]
     pub angles: Option<Angles>,
     /// Repetitions of every angle (the cross-validation groups). Default 10.
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -139,23 +140,60 @@ pub struct RidgeKeys {
 pub enum Angles {
     /// Explicit angles, degrees.
     List(Vec<f64>),
-    /// `start`, `start + step`, ... up to and including `stop`, degrees.
+    /// `from`, `from + step`, ... up to and including `to`, degrees.
     Range(AngleRange),
 }
 
-/// A range of angles.
+/// A range of angles, `{ from, to, step }` as in every stage that takes a
+/// range (`wss`'s `angles` too).
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields, default)]
 pub struct AngleRange {
     /// First angle, degrees. Default 10.
     #[serde(skip_serializing_if = "Option::is_none")]
-    pub start: Option<f64>,
+    pub from: Option<f64>,
     /// Last angle (included when the steps land on it), degrees. Default 90.
     #[serde(skip_serializing_if = "Option::is_none")]
-    pub stop: Option<f64>,
+    pub to: Option<f64>,
     /// Step, degrees. Default 5.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub step: Option<f64>,
+    /// Deprecated spelling of `from`, degrees: read with a warning. Default unset.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    #[schemars(extend("deprecated" = true))]
+    pub start: Option<f64>,
+    /// Deprecated spelling of `to`, degrees: read with a warning. Default unset.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    #[schemars(extend("deprecated" = true))]
+    pub stop: Option<f64>,
+}
+
+impl AngleRange {
+    /// Moves the deprecated `start`/`stop` to `from`/`to`, returning one
+    /// warning per old name; both spellings of one bound is an error.
+    pub fn normalize_spelling(&mut self) -> Result<Vec<ConfigError>, ConfigError> {
+        let mut warnings = Vec::new();
+        let mut c = ConfigChecks::new();
+        for (old, new, old_v, new_v) in [
+            ("start", "from", &mut self.start, &mut self.from),
+            ("stop", "to", &mut self.stop, &mut self.to),
+        ] {
+            let Some(v) = old_v.take() else { continue };
+            if new_v.is_some() {
+                c.push(ConfigError::key(
+                    format!("angles.{old}"),
+                    format!("give `{new}` (or its deprecated spelling `{old}`), not both"),
+                ));
+            } else {
+                *new_v = Some(v);
+                warnings.push(ConfigError::key(
+                    format!("angles.{old}"),
+                    format!("`{old}` is deprecated: write `{new}` (ranges are `{{ from, to, step }}` in every stage)"),
+                ));
+            }
+        }
+        c.finish().map(|()| warnings)
+    }
 }
 
 /// A regular grid array.
@@ -358,6 +396,15 @@ impl SceneConfig {
         Ok(cfg)
     }
 
+    /// Moves deprecated key spellings to the current ones (see
+    /// [`AngleRange::normalize_spelling`]), returning their warnings.
+    pub fn normalize_spelling(&mut self) -> Result<Vec<ConfigError>, ConfigError> {
+        match &mut self.angles {
+            Some(Angles::Range(r)) => r.normalize_spelling(),
+            _ => Ok(Vec::new()),
+        }
+    }
+
     /// This config with `base`'s keys as defaults (this config's keys win,
     /// tables merged key by key).
     pub fn over(&self, base: &SceneConfig) -> Result<SceneConfig, ConfigError> {
@@ -369,34 +416,55 @@ impl SceneConfig {
 
     /// Resolves the file (if any) and every default, and checks every value.
     pub fn resolve(&self, ctx: &BuildContext) -> Result<Scene, ConfigError> {
-        self.merged(ctx)?.check()
+        self.resolve_with_warnings(ctx).map(|(scene, _)| scene)
     }
 
-    /// This config over its file's keys (if any), unchecked.
-    pub fn merged(&self, ctx: &BuildContext) -> Result<SceneConfig, ConfigError> {
-        match &self.file {
+    /// [`SceneConfig::resolve`], with the warnings found on the way
+    /// (deprecated spellings, in the graph or in the scene file).
+    pub fn resolve_with_warnings(
+        &self,
+        ctx: &BuildContext,
+    ) -> Result<(Scene, Vec<ConfigError>), ConfigError> {
+        let (merged, warnings) = self.merged_with_warnings(ctx)?;
+        Ok((merged.check()?, warnings))
+    }
+
+    /// This config over its file's keys (if any), spellings normalized,
+    /// unchecked; with the deprecation warnings found on the way.
+    pub fn merged_with_warnings(
+        &self,
+        ctx: &BuildContext,
+    ) -> Result<(SceneConfig, Vec<ConfigError>), ConfigError> {
+        let mut inline = self.clone();
+        let mut warnings = inline.normalize_spelling()?;
+        let merged = match &self.file {
             Some(f) => {
                 let path = ctx.resolve(f);
-                let base = SceneConfig::from_file(&path)?;
-                let mut inline = self.clone();
+                let mut base = SceneConfig::from_file(&path)?;
+                let what = format!("scene file {}", path.display());
+                let file_warnings = base.normalize_spelling().map_err(|e| e.context(&what))?;
+                warnings.extend(file_warnings.into_iter().map(|w| w.context(&what)));
                 inline.file = None;
-                inline.over(&base)
+                inline.over(&base)?
             }
-            None => Ok(self.clone()),
-        }
+            None => inline,
+        };
+        Ok((merged, warnings))
     }
 
     /// The scene of every condition, resolved and checked: `(name, scene
-    /// config)` in name order, or one unnamed entry without `conditions`.
-    /// Errors name `conditions.<name>.<key>`.
+    /// config, scene)` in name order, or one unnamed entry without
+    /// `conditions`; and the warnings found on the way. Errors name
+    /// `conditions.<name>.<key>`.
+    #[allow(clippy::type_complexity)]
     pub fn resolve_conditions(
         &self,
         ctx: &BuildContext,
-    ) -> Result<Vec<(Option<String>, SceneConfig, Scene)>, ConfigError> {
-        let mut merged = self.merged(ctx)?;
+    ) -> Result<(Vec<(Option<String>, SceneConfig, Scene)>, Vec<ConfigError>), ConfigError> {
+        let (mut merged, mut warnings) = self.merged_with_warnings(ctx)?;
         let Some(conditions) = merged.conditions.take() else {
             let scene = merged.check()?;
-            return Ok(vec![(None, merged, scene)]);
+            return Ok((vec![(None, merged, scene)], warnings));
         };
         if conditions.is_empty() {
             return Err(ConfigError::key(
@@ -405,8 +473,15 @@ impl SceneConfig {
             ));
         }
         let mut out = Vec::with_capacity(conditions.len());
-        for (name, cond) in conditions {
+        for (name, mut cond) in conditions {
             let key = |k: &str| format!("conditions.{name}{}{k}", if k.is_empty() { "" } else { "." });
+            let prefix = |e: ConfigError| {
+                let mut all: Vec<ConfigError> = Vec::new();
+                for (k, m) in e.problems() {
+                    all.push(ConfigError::key(key(k.unwrap_or("")), m.to_string()));
+                }
+                ConfigError::join(all).unwrap_or_else(|| ConfigError::key(key(""), "invalid"))
+            };
             if name.is_empty()
                 || !name
                     .chars()
@@ -414,43 +489,64 @@ impl SceneConfig {
             {
                 return Err(ConfigError::key(
                     key(""),
-                    format!("condition name `{name}`: use letters, digits, `_` and `-` (it starts trial ids)"),
+                    format!(
+                        "condition name `{name}`: use letters, digits, `_` and `-` (it starts trial ids)"
+                    ),
                 ));
             }
             if cond.file.is_some() {
-                return Err(ConfigError::key(key("file"), "a condition cannot name a scene `file`"));
+                return Err(ConfigError::key(
+                    key("file"),
+                    "a condition cannot name a scene `file`",
+                ));
             }
             if cond.conditions.is_some() {
                 return Err(ConfigError::key(key("conditions"), "conditions cannot nest"));
             }
+            warnings.extend(cond.normalize_spelling().map_err(prefix)?.into_iter().map(prefix));
             let cfg = cond.over(&merged)?;
-            let scene = cfg.check().map_err(|e| match &e.key {
-                Some(k) => ConfigError::key(key(k), e.message.clone()),
-                None => ConfigError::key(key(""), e.message.clone()),
-            })?;
+            let scene = cfg.check().map_err(prefix)?;
             out.push((Some(name), cfg, scene));
         }
-        Ok(out)
+        Ok((out, warnings))
     }
 
-    /// Fills defaults and checks values (no file handling).
+    /// Fills defaults and checks values (no file handling). Every wrong key
+    /// is reported, not only the first.
     pub fn check(&self) -> Result<Scene, ConfigError> {
+        let mut c = ConfigChecks::new();
         let stimulus = self.stimulus.unwrap_or_default();
         let r = self.ridge.clone().unwrap_or_default();
         let ridge = Ridge {
-            width_mm: check_positive("ridge.width_mm", r.width_mm.unwrap_or(2.0), "mm")?,
-            height_mm: check_range("ridge.height_mm", r.height_mm.unwrap_or(2.0), 0.0, 1e3, "mm")?,
-            indent_mm: check_positive("ridge.indent_mm", r.indent_mm.unwrap_or(1.0), "mm")?,
+            width_mm: c
+                .take(check_positive("ridge.width_mm", r.width_mm.unwrap_or(2.0), "mm"))
+                .unwrap_or(2.0),
+            height_mm: c
+                .take(check_range(
+                    "ridge.height_mm",
+                    r.height_mm.unwrap_or(2.0),
+                    0.0,
+                    1e3,
+                    "mm",
+                ))
+                .unwrap_or(2.0),
+            indent_mm: c
+                .take(check_positive(
+                    "ridge.indent_mm",
+                    r.indent_mm.unwrap_or(1.0),
+                    "mm",
+                ))
+                .unwrap_or(1.0),
         };
-        let angles = resolve_angles(self.angles.as_ref())?;
+        let angles = c.take(resolve_angles(self.angles.as_ref())).unwrap_or_default();
         let trials_per_angle = self.trials_per_angle.unwrap_or(10);
         if trials_per_angle == 0 {
-            return Err(ConfigError::key("trials_per_angle", "must be at least 1"));
+            c.push(ConfigError::key("trials_per_angle", "must be at least 1"));
         }
         // A documented cap (docs/resource-policy.md): 1e8 passed check, then
         // the trial list alone aborted the run.
         if angles.len().saturating_mul(trials_per_angle) > MAX_SCENE_TRIALS {
-            return Err(ConfigError::key(
+            c.push(ConfigError::key(
                 "trials_per_angle",
                 format!(
                     "{} angles x {trials_per_angle} trials is over the cap of {MAX_SCENE_TRIALS} trials per scene",
@@ -459,20 +555,23 @@ impl SceneConfig {
             ));
         }
         let layout = match &self.layout {
-            Some(l) => {
-                let positions_mm = l.positions_mm.clone().ok_or_else(|| {
-                    ConfigError::key(
+            Some(l) => match l.positions_mm.clone() {
+                None => {
+                    c.push(ConfigError::key(
                         "layout.positions_mm",
                         "an explicit layout needs its taxel positions",
-                    )
-                })?;
-                let layout = TaxelLayout::Positions {
-                    positions_mm,
-                    taxel_mm: l.taxel_mm.unwrap_or(2.0),
-                };
-                layout.validate().map_err(|e| ConfigError::key("layout", e))?;
-                layout
-            }
+                    ));
+                    None
+                }
+                Some(positions_mm) => {
+                    let layout = TaxelLayout::Positions {
+                        positions_mm,
+                        taxel_mm: l.taxel_mm.unwrap_or(2.0),
+                    };
+                    c.take(layout.validate().map_err(|e| ConfigError::key("layout", e)))
+                        .map(|()| layout)
+                }
+            },
             None => {
                 let a = self.array.clone().unwrap_or_default();
                 let layout = TaxelLayout::Grid {
@@ -481,43 +580,73 @@ impl SceneConfig {
                     pitch_mm: a.pitch_mm.unwrap_or(3.0),
                     taxel_mm: a.taxel_mm.unwrap_or(2.0),
                 };
-                layout.validate().map_err(|e| ConfigError::key("array", e))?;
-                layout
+                c.take(layout.validate().map_err(|e| ConfigError::key("array", e)))
+                    .map(|()| layout)
             }
         };
         let m = self.motion.clone().unwrap_or_default();
         let motion = Motion {
-            speed_mm_s: check_positive("motion.speed_mm_s", m.speed_mm_s.unwrap_or(2.0), "mm/s")?,
-            hold_before_s: check_range(
-                "motion.hold_before_s",
-                m.hold_before_s.unwrap_or(2.0),
-                0.0,
-                3600.0,
-                "s",
-            )?,
-            hold_after_s: check_range(
-                "motion.hold_after_s",
-                m.hold_after_s.unwrap_or(2.0),
-                0.0,
-                3600.0,
-                "s",
-            )?,
-            sample_rate_hz: check_range(
-                "motion.sample_rate_hz",
-                m.sample_rate_hz.unwrap_or(1000.0),
-                1e-3,
-                1e7,
-                "Hz",
-            )?,
-            margin_mm: check_range("motion.margin_mm", m.margin_mm.unwrap_or(1.0), 0.0, 1e3, "mm")?,
-            force_rel: check_range("motion.force_rel", m.force_rel.unwrap_or(1.0), 0.01, 100.0, "")?,
+            speed_mm_s: c
+                .take(check_positive(
+                    "motion.speed_mm_s",
+                    m.speed_mm_s.unwrap_or(2.0),
+                    "mm/s",
+                ))
+                .unwrap_or(2.0),
+            hold_before_s: c
+                .take(check_range(
+                    "motion.hold_before_s",
+                    m.hold_before_s.unwrap_or(2.0),
+                    0.0,
+                    3600.0,
+                    "s",
+                ))
+                .unwrap_or(2.0),
+            hold_after_s: c
+                .take(check_range(
+                    "motion.hold_after_s",
+                    m.hold_after_s.unwrap_or(2.0),
+                    0.0,
+                    3600.0,
+                    "s",
+                ))
+                .unwrap_or(2.0),
+            sample_rate_hz: c
+                .take(check_range(
+                    "motion.sample_rate_hz",
+                    m.sample_rate_hz.unwrap_or(1000.0),
+                    1e-3,
+                    1e7,
+                    "Hz",
+                ))
+                .unwrap_or(1000.0),
+            margin_mm: c
+                .take(check_range(
+                    "motion.margin_mm",
+                    m.margin_mm.unwrap_or(1.0),
+                    0.0,
+                    1e3,
+                    "mm",
+                ))
+                .unwrap_or(1.0),
+            force_rel: c
+                .take(check_range(
+                    "motion.force_rel",
+                    m.force_rel.unwrap_or(1.0),
+                    0.01,
+                    100.0,
+                    "",
+                ))
+                .unwrap_or(1.0),
         };
+        c.finish()?;
         Ok(Scene {
             stimulus,
             ridge,
             angles,
             trials_per_angle,
-            layout,
+            // Present whenever every check passed.
+            layout: layout.ok_or_else(|| ConfigError::key("array", "no layout"))?,
             motion,
             effects: self.effects.clone().unwrap_or_default(),
         })
@@ -533,8 +662,8 @@ fn resolve_angles(angles: Option<&Angles>) -> Result<Vec<f64>, ConfigError> {
         Some(Angles::List(v)) => v.clone(),
         None => range(10.0, 90.0, 5.0)?,
         Some(Angles::Range(r)) => range(
-            r.start.unwrap_or(10.0),
-            r.stop.unwrap_or(90.0),
+            r.from.or(r.start).unwrap_or(10.0),
+            r.to.or(r.stop).unwrap_or(90.0),
             r.step.unwrap_or(5.0),
         )?,
     };
@@ -547,7 +676,7 @@ fn resolve_angles(angles: Option<&Angles>) -> Result<Vec<f64>, ConfigError> {
         if !(a.is_finite() && a > 0.0 && a < 180.0) {
             return Err(ConfigError::key(
                 "angles",
-                format!("every angle must lie strictly between 0 and 180 degrees (0 and 180 are parallel to the motion and never crossed), got {a}"),
+                format!("every angle must lie strictly between 0 and 180 degrees (0 and 180 are parallel to the motion and never crossed), got {}", palpate_core::fmt_num(a)),
             ));
         }
         if !seen.insert(angle_id(a)) {
@@ -562,7 +691,7 @@ fn range(start: f64, stop: f64, step: f64) -> Result<Vec<f64>, ConfigError> {
     if !(start.is_finite() && stop.is_finite()) || stop < start {
         return Err(ConfigError::key(
             "angles",
-            format!("a range needs finite start <= stop, got start {start}, stop {stop}"),
+            format!("a range needs finite from <= to, got from {start}, to {stop}"),
         ));
     }
     let n = ((stop - start) / step + 1e-9).floor();

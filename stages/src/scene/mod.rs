@@ -58,8 +58,8 @@ pub use sim::Simulator;
 
 use palpate_core::output::write_atomic;
 use palpate_core::{
-    derive_seed, register_stage, BuildContext, ConfigError, InputSpec, Label, Payload, PayloadKind, Source,
-    Stage, StageConfig, StageError, Stimulus, TrialContext, TrialMeta,
+    derive_seed, register_stage, BuildContext, ConfigError, InputSpec, Inspection, Label, OutputFacts,
+    Payload, PayloadKind, Source, Stage, StageConfig, StageError, Stimulus, TrialContext, TrialMeta,
 };
 use rayon::prelude::*;
 use std::path::{Path, PathBuf};
@@ -75,11 +75,32 @@ impl StageConfig for SceneConfig {
     }
     fn build(&self, ctx: &BuildContext) -> Result<Stage, ConfigError> {
         let mut sims = Vec::new();
-        for (name, cfg, scene) in self.resolve_conditions(ctx)? {
+        for (name, cfg, scene) in self.resolve_conditions(ctx)?.0 {
             let sim = Simulator::new(scene, array_seed(ctx, cfg.array_copy.unwrap_or(0)))?;
             sims.push((name, Arc::new(sim)));
         }
         Ok(Stage::Source(Box::new(SceneSource { sims })))
+    }
+    /// The sample rate (`motion.sample_rate_hz`), for the stages downstream
+    /// (a low-pass checks its cutoff against it), and the deprecation
+    /// warnings of the scene's keys and file.
+    fn inspect(&self, ctx: &BuildContext, _inputs: &[OutputFacts]) -> Inspection {
+        match self.resolve_conditions(ctx) {
+            Ok((conditions, warnings)) => Inspection {
+                facts: OutputFacts {
+                    // One rate when every condition samples alike.
+                    sample_rate_hz: conditions
+                        .iter()
+                        .map(|(_, _, scene)| scene.motion.sample_rate_hz)
+                        .reduce(|a, b| if a == b { a } else { f64::NAN })
+                        .filter(|r| r.is_finite()),
+                },
+                errors: Vec::new(),
+                warnings,
+            },
+            // `build` reported it already.
+            Err(_) => Inspection::default(),
+        }
     }
 }
 register_stage!("scene", SceneConfig);
@@ -131,19 +152,19 @@ impl Source for SceneSource {
                 for rep in 0..sc.trials_per_angle {
                     out.push(TrialMeta {
                         trial_id: format!("{prefix}{}", trial_id(sc.stimulus, angle, rep)),
-                    index: out.len(),
-                    label: Label {
-                        stimulus: match sc.stimulus {
-                            StimulusKind::Edge => Stimulus::Edge,
-                            StimulusKind::Ridge => Stimulus::Ridge,
+                        index: out.len(),
+                        label: Label {
+                            stimulus: match sc.stimulus {
+                                StimulusKind::Edge => Stimulus::Edge,
+                                StimulusKind::Ridge => Stimulus::Ridge,
+                            },
+                            angle_deg: Some(angle),
                         },
-                        angle_deg: Some(angle),
-                    },
-                    group: rep,
-                    crossing_ms: Some(crossing),
-                    conditions: conditions.clone(),
-                    provenance: Vec::new(),
-                });
+                        group: rep,
+                        crossing_ms: Some(crossing),
+                        conditions: conditions.clone(),
+                        provenance: Vec::new(),
+                    });
                 }
             }
         }
@@ -206,7 +227,10 @@ pub fn simulate_to_dir(
     };
     // The same simulators a graph's `scene` stage builds, every condition included.
     let mut sims = Vec::new();
-    for (name, cfg, scene) in config.resolve_conditions(&ctx).map_err(|e| StageError::new(e.to_string()))? {
+    let (conditions, _warnings) = config
+        .resolve_conditions(&ctx)
+        .map_err(|e| StageError::new(e.to_string()))?;
+    for (name, cfg, scene) in conditions {
         let sim = Simulator::new(scene, array_seed(&ctx, cfg.array_copy.unwrap_or(0)))
             .map_err(|e| StageError::new(format!("scene file {}: {e}", scene_file.display())))?;
         sims.push((name, Arc::new(sim)));

@@ -91,7 +91,7 @@ fn unlisted_effects_are_never_constructed_nor_computed() {
 
 #[test]
 fn trials_are_listed_angle_by_angle_with_groups_and_ids() {
-    let src = build("angles = { start = 10, stop = 20, step = 2.5 }\ntrials_per_angle = 2");
+    let src = build("angles = { from = 10, to = 20, step = 2.5 }\ntrials_per_angle = 2");
     let t = src.trials().unwrap();
     let ids: Vec<&str> = t.iter().map(|m| m.trial_id.as_str()).collect();
     assert_eq!(
@@ -297,11 +297,20 @@ fn conditions_simulate_each_scene_variant_with_labels_and_prefixed_ids() {
     let hard = produce(src.as_ref(), 4);
     let other = produce(src.as_ref(), 6);
     // Twice the speed: the slide takes about half as long (holds unchanged).
-    assert!(fast.n_samples() < base.n_samples() * 3 / 4, "{} vs {}", fast.n_samples(), base.n_samples());
+    assert!(
+        fast.n_samples() < base.n_samples() * 3 / 4,
+        "{} vs {}",
+        fast.n_samples(),
+        base.n_samples()
+    );
     // 30 % more force: 30 % more pressure in full contact (the ideal response
     // scaled, before the mismatch gain of the same array).
     let full = |s: &Signals| s.data.iter().map(|t| t[0]).fold(0.0, f64::max);
-    assert!((full(&hard) / full(&base) - 1.3).abs() < 1e-9, "{}", full(&hard) / full(&base));
+    assert!(
+        (full(&hard) / full(&base) - 1.3).abs() < 1e-9,
+        "{}",
+        full(&hard) / full(&base)
+    );
     // A second array: another gain draw, so the same pressure reads differently.
     assert_eq!(other.n_samples(), base.n_samples());
     assert_ne!(other.data, base.data);

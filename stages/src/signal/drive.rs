@@ -135,7 +135,7 @@ impl StageConfig for DriveConfig {
                 if !g.is_finite() || g < 0.0 {
                     return Err(ConfigError::key(
                         "gain",
-                        format!("must be a finite number >= 0, got {g}"),
+                        format!("must be a finite number >= 0, got {}", palpate_core::fmt_num(g)),
                     ));
                 }
                 Gain::Fixed(g)

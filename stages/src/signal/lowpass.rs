@@ -48,13 +48,16 @@
 //!   in the steady state of the first sample (as if the signal had been at that
 //!   value before the recording began).
 //!
-//! `cutoff_hz` must lie below the Nyquist frequency `fs/2`; that is checked
-//! when the sample rate is known (at run time), naming the key.
+//! `cutoff_hz` must lie below the Nyquist frequency `fs/2`. When the source
+//! states its sample rate in its config (a scene's `motion.sample_rate_hz`, a
+//! file source's `sample_rate_hz`), `palpate check` refuses a cutoff at or
+//! above it; otherwise the rate is known only from the data, and the run
+//! stops with the same error naming the key.
 
 use super::check_signals;
 use palpate_core::{
-    check_positive, check_range, register_stage, BuildContext, ConfigError, InputSpec, Item, Map, Payload,
-    PayloadKind, Stage, StageConfig, StageError, TrialContext,
+    check_positive, check_range, fmt_num, register_stage, BuildContext, ConfigChecks, ConfigError, InputSpec,
+    Inspection, Item, Map, OutputFacts, Payload, PayloadKind, Stage, StageConfig, StageError, TrialContext,
 };
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
@@ -104,13 +107,39 @@ impl StageConfig for LowpassConfig {
         Some(PayloadKind::Signals)
     }
     fn build(&self, _ctx: &BuildContext) -> Result<Stage, ConfigError> {
-        check_range("order", self.order as f64, 1.0, 16.0, "")?;
-        check_positive("cutoff_hz", self.cutoff_hz, "Hz")?;
+        let mut c = ConfigChecks::new();
+        c.take(check_range("order", self.order as f64, 1.0, 16.0, ""));
+        c.take(check_positive("cutoff_hz", self.cutoff_hz, "Hz"));
+        c.finish()?;
         Ok(Stage::Map(Box::new(Lowpass {
             order: self.order,
             cutoff_hz: self.cutoff_hz,
             mode: self.mode,
         })))
+    }
+    /// A cutoff at or above the Nyquist frequency of a sample rate known
+    /// before the run (a scene's) is an error here, at check time.
+    fn inspect(&self, _ctx: &BuildContext, inputs: &[OutputFacts]) -> Inspection {
+        let facts = OutputFacts::agreed(inputs);
+        let mut errors = Vec::new();
+        if let Some(fs) = facts.sample_rate_hz {
+            if self.cutoff_hz >= fs / 2.0 {
+                errors.push(ConfigError::key(
+                    "cutoff_hz",
+                    format!(
+                        "{} Hz must lie below the Nyquist frequency {} Hz (half the input's sample rate, {} Hz)",
+                        fmt_num(self.cutoff_hz),
+                        fmt_num(fs / 2.0),
+                        fmt_num(fs)
+                    ),
+                ));
+            }
+        }
+        Inspection {
+            facts,
+            errors,
+            warnings: Vec::new(),
+        }
     }
 }
 register_stage!("lowpass", LowpassConfig);

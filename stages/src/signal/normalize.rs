@@ -34,8 +34,8 @@
 
 use super::check_signals;
 use palpate_core::{
-    check_positive, check_range, register_stage, BuildContext, ConfigError, InputSpec, Item, Map, Payload,
-    PayloadKind, Stage, StageConfig, StageError, TrialContext,
+    check_positive, check_range, register_stage, BuildContext, ConfigChecks, ConfigError, InputSpec, Item,
+    Map, Payload, PayloadKind, Stage, StageConfig, StageError, TrialContext,
 };
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
@@ -99,24 +99,33 @@ impl StageConfig for NormalizeConfig {
         Some(PayloadKind::Signals)
     }
     fn build(&self, _ctx: &BuildContext) -> Result<Stage, ConfigError> {
-        check_range("min_span", self.min_span, 0.0, f64::MAX, "input units")?;
-        check_range("dead_fraction", self.dead_fraction, 0.0, 1.0, "")?;
+        let mut c = ConfigChecks::new();
+        c.take(check_range(
+            "min_span",
+            self.min_span,
+            0.0,
+            f64::MAX,
+            "input units",
+        ));
+        c.take(check_range("dead_fraction", self.dead_fraction, 0.0, 1.0, ""));
         let span = match self.mode {
             NormalizeMode::Trial => 0.0,
             NormalizeMode::Causal => {
-                check_positive("baseline_ms", self.baseline_ms, "ms")?;
+                c.take(check_positive("baseline_ms", self.baseline_ms, "ms"));
                 match self.span {
-                    Some(s) => check_positive("span", s, "input units")?,
+                    Some(s) => c.take(check_positive("span", s, "input units")).unwrap_or(0.0),
                     None => {
-                        return Err(ConfigError::key(
+                        c.push(ConfigError::key(
                             "span",
                             "causal mode needs the expected full-scale change of the signal \
                              (input units, from calibration); live data cannot know its maximum",
-                        ))
+                        ));
+                        0.0
                     }
                 }
             }
         };
+        c.finish()?;
         Ok(Stage::Map(Box::new(Normalizer {
             mode: self.mode,
             baseline_ms: self.baseline_ms,

@@ -13,6 +13,11 @@
 //! (frame `k` starts at `k·hop` whatever the trial's length). A trial of zero
 //! duration gives one all-zero frame, so downstream stages always see an image.
 //!
+//! A window shorter than the hop leaves gaps between frames whose spikes no
+//! frame counts. That runs (it subsamples the spike train), but is rarely
+//! meant, so `palpate check` and `run` print a warning naming `window_ms`;
+//! it is not an error.
+//!
 //! Cost: `O(events · window/hop + frames · taxels)`.
 //!
 //! ## Limits (docs/resource-policy.md)
@@ -26,8 +31,9 @@
 //! capacity overflow.
 
 use palpate_core::{
-    check_positive, register_stage, BuildContext, ConfigError, InputSpec, Item, Map, Payload, PayloadKind,
-    SpikeImages, SpikeTrain, Stage, StageConfig, StageError, TrialContext,
+    check_positive, fmt_num, register_stage, BuildContext, ConfigChecks, ConfigError, InputSpec, Inspection,
+    Item, Map, OutputFacts, Payload, PayloadKind, SpikeImages, SpikeTrain, Stage, StageConfig, StageError,
+    TrialContext,
 };
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
@@ -70,8 +76,10 @@ impl StageConfig for BinConfig {
         Some(PayloadKind::Images)
     }
     fn build(&self, _ctx: &BuildContext) -> Result<Stage, ConfigError> {
-        check_positive("window_ms", self.window_ms, "ms")?;
-        check_positive("hop_ms", self.hop_ms, "ms")?;
+        let mut c = ConfigChecks::new();
+        c.take(check_positive("window_ms", self.window_ms, "ms"));
+        c.take(check_positive("hop_ms", self.hop_ms, "ms"));
+        c.finish()?;
         if self.window_ms / self.hop_ms > MAX_FRAMES_PER_SPIKE {
             return Err(ConfigError::key(
                 "hop_ms",
@@ -86,6 +94,24 @@ impl StageConfig for BinConfig {
             window_ms: self.window_ms,
             hop_ms: self.hop_ms,
         })))
+    }
+    /// A window shorter than the hop is a warning: the spikes between
+    /// frames are counted by none.
+    fn inspect(&self, _ctx: &BuildContext, _inputs: &[OutputFacts]) -> Inspection {
+        let mut out = Inspection::default();
+        // A window that is not positive is an error of `build` already.
+        if self.window_ms > 0.0 && self.window_ms < self.hop_ms {
+            out.warnings.push(ConfigError::key(
+                "window_ms",
+                format!(
+                    "{} ms is shorter than hop_ms = {} ms: the spikes in the {} ms between frames are counted by no frame",
+                    fmt_num(self.window_ms),
+                    fmt_num(self.hop_ms),
+                    fmt_num(self.hop_ms - self.window_ms)
+                ),
+            ));
+        }
+        out
     }
 }
 register_stage!("bin", BinConfig);

@@ -58,7 +58,10 @@ impl StageConfig for CropConfig {
         if !(self.share.is_finite() && self.share > 0.0 && self.share <= 1.0) {
             return Err(ConfigError::key(
                 "share",
-                format!("must lie in (0, 1] (a share of the crossing), got {}", self.share),
+                format!(
+                    "must lie in (0, 1] (a share of the crossing), got {}",
+                    palpate_core::fmt_num(self.share)
+                ),
             ));
         }
         Ok(Stage::Map(Box::new(Crop {

@@ -338,12 +338,14 @@ impl StageConfig for ImageStripConfig {
         None
     }
     fn build(&self, _ctx: &BuildContext) -> Result<Stage, ConfigError> {
+        let mut c = palpate_core::ConfigChecks::new();
         if self.max_frames == 0 {
-            return Err(ConfigError::key("max_frames", "must be at least 1"));
+            c.push(ConfigError::key("max_frames", "must be at least 1"));
         }
         if self.per_row == 0 {
-            return Err(ConfigError::key("per_row", "must be at least 1"));
+            c.push(ConfigError::key("per_row", "must be at least 1"));
         }
+        c.finish()?;
         Ok(Stage::Sink(Box::new(self.clone())))
     }
 }

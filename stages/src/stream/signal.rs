@@ -284,7 +284,7 @@ fn drive_stream(cfg: &DriveConfig, _ctx: &BuildContext) -> Result<StreamForm, Co
             (_, Some(g), None) => {
                 return Err(ConfigError::key(
                     "gain",
-                    format!("must be a finite number >= 0, got {g}"),
+                    format!("must be a finite number >= 0, got {}", palpate_core::fmt_num(g)),
                 ))
             }
             (_, Some(_), Some(_)) => {

@@ -388,8 +388,8 @@ where
         (Err((kind, msg)), _) => Err(DaqError {
             kind,
             message: format!(
-                "{msg} after {} frames were received ({stats}){}",
-                stats.frames,
+                "{msg} after {} received ({stats}){}",
+                super::protocol::count(stats.frames, "frame was", "frames were"),
                 where_recorded(&recorder)
             ),
             stats,
@@ -429,8 +429,8 @@ where
         return Err(DaqError {
             kind: DaqErrorKind::Disconnected,
             message: format!(
-                "serial port {path} closed after {} frames were received ({}){}",
-                report.stats.frames,
+                "serial port {path} closed after {} received ({}){}",
+                super::protocol::count(report.stats.frames, "frame was", "frames were"),
                 report.stats,
                 opts.record
                     .as_ref()
@@ -504,10 +504,16 @@ pub fn emulate<W: Write>(
     }
     let rate = signals.sample_rate_hz;
     if !(rate.is_finite() && rate > 0.0) {
-        return Err(format!("sample rate must be positive, got {rate}"));
+        return Err(format!(
+            "sample rate must be positive, got {}",
+            palpate_core::fmt_num(rate)
+        ));
     }
     if opts.speed.is_nan() || opts.speed <= 0.0 {
-        return Err(format!("speed must be positive, got {}", opts.speed));
+        return Err(format!(
+            "speed must be positive, got {}",
+            palpate_core::fmt_num(opts.speed)
+        ));
     }
     if !(opts.scale.is_finite() && opts.scale != 0.0 && opts.offset.is_finite()) {
         return Err("scale must be finite and non-zero, offset finite".into());
@@ -531,10 +537,18 @@ pub fn emulate<W: Write>(
     let total = samples as u64 * opts.repeat as u64;
     let mut k: u64 = 0;
     let write = |buf: &mut Vec<u8>, out: &mut W, report: &mut EmulateReport| -> Result<(), String> {
-        out.write_all(buf)
-            .map_err(|e| format!("write failed after {} frames: {e}", report.frames))?;
-        out.flush()
-            .map_err(|e| format!("flush failed after {} frames: {e}", report.frames))?;
+        out.write_all(buf).map_err(|e| {
+            format!(
+                "write failed after {}: {e}",
+                super::protocol::count(report.frames, "frame", "frames")
+            )
+        })?;
+        out.flush().map_err(|e| {
+            format!(
+                "flush failed after {}: {e}",
+                super::protocol::count(report.frames, "frame", "frames")
+            )
+        })?;
         report.bytes += buf.len() as u64;
         buf.clear();
         Ok(())

@@ -217,25 +217,31 @@ pub struct DaqStats {
     pub wrong_channel_count: Option<u16>,
 }
 
+/// "1 frame", "2 frames": a count with its noun in the right number.
+pub fn count(n: u64, one: &str, many: &str) -> String {
+    format!("{n} {}", if n == 1 { one } else { many })
+}
+
 impl fmt::Display for DaqStats {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         write!(
             f,
-            "{} frames ({} bytes); {} lost in {} gaps, {} CRC errors, {} out of order, {} garbage bytes, {} stalls",
-            self.frames,
-            self.bytes,
+            "{} ({}); {} lost in {}, {}, {} out of order, {}, {}",
+            count(self.frames, "frame", "frames"),
+            count(self.bytes, "byte", "bytes"),
             self.lost_frames,
-            self.gaps,
-            self.crc_errors,
+            count(self.gaps, "gap", "gaps"),
+            count(self.crc_errors, "CRC error", "CRC errors"),
             self.out_of_order,
-            self.garbage_bytes,
-            self.stalls
+            count(self.garbage_bytes, "garbage byte", "garbage bytes"),
+            count(self.stalls, "stall", "stalls"),
         )?;
         if let Some(n) = self.wrong_channel_count.filter(|_| self.wrong_channels > 0) {
             write!(
                 f,
-                "; channel mismatch: {} valid frames of {n} channels were skipped",
-                self.wrong_channels
+                "; channel mismatch: {} of {} skipped",
+                count(self.wrong_channels, "valid frame", "valid frames"),
+                count(u64::from(n), "channel", "channels")
             )?;
         }
         Ok(())

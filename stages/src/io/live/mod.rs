@@ -291,13 +291,7 @@ impl Checked {
 }
 
 fn prefix(section: &str) -> impl Fn(ConfigError) -> ConfigError + '_ {
-    move |e| ConfigError {
-        key: Some(match e.key {
-            Some(k) => format!("{section}.{k}"),
-            None => section.to_string(),
-        }),
-        message: e.message,
-    }
+    move |e| e.within(section)
 }
 
 impl LiveConfig {
@@ -307,10 +301,7 @@ impl LiveConfig {
     pub fn from_file(path: &Path) -> Result<LiveConfig, ConfigError> {
         let text = std::fs::read_to_string(path)
             .map_err(|e| ConfigError::general(format!("cannot read {}: {e}", path.display())))?;
-        Self::from_toml_str(&text).map_err(|e| ConfigError {
-            key: e.key,
-            message: format!("{}: {}", path.display(), e.message),
-        })
+        Self::from_toml_str(&text).map_err(|e| e.context(&path.display().to_string()))
     }
 
     /// The config of an ordinary live graph: the keys of its one stage of
@@ -472,7 +463,7 @@ impl LiveConfig {
             Some(g) => {
                 return Err(ConfigError::key(
                     "drive.gain",
-                    format!("must be finite and >= 0, got {g}"),
+                    format!("must be finite and >= 0, got {}", palpate_core::fmt_num(g)),
                 ))
             }
             None => {

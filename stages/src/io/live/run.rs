@@ -284,6 +284,12 @@ pub fn run_live_until<R: Read + Send + 'static>(
     })
 }
 
+/// True for a pseudo-terminal's device side (`/dev/pts/N`, BSD `/dev/ttyp*`):
+/// an emulator, not a board, is on the other end.
+pub fn is_pseudo_terminal(port: &str) -> bool {
+    port.starts_with("/dev/pts/") || port.starts_with("/dev/ttyp")
+}
+
 /// Samples per second between two (timestamp, sample index) points.
 fn measured(clock: Option<((u64, u64), (u64, u64))>) -> Option<f64> {
     let ((t0, k0), (t1, k1)) = clock?;
@@ -292,7 +298,12 @@ fn measured(clock: Option<((u64, u64), (u64, u64))>) -> Option<f64> {
 
 /// [`run_live_until`] on a serial port (8N1, `baud`). A serial port does not
 /// end: its closing is reported as [`LiveEnd::Daq`] (disconnected), with the
-/// estimate of what came before.
+/// estimate of what came before. A pseudo-terminal (`/dev/pts/N`, what
+/// `palpate daq emulate` plays into) does end: the emulator closes it after
+/// its last frame, which the reader sees as a hang-up (a read error such as
+/// "Broken pipe", or the end of the stream); after at least one frame that
+/// is the normal end of playback, [`LiveEnd::Acquisition`]`(EndOfStream)`,
+/// not an error.
 pub fn run_live_serial(
     port: &str,
     baud: u32,
@@ -304,16 +315,24 @@ pub fn run_live_serial(
     cfg.check()?;
     let dev = open_serial(port, baud)?;
     let mut r = run_live_until(dev, cfg, acquire, stop, on_update)?;
-    if r.ended == LiveEnd::Acquisition(StopReason::EndOfStream) {
-        r.ended = LiveEnd::Daq(DaqError {
-            kind: DaqErrorKind::Disconnected,
-            message: format!(
-                "serial port {port} closed after {} frames were received ({})",
-                r.stats.frames, r.stats
-            ),
-            stats: r.stats.clone(),
-            recorded_bytes: r.recorded_bytes,
-        });
+    let played = is_pseudo_terminal(port) && r.stats.frames > 0;
+    match &r.ended {
+        LiveEnd::Daq(e) if played && e.kind == DaqErrorKind::Disconnected => {
+            r.ended = LiveEnd::Acquisition(StopReason::EndOfStream);
+        }
+        LiveEnd::Acquisition(StopReason::EndOfStream) if !played => {
+            r.ended = LiveEnd::Daq(DaqError {
+                kind: DaqErrorKind::Disconnected,
+                message: format!(
+                    "serial port {port} closed after {} received ({})",
+                    crate::io::daq::protocol::count(r.stats.frames, "frame was", "frames were"),
+                    r.stats
+                ),
+                stats: r.stats.clone(),
+                recorded_bytes: r.recorded_bytes,
+            });
+        }
+        _ => {}
     }
     Ok(r)
 }

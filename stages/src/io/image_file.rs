@@ -1,0 +1,405 @@
+//! The `image_file` source: spike images read back from the folder
+//! `write_images` wrote, so that images round-trip (write, read, same counts,
+//! same labels, same trial order), or from image files of another tool laid
+//! out the same way.
+//!
+//! ## The folder
+//!
+//! `write_images` writes, into one folder:
+//!
+//! * one file per trial, named after the trial id: NPY float64 of shape
+//!   `(frames, rows, cols)` for a grid or `(frames, taxels)` otherwise, or
+//!   CSV with the header `frame, t_start_ms, taxel_0 .. taxel_{N-1}` and one
+//!   row per frame (`frame` = 0, 1, ...; `t_start_ms` = `frame · hop_ms`);
+//! * `labels.toml`: each trial's `angle_deg`, `stimulus` and `group` (the
+//!   label sidecar every file source reads);
+//! * `info.json`: `layout`, `window_ms`, `hop_ms`, `format` and `trials` (the
+//!   trial files' stems in the order the run gave them).
+//!
+//! `image_file` reads `info.json` for the layout, window, hop, format and
+//! order (the `layout`, `window_ms`, `hop_ms` and `format` keys override it,
+//! and are required when the folder has no `info.json`); without a `trials`
+//! list the trials are the folder's files of that format in name order. The
+//! labels come from `labels.toml` when present (or the `labels` key); every
+//! trial must have an entry and every entry a trial, as for `signal_file`.
+//!
+//! ## Checks
+//!
+//! Counts must be finite and not negative (a spike count); an NPY file's
+//! shape must be `(frames, rows, cols)` or `(frames, taxels)` for the layout;
+//! a CSV file's header must be `frame, t_start_ms, taxel_0 ..` with one column
+//! per taxel, its frames numbered 0, 1, ... and `t_start_ms` equal to
+//! `frame · hop_ms` (within 1e-9 ms relative), so that a file written with
+//! another hop is not silently read on a wrong time base. Every error names
+//! the file and the row or entry.
+
+use super::arrays::{read_npy_plain, NdArray};
+use super::common::{apply_sidecar, build_metas, read_sidecar, LayoutConfig, TrialLabels};
+use palpate_core::{
+    check_positive, register_stage, BuildContext, ConfigChecks, ConfigError, InputSpec, Payload, PayloadKind,
+    Source, SpikeImages, Stage, StageConfig, StageError, TaxelLayout, TrialContext, TrialMeta,
+};
+use rayon::prelude::*;
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, OnceLock};
+
+/// File format of image files.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum ImageFormat {
+    /// As `info.json` says (`write_images`' own record).
+    #[default]
+    Auto,
+    /// `frame, t_start_ms, taxel_0 ..` CSV.
+    Csv,
+    /// NumPy `.npy` float64.
+    Npy,
+}
+
+impl ImageFormat {
+    fn ext(self) -> Option<&'static str> {
+        match self {
+            ImageFormat::Auto => None,
+            ImageFormat::Csv => Some("csv"),
+            ImageFormat::Npy => Some("npy"),
+        }
+    }
+}
+
+/// Spike images read from a folder `write_images` wrote (one NPY or CSV file
+/// per trial, `labels.toml`, `info.json`), so that images round-trip.
+///
+/// Format, checks and the order of trials: the user guide's "Sources" page and
+/// the module docs of `palpate_stages::io::image_file`.
+#[derive(Clone, Debug, Default, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields, default)]
+pub struct ImageFileConfig {
+    /// The folder, relative to the graph file's folder (e.g.
+    /// "../out/quickstart/images"). Required.
+    pub dir: String,
+    /// `auto` (as `info.json` says), `csv` or `npy`. Default auto.
+    pub format: ImageFormat,
+    /// Frame length, ms; default: `info.json`'s `window_ms`.
+    pub window_ms: Option<f64>,
+    /// Time between frame starts, ms; default: `info.json`'s `hop_ms`.
+    pub hop_ms: Option<f64>,
+    /// Taxel layout; default: `info.json`'s `layout`.
+    pub layout: Option<LayoutConfig>,
+    /// Label sidecar (TOML, CSV or `trials.json`), relative to the graph
+    /// file's folder; default: the folder's `labels.toml` when present.
+    pub labels: Option<String>,
+}
+
+/// What `write_images` records in `info.json`.
+#[derive(Debug, Default, Deserialize)]
+struct Info {
+    layout: Option<TaxelLayout>,
+    window_ms: Option<f64>,
+    hop_ms: Option<f64>,
+    format: Option<String>,
+    trials: Option<Vec<String>>,
+}
+
+#[typetag::serde(name = "image_file")]
+impl StageConfig for ImageFileConfig {
+    fn inputs(&self) -> InputSpec {
+        InputSpec::none()
+    }
+    fn output(&self) -> Option<PayloadKind> {
+        Some(PayloadKind::Images)
+    }
+    fn build(&self, ctx: &BuildContext) -> Result<Stage, ConfigError> {
+        Ok(Stage::Source(Box::new(self.source(ctx)?)))
+    }
+}
+register_stage!("image_file", ImageFileConfig);
+
+impl ImageFileConfig {
+    /// Checks the keys against the folder and makes the (not yet loaded) source.
+    fn source(&self, ctx: &BuildContext) -> Result<ImageFileSource, ConfigError> {
+        if self.dir.is_empty() {
+            return Err(ConfigError::key("dir", "name the folder `write_images` wrote"));
+        }
+        let dir = ctx.resolve(Path::new(&self.dir));
+        if !dir.is_dir() {
+            return Err(ConfigError::key(
+                "dir",
+                format!("folder {} not found", dir.display()),
+            ));
+        }
+        let info_path = dir.join("info.json");
+        let info: Info = if info_path.is_file() {
+            let text = std::fs::read_to_string(&info_path)
+                .map_err(|e| ConfigError::key("dir", format!("cannot read {}: {e}", info_path.display())))?;
+            serde_json::from_str(&text)
+                .map_err(|e| ConfigError::key("dir", format!("{}: {e}", info_path.display())))?
+        } else {
+            Info::default()
+        };
+        let from_info = |what: &str| format!("not given, and {} gives no `{what}`", info_path.display());
+        let mut c = ConfigChecks::new();
+        let layout = match (&self.layout, info.layout) {
+            (Some(l), _) => c.take(l.to_layout("layout")),
+            (None, Some(l)) => c.take(
+                l.validate()
+                    .map(|()| l)
+                    .map_err(|m| ConfigError::key("layout", format!("{}: {m}", info_path.display()))),
+            ),
+            (None, None) => {
+                c.push(ConfigError::key("layout", from_info("layout")));
+                None
+            }
+        };
+        let mut number = |key: &str, given: Option<f64>, recorded: Option<f64>| match given.or(recorded) {
+            Some(v) => c.take(check_positive(key, v, "ms")),
+            None => {
+                c.push(ConfigError::key(key, from_info(key)));
+                None
+            }
+        };
+        let window_ms = number("window_ms", self.window_ms, info.window_ms);
+        let hop_ms = number("hop_ms", self.hop_ms, info.hop_ms);
+        let ext = match (self.format.ext(), info.format.as_deref()) {
+            (Some(e), _) => Some(e),
+            (None, Some("csv")) => Some("csv"),
+            (None, Some("npy")) => Some("npy"),
+            (None, Some(other)) => {
+                c.push(ConfigError::key(
+                    "format",
+                    format!(
+                        "{} says format \"{other}\"; set `format` to csv or npy",
+                        info_path.display()
+                    ),
+                ));
+                None
+            }
+            (None, None) => {
+                c.push(ConfigError::key("format", from_info("format")));
+                None
+            }
+        };
+        let labels = match &self.labels {
+            Some(l) => {
+                let p = ctx.resolve(Path::new(l));
+                if !p.is_file() {
+                    c.push(ConfigError::key(
+                        "labels",
+                        format!("file {} not found", p.display()),
+                    ));
+                }
+                Some(p)
+            }
+            None => Some(dir.join("labels.toml")).filter(|p| p.is_file()),
+        };
+        c.finish()?;
+        let (Some(layout), Some(window_ms), Some(hop_ms), Some(ext)) = (layout, window_ms, hop_ms, ext)
+        else {
+            return Err(ConfigError::key("dir", "incomplete image folder"));
+        };
+        let files = match info.trials {
+            Some(stems) => {
+                let files: Vec<PathBuf> = stems.iter().map(|s| dir.join(format!("{s}.{ext}"))).collect();
+                if let Some(missing) = files.iter().find(|f| !f.is_file()) {
+                    return Err(ConfigError::key(
+                        "dir",
+                        format!(
+                            "{} lists trial file {}, which is missing",
+                            info_path.display(),
+                            missing.display()
+                        ),
+                    ));
+                }
+                files
+            }
+            None => {
+                let mut files: Vec<PathBuf> = std::fs::read_dir(&dir)
+                    .map_err(|e| ConfigError::key("dir", format!("cannot list {}: {e}", dir.display())))?
+                    .filter_map(Result::ok)
+                    .map(|e| e.path())
+                    .filter(|p| p.is_file() && p.extension().and_then(|e| e.to_str()) == Some(ext))
+                    .collect();
+                files.sort();
+                files
+            }
+        };
+        if files.is_empty() {
+            return Err(ConfigError::key(
+                "dir",
+                format!("{} holds no .{ext} image file", dir.display()),
+            ));
+        }
+        Ok(ImageFileSource {
+            layout,
+            window_ms,
+            hop_ms,
+            files,
+            labels,
+            loaded: OnceLock::new(),
+        })
+    }
+}
+
+/// Every trial, read once and shared.
+type Loaded = Vec<(TrialMeta, Arc<SpikeImages>)>;
+
+struct ImageFileSource {
+    layout: TaxelLayout,
+    window_ms: f64,
+    hop_ms: f64,
+    files: Vec<PathBuf>,
+    labels: Option<PathBuf>,
+    loaded: OnceLock<Result<Loaded, StageError>>,
+}
+
+impl ImageFileSource {
+    fn load(&self) -> Result<Loaded, StageError> {
+        let images: Vec<Result<SpikeImages, String>> = self.files.par_iter().map(|f| self.read(f)).collect();
+        let images: Vec<SpikeImages> = images
+            .into_iter()
+            .collect::<Result<_, _>>()
+            .map_err(StageError::new)?;
+        let mut labelled: Vec<(String, TrialLabels)> = self
+            .files
+            .iter()
+            .map(|f| {
+                let id = f
+                    .file_stem()
+                    .map(|s| s.to_string_lossy().into_owned())
+                    .unwrap_or_default();
+                (id, TrialLabels::default())
+            })
+            .collect();
+        if let Some(p) = &self.labels {
+            let side = read_sidecar(p)?;
+            apply_sidecar(&mut labelled, &side, p)?;
+        }
+        let origins: Vec<String> = self.files.iter().map(|f| f.display().to_string()).collect();
+        let metas = build_metas(&labelled, &origins)?;
+        Ok(metas.into_iter().zip(images.into_iter().map(Arc::new)).collect())
+    }
+
+    /// Reads one trial's file.
+    fn read(&self, path: &Path) -> Result<SpikeImages, String> {
+        let shown = path.display().to_string();
+        let n = self.layout.len();
+        let (n_frames, counts) = if path.extension().and_then(|e| e.to_str()) == Some("npy") {
+            let bytes = std::fs::read(path).map_err(|e| format!("cannot read {shown}: {e}"))?;
+            let NdArray { shape, data } = read_npy_plain(&bytes, &shown)?;
+            let frames_of = |shape: &[usize]| -> Option<usize> {
+                match (shape, self.layout.grid()) {
+                    ([f, r, c], Some((rows, cols))) if *r == rows && *c == cols => Some(*f),
+                    ([f, t], _) if *t == n => Some(*f),
+                    _ => None,
+                }
+            };
+            let f = frames_of(&shape).ok_or_else(|| {
+                format!(
+                    "{shown}: shape {shape:?} does not fit the layout: expected (frames, {}){}",
+                    n,
+                    self.layout
+                        .grid()
+                        .map(|(r, c)| format!(" or (frames, {r}, {c})"))
+                        .unwrap_or_default()
+                )
+            })?;
+            (f, data)
+        } else {
+            self.read_csv(path, &shown)?
+        };
+        if let Some(k) = counts.iter().position(|v| !(v.is_finite() && *v >= 0.0)) {
+            return Err(format!(
+                "{shown}: frame {}, taxel {}: {} is not a spike count (finite, >= 0)",
+                k / n.max(1),
+                k % n.max(1),
+                counts[k]
+            ));
+        }
+        Ok(SpikeImages {
+            layout: self.layout.clone(),
+            window_ms: self.window_ms,
+            hop_ms: self.hop_ms,
+            n_frames,
+            counts,
+        })
+    }
+
+    /// Reads `frame, t_start_ms, taxel_0 ..` CSV.
+    fn read_csv(&self, path: &Path, shown: &str) -> Result<(usize, Vec<f64>), String> {
+        let n = self.layout.len();
+        let mut rdr = csv::ReaderBuilder::new()
+            .trim(csv::Trim::All)
+            .from_path(path)
+            .map_err(|e| format!("cannot read {shown}: {e}"))?;
+        let headers = rdr.headers().map_err(|e| format!("{shown}: {e}"))?.clone();
+        let expected: Vec<String> = ["frame".to_string(), "t_start_ms".to_string()]
+            .into_iter()
+            .chain((0..n).map(|i| format!("taxel_{i}")))
+            .collect();
+        if headers.iter().ne(expected.iter().map(String::as_str)) {
+            return Err(format!(
+                "{shown}: the header must be `frame, t_start_ms, taxel_0 .. taxel_{}` ({} columns for the layout's {n} taxels), got {} columns starting `{}`",
+                n.saturating_sub(1),
+                n + 2,
+                headers.len(),
+                headers.iter().take(3).collect::<Vec<_>>().join(", ")
+            ));
+        }
+        let mut counts = Vec::new();
+        let mut frames = 0usize;
+        for (r, rec) in rdr.records().enumerate() {
+            let line = r + 2;
+            let rec = rec.map_err(|e| format!("{shown}, line {line}: {e}"))?;
+            let cell = |i: usize| -> Result<f64, String> {
+                let c = rec.get(i).unwrap_or("");
+                c.parse::<f64>().map_err(|_| {
+                    format!(
+                        "{shown}, line {line}, column `{}`: cannot read `{c}` as a number",
+                        expected[i]
+                    )
+                })
+            };
+            let frame = cell(0)?;
+            if frame != frames as f64 {
+                return Err(format!(
+                    "{shown}, line {line}: frame {frame}, expected {frames} (frames numbered 0, 1, ... in order)"
+                ));
+            }
+            let t = cell(1)?;
+            let want = frames as f64 * self.hop_ms;
+            if (t - want).abs() > 1e-9 * want.abs().max(1.0) {
+                return Err(format!(
+                    "{shown}, line {line}: t_start_ms = {t}, but frame {frames} at a hop of {} ms starts at {want} ms (a file written with another hop_ms?)",
+                    self.hop_ms
+                ));
+            }
+            for i in 2..n + 2 {
+                counts.push(cell(i)?);
+            }
+            frames += 1;
+        }
+        Ok((frames, counts))
+    }
+
+    fn loaded(&self) -> Result<&Loaded, StageError> {
+        self.loaded
+            .get_or_init(|| self.load())
+            .as_ref()
+            .map_err(Clone::clone)
+    }
+}
+
+impl Source for ImageFileSource {
+    fn trials(&self) -> Result<Vec<TrialMeta>, StageError> {
+        Ok(self.loaded()?.iter().map(|(m, _)| m.clone()).collect())
+    }
+    fn produce(&self, ctx: &TrialContext<'_>) -> Result<Payload, StageError> {
+        let all = self.loaded()?;
+        all.get(ctx.meta.index)
+            .filter(|(m, _)| m.trial_id == ctx.meta.trial_id)
+            .or_else(|| all.iter().find(|(m, _)| m.trial_id == ctx.meta.trial_id))
+            .map(|(_, s)| Payload::Images(s.clone()))
+            .ok_or_else(|| StageError::new(format!("no trial `{}` in the image files", ctx.meta.trial_id)))
+    }
+}

@@ -1,0 +1,188 @@
+//! What `palpate check` reports: every wrong key of a stage, physical ranges
+//! checked against the sample rate the source states, warnings that do not
+//! stop a run, and the deprecated spellings of ranges.
+
+use palpate_core::{load_str, Diagnostic, LoadOptions, Severity};
+
+fn load(toml: &str) -> Result<palpate_core::Graph, Vec<Diagnostic>> {
+    palpate_stages::link();
+    let opts = LoadOptions {
+        base_dir: Some(concat!(env!("CARGO_MANIFEST_DIR"), "/../graphs").into()),
+        ..LoadOptions::default()
+    };
+    load_str(toml, "test.toml", "test", &opts).map_err(|e| e.0)
+}
+
+fn graph(scene: &str, lowpass: &str, bin: &str) -> String {
+    format!(
+        r#"
+[stages.scene]
+type = "scene"
+trials_per_angle = 1
+{scene}
+
+[stages.filter]
+type = "lowpass"
+inputs = ["scene"]
+{lowpass}
+
+[stages.norm]
+type = "normalize"
+inputs = ["filter"]
+
+[stages.drive]
+type = "drive"
+inputs = ["norm"]
+
+[stages.enc]
+type = "izhikevich"
+inputs = ["drive"]
+
+[stages.bins]
+type = "bin"
+inputs = ["enc"]
+{bin}
+
+[stages.out]
+type = "write_images"
+inputs = ["bins"]
+"#
+    )
+}
+
+fn errors(d: &[Diagnostic]) -> Vec<&Diagnostic> {
+    d.iter().filter(|d| d.severity == Severity::Error).collect()
+}
+
+#[test]
+fn two_bad_keys_of_one_stage_give_two_diagnostics_at_their_lines() {
+    let text = graph("angles = [45]", "order = 0\ncutoff_hz = -1.0", "");
+    let d = load(&text).unwrap_err();
+    let e = errors(&d);
+    assert_eq!(e.len(), 2, "{d:#?}");
+    let keys: Vec<&str> = e.iter().filter_map(|d| d.key.as_deref()).collect();
+    assert_eq!(keys, ["order", "cutoff_hz"]);
+    for d in &e {
+        assert_eq!(d.stage.as_deref(), Some("filter"));
+        let key = d.key.as_deref().unwrap_or("");
+        let line = text.lines().position(|l| l.starts_with(key)).map(|i| i + 1);
+        assert_eq!(d.line, line, "{d}");
+        assert!(
+            d.to_string().starts_with(&format!(
+                "test.toml:{}: error: stage `filter`: key `{key}`",
+                line.unwrap_or(0)
+            )),
+            "{d}"
+        );
+    }
+}
+
+#[test]
+fn every_wrong_scene_key_is_reported_not_only_the_first() {
+    let text = graph(
+        "angles = [45]\nmotion = { speed_mm_s = -2.0, hold_before_s = -1.0 }\nridge = { width_mm = 0.0 }",
+        "cutoff_hz = 10.0",
+        "",
+    );
+    let d = load(&text).unwrap_err();
+    let keys: Vec<&str> = errors(&d).iter().filter_map(|d| d.key.as_deref()).collect();
+    // In file order: `motion` is written before `ridge`.
+    assert_eq!(
+        keys,
+        ["motion.speed_mm_s", "motion.hold_before_s", "ridge.width_mm"],
+        "{d:#?}"
+    );
+}
+
+#[test]
+fn a_cutoff_at_or_above_nyquist_is_refused_at_check_time() {
+    // The scene samples at 1000 Hz: Nyquist is 500 Hz.
+    for cutoff in ["500.0", "600.0"] {
+        let text = graph("angles = [45]", &format!("cutoff_hz = {cutoff}"), "");
+        let d = load(&text).unwrap_err();
+        let e = errors(&d);
+        assert_eq!(e.len(), 1, "{d:#?}");
+        assert_eq!(e[0].key.as_deref(), Some("cutoff_hz"));
+        assert!(e[0].message.contains("Nyquist frequency 500 Hz"), "{}", e[0]);
+    }
+    // Beside another error of the stage's own build: both are reported.
+    let d = load(&graph("angles = [45]", "order = 0\ncutoff_hz = 600.0", "")).unwrap_err();
+    let keys: Vec<&str> = errors(&d).iter().filter_map(|d| d.key.as_deref()).collect();
+    assert_eq!(keys, ["order", "cutoff_hz"], "{d:#?}");
+    // Below it, or with another scene rate, the graph loads.
+    assert!(load(&graph("angles = [45]", "cutoff_hz = 499.0", "")).is_ok());
+    let text = graph(
+        "angles = [45]\nmotion = { sample_rate_hz = 100.0 }",
+        "cutoff_hz = 60.0",
+        "",
+    );
+    let d = load(&text).unwrap_err();
+    assert!(
+        errors(&d)[0].message.contains("Nyquist frequency 50 Hz"),
+        "{d:#?}"
+    );
+}
+
+#[test]
+fn a_bin_window_shorter_than_its_hop_is_a_warning() {
+    let g = load(&graph(
+        "angles = [45]",
+        "cutoff_hz = 10.0",
+        "window_ms = 5.0\nhop_ms = 10.0",
+    ))
+    .unwrap();
+    let w: Vec<&Diagnostic> = g
+        .warnings
+        .iter()
+        .filter(|w| w.key.as_deref() == Some("window_ms"))
+        .collect();
+    assert_eq!(w.len(), 1, "{:#?}", g.warnings);
+    assert_eq!(w[0].severity, Severity::Warning);
+    assert!(w[0].message.contains("shorter than hop_ms"), "{}", w[0]);
+    let g = load(&graph("angles = [45]", "cutoff_hz = 10.0", "")).unwrap();
+    assert!(g.warnings.iter().all(|w| w.key.as_deref() != Some("window_ms")));
+}
+
+#[test]
+fn old_range_names_give_the_same_graph_with_a_deprecation_warning() {
+    let new = load(&graph(
+        "angles = { from = 10, to = 30, step = 10 }",
+        "cutoff_hz = 10.0",
+        "",
+    ))
+    .unwrap();
+    let old = load(&graph(
+        "angles = { start = 10, stop = 30, step = 10 }",
+        "cutoff_hz = 10.0",
+        "",
+    ))
+    .unwrap();
+    let trials = |g: &palpate_core::Graph| -> Vec<String> {
+        match &g.nodes[0].stage {
+            palpate_core::Stage::Source(s) => s.trials().unwrap().into_iter().map(|m| m.trial_id).collect(),
+            _ => panic!("the scene is a source"),
+        }
+    };
+    assert_eq!(
+        trials(&new),
+        ["edge-10deg-r00", "edge-20deg-r00", "edge-30deg-r00"]
+    );
+    assert_eq!(trials(&new), trials(&old));
+    let deprecations = |g: &palpate_core::Graph| -> Vec<String> {
+        g.warnings
+            .iter()
+            .filter(|w| w.message.contains("deprecated"))
+            .filter_map(|w| w.key.clone())
+            .collect()
+    };
+    assert!(deprecations(&new).is_empty(), "{:#?}", new.warnings);
+    assert_eq!(deprecations(&old), ["angles.start", "angles.stop"]);
+    // Both spellings of one bound is an error.
+    let d = load(&graph(
+        "angles = { from = 10, start = 10, to = 30 }",
+        "cutoff_hz = 10.0",
+        "",
+    ))
+    .unwrap_err();
+    assert_eq!(errors(&d)[0].key.as_deref(), Some("angles.start"), "{d:#?}");
+}
