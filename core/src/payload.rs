@@ -422,6 +422,18 @@ pub enum Payload {
 }
 
 impl Payload {
+    /// Heap bytes the payload's data hold, approximately (samples, events,
+    /// counts, scores; small fixed parts and metadata left out): what a cache
+    /// of outputs budgets by.
+    pub fn approx_bytes(&self) -> usize {
+        match self {
+            Payload::Signals(s) => s.data.iter().map(|t| t.len() * 8 + 24).sum(),
+            Payload::Spikes(s) => s.events.len() * std::mem::size_of::<SpikeEvent>(),
+            Payload::Images(i) => i.counts.len() * 8,
+            Payload::Estimate(e) => e.scores.len() * std::mem::size_of::<ClassScore>() + 64,
+        }
+    }
+
     /// This payload's kind.
     pub fn kind(&self) -> PayloadKind {
         match self {

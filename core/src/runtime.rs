@@ -59,17 +59,58 @@ pub trait Progress: Sync {
 /// a run served from the cache still reports what the stage costs (marked
 /// `cached`): a sweep's compute-time figures then do not depend on which point
 /// happened to compute a shared stage first.
-#[derive(Default)]
+///
+/// The cache holds at most [`Cache::budget_bytes`] of payload data (default
+/// [`DEFAULT_CACHE_BYTES`]): when a new output would pass it, the outputs used
+/// least recently are dropped first, and an output larger than the whole
+/// budget is not kept. A sweep whose points share nothing (each changes its
+/// scene, or draws new seeds) then runs in bounded memory instead of keeping
+/// every point's signals to the end (a 6-point x 5-seed sweep of 340-trial
+/// scenes reached 22 GB before this bound).
 pub struct Cache {
-    map: std::sync::Mutex<HashMap<u64, Cached>>,
+    map: std::sync::Mutex<CacheMap>,
     hits: std::sync::atomic::AtomicUsize,
     misses: std::sync::atomic::AtomicUsize,
+    budget: usize,
+}
+
+/// Most payload bytes a [`Cache`] keeps by default: 2 GiB.
+pub const DEFAULT_CACHE_BYTES: usize = 2 << 30;
+
+#[derive(Default)]
+struct CacheMap {
+    entries: HashMap<u64, (Cached, usize, u64)>,
+    bytes: usize,
+    clock: u64,
+}
+
+impl Default for Cache {
+    fn default() -> Self {
+        Cache::with_budget(DEFAULT_CACHE_BYTES)
+    }
 }
 
 /// A cached output with the timing of the run that computed it.
 type Cached = (Arc<Vec<Item>>, StageTiming);
 
 impl Cache {
+    /// A cache keeping at most `bytes` of payload data.
+    pub fn with_budget(bytes: usize) -> Self {
+        Cache {
+            map: std::sync::Mutex::new(CacheMap::default()),
+            hits: Default::default(),
+            misses: Default::default(),
+            budget: bytes,
+        }
+    }
+    /// The most payload bytes this cache keeps.
+    pub fn budget_bytes(&self) -> usize {
+        self.budget
+    }
+    /// Payload bytes held now.
+    pub fn held_bytes(&self) -> usize {
+        self.map.lock().map_or(0, |m| m.bytes)
+    }
     /// Stage runs served from the cache.
     pub fn hits(&self) -> usize {
         self.hits.load(std::sync::atomic::Ordering::Relaxed)
@@ -79,14 +120,41 @@ impl Cache {
         self.misses.load(std::sync::atomic::Ordering::Relaxed)
     }
     fn get(&self, key: u64) -> Option<Cached> {
-        let hit = self.map.lock().ok()?.get(&key).cloned();
+        let hit = {
+            let mut m = self.map.lock().ok()?;
+            m.clock += 1;
+            let now = m.clock;
+            m.entries.get_mut(&key).map(|(c, _, used)| {
+                *used = now;
+                c.clone()
+            })
+        };
         let counter = if hit.is_some() { &self.hits } else { &self.misses };
         counter.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         hit
     }
     fn put(&self, key: u64, items: Arc<Vec<Item>>, timing: StageTiming) {
+        let size: usize = items.iter().map(|it| it.payload.approx_bytes()).sum();
+        if size > self.budget {
+            return;
+        }
         if let Ok(mut m) = self.map.lock() {
-            m.insert(key, (items, timing));
+            if let Some((_, old, _)) = m.entries.remove(&key) {
+                m.bytes -= old;
+            }
+            // Least recently used first, until the new output fits.
+            while m.bytes + size > self.budget {
+                let Some((&victim, _)) = m.entries.iter().min_by_key(|(_, (_, _, used))| *used) else {
+                    break;
+                };
+                if let Some((_, freed, _)) = m.entries.remove(&victim) {
+                    m.bytes -= freed;
+                }
+            }
+            m.clock += 1;
+            let now = m.clock;
+            m.entries.insert(key, ((items, timing), size, now));
+            m.bytes += size;
         }
     }
 }
@@ -544,5 +612,42 @@ mod tests {
         assert!(m >= Duration::from_millis(50) && m <= Duration::from_millis(51));
         assert_eq!(p, Duration::from_millis(95));
         assert_eq!(median_p95(&[]), (Duration::ZERO, Duration::ZERO));
+    }
+
+    fn images(cells: usize) -> Arc<Vec<Item>> {
+        let im = crate::payload::SpikeImages {
+            layout: crate::payload::TaxelLayout::paper(),
+            window_ms: 100.0,
+            hop_ms: 10.0,
+            n_frames: cells / 16,
+            counts: vec![0.0; cells],
+        };
+        Arc::new(vec![Item {
+            meta: Arc::new(crate::payload::TrialMeta::default()),
+            payload: im.into(),
+        }])
+    }
+
+    #[test]
+    fn the_cache_stays_within_its_budget_dropping_the_least_recently_used() {
+        // Budget: 3 outputs of 1,600 counts (12,800 bytes each).
+        let c = Cache::with_budget(3 * 12_800);
+        for k in 0..3 {
+            c.put(k, images(1600), StageTiming::default());
+        }
+        assert_eq!(c.held_bytes(), 3 * 12_800);
+        assert!(c.get(0).is_some()); // 0 is now the most recently used
+        c.put(3, images(1600), StageTiming::default());
+        assert!(c.held_bytes() <= c.budget_bytes());
+        assert!(c.get(1).is_none(), "the least recently used output is dropped");
+        assert!(c.get(0).is_some() && c.get(2).is_some() && c.get(3).is_some());
+        // An output larger than the whole budget is not kept and evicts nothing.
+        c.put(9, images(16_000), StageTiming::default());
+        assert!(c.get(9).is_none());
+        assert_eq!(c.held_bytes(), 3 * 12_800);
+        // Replacing a key does not count it twice.
+        c.put(3, images(1600), StageTiming::default());
+        assert_eq!(c.held_bytes(), 3 * 12_800);
+        assert_eq!((c.hits(), c.misses()), (4, 2));
     }
 }
