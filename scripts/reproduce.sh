@@ -2,7 +2,7 @@
 # Reproduces the paper's findings in one command:
 #   1. builds the release binary,
 #   2. runs every graph in graphs/paper/ (table2.toml included when present)
-#      and graphs/continuous.toml,
+#      graphs/continuous.toml and graphs/shift/*.toml,
 #      writing its reports into out/paper/<name>/,
 #   3. runs graphs/accuracy_vs_time.toml (the accuracy-time frontier)
 #      into out/accuracy_vs_time/ and the memory study (`cargo bench --bench
@@ -31,7 +31,7 @@ build_end=$(date +%s.%N)
 
 mkdir -p "$OUT"
 timings=()
-for graph in graphs/paper/*.toml graphs/continuous.toml; do
+for graph in graphs/paper/*.toml graphs/continuous.toml graphs/shift/*.toml; do
     name=$(basename "$graph" .toml)
     echo "== $graph -> $OUT/$name"
     "$bin" check "$graph"
