@@ -227,9 +227,13 @@ pub fn simulate_to_dir(
     };
     // The same simulators a graph's `scene` stage builds, every condition included.
     let mut sims = Vec::new();
-    let (conditions, _warnings) = config
+    let (conditions, warnings) = config
         .resolve_conditions(&ctx)
         .map_err(|e| StageError::new(e.to_string()))?;
+    // Deprecated spellings in the scene file: said, as `check` says them.
+    for w in &warnings {
+        eprintln!("warning: {w}");
+    }
     for (name, cfg, scene) in conditions {
         let sim = Simulator::new(scene, array_seed(&ctx, cfg.array_copy.unwrap_or(0)))
             .map_err(|e| StageError::new(format!("scene file {}: {e}", scene_file.display())))?;
