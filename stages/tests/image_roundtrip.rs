@@ -70,8 +70,12 @@ format = "{format}"
 }
 
 fn read(dir: &Path, extra: &str) -> Result<Vec<Item>, String> {
+    // Reports go into the test's own folder, never the crate's working folder.
     let toml = format!(
         r#"
+[run]
+out = "{out}"
+
 [stages.images]
 type = "image_file"
 dir = "out/images"
@@ -85,7 +89,8 @@ angles = [30, 45, 90]
 [stages.mae]
 type = "mae"
 inputs = ["wss"]
-"#
+"#,
+        out = dir.join("out/read").display()
     );
     run_graph(dir, "read.toml", &toml).map(|r| r.outputs["images"].to_vec())
 }
