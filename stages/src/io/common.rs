@@ -609,6 +609,20 @@ pub fn build_metas(
         .collect())
 }
 
+/// The loaded trial `meta` names: looked up at its index first (the runtime
+/// asks in source order), else by id; `what` names the files in the error.
+pub fn loaded_trial<T>(
+    all: &[(TrialMeta, std::sync::Arc<T>)],
+    meta: &TrialMeta,
+    what: &str,
+) -> Result<std::sync::Arc<T>, StageError> {
+    all.get(meta.index)
+        .filter(|(m, _)| m.trial_id == meta.trial_id)
+        .or_else(|| all.iter().find(|(m, _)| m.trial_id == meta.trial_id))
+        .map(|(_, x)| x.clone())
+        .ok_or_else(|| StageError::new(format!("no trial `{}` in the {what}", meta.trial_id)))
+}
+
 /// Writes the label sidecar (TOML) the sources read: one `[trials."<id>"]`
 /// table per trial with `angle_deg` (when known), `stimulus`, `group` and, for
 /// spikes, `duration_ms`. TOML rather than CSV so that a `*.csv` glob over the

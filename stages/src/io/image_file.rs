@@ -395,11 +395,7 @@ impl Source for ImageFileSource {
         Ok(self.loaded()?.iter().map(|(m, _)| m.clone()).collect())
     }
     fn produce(&self, ctx: &TrialContext<'_>) -> Result<Payload, StageError> {
-        let all = self.loaded()?;
-        all.get(ctx.meta.index)
-            .filter(|(m, _)| m.trial_id == ctx.meta.trial_id)
-            .or_else(|| all.iter().find(|(m, _)| m.trial_id == ctx.meta.trial_id))
-            .map(|(_, s)| Payload::Images(s.clone()))
-            .ok_or_else(|| StageError::new(format!("no trial `{}` in the image files", ctx.meta.trial_id)))
+        let trial = crate::io::common::loaded_trial(self.loaded()?, ctx.meta, "image files")?;
+        Ok(Payload::Images(trial))
     }
 }
