@@ -3,7 +3,9 @@
 //! reader (it used to hang forever).
 
 use std::process::{Command, Stdio};
-use std::time::{Duration, Instant};
+mod common;
+use common::wait_or_kill;
+use std::time::Duration;
 
 fn palpate() -> Command {
     let mut c = Command::new(env!("CARGO_BIN_EXE_palpate"));
@@ -35,20 +37,6 @@ fn duration_flags_refuse_nan_infinite_and_huge_values() {
         assert_eq!(out.status.code(), Some(2), "{cmd} {flag} {v}: {err}");
         assert!(err.contains(flag) && err.contains("seconds"), "{err}");
     }
-}
-
-/// Waits for a child, failing (and killing it) after `limit`: a hang detector,
-/// not a timing.
-fn wait_or_kill(mut child: std::process::Child, limit: Duration) -> std::process::Output {
-    let start = Instant::now();
-    while child.try_wait().unwrap().is_none() {
-        if start.elapsed() > limit {
-            let _ = child.kill();
-            panic!("still running after {limit:?}: hung");
-        }
-        std::thread::sleep(Duration::from_millis(100));
-    }
-    child.wait_with_output().unwrap()
 }
 
 #[test]

@@ -4,7 +4,9 @@
 //! and a normal end of playback is not an error.
 
 use std::process::{Command, Stdio};
-use std::time::{Duration, Instant};
+mod common;
+use common::wait_or_kill;
+use std::time::Duration;
 
 fn palpate_in(dir: &std::path::Path) -> Command {
     let mut c = Command::new(env!("CARGO_BIN_EXE_palpate"));
@@ -103,19 +105,6 @@ fn check_refuses_a_cutoff_above_nyquist_and_warns_about_old_range_names() {
     );
     assert!(err.contains("key `angles.stop`"), "{err}");
     assert_tidy("check's stderr", &err);
-}
-
-/// Waits for a child, killing it after `limit` (a hang detector, not a timing).
-fn wait_or_kill(mut child: std::process::Child, limit: Duration) -> std::process::Output {
-    let start = Instant::now();
-    while child.try_wait().unwrap().is_none() {
-        if start.elapsed() > limit {
-            let _ = child.kill();
-            panic!("still running after {limit:?}: hung");
-        }
-        std::thread::sleep(Duration::from_millis(50));
-    }
-    child.wait_with_output().unwrap()
 }
 
 #[test]
