@@ -575,7 +575,8 @@ pub fn parabola_peak(x: [f64; 3], y: [f64; 3]) -> Option<f64> {
 /// Builds the estimate from each class's best `(score, frame)`, whether any
 /// frame so far has a spike, and the end of the last frame (`None`: no
 /// frames). `search` evaluates `max_k WSS` at an arbitrary angle for
-/// [`Refine::Search`].
+/// [`Refine::Search`]; `timing` is the arrival-time plane's angle for
+/// [`Refine::Timing`] (`None`: no plane fits).
 pub(crate) fn finish(
     angles: &[f64],
     best: &[(f64, usize)],
@@ -583,6 +584,7 @@ pub(crate) fn finish(
     decision_time_ms: Option<f64>,
     params: &WssParams,
     search: Option<&mut dyn FnMut(f64) -> f64>,
+    timing: Option<f64>,
 ) -> Estimate {
     let scores: Vec<ClassScore> = angles
         .iter()
@@ -618,7 +620,7 @@ pub(crate) fn finish(
         .filter(|(c, _)| c.abs_diff(b) > 1)
         .map(|(_, s)| s.0)
         .fold(f64::NEG_INFINITY, f64::max);
-    let uncertain = best[b].0 - rival < params.uncertain_margin;
+    let mut uncertain = best[b].0 - rival < params.uncertain_margin;
     let neighbours = (b > 0 && b + 1 < angles.len()).then(|| {
         (
             [angles[b - 1], angles[b], angles[b + 1]],
@@ -646,6 +648,22 @@ pub(crate) fn finish(
                 }
             }
         }
+        Refine::Timing => {
+            if let Some(a) = timing {
+                // The grid's local step: the wider gap beside the best class
+                // (one class alone: any disagreement over 5 degrees).
+                let step = [
+                    b.checked_sub(1).map(|p| class - angles[p]),
+                    angles.get(b + 1).map(|n| n - class),
+                ]
+                .into_iter()
+                .flatten()
+                .fold(0.0, f64::max);
+                let step = if step > 0.0 { step } else { 5.0 };
+                uncertain |= (a - class).abs() > 1.5 * step;
+                angle = a;
+            }
+        }
     }
     Estimate {
         angle_deg: Some(angle),
@@ -655,6 +673,14 @@ pub(crate) fn finish(
         decision_time_ms,
         uncertain,
     }
+}
+
+/// The arrival-time plane's angle when `params` ask for it.
+pub(crate) fn timing_angle(images: &SpikeImages, params: &WssParams) -> Option<f64> {
+    (params.refine == Refine::Timing)
+        .then(|| super::timing::arrival_plane(images, params.timing_window_ms))
+        .flatten()
+        .map(|f| f.angle_deg)
 }
 
 /// Golden-section search for the maximum of `f` on `[a, b]` to width `tol`.
@@ -785,6 +811,7 @@ pub fn wss_batch_speeds(
         prep.end_ms(),
         params,
         Some(&mut search),
+        timing_angle(images, params),
     ))
 }
 
@@ -805,6 +832,7 @@ pub fn wss_reference(
         prep.end_ms(),
         params,
         None,
+        timing_angle(images, params),
     ))
 }
 

@@ -82,6 +82,15 @@
 //!   numerator) or comparing every probed angle on the same interior
 //!   frames of the best class's match removes most of the bias at 20 to 70
 //!   degrees but moves 84.1 by about −1.2 degrees; neither is the default.
+//! * `refine = "timing"` leaves the score curve alone: the continuous angle
+//!   is that of the plane fitted through the taxels' arrival times
+//!   ([`timing`]: `t = a + b·x + c·y`, `θ = atan2(−b, c)`). A response that
+//!   has the same shape at every taxel (encoder delay, skin spread, bins)
+//!   only shifts `a`, so on the ideal scene it is unbiased, and it needs no
+//!   declared speed (it measures one, `−1/b`). WSS keeps deciding edge or no
+//!   edge and the class; a timing answer more than 1.5 grid steps from the
+//!   class is flagged uncertain. Measured figures: [`timing`] and
+//!   RESULTS.md's continuous-angle section.
 //! * The default grid is 10 to 170 degrees by 5 (33 classes): both leanings
 //!   of an edge. Edges nearer 0 or 180 than the grid are reached only by the
 //!   refinement; their crossing takes `1/sin θ` long (320 s at 1 degree on
@@ -159,6 +168,7 @@ pub mod stream;
 pub mod templates;
 #[cfg(test)]
 mod tests;
+pub mod timing;
 
 pub use batch::{pearson, wss_batch, wss_batch_speeds, wss_reference, wss_reference_series, wss_series};
 pub use params::{AngleGrid, BeforeStart, Distance, Refine, Weighting, WssParams};
@@ -201,11 +211,16 @@ pub struct WssConfig {
     /// Best score (a weighted mean correlation, in [-1, 1]) under which the
     /// answer is "no edge". Default 0.1.
     pub threshold: f64,
-    /// Continuous angle: `none` (the grid class), `parabola` or `search`.
+    /// Continuous angle: `none` (the grid class), `parabola`, `search` (of
+    /// the WSS score over the angle) or `timing` (the arrival-time plane of
+    /// the taxels' spikes: unbiased and speed-free, see the module docs).
     /// Default `none`.
     pub refine: Refine,
     /// Angle tolerance of `refine = "search"`, degrees. Default 0.05.
     pub refine_tol_deg: f64,
+    /// For `refine = "timing"`: a taxel's arrival time is the centroid of its
+    /// spikes within this many ms of its busiest frame. Default 3000.
+    pub timing_window_ms: f64,
     /// Longest template, s of palpation (crossings near 0 or 180 degrees are
     /// long); a longer crossing keeps its last part. Default 120.
     pub max_template_s: f64,
@@ -251,6 +266,7 @@ impl Default for WssConfig {
             threshold: p.threshold,
             refine: p.refine,
             refine_tol_deg: p.refine_tol_deg,
+            timing_window_ms: p.timing_window_ms,
             max_template_s: p.max_template_s,
             before_start: p.before_start,
             stop_margin: None,
@@ -274,6 +290,7 @@ impl WssConfig {
             threshold: self.threshold,
             refine: self.refine,
             refine_tol_deg: self.refine_tol_deg,
+            timing_window_ms: self.timing_window_ms,
             max_template_s: self.max_template_s,
             before_start: self.before_start,
             distance: self.distance,

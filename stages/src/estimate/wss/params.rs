@@ -37,6 +37,13 @@ pub enum Refine {
     /// class's neighbours, with templates built for each probed angle, to
     /// `refine_tol_deg`. Costs about 12 extra classes per trial.
     Search,
+    /// The angle of the arrival-time plane ([`super::timing`]): when each
+    /// taxel fires, fitted as `t = a + b·x + c·y`, gives `θ = atan2(−b, c)`
+    /// without the declared speed. WSS still decides edge or no edge and the
+    /// class (`class_deg`); the answer is flagged uncertain when the two
+    /// disagree by more than 1.5 grid steps, and stays the class when no
+    /// plane fits (fewer than 3 taxels fired, or all on one line).
+    Timing,
 }
 
 /// What the sum of eq. 5 does with template indices `i` that would pair with a
@@ -171,6 +178,9 @@ pub struct WssParams {
     pub refine: Refine,
     /// Search tolerance for [`Refine::Search`], degrees.
     pub refine_tol_deg: f64,
+    /// Half-width of the window around each taxel's busiest frame whose
+    /// spikes time its arrival, for [`Refine::Timing`], ms.
+    pub timing_window_ms: f64,
     /// Longest template, s of palpation; longer crossings keep their last part.
     pub max_template_s: f64,
     /// Handling of frames before the trial's start.
@@ -197,6 +207,7 @@ impl Default for WssParams {
             threshold: 0.1,
             refine: Refine::None,
             refine_tol_deg: 0.05,
+            timing_window_ms: 3000.0,
             max_template_s: 120.0,
             before_start: BeforeStart::Silent,
             distance: Distance::Centre,
@@ -251,6 +262,7 @@ impl WssParams {
             ));
         }
         check_positive("refine_tol_deg", self.refine_tol_deg, "degrees")?;
+        check_positive("timing_window_ms", self.timing_window_ms, "ms")?;
         if !(self.speed_tolerance.is_finite() && (0.0..=0.9).contains(&self.speed_tolerance)) {
             return Err(ConfigError::key(
                 "speed_tolerance",

@@ -38,7 +38,9 @@
 //! lose precision), the frequency-domain delay line and the working buffers
 //! are reserved when the stream is made and never reallocated: a stream's
 //! memory is fixed by its templates, whatever its length. `refine = "search"`
-//! re-runs the batch over the frames so far, so with it every frame is kept.
+//! re-runs the batch over the frames so far, and `refine = "timing"` fits
+//! the arrival-time plane over them, so with either every frame is kept;
+//! both act in [`WssStream::estimate`], not in [`WssStream::push`].
 //!
 //! Exact fallbacks as in the batch: a window whose weights are all 0 scores
 //! its constant-weight mean `P/n` (which is also its score under any larger
@@ -162,6 +164,8 @@ pub struct WssStream {
     pub(super) drop: usize,
     /// Every frame is kept (`refine = "search"` needs them).
     all_frames: bool,
+    /// Every frame's raw counts, for `refine = "timing"` (else `None`).
+    raw: Option<Vec<f64>>,
     any_spikes: bool,
     /// `σ` of [`Cand`].
     sigma: f64,
@@ -221,7 +225,8 @@ impl WssStream {
         let longest = templates.classes().iter().map(|c| c.len).max().unwrap_or(1);
         let keep = longest.max(2 * b);
         let drop = (keep / 2).max(b);
-        let all_frames = params.refine == Refine::Search;
+        // Refinements that look back over the whole trial keep every frame.
+        let all_frames = matches!(params.refine, Refine::Search | Refine::Timing);
         let mut prep = Prepared::empty(n, templates.hop_ms(), window_ms);
         let mut cp = vec![0.0];
         if !all_frames {
@@ -250,6 +255,7 @@ impl WssStream {
             keep,
             drop,
             all_frames,
+            raw: (params.refine == Refine::Timing).then(Vec::new),
             any_spikes: false,
             sigma,
             tpl: templates,
@@ -322,6 +328,9 @@ impl WssStream {
         }
         let old_max = self.prep.max_count;
         self.prep.push(frame)?;
+        if let Some(raw) = &mut self.raw {
+            raw.extend_from_slice(frame);
+        }
         let j = self.prep.k - 1;
         let max = self.prep.max_count;
         let c = self.prep.count[j];
@@ -367,7 +376,7 @@ impl WssStream {
         if r == self.b - 1 {
             self.end_block(k / self.b);
         }
-        Ok(self.current(None))
+        Ok(self.current(None, None))
     }
 
     /// Drops the oldest `drop` kept frames (no alignment reads them again).
@@ -462,13 +471,27 @@ impl WssStream {
                     Err(_) => f64::NEG_INFINITY,
                 }
             };
-            self.current(Some(&mut search))
+            self.current(Some(&mut search), None)
         } else {
-            self.current(None)
+            self.current(None, self.timing())
         }
     }
 
-    fn current(&self, search: Option<&mut dyn FnMut(f64) -> f64>) -> Estimate {
+    /// The arrival-time plane's angle over the frames so far
+    /// (`refine = "timing"`).
+    fn timing(&self) -> Option<f64> {
+        let raw = self.raw.as_ref()?;
+        super::timing::Frames {
+            layout: self.tpl.layout(),
+            counts: raw,
+            hop_ms: self.prep.hop_ms,
+            window_ms: self.prep.window_ms,
+        }
+        .plane(self.params.timing_window_ms)
+        .map(|f| f.angle_deg)
+    }
+
+    fn current(&self, search: Option<&mut dyn FnMut(f64) -> f64>, timing: Option<f64>) -> Estimate {
         let best: Vec<(f64, usize)> = self
             .best
             .iter()
@@ -482,6 +505,7 @@ impl WssStream {
             (upto > 0).then(|| self.prep.frame_end_ms(upto - 1)),
             &self.params,
             search,
+            timing,
         )
     }
 

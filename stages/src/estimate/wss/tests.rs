@@ -863,7 +863,7 @@ fn a_close_rival_class_flags_the_answer_uncertain() {
     let angles = [10.0, 15.0, 20.0, 25.0, 160.0];
     let est = |scores: [f64; 5]| {
         let best: Vec<(f64, usize)> = scores.iter().map(|&s| (s, 3)).collect();
-        batch::finish(&angles, &best, true, Some(1000.0), &params, None)
+        batch::finish(&angles, &best, true, Some(1000.0), &params, None, None)
     };
     // The neighbour (15) nearly ties the best (10): still certain.
     let e = est([0.8, 0.79, 0.3, 0.2, 0.1]);
@@ -882,7 +882,7 @@ fn a_close_rival_class_flags_the_answer_uncertain() {
         ..WssParams::default()
     };
     let best: Vec<(f64, usize)> = [0.3, 0.2, 0.1, 0.1, 0.3].iter().map(|&s| (s, 3)).collect();
-    assert!(!batch::finish(&angles, &best, true, None, &p0, None).uncertain);
+    assert!(!batch::finish(&angles, &best, true, None, &p0, None, None).uncertain);
     // "No edge" is not flagged.
     let e = est([0.05, 0.04, 0.03, 0.02, 0.05]);
     assert_eq!(e.angle_deg, None);
@@ -911,4 +911,60 @@ fn uncertain_margin_is_checked_and_estimates_without_it_read_as_certain() {
     )
     .unwrap();
     assert!(back.uncertain);
+}
+
+#[test]
+fn timing_refinement_is_unbiased_and_speed_free() {
+    // The arrival-time plane needs no declared speed: templates told 2.4 mm/s
+    // (20 % off) still refine ideal 2 mm/s trials to within 0.2 degrees, over
+    // the whole half-circle, off the grid and beyond its ends.
+    for told in [2.0, 2.4] {
+        let params = WssParams {
+            refine: Refine::Timing,
+            speed_mm_s: told,
+            ..WssParams::default()
+        };
+        let tpl = Templates::new(&TaxelLayout::paper(), 10.0, &params).unwrap();
+        for theta in [7.7, 37.3, 52.6, 71.1, 84.1, 97.8, 152.4, 172.3] {
+            let e = wss_batch(&paper_trial(theta), &tpl, &params).unwrap();
+            let a = e.angle_deg.unwrap();
+            assert!((a - theta).abs() <= 0.2, "told {told}: {theta} -> {a}");
+            assert!(e.class_deg.is_some());
+        }
+    }
+}
+
+#[test]
+fn timing_refinement_flags_a_class_it_disagrees_with() {
+    // Told half the true speed, WSS's class runs far from the truth; the
+    // timing answer is still right, and the disagreement is flagged.
+    let params = WssParams {
+        refine: Refine::Timing,
+        speed_mm_s: 1.0,
+        ..WssParams::default()
+    };
+    let tpl = Templates::new(&TaxelLayout::paper(), 10.0, &params).unwrap();
+    let e = wss_batch(&paper_trial(40.0), &tpl, &params).unwrap();
+    let (a, class) = (e.angle_deg.unwrap(), e.class_deg.unwrap());
+    assert!((a - 40.0).abs() <= 0.2, "{a}");
+    assert!(
+        (class - 40.0).abs() > 7.5,
+        "class {class} should be off at half speed"
+    );
+    assert!(e.uncertain);
+}
+
+#[test]
+fn timing_refinement_streams_as_batch() {
+    let params = WssParams {
+        refine: Refine::Timing,
+        ..WssParams::default()
+    };
+    let tpl = Arc::new(Templates::new(&TaxelLayout::paper(), 10.0, &params).unwrap());
+    let im = paper_trial(63.4);
+    let batch = wss_batch(&im, &tpl, &params).unwrap();
+    let (stream, _) = stream_all(&im, &tpl, &params);
+    let live = stream.estimate();
+    assert_eq!(live.angle_deg, batch.angle_deg);
+    assert_eq!(live.uncertain, batch.uncertain);
 }
