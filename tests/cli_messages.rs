@@ -108,6 +108,35 @@ fn check_refuses_a_cutoff_above_nyquist_and_warns_about_old_range_names() {
 }
 
 #[test]
+fn simulate_warns_about_old_range_names_in_a_scene_file() {
+    let d = tempfile::tempdir().unwrap();
+    std::fs::write(
+        d.path().join("s.toml"),
+        "angles = { start = 30, stop = 60, step = 30 }\ntrials_per_angle = 1\neffects = []\n\
+         [motion]\nspeed_mm_s = 10.0\nhold_before_s = 0.2\nhold_after_s = 0.2\nsample_rate_hz = 200.0\n",
+    )
+    .unwrap();
+    let out = palpate_in(d.path())
+        .args(["simulate", "s.toml", "--out", "sim"])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}");
+    assert!(
+        err.contains("warning:") && err.contains("`start` is deprecated: write `from`"),
+        "{err}"
+    );
+    assert!(err.contains("`stop` is deprecated: write `to`"), "{err}");
+    // The old spelling still means the same range: two trials, 30 and 60.
+    let labels = std::fs::read_to_string(d.path().join("sim/labels.toml")).unwrap();
+    assert!(
+        labels.contains("angle_deg = 30.0") && labels.contains("angle_deg = 60.0"),
+        "{labels}"
+    );
+    assert_tidy("simulate's stderr", &err);
+}
+
+#[test]
 fn daq_run_emulate_scene_works_outside_the_repository() {
     let d = tempfile::tempdir().unwrap();
     let scene = repo().join("graphs/scenes/lab.toml");

@@ -476,9 +476,27 @@ fn silent_stream_and_config_errors() {
     let mut c = cfg.clone();
     c.encoder.c = Some(40.0);
     assert_eq!(key(c), "encoder.c");
-    let mut c = cfg;
+    let mut c = cfg.clone();
     c.stop_at_decision = true;
     assert_eq!(key(c), "stop_at_decision");
+    // Every problem at once, not only the first.
+    let mut c = cfg;
+    c.normalize.span = None;
+    c.drive.gain = None;
+    c.lowpass.cutoff_hz = 600.0;
+    c.bin.hop_ms = -1.0;
+    let e = LivePipeline::new(&c).err().unwrap();
+    let keys: Vec<_> = e
+        .problems()
+        .iter()
+        .filter_map(|(k, _)| *k)
+        .map(str::to_string)
+        .collect();
+    assert_eq!(
+        keys,
+        ["lowpass.cutoff_hz", "normalize.span", "drive.gain", "bin.hop_ms"],
+        "{e}"
+    );
     let e = LiveConfig::from_toml_str("[stages.a]\ntype = \"scene\"\n").unwrap_err();
     // An ordinary graph without the live chain's stages is refused by name.
     assert!(

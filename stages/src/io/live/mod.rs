@@ -110,8 +110,9 @@ use crate::estimate::wss::{Templates, WssConfig, WssParams};
 use crate::signal::lowpass::{butterworth_sos, Biquad};
 use crate::spikes::bin::BinConfig;
 use palpate_core::{
-    check_positive, check_range, derive_seed, register_stage, BuildContext, ConfigError, InputSpec, Item,
-    Map, Payload, PayloadKind, Signals, Stage, StageConfig, StageError, TaxelLayout, TrialContext,
+    check_positive, check_range, derive_seed, register_stage, BuildContext, ConfigChecks, ConfigError,
+    InputSpec, Item, Map, Payload, PayloadKind, Signals, Stage, StageConfig, StageError, TaxelLayout,
+    TrialContext,
 };
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
@@ -424,86 +425,136 @@ impl LiveConfig {
         Ok(Arc::new(self.check()?.templates()?))
     }
 
+    /// Checks every key and reports every problem at once (not only the
+    /// first), each naming its key.
     pub(crate) fn check(&self) -> Result<Checked, ConfigError> {
-        let layout = self.taxel_layout()?;
-        let fs = check_range("sample_rate_hz", self.sample_rate_hz, 1.0, 1e6, "Hz")?;
+        let mut c = ConfigChecks::new();
+        let layout = c.take(self.taxel_layout());
+        let fs = c.take(check_range("sample_rate_hz", self.sample_rate_hz, 1.0, 1e6, "Hz"));
         let lp = &self.lowpass;
-        check_range("lowpass.order", lp.order as f64, 0.0, 16.0, "")?;
-        let sos = if lp.order == 0 {
-            Vec::new()
+        c.take(check_range("lowpass.order", lp.order as f64, 0.0, 16.0, ""));
+        let sos = if lp.order == 0 || lp.order > 16 {
+            Some(Vec::new())
         } else {
-            check_positive("lowpass.cutoff_hz", lp.cutoff_hz, "Hz")?;
-            if lp.cutoff_hz >= fs / 2.0 {
-                return Err(ConfigError::key(
-                    "lowpass.cutoff_hz",
-                    format!(
-                        "{} Hz must lie below the Nyquist frequency {} Hz",
-                        lp.cutoff_hz,
-                        fs / 2.0
-                    ),
-                ));
+            let cutoff = c.take(check_positive("lowpass.cutoff_hz", lp.cutoff_hz, "Hz"));
+            match (cutoff, fs) {
+                (Some(cut), Some(fs)) if cut >= fs / 2.0 => {
+                    c.push(ConfigError::key(
+                        "lowpass.cutoff_hz",
+                        format!("{cut} Hz must lie below the Nyquist frequency {} Hz", fs / 2.0),
+                    ));
+                    None
+                }
+                (Some(cut), Some(fs)) => {
+                    Some(butterworth_sos(lp.order, (std::f64::consts::PI * cut / fs).tan()))
+                }
+                _ => None,
             }
-            butterworth_sos(lp.order, (std::f64::consts::PI * lp.cutoff_hz / fs).tan())
         };
         let nm = &self.normalize;
-        check_positive("normalize.baseline_ms", nm.baseline_ms, "ms")?;
+        let baseline_ms = c.take(check_positive("normalize.baseline_ms", nm.baseline_ms, "ms"));
         let span = match nm.span {
-            Some(s) => check_positive("normalize.span", s, "DAQ units")?,
+            Some(s) => c.take(check_positive("normalize.span", s, "DAQ units")),
             None => {
-                return Err(ConfigError::key(
+                c.push(ConfigError::key(
                     "normalize.span",
                     "required: the full-scale change of the signal from rest, in DAQ units, from a \
                      calibration recording (live data cannot know its own range)",
-                ))
+                ));
+                None
             }
         };
-        let min_span = check_range("normalize.min_span", nm.min_span, 0.0, f64::MAX, "DAQ units")?;
+        let min_span = c.take(check_range(
+            "normalize.min_span",
+            nm.min_span,
+            0.0,
+            f64::MAX,
+            "DAQ units",
+        ));
         let gain = match self.drive.gain {
-            Some(g) if g.is_finite() && g >= 0.0 => g,
+            Some(g) if g.is_finite() && g >= 0.0 => Some(g),
             Some(g) => {
-                return Err(ConfigError::key(
+                c.push(ConfigError::key(
                     "drive.gain",
                     format!("must be finite and >= 0, got {}", palpate_core::fmt_num(g)),
-                ))
+                ));
+                None
             }
             None => {
-                return Err(ConfigError::key(
+                c.push(ConfigError::key(
                     "drive.gain",
                     "required: a fixed gain G of I = G|dV/dt| (live data cannot set it from its own \
                      peak); e.g. 20 / max|dV/dt| of a calibration palpation at 90 degrees",
-                ))
+                ));
+                None
             }
         };
         let enc = &self.encoder;
-        let params = enc.params().map_err(prefix("encoder"))?;
-        check_range("encoder.dt_ms", enc.dt_ms, 1e-4, 10.0, "ms")?;
-        if params.a * enc.dt_ms > 1.0 {
-            return Err(ConfigError::key(
-                "encoder.dt_ms",
-                format!("a * dt_ms = {} must be at most 1", params.a * enc.dt_ms),
-            ));
+        let params = c.take(enc.params().map_err(prefix("encoder")));
+        let dt_ms = c.take(check_range("encoder.dt_ms", enc.dt_ms, 1e-4, 10.0, "ms"));
+        if let (Some(p), Some(dt)) = (&params, dt_ms) {
+            if p.a * dt > 1.0 {
+                c.push(ConfigError::key(
+                    "encoder.dt_ms",
+                    format!("a * dt_ms = {} must be at most 1", p.a * dt),
+                ));
+            }
         }
         if enc.input != InputMode::Hold {
-            return Err(ConfigError::key(
+            c.push(ConfigError::key(
                 "encoder.input",
                 "the live path holds each sample (`hold`); `linear` would look one more sample ahead",
             ));
         }
-        let window_ms = check_positive("bin.window_ms", self.bin.window_ms, "ms")?;
-        let hop_ms = check_positive("bin.hop_ms", self.bin.hop_ms, "ms")?;
-        let wss = self.wss.params().map_err(prefix("wss"))?;
+        let window_ms = c.take(check_positive("bin.window_ms", self.bin.window_ms, "ms"));
+        let hop_ms = c.take(check_positive("bin.hop_ms", self.bin.hop_ms, "ms"));
+        let wss = c.take(self.wss.params().map_err(prefix("wss")));
         if self.stop_at_decision && self.wss.stop_margin.is_none() {
-            return Err(ConfigError::key(
+            c.push(ConfigError::key(
                 "stop_at_decision",
                 "needs `wss.stop_margin` (the lead that makes an estimate decided)",
             ));
         }
-        let max_gap_ms = check_range("max_gap_ms", self.max_gap_ms, 0.0, 3.6e6, "ms")?;
+        let max_gap_ms = c.take(check_range("max_gap_ms", self.max_gap_ms, 0.0, 3.6e6, "ms"));
+        let (
+            Some(layout),
+            Some(fs),
+            Some(sos),
+            Some(baseline_ms),
+            Some(span),
+            Some(min_span),
+            Some(gain),
+            Some(params),
+            Some(window_ms),
+            Some(hop_ms),
+            Some(wss),
+            Some(max_gap_ms),
+        ) = (
+            layout,
+            fs,
+            sos,
+            baseline_ms,
+            span,
+            min_span,
+            gain,
+            params,
+            window_ms,
+            hop_ms,
+            wss,
+            max_gap_ms,
+        )
+        else {
+            return Err(c
+                .finish()
+                .err()
+                .unwrap_or_else(|| ConfigError::general("invalid live config")));
+        };
+        c.finish()?;
         Ok(Checked {
             layout,
             fs,
             sos,
-            nb: ((nm.baseline_ms * fs / 1000.0).round() as usize).max(1),
+            nb: ((baseline_ms * fs / 1000.0).round() as usize).max(1),
             span,
             min_span,
             gain,
