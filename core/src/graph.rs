@@ -18,7 +18,9 @@
 //!
 //! Loading follows Vector's `compile`: every problem is gathered before failing,
 //! each a [`Diagnostic`] naming the file, line, stage and key. The checks, in
-//! order: TOML syntax; unknown top-level tables; `[run]` keys; per stage, its
+//! order: TOML syntax; unknown top-level tables; `[run]` keys; the `[sweep]`
+//! table (its keys, series, and each `[[sweep.plot]]`'s file name, metric and
+//! fields against the sweep's points); per stage, its
 //! `type` (unknown types list close matches), unknown and missing keys (against
 //! the config's schema), mistyped keys (serde's error, located by
 //! `serde_path_to_error`), the config's own range checks (`build`: every wrong

@@ -261,6 +261,19 @@ fn marker(s: &mut String, class: &str, x: f64, y: f64, color: &str, reference: b
     }
 }
 
+/// A tick on the x axis (at pixel row `bottom`) at column `x`, with its label.
+fn x_tick(s: &mut String, x: f64, bottom: f64, label: Option<&str>) {
+    let _ = writeln!(
+        s,
+        r#"<line class="tick-x" x1="{x:.2}" y1="{bottom:.2}" x2="{x:.2}" y2="{:.2}" stroke="{}"/>"#,
+        bottom + 4.0,
+        style::INK
+    );
+    if let Some(label) = label {
+        text(s, "label-x", x, bottom + 18.0, style::TICK, "middle", 0.0, label);
+    }
+}
+
 /// An error bar from `lo` to `hi` (pixel rows) at column `x`, with caps.
 fn error_bar(s: &mut String, x: f64, lo: f64, hi: f64, color: &str) {
     let c = 4.0;
@@ -332,23 +345,7 @@ pub fn line_plot_svg(p: &Figure<'_>) -> String {
     let last = (x1 / step).floor() as i64;
     for i in first..=last.min(first + 40) {
         let t = i as f64 * step;
-        let x = x_of(t);
-        let _ = writeln!(
-            s,
-            r#"<line class="tick-x" x1="{x:.2}" y1="{bottom:.2}" x2="{x:.2}" y2="{:.2}" stroke="{}"/>"#,
-            bottom + 4.0,
-            style::INK
-        );
-        text(
-            &mut s,
-            "label-x",
-            x,
-            bottom + 18.0,
-            style::TICK,
-            "middle",
-            0.0,
-            &tick_label(t),
-        );
+        x_tick(&mut s, x_of(t), bottom, Some(&tick_label(t)));
     }
     let mut entries = Vec::new();
     for (k, (pts, reference)) in series
@@ -444,24 +441,7 @@ pub fn bar_plot_svg(b: &BarPlot<'_>) -> String {
     };
     for (c, label) in b.categories.iter().enumerate() {
         let x = f.left + (c as f64 + 0.5) * slot;
-        let _ = writeln!(
-            s,
-            r#"<line class="tick-x" x1="{x:.2}" y1="{bottom:.2}" x2="{x:.2}" y2="{:.2}" stroke="{}"/>"#,
-            bottom + 4.0,
-            style::INK
-        );
-        if c % every == 0 {
-            text(
-                &mut s,
-                "label-x",
-                x,
-                bottom + 18.0,
-                style::TICK,
-                "middle",
-                0.0,
-                label,
-            );
-        }
+        x_tick(&mut s, x, bottom, (c % every == 0).then_some(label.as_str()));
     }
     let zero = y_of(0.0);
     let mut entries = Vec::new();
