@@ -4,7 +4,8 @@
 Reads the JSON/CSV files that `palpate run graphs/paper/<name>.toml --out
 out/paper/<name>` wrote (scripts/reproduce.sh runs them all), puts the paper's
 numbers (Kumar et al. 2020, typed below from the paper)
-beside ours, writes the key plots as small SVG files into docs/results/, and
+beside ours, copies palpate's plots (its sinks' and the graphs' declared
+`[[sweep.plot]]` figures) from the run folders into docs/results/, and
 (re)writes RESULTS.md. No measured number in RESULTS.md is typed by hand: every
 one is read here from a report, and every note about the shape of a finding is
 decided from the measured numbers.
@@ -84,102 +85,19 @@ def pm(mean, sd, digits=2):
 
 
 # ---------------------------------------------------------------------------
-# Tiny SVG charts (the core's SVG plots cover numeric sweeps only).
+# Plots: palpate draws every figure (the graphs' [[sweep.plot]] tables and its
+# sinks); this script only copies them next to RESULTS.md.
 
-COLORS = ["#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd"]
-
-
-def _esc(s):
-    return str(s).replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;")
-
-
-def _frame(title, ylabel, ymax, w, h, left, bottom, top):
-    out = [f'<svg xmlns="http://www.w3.org/2000/svg" width="{w}" height="{h}" '
-           f'font-family="sans-serif" font-size="12">',
-           f'<rect width="{w}" height="{h}" fill="white"/>',
-           f'<text x="{w / 2}" y="18" text-anchor="middle" font-size="14">{_esc(title)}</text>',
-           f'<text transform="translate(14,{(top + h - bottom) / 2}) rotate(-90)" '
-           f'text-anchor="middle">{_esc(ylabel)}</text>']
-    ph = h - top - bottom
-    for i in range(6):
-        v = ymax * i / 5
-        y = h - bottom - ph * i / 5
-        out.append(f'<line x1="{left}" y1="{y:.1f}" x2="{w - 10}" y2="{y:.1f}" stroke="#ddd"/>')
-        out.append(f'<text x="{left - 4}" y="{y + 4:.1f}" text-anchor="end">{v:.3g}</text>')
-    out.append(f'<line x1="{left}" y1="{h - bottom}" x2="{w - 10}" y2="{h - bottom}" stroke="black"/>')
-    out.append(f'<line x1="{left}" y1="{top}" x2="{left}" y2="{h - bottom}" stroke="black"/>')
-    return out
-
-
-def _legend(out, names, x, y):
-    for i, name in enumerate(names):
-        out.append(f'<rect x="{x}" y="{y + 16 * i - 9}" width="10" height="10" fill="{COLORS[i % len(COLORS)]}"/>')
-        out.append(f'<text x="{x + 14}" y="{y + 16 * i}">{_esc(name)}</text>')
-
-
-def _nice_max(values):
-    m = max([v for v in values if v is not None] + [1e-9])
-    for step in (0.5, 1, 2, 2.5, 5, 10, 20, 25, 50, 100):
-        if m <= step * 5:
-            return step * 5
-    return m * 1.1
-
-
-def bar_chart(path, title, ylabel, categories, series, xlabel=""):
-    """series: [(name, [value or None per category])]."""
-    w, h, left, bottom, top = max(480, 60 + 38 * len(categories) * max(1, len(series)) // 2), 340, 56, 52, 30
-    ymax = _nice_max([v for _, vs in series for v in vs])
-    out = _frame(title, ylabel, ymax, w, h, left, bottom, top)
-    ph, pw = h - top - bottom, w - left - 10
-    gw = pw / len(categories)
-    bw = gw * 0.8 / len(series)
-    for ci, cat in enumerate(categories):
-        x0 = left + gw * ci + gw * 0.1
-        for si, (_, vs) in enumerate(series):
-            v = vs[ci]
-            if v is None:
-                continue
-            bh = ph * v / ymax
-            out.append(f'<rect x="{x0 + bw * si:.1f}" y="{h - bottom - bh:.1f}" width="{bw:.1f}" '
-                       f'height="{bh:.1f}" fill="{COLORS[si % len(COLORS)]}"/>')
-        out.append(f'<text x="{x0 + gw * 0.4:.1f}" y="{h - bottom + 16}" text-anchor="middle">{_esc(cat)}</text>')
-    out.append(f'<text x="{left + pw / 2}" y="{h - 8}" text-anchor="middle">{_esc(xlabel)}</text>')
-    _legend(out, [n for n, _ in series], w - 170, top + 14)
-    out.append("</svg>")
-    write(path, "\n".join(out) + "\n")
-
-
-def line_chart(path, title, xlabel, ylabel, series):
-    """series: [(name, [(x, y, sd or None)])]."""
-    w, h, left, bottom, top = 560, 340, 56, 52, 30
-    xs = [p[0] for _, pts in series for p in pts]
-    xmin, xmax = min(xs), max(xs)
-    ymax = _nice_max([p[1] + (p[2] or 0) for _, pts in series for p in pts])
-    out = _frame(title, ylabel, ymax, w, h, left, bottom, top)
-    ph, pw = h - top - bottom, w - left - 20
-
-    def px(x):
-        return left + 10 + (pw - 10) * (x - xmin) / ((xmax - xmin) or 1)
-
-    def py(y):
-        return h - bottom - ph * y / ymax
-
-    for x in sorted(set(xs)):
-        out.append(f'<text x="{px(x):.1f}" y="{h - bottom + 16}" text-anchor="middle">{x:g}</text>')
-    for si, (_, pts) in enumerate(series):
-        c = COLORS[si % len(COLORS)]
-        pts = sorted(pts)
-        out.append('<polyline fill="none" stroke="{}" stroke-width="2" points="{}"/>'.format(
-            c, " ".join(f"{px(x):.1f},{py(y):.1f}" for x, y, _ in pts)))
-        for x, y, sd in pts:
-            out.append(f'<circle cx="{px(x):.1f}" cy="{py(y):.1f}" r="3" fill="{c}"/>')
-            if sd:
-                out.append(f'<line x1="{px(x):.1f}" y1="{py(max(y - sd, 0)):.1f}" x2="{px(x):.1f}" '
-                           f'y2="{py(y + sd):.1f}" stroke="{c}"/>')
-    out.append(f'<text x="{left + pw / 2}" y="{h - 8}" text-anchor="middle">{_esc(xlabel)}</text>')
-    _legend(out, [n for n, _ in series], left + 20, top + 14)
-    out.append("</svg>")
-    write(path, "\n".join(out) + "\n")
+def copy_plot(run_dir, name, docs, dst=None):
+    """Copies palpate's plot `name` from a run folder into docs/ (as `dst`);
+    a missing plot (an old run) is said on stderr and the old copy kept."""
+    src = os.path.join(run_dir, name)
+    if not exists(src):
+        print(f"results.py: no {src}; rerun the graph to redraw it (docs/results keeps its old copy)",
+              file=sys.stderr)
+        return
+    os.makedirs(docs, exist_ok=True)
+    shutil.copyfile(src, os.path.join(docs, dst or name))
 
 
 def write(path, text):
@@ -209,9 +127,7 @@ def section_table1(out, docs):
     # palpate's own plots (the mae and confusion sinks'), not redrawn here: the
     # paper's per-class values stand beside ours in the table below.
     for name, dst in [("mae_per_class.svg", "table1_per_class.svg"), ("confusion_wss.svg", "fig6_confusion.svg")]:
-        src = os.path.join(out, "wss", name)
-        if exists(src):
-            shutil.copyfile(src, os.path.join(docs, dst))
+        copy_plot(os.path.join(out, "wss"), name, docs, dst)
     zero_ours = [a for a in angles if ours[a] == 0]
     zero_paper = [a for a in angles if PAPER_TABLE1.get(a) == 0]
     worst = max(angles, key=lambda a: ours[a] or 0)
@@ -336,9 +252,8 @@ def section_table2(out, wss_rec, docs=None):
         s, st = by["ANN (S)"]["mae_deg"], by["ANN (ST)"]["mae_deg"]
         lines.append(f"- Spatiotemporal input beats spatial-only for the ANN (paper: 2.25 vs 7.61): "
                      f"**{yes_no(st < s)}** ({f2(st)} vs {f2(s)}).")
-    src = os.path.join(d, "mae_per_class.svg")
-    if docs and exists(src):
-        shutil.copyfile(src, os.path.join(docs, "table2_per_class.svg"))
+    if docs and exists(os.path.join(d, "mae_per_class.svg")):
+        copy_plot(d, "mae_per_class.svg", docs, "table2_per_class.svg")
         lines += ["", "Plot (palpate's `mae` sink, one panel per estimator): "
                   "[per-class MAE](docs/results/table2_per_class.svg)."]
     return lines
@@ -355,10 +270,7 @@ def section_share(out, docs, full_mae):
     ours = {s: get(s, False) for s in shares}
     trunc = {s: get(s, True) for s in shares}
     noedge = {s: rows[f"share={s},truncate=false"]["wss.no_edge"][0] for s in shares}
-    line_chart(os.path.join(docs, "fig7_share.svg"), "WSS MAE vs share of the palpation (Fig. 7)",
-               "share of the crossing kept", "MAE, degrees",
-               [("ours, trial keeps its length", [(s, ours[s], None) for s in shares]),
-                ("ours, trial ends at the cut", [(s, trunc[s], None) for s in shares])])
+    copy_plot(os.path.join(out, "share"), "fig7_share.svg", docs)
     flat60 = ours[0.6] - ours[1.0] <= 0.5
     first_jump = next((s for s in reversed(shares[:-1]) if ours[s] - ours[1.0] > 0.5), None)
     return [
@@ -398,9 +310,7 @@ def section_jitter(out, docs):
     taus = sorted(rows, key=float)
     m = {float(t): rows[t]["wss.mae_deg"] for t in taus}
     base = m[0.0][0]
-    line_chart(os.path.join(docs, "fig8_jitter.svg"), "WSS MAE vs spike-time jitter (Fig. 8)",
-               "jitter SD, ms", "MAE, degrees (mean ± SD of 3 repeats)",
-               [("ours", [(t, v[0], v[1]) for t, v in m.items()])])
+    copy_plot(os.path.join(out, "jitter"), "fig8_jitter.svg", docs)
     d = {t: v[0] - base for t, v in m.items()}
     inc10 = d.get(10.0)
     inc30 = d.get(30.0)
@@ -442,9 +352,7 @@ def section_area(out, docs, table2_ann_s=None):
         by_size.setdefault(int(kv["size"]), []).append((label, ms["wss.mae_deg"][0], ms["wss.no_edge"][0]))
     avg = {s: sum(v for _, v, _ in lst) / len(lst) for s, lst in by_size.items()}
     sizes = sorted(by_size, reverse=True)
-    bar_chart(os.path.join(docs, "fig9_area.svg"), "WSS MAE vs array area (Fig. 9d)", "MAE, degrees",
-              [f"{s}x{s}" for s in sizes],
-              [("paper", [PAPER_AREA.get(s) for s in sizes]), ("ours (mean of placements)", [avg[s] for s in sizes])])
+    copy_plot(d, "fig9_area.svg", docs)
     mono = all(avg[a] < avg[b] for a, b in zip(sizes, sizes[1:]))
     lines = [
         "## Fig. 9: array area",
@@ -480,10 +388,7 @@ def section_ridges(out, docs):
     ridge = mae_record(os.path.join(d, "ridge", "mae.json"))
     ce, cr = per_class(edge), per_class(ridge)
     angles = sorted(ce)
-    bar_chart(os.path.join(docs, "fig11_ridges.svg"), "WSS MAE per orientation: edges vs ridges (Fig. 11)",
-              "MAE, degrees", [str(a) for a in angles],
-              [("edges", [ce[a]["mae_deg"] for a in angles]), ("ridges", [cr[a]["mae_deg"] for a in angles])],
-              xlabel="orientation, degrees")
+    copy_plot(d, "fig11_ridges.svg", docs)
     diff = ridge["mae_deg"] - edge["mae_deg"]
     return [
         "## Fig. 11: ridges",
@@ -649,10 +554,7 @@ def section_continuous(out, docs):
     no_edge = sum(r["no_edge"] for r in recs)
     trials = sum(r["trials"] for r in recs)
     worst = max(angles, key=lambda a: sum(per_angle[a][0]) / max(1, len(per_angle[a][0])))
-    bar_chart(os.path.join(docs, "continuous.svg"), "WSS on off-grid angles (lab scene, 5 seeds)",
-              "MAE, degrees (mean of seeds)", [f"{a:g}" for a in angles],
-              [("ours", [sum(per_angle[a][0]) / max(1, len(per_angle[a][0])) for a in angles])],
-              xlabel="true angle, degrees")
+    copy_plot(d, "continuous.svg", docs)
     lines = [
         "## Continuous angles over (0, 180)",
         "",
@@ -752,10 +654,7 @@ def section_speed_error(out, docs):
     true_speed = 2.0
     speeds = sorted(series["known"])
     errs = [100.0 * (v / true_speed - 1.0) for v in speeds]
-    line_chart(os.path.join(docs, "speed_error.svg"), "WSS MAE vs error of the declared speed",
-               "declared speed error, %", "MAE, degrees (mean ± SD of 5 seeds)",
-               [(n, [(100.0 * (v / true_speed - 1.0), series[n][v][0], series[n][v][1]) for v in speeds])
-                for n in series])
+    copy_plot(d, "speed_error.svg", docs)
     known0 = series["known"][true_speed][0]
     lines = [
         "## Error in the declared speed",
@@ -1014,9 +913,9 @@ def main():
             "",
         ]
     head += [
-        "Plots are written to docs/results/ by scripts/results.py (committed); the raw reports "
-        "(JSON, CSV, per-point directories, the core's own sweep SVGs) are under out/paper/<graph>/ "
-        "after a run (not committed).",
+        "Plots are drawn by palpate (its sinks' plots and the graphs' `[[sweep.plot]]` figures) and "
+        "copied to docs/results/ by scripts/results.py (committed); the raw reports (JSON, CSV, "
+        "per-point directories, every SVG) are under out/paper/<graph>/ after a run (not committed).",
         "",
         "Pipeline (every graph): lab scene -> low-pass 10 Hz -> normalize to [0, 1] (with a 0.1 V noise floor "
         "so a dead taxel is not stretched to full scale) -> FA-I drive G·|dV/dt| -> Izhikevich FA-I -> "

@@ -11,6 +11,7 @@ pub mod cluster;
 pub mod frontier;
 pub mod guide;
 pub mod report;
+pub mod sweep_plot;
 
 pub use palpate_core as core;
 pub use palpate_stages as stages;

@@ -257,8 +257,9 @@ pub fn run_record<'a>(graph: &'a Graph, result: &RunResult) -> RunRecord<'a> {
 }
 
 /// Prints a sweep's reports and summary, and writes into the graph's output
-/// directory `sweep.json`, `sweep.csv`, SVG curves, and (with `[sweep]
-/// frontier`) the accuracy-time frontier ([`crate::frontier`]). Each point's
+/// directory `sweep.json`, `sweep.csv`, SVG curves, the declared figures
+/// (`[[sweep.plot]]`, [`crate::sweep_plot`]) and (with `[sweep] frontier`)
+/// the accuracy-time frontier ([`crate::frontier`]). Each point's
 /// directory gets its `run.json`, `timing.md` and `timing.csv`.
 ///
 /// Curves: in the single-key form with numeric values, one `sweep_<metric>.svg`
@@ -371,6 +372,29 @@ pub fn sweep_report(graph: &Graph, runs: &[palpate_core::sweep::SweepRun]) -> (S
                 palpate_stages::plot::line_chart(&file, &format!("{name} across {key}"), &key, name, &series)
             {
                 eprintln!("{e}");
+                failed = true;
+            }
+        }
+    }
+    // The declared figures ([[sweep.plot]]): a run without the metric is
+    // left out and said here, never a failure of the sweep.
+    for plot in &sweep.plots {
+        let (written, data) = crate::sweep_plot::write(plot, sweep, runs, out);
+        for note in &data.notes {
+            eprintln!("{note}");
+        }
+        match written {
+            Ok(path) => {
+                let _ = writeln!(
+                    text,
+                    "plot {}: {} series, {} points",
+                    path.display(),
+                    data.series.len(),
+                    data.series.iter().map(|s| s.points.len()).sum::<usize>(),
+                );
+            }
+            Err(e) => {
+                eprintln!("cannot write {}: {e}", out.join(&plot.file).display());
                 failed = true;
             }
         }

@@ -18,7 +18,9 @@
 //!
 //! Loading follows Vector's `compile`: every problem is gathered before failing,
 //! each a [`Diagnostic`] naming the file, line, stage and key. The checks, in
-//! order: TOML syntax; unknown top-level tables; `[run]` keys; per stage, its
+//! order: TOML syntax; unknown top-level tables; `[run]` keys; the `[sweep]`
+//! table (its keys, series, and each `[[sweep.plot]]`'s file name, metric and
+//! fields against the sweep's points); per stage, its
 //! `type` (unknown types list close matches), unknown and missing keys (against
 //! the config's schema), mistyped keys (serde's error, located by
 //! `serde_path_to_error`), the config's own range checks (`build`: every wrong
@@ -105,6 +107,88 @@ pub struct SweepSettings {
     /// Default none.
     #[serde(default)]
     pub frontier: Vec<String>,
+    /// Figures to draw across the sweep (`[[sweep.plot]]` tables), each an SVG
+    /// in the sweep's output directory, in palpate's house style. Default none.
+    #[serde(default, rename = "plot")]
+    pub plots: Vec<SweepPlot>,
+}
+
+/// One figure of a sweep: a `[[sweep.plot]]` table. Every run gives one or more
+/// `(series, x, y)` rows: `y` is the run's `metric`, `x` and the series come
+/// from the run's point (see [`SweepPoint::field`]). Rows that share (series, x)
+/// are averaged, over repeats and over the points that share them (e.g. the
+/// placements of one array size); with repeats, the error bar is the SD over
+/// repeats of each repeat's average.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
+#[serde(deny_unknown_fields)]
+#[schemars(inline)]
+pub struct SweepPlot {
+    /// The SVG's file name, written into the sweep's output directory: a plain
+    /// name (letters, digits, `-`, `_`, `.`) ending `.svg`, not starting
+    /// `sweep_` or `frontier_` (palpate's own plots). Required.
+    pub file: String,
+    /// Title above the plot. Default "<metric> across <x>".
+    #[serde(default)]
+    pub title: Option<String>,
+    /// The metric on the y axis, as sinks name it (`wss.mae_deg`); one of the
+    /// sweep's `metrics` when it lists any. Required.
+    pub metric: String,
+    /// What goes on the x axis: a key of the points' table values (`share` of
+    /// `{ share = 0.6, truncate = false }`), `"value"` for the whole value,
+    /// `"series"` for the series' name, or `"class"` for the metric per class
+    /// (per true angle: the `mae` sink's `<id>.mae_deg`). Default "value".
+    #[serde(default)]
+    pub x: Option<String>,
+    /// What splits the rows into series (legend entries), as `x` (`"series"`
+    /// for a series sweep's series). Default none: one series.
+    #[serde(default)]
+    pub by: Option<String>,
+    /// "line" (numeric x, points joined, repeat SD as error bars) or "bars"
+    /// (grouped bars, one group per x value in sweep order). Default "line".
+    #[serde(default)]
+    pub kind: PlotKind,
+    /// Title of the x axis. Default the `x` field's name.
+    #[serde(default)]
+    pub x_label: Option<String>,
+    /// Title of the y axis. Default the metric's name.
+    #[serde(default)]
+    pub y_label: Option<String>,
+    /// Legend names: a series' default name (the `by` value's label, e.g.
+    /// `"edge"`; `"<by> = <value>"` for a key of table values; the metric's
+    /// name when there is no `by`) mapped to the name to show. Default none.
+    #[serde(default)]
+    pub legend: std::collections::BTreeMap<String, String>,
+    /// Bars only: write each bar's value above it. Default false.
+    #[serde(default)]
+    pub value_labels: bool,
+    /// Reference values drawn beside the measured ones (e.g. a paper's):
+    /// dashed with open markers on a line plot, outlined bars on a bar plot.
+    /// Default none.
+    #[serde(default)]
+    pub reference: Vec<PlotReference>,
+}
+
+/// How a [`SweepPlot`] draws its series.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
+#[serde(rename_all = "lowercase")]
+pub enum PlotKind {
+    /// Points joined by lines over a numeric x axis.
+    #[default]
+    Line,
+    /// Grouped bars over categorical x.
+    Bars,
+}
+
+/// A reference series of a [`SweepPlot`]: `{ name = "paper", points = [[0.6, 2.1]] }`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
+#[serde(deny_unknown_fields)]
+#[schemars(inline)]
+pub struct PlotReference {
+    /// Its legend name. Required.
+    pub name: String,
+    /// Its `[x, y]` points; on a bar plot, `x` is matched to the category of
+    /// that value (a category no point has is added after the others). Required.
+    pub points: Vec<[f64; 2]>,
 }
 
 /// Most runs (values x repeats, over every series) one sweep may have: a
@@ -144,6 +228,55 @@ pub struct SweepPoint {
     pub value: toml::Value,
     /// Overrides applied before the key (a series' `set`).
     pub set: Vec<(String, toml::Value)>,
+}
+
+impl SweepPoint {
+    /// The point's value of a plot field ([`SweepPlot::x`], [`SweepPlot::by`]):
+    /// `"value"` is the whole value, `"series"` the series' name, any other
+    /// name a key of a table value. `None` when the point has no such field
+    /// (and for `"class"`, which is per class, not per point).
+    pub fn field(&self, name: &str) -> Option<toml::Value> {
+        match name {
+            "value" => Some(self.value.clone()),
+            "series" => self.series.clone().map(toml::Value::String),
+            "class" => None,
+            key => self.value.as_table().and_then(|t| t.get(key)).cloned(),
+        }
+    }
+}
+
+impl SweepPlot {
+    /// The `x` field's name (`"value"` when not given).
+    pub fn x_field(&self) -> &str {
+        self.x.as_deref().unwrap_or("value")
+    }
+
+    /// A series' default legend name: the metric's name without `by`, the
+    /// value's text for `by = "value"` or `"series"`, else `<by> = <value>`.
+    pub fn default_series_name(&self, by_value: Option<&toml::Value>) -> String {
+        match (self.by.as_deref(), by_value) {
+            (None, _) | (_, None) => self.metric.clone(),
+            (Some("value" | "series"), Some(v)) => value_text(v),
+            (Some(by), Some(v)) => format!("{by} = {}", value_text(v)),
+        }
+    }
+
+    /// A series' legend name: its default name mapped through `legend`.
+    pub fn series_name(&self, by_value: Option<&toml::Value>) -> String {
+        let name = self.default_series_name(by_value);
+        self.legend.get(&name).cloned().unwrap_or(name)
+    }
+}
+
+/// A value as plots label it: a string as it is, a whole number without a
+/// decimal point (`4`, also for `4.0`, so that a float category matches an
+/// integer reference), anything else as TOML writes it.
+pub fn value_text(v: &toml::Value) -> String {
+    match v {
+        toml::Value::String(s) => s.clone(),
+        toml::Value::Float(f) => crate::fmt_num(*f),
+        other => other.to_string(),
+    }
 }
 
 impl SweepSettings {
@@ -632,17 +765,31 @@ impl<'t> Loader<'t> {
         let sweep: SweepSettings = match serde_path_to_error::deserialize(value.clone()) {
             Ok(s) => s,
             Err(e) => {
-                let key = e
-                    .path()
-                    .iter()
-                    .next()
-                    .map(|s| s.to_string())
-                    .or_else(|| unknown_field(e.inner().message()));
+                let path = e.path().to_string();
+                let key = if path.starts_with("plot") {
+                    // Inside a [[sweep.plot]] table: its index and key.
+                    let mut k = format!("sweep.{path}");
+                    match unknown_field(e.inner().message()) {
+                        Some(f) if !k.ends_with(&format!(".{f}")) => k = format!("{k}.{f}"),
+                        _ => {}
+                    }
+                    Some(k)
+                } else {
+                    e.path()
+                        .iter()
+                        .next()
+                        .map(|s| s.to_string())
+                        .or_else(|| unknown_field(e.inner().message()))
+                };
+                let at = match &key {
+                    Some(k) if k.starts_with("sweep.") => format!("`{k}`: "),
+                    _ => String::new(),
+                };
                 self.error(
                     line,
                     None,
                     key.as_deref(),
-                    format!("in [sweep]: {}", first_line(e.inner().message())),
+                    format!("in [sweep]: {at}{}", first_line(e.inner().message())),
                 );
                 return None;
             }
@@ -744,6 +891,7 @@ impl<'t> Loader<'t> {
                 );
             }
         }
+        self.check_plots(&sweep, line);
         if sweep.repeats == 0 {
             self.error(
                 line,
@@ -774,6 +922,146 @@ impl<'t> Loader<'t> {
             );
         }
         Some(sweep)
+    }
+
+    /// Checks every `[[sweep.plot]]` against the sweep's points and metrics;
+    /// each problem names `sweep.plot[i].<key>`.
+    fn check_plots(&mut self, sweep: &SweepSettings, line: Option<usize>) {
+        let points = sweep.points();
+        let mut files: Vec<&str> = Vec::new();
+        for (i, plot) in sweep.plots.iter().enumerate() {
+            let diag = |me: &mut Self, severity: Severity, key: &str, msg: String| {
+                let key = format!("sweep.plot[{i}].{key}");
+                me.diags.push(Diagnostic {
+                    severity,
+                    file: me.file.clone(),
+                    line,
+                    stage: None,
+                    message: format!("in [sweep]: `{key}` {msg}"),
+                    key: Some(key),
+                });
+            };
+            let bad = |me: &mut Self, key: &str, msg: String| diag(me, Severity::Error, key, msg);
+            let f = plot.file.as_str();
+            let plain = f.chars().all(|c| c.is_ascii_alphanumeric() || "-_.".contains(c));
+            if !plain || f.len() <= 4 || !f.ends_with(".svg") || f.starts_with('.') {
+                bad(
+                    self,
+                    "file",
+                    format!(
+                        "must be a plain file name ending .svg (letters, digits, `-`, `_`, `.`; \
+                         it is written into the sweep's output directory), not \"{f}\""
+                    ),
+                );
+            } else if f.starts_with("sweep_") || f.starts_with("frontier_") {
+                bad(
+                    self,
+                    "file",
+                    format!("\"{f}\": names starting `sweep_` or `frontier_` are palpate's own plots"),
+                );
+            } else if files.contains(&f) {
+                bad(self, "file", format!("\"{f}\": another plot writes this file"));
+            }
+            files.push(f);
+            if plot.metric.is_empty() {
+                bad(self, "metric", "names no metric (e.g. \"wss.mae_deg\")".into());
+            } else if !sweep.metrics.is_empty() && !sweep.metrics.contains(&plot.metric) {
+                let listed: Vec<String> = sweep.metrics.iter().map(|m| format!("`{m}`")).collect();
+                bad(
+                    self,
+                    "metric",
+                    format!(
+                        "names `{}`, which is not among the sweep's `metrics` ({})",
+                        plot.metric,
+                        listed.join(", ")
+                    ),
+                );
+            }
+            // Each field must be given by every point (a typo would otherwise
+            // leave every point out of the plot, found only after the run).
+            let fields = [("x", Some(plot.x_field())), ("by", plot.by.as_deref())];
+            for (key, field) in fields {
+                let Some(field) = field else { continue };
+                if field == "class" {
+                    continue;
+                }
+                if field == "series" && sweep.series.is_empty() {
+                    bad(
+                        self,
+                        key,
+                        "is \"series\", but the sweep has no [[sweep.series]] tables".into(),
+                    );
+                    continue;
+                }
+                if let Some(p) = points.iter().find(|p| p.field(field).is_none()) {
+                    bad(
+                        self,
+                        key,
+                        format!(
+                            "names `{field}`, which point `{}` does not give: use \"value\", \"series\", \
+                             \"class\" or a key of the points' table values",
+                            crate::sweep::point_label(p)
+                        ),
+                    );
+                    continue;
+                }
+                let numeric = |v: Option<toml::Value>| {
+                    matches!(v, Some(toml::Value::Integer(_) | toml::Value::Float(_)))
+                };
+                if key == "x" && plot.kind == PlotKind::Line {
+                    if let Some(p) = points.iter().find(|p| !numeric(p.field(field))) {
+                        bad(
+                            self,
+                            "x",
+                            format!(
+                                "a line plot needs numbers on x, but `{field}` of point `{}` is not one; \
+                                 use kind = \"bars\"",
+                                crate::sweep::point_label(p)
+                            ),
+                        );
+                    }
+                }
+            }
+            if plot.by.as_deref() == Some(plot.x_field()) {
+                bad(self, "by", "is the same field as `x`".into());
+            }
+            if plot.by.as_deref() != Some("class") {
+                let by = plot.by.as_deref();
+                let mut names: Vec<String> = Vec::new();
+                for p in &points {
+                    let n = plot.default_series_name(by.and_then(|b| p.field(b)).as_ref());
+                    if !names.contains(&n) {
+                        names.push(n);
+                    }
+                }
+                // A warning, not an error: a `--set` or a cut-down sweep may
+                // leave a series out, and its legend name with it.
+                for k in plot.legend.keys().filter(|k| !names.contains(k)) {
+                    let known: Vec<String> = names.iter().map(|n| format!("\"{n}\"")).collect();
+                    diag(
+                        self,
+                        Severity::Warning,
+                        "legend",
+                        format!(
+                            "renames \"{k}\", which is no series of this plot (its series: {})",
+                            known.join(", ")
+                        ),
+                    );
+                }
+            }
+            for (r, reference) in plot.reference.iter().enumerate() {
+                if reference.name.is_empty() {
+                    bad(self, &format!("reference[{r}].name"), "is empty".into());
+                }
+                if reference.points.iter().flatten().any(|v| !v.is_finite()) {
+                    bad(
+                        self,
+                        &format!("reference[{r}].points"),
+                        "must hold finite numbers".into(),
+                    );
+                }
+            }
+        }
     }
 
     fn apply_overrides(&mut self, doc: &mut toml::Table, overrides: &[(String, toml::Value)]) {

@@ -34,8 +34,8 @@ pub mod stream;
 pub mod sweep;
 
 pub use graph::{
-    load_file, load_str, Diagnostic, Graph, LoadErrors, LoadOptions, Protocol, RunSettings, Severity,
-    SweepPoint, SweepSeries, SweepSettings,
+    load_file, load_str, Diagnostic, Graph, LoadErrors, LoadOptions, PlotKind, PlotReference, Protocol,
+    RunSettings, Severity, SweepPlot, SweepPoint, SweepSeries, SweepSettings,
 };
 pub use payload::{
     ClassScore, Estimate, Item, Label, Payload, PayloadKind, Provenance, Signals, SpikeEvent, SpikeImages,
@@ -43,9 +43,9 @@ pub use payload::{
 };
 pub use runtime::{run, Cache, Progress, RunError, RunOptions, RunResult, StageTiming};
 pub use stage::{
-    check_positive, check_range, derive_seed, fmt_num, BuildContext, ConfigChecks, ConfigError, Estimator,
-    FitContext, InputSpec, Inspection, Map, Model, OutputFacts, Sink, SinkContext, SinkInput, SinkReport,
-    Source, Stage, StageConfig, StageError, TrialContext,
+    check_positive, check_range, derive_seed, fmt_num, BuildContext, ClassMetric, ConfigChecks, ConfigError,
+    Estimator, FitContext, InputSpec, Inspection, Map, Model, OutputFacts, Sink, SinkContext, SinkInput,
+    SinkReport, Source, Stage, StageConfig, StageError, TrialContext,
 };
 
 /// Re-exports used by [`register_stage!`]; not part of the public API.

@@ -415,20 +415,21 @@ pub fn graph_schema() -> serde_json::Value {
             "additionalProperties": false,
         }));
     }
-    let mut run = schemars::schema_for!(crate::RunSettings).to_value();
-    rename_refs(&mut run, "run");
-    if let Some(Value::Object(d)) = run.as_object_mut().and_then(|o| o.remove("$defs")) {
-        for (k, v) in d {
-            defs.insert(format!("run.{k}"), v);
+    // A table's own definitions join the document's, under its name.
+    let mut hoist = |prefix: &str, mut v: Value| {
+        rename_refs(&mut v, prefix);
+        if let Some(Value::Object(d)) = v.as_object_mut().and_then(|o| o.remove("$defs")) {
+            for (k, x) in d {
+                defs.insert(format!("{prefix}.{k}"), x);
+            }
         }
-    }
-    if let Some(o) = run.as_object_mut() {
-        o.remove("$schema");
-    }
-    let mut sweep = schemars::schema_for!(crate::SweepSettings).to_value();
-    if let Some(o) = sweep.as_object_mut() {
-        o.remove("$schema");
-    }
+        if let Some(o) = v.as_object_mut() {
+            o.remove("$schema");
+        }
+        v
+    };
+    let run = hoist("run", schemars::schema_for!(crate::RunSettings).to_value());
+    let sweep = hoist("sweep", schemars::schema_for!(crate::SweepSettings).to_value());
     json!({
         "$schema": "https://json-schema.org/draft/2020-12/schema",
         "title": "palpate experiment graph",

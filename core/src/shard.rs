@@ -34,7 +34,7 @@
 use crate::graph::{load_str, Diagnostic, Graph, LoadErrors, LoadOptions, Severity};
 use crate::output::write_atomic;
 use crate::runtime::{RunResult, StageTiming};
-use crate::stage::SinkReport;
+use crate::stage::{ClassMetric, SinkReport};
 use crate::sweep::{point_dir, point_label};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
@@ -182,6 +182,22 @@ pub struct ReportRecord {
     pub files: Vec<PathBuf>,
     /// Its metrics.
     pub metrics: Vec<MetricRecord>,
+    /// Its per-class metrics (absent in markers written before they existed).
+    #[serde(default)]
+    pub class_metrics: Vec<ClassMetricRecord>,
+}
+
+/// A per-class metric as stored: as [`MetricRecord`], with its class.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ClassMetricRecord {
+    /// The metric's name (e.g. `wss.mae_deg`).
+    pub name: String,
+    /// The class (true angle, degrees), by its bits.
+    pub class_bits: u64,
+    /// Its value (`null` when not finite), for people and other tools.
+    pub value: Option<f64>,
+    /// `f64::to_bits` of the value: what palpate reads back.
+    pub bits: u64,
 }
 
 /// A stage's timing as stored, in nanoseconds.
@@ -266,6 +282,16 @@ impl PointRecord {
                             bits: v.to_bits(),
                         })
                         .collect(),
+                    class_metrics: r
+                        .class_metrics
+                        .iter()
+                        .map(|c| ClassMetricRecord {
+                            name: c.name.clone(),
+                            class_bits: c.class.to_bits(),
+                            value: c.value.is_finite().then_some(c.value),
+                            bits: c.value.to_bits(),
+                        })
+                        .collect(),
                 })
                 .collect(),
             timings: result
@@ -300,6 +326,15 @@ impl PointRecord {
                                 .metrics
                                 .iter()
                                 .map(|m| (m.name.clone(), f64::from_bits(m.bits)))
+                                .collect(),
+                            class_metrics: r
+                                .class_metrics
+                                .iter()
+                                .map(|c| ClassMetric {
+                                    name: c.name.clone(),
+                                    class: f64::from_bits(c.class_bits),
+                                    value: f64::from_bits(c.bits),
+                                })
                                 .collect(),
                         },
                     )

@@ -524,6 +524,21 @@ pub struct SinkReport {
     /// Named numbers the sink measured (e.g. `wss.mae_deg`), for tests, sweeps
     /// and the run record.
     pub metrics: Vec<(String, f64)>,
+    /// A metric's value per class (e.g. `wss.mae_deg` of the trials whose true
+    /// angle is 45°), for a sweep's `[[sweep.plot]]` with `x = "class"`. Named
+    /// like the overall metric it breaks down. Default none.
+    pub class_metrics: Vec<ClassMetric>,
+}
+
+/// One class's value of a metric: see [`SinkReport::class_metrics`].
+#[derive(Clone, Debug, PartialEq)]
+pub struct ClassMetric {
+    /// The metric's name, as the overall metric's (`wss.mae_deg`).
+    pub name: String,
+    /// The class: its true angle, degrees.
+    pub class: f64,
+    /// The metric over that class's trials.
+    pub value: f64,
 }
 
 /// A sink: receives every trial of every input once all trials are done.

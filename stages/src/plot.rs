@@ -2,14 +2,19 @@
 //! over time, sweep curves), heatmaps (confusion matrices: square cells,
 //! labels at the cells' centres, axis titles, a colour bar and the value in
 //! every cell), small-multiples bar charts (a per-class metric of many
-//! estimators, one panel each on shared axes), and scatter charts with a
-//! Pareto frontier (accuracy against time). Plots are written atomically like
-//! every report file.
+//! estimators, one panel each on shared axes), scatter charts with a Pareto
+//! frontier (accuracy against time), and a sweep's declared figures
+//! ([`line_plot`]: points joined over numeric x with error bars and dashed
+//! reference series; [`bar_plot`]: grouped bars over categories). Plots are
+//! written atomically like every report file.
 //!
-//! Heatmaps and small multiples are written as SVG text directly (rectangles,
-//! lines and text with a `class` naming each element's role), so their
-//! structure can be checked by tests and no font is needed to write them;
-//! line and frontier charts use `plotters`.
+//! Heatmaps, small multiples, line plots and bar charts are written as SVG
+//! text directly (rectangles, lines and text with a `class` naming each
+//! element's role), so their structure can be checked by tests and no font is
+//! needed to write them; line charts and frontier charts use `plotters`.
+
+mod xy;
+pub use xy::{bar_plot, bar_plot_svg, line_plot, line_plot_svg, BarPlot, Figure, PlotSeries, Point};
 
 use palpate_core::output::write_atomic;
 use plotters::prelude::*;
@@ -144,20 +149,42 @@ fn text(s: &mut String, class: &str, x: f64, y: f64, size: u32, anchor: &str, ro
     );
 }
 
-/// "Nice" axis ticks from 0 to at least `max`: steps of 1, 2 or 5 times a
-/// power of ten, at most about `n` of them. Returns `(ticks, top)`.
-fn nice_ticks(max: f64, n: usize) -> (Vec<f64>, f64) {
-    let max = if max.is_finite() && max > 0.0 { max } else { 1.0 };
-    let raw = max / n.max(1) as f64;
+/// A "nice" tick step for a span of `span`: 1, 2 or 5 times a power of ten,
+/// giving at most about `n` steps.
+fn nice_step(span: f64, n: usize) -> f64 {
+    let span = if span.is_finite() && span > 0.0 { span } else { 1.0 };
+    let raw = span / n.max(1) as f64;
     let mag = 10f64.powf(raw.log10().floor());
-    let step = [1.0, 2.0, 5.0, 10.0]
+    [1.0, 2.0, 5.0, 10.0]
         .iter()
         .map(|m| m * mag)
         .find(|s| *s >= raw)
-        .unwrap_or(10.0 * mag);
-    let k = (max / step - 1e-9).ceil().max(1.0) as usize;
-    let ticks = (0..=k).map(|i| i as f64 * step).collect();
-    (ticks, k as f64 * step)
+        .unwrap_or(10.0 * mag)
+}
+
+/// "Nice" axis ticks from 0 to at least `max`: steps of 1, 2 or 5 times a
+/// power of ten, at most about `n` of them. Returns `(ticks, top)`.
+fn nice_ticks(max: f64, n: usize) -> (Vec<f64>, f64) {
+    let (ticks, _, top) = nice_range(0.0, max, n);
+    (ticks, top)
+}
+
+/// "Nice" ticks covering `[lo, hi]` (as [`nice_ticks`], from a multiple of
+/// the step at or below `lo`). Returns `(ticks, bottom, top)`; a non-finite
+/// or empty range gives 0 to 1.
+fn nice_range(lo: f64, hi: f64, n: usize) -> (Vec<f64>, f64, f64) {
+    let (lo, hi) = if lo.is_finite() && hi.is_finite() && hi > lo {
+        (lo, hi)
+    } else if lo.is_finite() && lo == hi && lo != 0.0 {
+        (lo.min(0.0), lo.max(0.0))
+    } else {
+        (0.0, 1.0)
+    };
+    let step = nice_step(hi - lo, n);
+    let first = (lo / step + 1e-9).floor() as i64;
+    let last = ((hi / step - 1e-9).ceil() as i64).max(first + 1);
+    let ticks = (first..=last).map(|i| i as f64 * step).collect();
+    (ticks, first as f64 * step, last as f64 * step)
 }
 
 /// The sequential colour scale of heatmaps, `t` in `[0, 1]` from white to dark
@@ -547,8 +574,7 @@ pub fn small_multiples_svg(m: &SmallMultiples<'_>) -> String {
                 );
             }
         }
-        let color = tab10(k);
-        let fill = format!("#{:02x}{:02x}{:02x}", color.0, color.1, color.2);
+        let fill = tab10_hex(k);
         for (i, &v) in values.iter().enumerate().take(n_cat) {
             let cx = x0 + (i as f64 + 0.5) * slot;
             let bw = (slot * 0.7).max(1.0);
@@ -739,6 +765,12 @@ fn tab10(k: usize) -> RGBAColor {
     ];
     let (r, g, b) = C[k % C.len()];
     RGBColor(r, g, b).to_rgba()
+}
+
+/// Colour `k` of [`tab10`] as `#rrggbb`, for plots written as SVG text.
+fn tab10_hex(k: usize) -> String {
+    let c = tab10(k);
+    format!("#{:02x}{:02x}{:02x}", c.0, c.1, c.2)
 }
 
 /// Draws marker `kind` centred at pixel `at` of `area`.

@@ -46,6 +46,10 @@
 //!   scores nearly as well). Counted, and kept in the MAE like any answer: the
 //!   count says how many of the errors the estimator warned about.
 //!
+//! * per-class metrics (for a sweep's `[[sweep.plot]]` with `x = "class"`):
+//!   each class's MAE, named `<id>.mae_deg` like the overall one, keyed by the
+//!   class's true angle.
+//!
 //! Files, in the run's output directory, written atomically: `<sink id>.json`,
 //! `<sink id>.csv` (one row per estimator and class, numeric columns only),
 //! `<sink id>_overall.csv` (one row per estimator), `<sink id>.md` (the table
@@ -609,6 +613,17 @@ impl Sink for MaeSink {
             }
             if let Some(d) = stats.decision_ms {
                 report.metrics.push((format!("{id}.decision_ms"), d));
+            }
+            // Each class's MAE under the overall metric's name, for sweep plots
+            // with `x = "class"` (a class whose every answer was "no edge" has none).
+            for c in &stats.classes {
+                if let Some(m) = c.mae_deg {
+                    report.class_metrics.push(palpate_core::ClassMetric {
+                        name: format!("{id}.mae_deg"),
+                        class: c.angle_deg,
+                        value: m,
+                    });
+                }
             }
             all.push(stats);
         }

@@ -136,6 +136,7 @@ impl Files {
             ),
             metrics: vec![("files".into(), files.len() as f64)],
             files,
+            class_metrics: Vec::new(),
         })
     }
 }
