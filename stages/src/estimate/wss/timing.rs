@@ -25,17 +25,25 @@
 //! taxel that fired (weighting by spike count changed the lab scene's MAE by
 //! under 0.03 degrees).
 //!
-//! Measured with `scripts/`-free probes (graphs writing `write_images` and a
-//! 20-line NumPy fit of the same maths, 2026-11-23): on the ideal scene
-//! (`scenes/ideal.toml`, 20 to 160 degrees by 2.3, and 1.5 to 178.5) the
-//! largest error was 0.034 degrees and the fitted speed 2.000 mm/s; on the
-//! lab scene (seed 1, 20 to 160 by 7.9, 3 trials each) the MAE was 0.36
-//! degrees (largest 1.04) and the speeds 1.95 to 2.09 mm/s; at 5, 7.7, 172.3
-//! and 175 degrees on the lab scene, where WSS's classes miss by up to 27
-//! degrees, the largest error was 1.4 degrees. Without the window (every
-//! frame) those end angles failed outright (errors of 5 to 14 degrees and
-//! negative speeds), hence the 3 s default: the lab scene's and the paper's
-//! taxels fire within about 1.6 s of the edge.
+//! Measured with palpate (debug build):
+//! * ideal scene, one trial per angle from 20 to 160 degrees by 0.1
+//!   (`palpate run graphs/refine_bias.toml`): largest error 0.066 degrees,
+//!   MAE 0.009 (the `search` refinement: 2.14 and 1.13); at 3 to 19 and 161
+//!   to 177 by 1 (the same graph with `--set stages.scene.angles=[...]`):
+//!   largest error 0.002;
+//! * lab scene, 13 off-grid angles x 5 trials, 5 seeds
+//!   (`palpate run graphs/continuous.toml`): MAE 0.43 ± 0.07 degrees, every
+//!   seed under 0.56 (`search`: 0.73 ± 0.19);
+//! * lab scene, WSS told 1.6 to 2.4 mm/s for a 2 mm/s array
+//!   (`palpate run graphs/paper/speed_error.toml`): 0.46 ± 0.05 degrees at
+//!   every declared speed.
+//!
+//! A NumPy probe of the same maths on exported images found that centroids
+//! over the whole trial fail near 0 and 180 degrees on the lab scene (errors
+//! of 5 to 14 degrees: noise spikes over a minute-long crossing), and that a
+//! burst centre at the median spike fails there too; the window around the
+//! half-maximum centre does not. Hence the 3 s default: the lab scene's and
+//! the paper's taxels fire within about 1.6 s of the edge.
 
 use palpate_core::{SpikeImages, TaxelLayout};
 
@@ -44,7 +52,7 @@ use palpate_core::{SpikeImages, TaxelLayout};
 pub struct ArrivalFit {
     /// Edge angle, degrees in (0, 180).
     pub angle_deg: f64,
-    /// Normal-free sliding speed `−1/b`, mm/s.
+    /// Sliding speed of the array, `−1/b` (not the edge's normal speed `v·sin θ`), mm/s.
     pub speed_mm_s: f64,
     /// Taxels that fired (and entered the fit).
     pub taxels: usize,
