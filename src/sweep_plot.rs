@@ -20,7 +20,7 @@
 //! stderr; nothing here panics on what a run did or did not report.
 
 use palpate_core::graph::{value_text, PlotKind, SweepPlot, SweepPoint, SweepSettings};
-use palpate_core::sweep::SweepRun;
+use palpate_core::sweep::{as_number, mean_sd as mean_and_sd, SweepRun};
 use palpate_stages::plot::{BarPlot, Figure, PlotSeries, Point};
 use std::path::{Path, PathBuf};
 
@@ -46,14 +46,6 @@ struct Row {
     label: String,
     repeat: usize,
     y: f64,
-}
-
-fn number(v: &toml::Value) -> Option<f64> {
-    match v {
-        toml::Value::Integer(i) => Some(*i as f64),
-        toml::Value::Float(f) => Some(*f),
-        _ => None,
-    }
 }
 
 /// The rows of one run.
@@ -106,7 +98,7 @@ fn rows_of(plot: &SweepPlot, point: &SweepPoint, run: &SweepRun, notes: &mut Vec
             continue;
         };
         let by_value = by.and_then(|b| field(b, class));
-        let x = number(&xv);
+        let x = as_number(&xv);
         if plot.kind == PlotKind::Line && x.is_none() {
             notes.push(format!(
                 "{}: {at}: `{x_field}` = {xv} is not a number; left out of the line plot",
@@ -128,7 +120,8 @@ fn rows_of(plot: &SweepPlot, point: &SweepPoint, run: &SweepRun, notes: &mut Vec
 /// Mean of `ys`, and (over more than one repeat) the SD over repeats of each
 /// repeat's mean.
 fn mean_sd(ys: &[(usize, f64)]) -> (f64, Option<f64>) {
-    let mean = ys.iter().map(|p| p.1).sum::<f64>() / ys.len().max(1) as f64;
+    let all: Vec<f64> = ys.iter().map(|p| p.1).collect();
+    let (mean, _) = mean_and_sd(&all);
     let mut repeats: Vec<usize> = ys.iter().map(|p| p.0).collect();
     repeats.sort_unstable();
     repeats.dedup();
@@ -139,12 +132,10 @@ fn mean_sd(ys: &[(usize, f64)]) -> (f64, Option<f64>) {
         .iter()
         .map(|r| {
             let of: Vec<f64> = ys.iter().filter(|p| p.0 == *r).map(|p| p.1).collect();
-            of.iter().sum::<f64>() / of.len() as f64
+            mean_and_sd(&of).0
         })
         .collect();
-    let m = per.iter().sum::<f64>() / per.len() as f64;
-    let sd = (per.iter().map(|v| (v - m).powi(2)).sum::<f64>() / per.len() as f64).sqrt();
-    (mean, Some(sd))
+    (mean, Some(mean_and_sd(&per).1))
 }
 
 /// Gathers what `plot` draws from the runs of `sweep`.

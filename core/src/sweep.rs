@@ -254,6 +254,24 @@ pub struct SummaryRow {
     pub metrics: Vec<(String, f64, f64, usize)>,
 }
 
+/// Mean and population SD (`sqrt(mean (v − mean)²)`) of `vals`; `(0, 0)`
+/// for none. The one definition of a sweep's "mean ± SD", in tables and plots.
+pub fn mean_sd(vals: &[f64]) -> (f64, f64) {
+    let n = vals.len().max(1) as f64;
+    let mean = vals.iter().sum::<f64>() / n;
+    let sd = (vals.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / n).sqrt();
+    (mean, sd)
+}
+
+/// A TOML number as `f64` (integers converted); `None` for anything else.
+pub fn as_number(v: &toml::Value) -> Option<f64> {
+    match v {
+        toml::Value::Integer(i) => Some(*i as f64),
+        toml::Value::Float(f) => Some(*f),
+        _ => None,
+    }
+}
+
 /// Mean and SD of each metric per sweep point, over repeats. `wanted` filters
 /// metric names (empty: all).
 pub fn summarize(runs: &[SweepRun], wanted: &[String]) -> Vec<SummaryRow> {
@@ -284,17 +302,11 @@ pub fn summarize(runs: &[SweepRun], wanted: &[String]) -> Vec<SummaryRow> {
                             .map(|(_, v)| *v)
                     })
                     .collect();
-                let n = vals.len().max(1) as f64;
-                let mean = vals.iter().sum::<f64>() / n;
-                let sd = (vals.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / n).sqrt();
+                let (mean, sd) = mean_sd(&vals);
                 (name, mean, sd, vals.len())
             })
             .collect();
-        let x = match &first.value {
-            toml::Value::Integer(i) => Some(*i as f64),
-            toml::Value::Float(f) => Some(*f),
-            _ => None,
-        };
+        let x = as_number(&first.value);
         rows.push(SummaryRow {
             label: first.label.clone(),
             series: first.series.clone(),

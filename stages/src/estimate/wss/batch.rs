@@ -651,7 +651,7 @@ pub(crate) fn finish(
         Refine::Timing => {
             if let Some(a) = timing {
                 // The grid's local step: the wider gap beside the best class
-                // (one class alone: any disagreement over 5 degrees).
+                // (taken as 5 degrees on a grid of one class).
                 let step = [
                     b.checked_sub(1).map(|p| class - angles[p]),
                     angles.get(b + 1).map(|n| n - class),

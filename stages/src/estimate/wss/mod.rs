@@ -62,8 +62,9 @@
 //!   spike images' timing, not of the template's shape. It acts like a
 //!   declared speed ~3 % too low (`speed_mm_s = 2.13` flips its sign); the
 //!   joint speed search does not remove it (it trades angle for speed along
-//!   `v·sin θ`). On the lab scene the skin's spread masks it: 0.78 ± 0.15
-//!   degrees MAE over 13 off-grid angles and 5 seeds (graphs/continuous.toml).
+//!   `v·sin θ`). On the lab scene it gives 0.73 ± 0.19 degrees MAE over 13
+//!   off-grid angles and 5 seeds, one seed at 1.11 (`palpate run
+//!   graphs/continuous.toml`, the `search` point; `timing`: 0.43 ± 0.07).
 //!   Its cause is the ends of the crossing, not the middle: the score of an
 //!   ideal 45-degree trial over classes 43 to 49 by 0.1 (`refine = "none"`,
 //!   `angles = { from = 43, to = 49, step = 0.1 }`, a `write_estimates`

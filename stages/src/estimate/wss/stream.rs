@@ -38,9 +38,10 @@
 //! lose precision), the frequency-domain delay line and the working buffers
 //! are reserved when the stream is made and never reallocated: a stream's
 //! memory is fixed by its templates, whatever its length. `refine = "search"`
-//! re-runs the batch over the frames so far, and `refine = "timing"` fits
-//! the arrival-time plane over them, so with either every frame is kept;
-//! both act in [`WssStream::estimate`], not in [`WssStream::push`].
+//! re-runs the batch over the frames so far, so with it every frame is kept;
+//! `refine = "timing"` fits the arrival-time plane to every frame's raw
+//! counts, so with it those are kept (16 numbers a frame). Both act in
+//! [`WssStream::estimate`], not in [`WssStream::push`].
 //!
 //! Exact fallbacks as in the batch: a window whose weights are all 0 scores
 //! its constant-weight mean `P/n` (which is also its score under any larger
@@ -225,8 +226,7 @@ impl WssStream {
         let longest = templates.classes().iter().map(|c| c.len).max().unwrap_or(1);
         let keep = longest.max(2 * b);
         let drop = (keep / 2).max(b);
-        // Refinements that look back over the whole trial keep every frame.
-        let all_frames = matches!(params.refine, Refine::Search | Refine::Timing);
+        let all_frames = params.refine == Refine::Search;
         let mut prep = Prepared::empty(n, templates.hop_ms(), window_ms);
         let mut cp = vec![0.0];
         if !all_frames {

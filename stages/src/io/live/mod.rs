@@ -516,6 +516,9 @@ impl LiveConfig {
             ));
         }
         let max_gap_ms = c.take(check_range("max_gap_ms", self.max_gap_ms, 0.0, 3.6e6, "ms"));
+        c.finish()?;
+        // Every `None` above pushed its problem, so after `finish` all are
+        // `Some`; the fallback only guards that reasoning.
         let (
             Some(layout),
             Some(fs),
@@ -544,12 +547,8 @@ impl LiveConfig {
             max_gap_ms,
         )
         else {
-            return Err(c
-                .finish()
-                .err()
-                .unwrap_or_else(|| ConfigError::general("invalid live config")));
+            return Err(ConfigError::general("invalid live config"));
         };
-        c.finish()?;
         Ok(Checked {
             layout,
             fs,
