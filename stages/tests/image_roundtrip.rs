@@ -1,23 +1,10 @@
 //! `write_images` -> `image_file`: the images, labels, groups and trial order
 //! come back identical, in both formats; and what `image_file` refuses.
 
-use palpate_core::{run, Item, LoadOptions, Payload, RunOptions};
+mod common;
+use common::run_graph_file as run_graph;
+use palpate_core::{Item, Payload};
 use std::path::Path;
-
-fn run_graph(dir: &Path, name: &str, toml: &str) -> Result<palpate_core::RunResult, String> {
-    palpate_stages::link();
-    let path = dir.join(name);
-    std::fs::write(&path, toml).unwrap();
-    let g = palpate_core::load_file(&path, &LoadOptions::default()).map_err(|e| e.to_string())?;
-    run(
-        &g,
-        &RunOptions {
-            keep_outputs: true,
-            ..Default::default()
-        },
-    )
-    .map_err(|e| e.to_string())
-}
 
 /// Simulated spike images of 3 angles x 2 trials (the 4x4 lab-like array),
 /// written by `write_images` in `format` into `<dir>/out/images`.

@@ -1,27 +1,15 @@
 //! File sources and sinks end to end: every fixture is generated here, into a
 //! temporary folder (a MATLAB v5 file is written byte by byte by `mat_v5`).
 
-use palpate_core::{
-    load_str, run, Item, LoadOptions, Payload, RunOptions, SpikeTrain, Stimulus, TaxelLayout,
-};
+use palpate_core::{load_str, Item, Payload, SpikeTrain, Stimulus, TaxelLayout};
 use palpate_stages::io::arrays::{npy_bytes, read_npy_plain};
 use std::io::Write;
 use std::path::Path;
 use std::sync::Arc;
+mod common;
 
 fn run_graph(dir: &Path, toml: &str) -> Result<palpate_core::RunResult, String> {
-    palpate_stages::link();
-    let path = dir.join("g.toml");
-    std::fs::write(&path, toml).unwrap();
-    let g = palpate_core::load_file(&path, &LoadOptions::default()).map_err(|e| e.to_string())?;
-    run(
-        &g,
-        &RunOptions {
-            keep_outputs: true,
-            ..Default::default()
-        },
-    )
-    .map_err(|e| e.to_string())
+    common::run_graph_file(dir, "g.toml", toml)
 }
 
 fn items<'a>(r: &'a palpate_core::RunResult, id: &str) -> &'a [Item] {
