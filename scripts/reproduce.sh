@@ -1,14 +1,21 @@
 #!/usr/bin/env bash
 # Reproduces the paper's findings in one command:
 #   1. builds the release binary,
-#   2. runs every graph in graphs/paper/ (table2.toml included when present)
-#      graphs/continuous.toml and graphs/shift/*.toml,
-#      writing its reports into out/paper/<name>/,
-#   3. runs graphs/accuracy_vs_time.toml (the accuracy-time frontier)
+#   2. runs every graph in graphs/paper/, graphs/continuous.toml and
+#      graphs/shift/*.toml on the lab scene, writing its reports into
+#      out/paper/<name>/; the paper graphs run over 5 seeds each (their
+#      [sweep] repeats), since one seed is one simulated array;
+#   3. runs the paper graphs again on the paper_sensor scene (the scene
+#      calibrated on the paper's sensor-level evidence: Fig. 3a levels, Fig. 5
+#      spike-time spreads) into out/paper_sensor/<name>/, by overriding
+#      `stages.scene.file` -- same stages, same seeds; the Fig. 5 graphs,
+#      seeds.toml and speed_error.toml are lab-only (fig5_paper_sensor.toml is
+#      paper_sensor's Fig. 5);
+#   4. runs graphs/accuracy_vs_time.toml (the accuracy-time frontier)
 #      into out/accuracy_vs_time/ and the memory study (`cargo bench --bench
 #      memory`, peak heap at 10/100/1000 s of input) into out/paper/memory.json,
 #      and the WSS batch bench (criterion, one estimate per trial length),
-#   4. runs scripts/results.py, which reads those reports and (re)writes
+#   5. runs scripts/results.py, which reads those reports and (re)writes
 #      RESULTS.md and the plots in docs/results/,
 # and prints the wall time of the whole run (also recorded in RESULTS.md).
 #
@@ -29,23 +36,39 @@ target="${CARGO_TARGET_DIR:-target}"
 bin="$target/release/palpate"
 build_end=$(date +%s.%N)
 
-mkdir -p "$OUT"
+mkdir -p "$OUT" out/paper_sensor
 timings=()
-for graph in graphs/paper/*.toml graphs/continuous.toml graphs/shift/*.toml; do
-    name=$(basename "$graph" .toml)
-    echo "== $graph -> $OUT/$name"
-    "$bin" check "$graph"
-    rm -rf "${OUT:?}/$name"
+# run_graph GRAPH OUTDIR KEY SET [palpate run args...]: checks and runs one
+# graph (SET: an optional `--set` override, "" for none), logs to OUTDIR.log,
+# records its wall time under KEY.
+run_graph() {
+    local graph="$1" dir="$2" key="$3" set=()
+    [[ -n "$4" ]] && set=(--set "$4")
+    shift 4
+    echo "== $graph -> $dir ${set[*]}"
+    "$bin" check "$graph" "${set[@]}" > /dev/null
+    rm -rf "${dir:?}"
+    local t0 t1 secs
     t0=$(date +%s.%N)
-    if ! "$bin" run "$graph" --out "$OUT/$name" "$@" > "$OUT/$name.log" 2>&1; then
-        echo "FAILED: $graph (log: $OUT/$name.log)" >&2
-        tail -20 "$OUT/$name.log" >&2
+    if ! "$bin" run "$graph" --out "$dir" "${set[@]}" "$@" > "$dir.log" 2>&1; then
+        echo "FAILED: $graph (log: $dir.log)" >&2
+        tail -20 "$dir.log" >&2
         exit 1
     fi
     t1=$(date +%s.%N)
     secs=$(printf '%.2f' "$(echo "$t1 - $t0" | bc)")
-    printf '   %s s (log: %s)\n' "$secs" "$OUT/$name.log"
-    timings+=("\"$name\": $secs")
+    printf '   %s s (log: %s)\n' "$secs" "$dir.log"
+    timings+=("\"$key\": $secs")
+}
+for graph in graphs/paper/*.toml graphs/continuous.toml graphs/shift/*.toml; do
+    name=$(basename "$graph" .toml)
+    run_graph "$graph" "$OUT/$name" "$name" "" "$@"
+done
+for graph in graphs/paper/*.toml; do
+    name=$(basename "$graph" .toml)
+    case "$name" in fig5*|seeds|speed_error) continue ;; esac
+    run_graph "$graph" "out/paper_sensor/$name" "paper_sensor/$name" \
+        stages.scene.file=../scenes/paper_sensor.toml "$@"
 done
 
 # The paper's reproduction ends here (its wall time is the one recorded);
@@ -78,7 +101,7 @@ build=$(printf '%.2f' "$(echo "$build_end - $start" | bc)")
 } > "$OUT/timing.json"
 
 echo "== writing RESULTS.md"
-python3 scripts/results.py --out "$OUT" --results RESULTS.md --docs docs/results --criterion "$target/criterion"
+python3 scripts/results.py --out "$OUT" --sensor-out out/paper_sensor --results RESULTS.md --docs docs/results --criterion "$target/criterion"
 
 end=$(date +%s.%N)
 printf '== wall time of the whole run: %.0f s (graphs and build: %.0f s)\n' \

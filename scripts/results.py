@@ -119,344 +119,486 @@ def yes_no(b):
     return "yes" if b else "no"
 
 
-def section_table1(out, docs):
-    rec = mae_record(os.path.join(out, "wss", "mae.json"))
-    cls = per_class(rec)
-    angles = sorted(cls)
-    ours = {a: cls[a]["mae_deg"] for a in angles}
-    # palpate's own plots (the mae and confusion sinks'), not redrawn here: the
-    # paper's per-class values stand beside ours in the table below.
-    for name, dst in [("mae_per_class.svg", "table1_per_class.svg"), ("confusion_wss.svg", "fig6_confusion.svg")]:
-        copy_plot(os.path.join(out, "wss"), name, docs, dst)
-    zero_ours = [a for a in angles if ours[a] == 0]
-    zero_paper = [a for a in angles if PAPER_TABLE1.get(a) == 0]
-    worst = max(angles, key=lambda a: ours[a] or 0)
-    # Confusion limited to neighbours (the paper: never beyond +-5 degrees)?
+SCENES = [("lab", "lab"), ("paper_sensor", "paper_sensor")]
+
+
+def seed_dirs(d):
+    """The run folders of a graph run over seeds: `<d>/1/r0..rN` (the paper
+    graphs' `run.seed` sweep with repeats), or `<d>` itself (one run)."""
+    p = os.path.join(d, "1")
+    if os.path.isdir(p):
+        reps = sorted((r for r in os.listdir(p) if r.startswith("r") and r[1:].isdigit()),
+                      key=lambda r: int(r[1:]))
+        if reps:
+            return [os.path.join(p, r) for r in reps]
+    return [d]
+
+
+def seed_records(d, estimator="wss"):
+    """Each seed's MAE record of one estimator."""
+    return [mae_record(os.path.join(x, "mae.json"), estimator) for x in seed_dirs(d)]
+
+
+def mean_sd(vals):
+    """Mean and (population) SD, as palpate's sweep tables compute them."""
+    vals = [v for v in vals if v is not None]
+    if not vals:
+        return None, None
+    m = sum(vals) / len(vals)
+    return m, (sum((v - m) ** 2 for v in vals) / len(vals)) ** 0.5
+
+
+def pms(vals, digits=2):
+    """`mean ± SD` of a list (over seeds)."""
+    m, sd = mean_sd(vals)
+    return "–" if m is None else pm(m, sd, digits)
+
+
+def seeds_str(vals, digits=2):
+    return ", ".join(f2(v, digits) for v in vals)
+
+
+def scene_outs(out, sensor_out):
+    """(scene name, report root) of every scene that ran."""
+    res = [("lab", out)]
+    if sensor_out and os.path.isdir(sensor_out):
+        res.append(("paper_sensor", sensor_out))
+    return res
+
+
+def confusion_counts(run_dir):
+    """(off by more than one class or "no edge", on the diagonal, total) of a
+    run's confusion_wss.csv."""
     far, diag, total = 0, 0, 0
-    with open(os.path.join(out, "wss", "confusion_wss.csv")) as f:
+    with open(os.path.join(run_dir, "confusion_wss.csv")) as f:
         for row in csv.DictReader(f):
             n = int(row["count"])
             total += n
             if row["estimated_deg"] in ("none", ""):
                 far += n
                 continue
-            d = abs(float(row["estimated_deg"]) - float(row["true_deg"]))
-            diag += n if d == 0 else 0
-            far += n if d > 5 + 1e-9 else 0
-    coarse = dict((round(a), m) for a, m in rec.get("coarse", []))
+            dd = abs(float(row["estimated_deg"]) - float(row["true_deg"]))
+            diag += n if dd == 0 else 0
+            far += n if dd > 5 + 1e-9 else 0
+    return far, diag, total
+
+
+def section_table1(out, docs, sensor_out=None):
+    runs = {}
+    for scene, root in scene_outs(out, sensor_out):
+        d = os.path.join(root, "wss")
+        if not exists(d):
+            continue
+        recs = seed_records(d)
+        classes = [per_class(r) for r in recs]
+        angles = sorted(classes[0])
+        per = {a: mean_sd([c[a]["mae_deg"] for c in classes])[0] for a in angles}
+        cc = [confusion_counts(x) for x in seed_dirs(d)]
+        runs[scene] = dict(recs=recs, angles=angles, per=per, cc=cc, dirs=seed_dirs(d))
+    lab = runs["lab"]
+    # palpate's own plots (the mae and confusion sinks') of seed 1, not redrawn here.
+    for name, dst in [("mae_per_class.svg", "table1_per_class.svg"), ("confusion_wss.svg", "fig6_confusion.svg")]:
+        copy_plot(lab["dirs"][0], name, docs, dst)
+    if "paper_sensor" in runs:
+        copy_plot(runs["paper_sensor"]["dirs"][0], "confusion_wss.svg", docs, "fig6_confusion_paper_sensor.svg")
+    n = len(lab["recs"])
+    zero_paper = [a for a in lab["angles"] if PAPER_TABLE1.get(a) == 0]
+    head = "| | paper | " + " | ".join(f"ours, {s} ({len(r['recs'])} seeds)" for s, r in runs.items()) + " |"
     lines = [
         "## Table 1 and Fig. 6: WSS, 17 classes x 10 trials",
         "",
-        f"Command: {cmd('wss')}",
+        f"Command: {cmd('wss')} (seeds 1..{n}; the same graph on the paper_sensor scene: "
+        "`--set stages.scene.file=../scenes/paper_sensor.toml --out out/paper_sensor/wss`)",
         "",
-        "| | paper | ours |",
-        "| --- | --- | --- |",
-        f"| overall MAE (± SD) | {PAPER_WSS_MAE} (± {PAPER_WSS_SD}) | {f2(rec['mae_deg'])} (± {f2(rec['sd_deg'])}) |",
-        f"| largest per-class MAE | {PAPER_WSS_MAX} (40°) | {f2(rec['max_class_mae_deg'])} ({worst}°) |",
-        f"| classes with MAE 0 | {len(zero_paper)}: {', '.join(map(str, zero_paper))} | "
-        f"{len(zero_ours)}: {', '.join(map(str, zero_ours))} |",
-        f"| trials on the diagonal | 6 classes with no confusion | {diag}/{total} ({100 * diag / total:.1f} %) |",
-        f"| \"no edge\" answers | – | {rec['no_edge']} |",
+        "Every number of ours is the mean ± SD over seeds (each seed draws a new simulated array and new "
+        "trials); per-seed values follow the table.",
         "",
-        "| orientation | " + " | ".join(f"{a}°" for a in angles) + " |",
-        "| --- | " + " | ".join("---" for _ in angles) + " |",
-        "| paper MAE | " + " | ".join(f2(PAPER_TABLE1.get(a), 1) for a in angles) + " |",
-        "| ours MAE | " + " | ".join(f2(ours[a], 1) for a in angles) + " |",
+        head,
+        "| --- | --- | " + " | ".join("---" for _ in runs) + " |",
+        f"| overall MAE | {PAPER_WSS_MAE} (SD over trials {PAPER_WSS_SD}) | "
+        + " | ".join(pms([x["mae_deg"] for x in r["recs"]]) for r in runs.values()) + " |",
+        f"| largest per-class MAE | {PAPER_WSS_MAX} (40°) | "
+        + " | ".join(pms([x["max_class_mae_deg"] for x in r["recs"]]) for r in runs.values()) + " |",
+        f"| classes with MAE 0 (mean over seeds) | {len(zero_paper)} of 17 | "
+        + " | ".join(pms([sum(1 for c in x["classes"] if c["mae_deg"] == 0) for x in r["recs"]], 1)
+                     for r in runs.values()) + " |",
+        "| trials on the diagonal, of 170 | 6 classes with no confusion | "
+        + " | ".join(pms([c[1] for c in r["cc"]], 1) for r in runs.values()) + " |",
+        "| trials further than ±5° off or \"no edge\" | 0 | "
+        + " | ".join(pms([c[0] for c in r["cc"]], 1) for r in runs.values()) + " |",
         "",
-        "Plots: [per-class MAE](docs/results/table1_per_class.svg), "
-        "[confusion matrix (Fig. 6)](docs/results/fig6_confusion.svg); "
-        "the matrix as Markdown/CSV is `out/paper/wss/confusion_wss.{md,csv}`.",
-        "",
-        f"- Errors limited to the neighbouring class (±5°), as in the paper: **{yes_no(far == 0)}**"
-        + ("" if far == 0 else f" ({far} trials further off or \"no edge\")") + ".",
-        f"- Ours is {'lower' if rec['mae_deg'] < PAPER_WSS_MAE else 'higher'} than the paper's "
-        f"({f2(rec['mae_deg'])}° vs {PAPER_WSS_MAE}°): the simulated lab scene, even with its noise, "
-        "mismatch, creep and crosstalk, is cleaner than the real cloth sensor "
-        "(whose taxels, per the paper's Fig. 5, fire long before and after the edge passes).",
+        "| orientation | " + " | ".join(f"{a}°" for a in lab["angles"]) + " |",
+        "| --- | " + " | ".join("---" for _ in lab["angles"]) + " |",
+        "| paper MAE | " + " | ".join(f2(PAPER_TABLE1.get(a), 1) for a in lab["angles"]) + " |",
     ]
-    return lines, rec, coarse
+    for s, r in runs.items():
+        lines.append(f"| ours, {s} (mean of {len(r['recs'])} seeds) | "
+                     + " | ".join(f2(r["per"].get(a), 1) for a in lab["angles"]) + " |")
+    lines += [""]
+    for s, r in runs.items():
+        lines.append(f"- MAE per seed, {s}: {seeds_str([x['mae_deg'] for x in r['recs']])}.")
+    lines += [
+        "",
+        "Plots (seed 1): [per-class MAE](docs/results/table1_per_class.svg), "
+        "[confusion matrix (Fig. 6), lab](docs/results/fig6_confusion.svg)"
+        + (", [paper_sensor](docs/results/fig6_confusion_paper_sensor.svg)" if "paper_sensor" in runs else "")
+        + "; every seed's matrix as Markdown/CSV is `out/paper/wss/1/r<k>/confusion_wss.{md,csv}`.",
+        "",
+    ]
+    for s, r in runs.items():
+        far = [c[0] for c in r["cc"]]
+        mae = mean_sd([x["mae_deg"] for x in r["recs"]])[0]
+        lines.append(
+            f"- {s}: errors limited to the neighbouring class (±5°) on every seed, as in the paper: "
+            f"**{yes_no(max(far) == 0)}**" + ("" if max(far) == 0 else f" (per seed: {seeds_str(far, 0)} trials further off)")
+            + f"; MAE {'below' if mae < PAPER_WSS_MAE else 'above'} the paper's {PAPER_WSS_MAE}° ({f2(mae)}°).")
+    coarse = {}
+    for x in lab["recs"]:
+        for a, m in x.get("coarse", []):
+            coarse.setdefault(round(a), []).append(m)
+    return lines, lab["recs"], {a: mean_sd(v)[0] for a, v in coarse.items()}
 
 
-def section_acuity(out, coarse):
-    rec = mae_record(os.path.join(out, "acuity", "mae.json"))
-    c10 = coarse.get(10)
-    return [
+def section_acuity(out, coarse, sensor_out=None):
+    rows = []
+    for scene, root in scene_outs(out, sensor_out):
+        d = os.path.join(root, "acuity")
+        if exists(d):
+            rows.append((scene, seed_records(d)))
+    lines = [
         "## Acuity of 10 degrees (text of section 3.2)",
         "",
-        f"Command: {cmd('acuity')} (9 classes 10..90 by 10, in the scene and in WSS)",
+        f"Command: {cmd('acuity')} (9 classes 10..90 by 10, in the scene and in WSS; seeds 1..5)",
         "",
-        "| | paper | ours |",
-        "| --- | --- | --- |",
-        f"| 9-class WSS (10..90 by 10), MAE | 0 | {f2(rec['mae_deg'])} (largest per class "
-        f"{f2(rec['max_class_mae_deg'])}, no edge {rec['no_edge']}) |",
-        f"| 17-class answers of Table 1 binned to 10° (mae sink `acuity_deg`) | – | {f2(c10)} |",
-        "",
-        f"- Zero MAE at 10° acuity reproduced: **{yes_no(rec['mae_deg'] == 0 and rec['no_edge'] == 0)}**.",
-    ]
-
-
-def section_table2(out, wss_rec, docs=None):
-    d = os.path.join(out, "table2")
-    recs = []
-    for p in sorted(glob.glob(os.path.join(d, "*.json"))):
-        if os.path.basename(p) in ("run.json", "sweep.json"):
-            continue
-        try:
-            data = load(p)
-        except (OSError, ValueError):
-            continue
-        if isinstance(data, list):
-            recs += [r for r in data if isinstance(r, dict) and "estimator" in r and "mae_deg" in r]
-    lines = [
-        "## Table 2: WSS against trained estimators (leave-one-trial-out CV)",
-        "",
-        f"Command: {cmd('table2')}",
+        "| | paper | " + " | ".join(f"ours, {s}" for s, _ in rows) + " |",
+        "| --- | --- | " + " | ".join("---" for _ in rows) + " |",
+        "| 9-class WSS (10..90 by 10), MAE | 0 | " + " | ".join(pms([r["mae_deg"] for r in recs]) for _, recs in rows) + " |",
+        "| largest per-class MAE | 0 | " + " | ".join(pms([r["max_class_mae_deg"] for r in recs]) for _, recs in rows) + " |",
+        "| \"no edge\" answers | 0 | " + " | ".join(pms([r["no_edge"] for r in recs], 1) for _, recs in rows) + " |",
+        f"| 17-class answers of Table 1 binned to 10° (mae sink `acuity_deg`), mean over seeds | – | {f2(coarse.get(10))} |"
+        + "".join(" – |" for _ in rows[1:]),
         "",
     ]
-    if not recs:
-        lines += [
-            "graphs/paper/table2.toml had not run when this file was generated (it is written "
-            "separately); the WSS column is Table 1's above. Re-run `scripts/reproduce.sh` once it is present.",
-        ]
-        return lines
-
-    def paper_name(est):
-        e = est.lower()
-        if "wss" in e:
-            return "WSS"
-        if "edbn" in e:
-            return "EDBN"
-        if "ann" in e:
-            return "ANN (ST)" if ("st" in e.replace("ann", "") or "temporal" in e) else "ANN (S)"
-        return None
-
-    lines += [
-        "| estimator | paper MAE (± SD) | ours MAE (± SD) | paper largest per-class | ours largest per-class | ours no edge |",
-        "| --- | --- | --- | --- | --- | --- |",
-    ]
-    for r in recs:
-        pn = paper_name(r["estimator"])
-        p = PAPER_TABLE2.get(pn)
-        lines.append(
-            f"| `{r['estimator']}`{' (' + pn + ')' if pn else ''} | "
-            f"{f'{p[0]} (± {p[1]})' if p else '–'} | {f2(r['mae_deg'])} (± {f2(r['sd_deg'])}) | "
-            f"{p[2] if p else '–'} | {f2(r['max_class_mae_deg'])} | {r['no_edge']} |")
-    ranked = sorted((r for r in recs if r.get("mae_deg") is not None), key=lambda r: r["mae_deg"])
-    best = ranked[0]["estimator"] if ranked else None
-    by = {paper_name(r["estimator"]): r for r in recs if paper_name(r["estimator"])}
-    lines += [""]
-    if best:
-        lines.append(f"- Lowest MAE: `{best}`; WSS best, as in the paper: "
-                     f"**{yes_no(paper_name(best) == 'WSS')}**.")
-    if "ANN (S)" in by and "ANN (ST)" in by:
-        s, st = by["ANN (S)"]["mae_deg"], by["ANN (ST)"]["mae_deg"]
-        lines.append(f"- Spatiotemporal input beats spatial-only for the ANN (paper: 2.25 vs 7.61): "
-                     f"**{yes_no(st < s)}** ({f2(st)} vs {f2(s)}).")
-    if docs and exists(os.path.join(d, "mae_per_class.svg")):
-        copy_plot(d, "mae_per_class.svg", docs, "table2_per_class.svg")
-        lines += ["", "Plot (palpate's `mae` sink, one panel per estimator): "
-                  "[per-class MAE](docs/results/table2_per_class.svg)."]
+    for s, recs in rows:
+        zero = sum(1 for r in recs if r["mae_deg"] == 0 and r["no_edge"] == 0)
+        lines.append(f"- {s}: zero MAE at 10° acuity on {zero} of {len(recs)} seeds "
+                     f"(per seed {seeds_str([r['mae_deg'] for r in recs])}); reproduced on every seed: "
+                     f"**{yes_no(zero == len(recs))}**.")
     return lines
 
 
-def section_share(out, docs, full_mae):
-    rows = sweep(os.path.join(out, "share"))
+ESTIMATORS = ["wss", "ann_s", "ann_st", "edbn", "svm", "random_forest", "knn", "logistic"]
+
+
+def paper_name(est):
+    e = est.lower()
+    if "wss" in e:
+        return "WSS"
+    if "edbn" in e:
+        return "EDBN"
+    if "ann" in e:
+        return "ANN (ST)" if ("st" in e.replace("ann", "") or "temporal" in e) else "ANN (S)"
+    return None
+
+
+def table2_records(d):
+    """{estimator: [per-seed MAE record]} of a table2 run."""
+    out = {}
+    for x in seed_dirs(d):
+        data = load(os.path.join(x, "mae.json"))
+        for r in data:
+            if isinstance(r, dict) and "estimator" in r and "mae_deg" in r:
+                out.setdefault(r["estimator"], []).append(r)
+    return out
+
+
+def section_table2(out, wss_rec, docs=None, sensor_out=None):
+    lines = [
+        "## Table 2: WSS against trained estimators (leave-one-trial-out CV)",
+        "",
+        f"Command: {cmd('table2')} (seeds 1..5; on paper_sensor with "
+        "`--set stages.scene.file=../scenes/paper_sensor.toml`)",
+        "",
+    ]
+    runs = {}
+    for scene, root in scene_outs(out, sensor_out):
+        d = os.path.join(root, "table2")
+        if exists(d):
+            runs[scene] = table2_records(d)
+    if "lab" not in runs:
+        return lines + ["graphs/paper/table2.toml had not run when this file was generated."]
+    ests = list(runs["lab"])
+    lines += [
+        "MAE in degrees, mean ± SD over seeds (per-seed values below); the paper's SD is over trials.",
+        "",
+        "| estimator | paper MAE (SD) | paper largest per-class | "
+        + " | ".join(f"{s}: MAE | {s}: largest per-class" for s in runs) + " |",
+        "| --- | --- | --- | " + " | ".join("--- | ---" for _ in runs) + " |",
+    ]
+    for e in ests:
+        pn = paper_name(e)
+        p = PAPER_TABLE2.get(pn)
+        cells = []
+        for s, recs in runs.items():
+            rr = recs.get(e, [])
+            cells.append(f"{pms([r['mae_deg'] for r in rr])} | {pms([r['max_class_mae_deg'] for r in rr])}")
+        lines.append(f"| `{e}`{' (' + pn + ')' if pn else ''} | {f'{p[0]} ({p[1]})' if p else '–'} | "
+                     f"{p[2] if p else '–'} | " + " | ".join(cells) + " |")
+    lines += [""]
+    for s, recs in runs.items():
+        lines.append(f"- Per seed, {s}: " + "; ".join(
+            f"`{e}` {seeds_str([r['mae_deg'] for r in recs[e]])}" for e in recs) + ".")
+    lines += [""]
+    for s, recs in runs.items():
+        means = {e: mean_sd([r["mae_deg"] for r in rr])[0] for e, rr in recs.items()}
+        best = min(means, key=lambda e: means[e])
+        ties = [e for e in means if means[e] == means[best]]
+        by = {paper_name(e): means[e] for e in means if paper_name(e)}
+        lines.append(
+            f"- {s}: lowest mean MAE: {', '.join(f'`{e}`' for e in ties)}; WSS alone best, as in the paper: "
+            f"**{yes_no(len(ties) == 1 and paper_name(best) == 'WSS')}**"
+            + (f"; spatiotemporal input beats spatial-only for the ANN (paper: 2.25 vs 7.61): "
+               f"**{yes_no(by['ANN (ST)'] < by['ANN (S)'])}** ({f2(by['ANN (ST)'])} vs {f2(by['ANN (S)'])})"
+               if "ANN (S)" in by and "ANN (ST)" in by else "") + ".")
+    if docs:
+        first = seed_dirs(os.path.join(out, "table2"))[0]
+        if exists(os.path.join(first, "mae_per_class.svg")):
+            copy_plot(first, "mae_per_class.svg", docs, "table2_per_class.svg")
+            lines += ["", "Plot (palpate's `mae` sink, one panel per estimator, lab, seed 1): "
+                      "[per-class MAE](docs/results/table2_per_class.svg)."]
+    return lines
+
+
+def sweep_scenes(out, sensor_out, name):
+    """{scene: sweep rows} of a sweep graph run on each scene."""
+    res = {}
+    for scene, root in scene_outs(out, sensor_out):
+        d = os.path.join(root, name)
+        if exists(os.path.join(d, "sweep.json")):
+            res[scene] = (d, sweep(d))
+    return res
+
+
+def copy_scene_plots(runs, name, docs):
+    """Copies a sweep's declared plot of each scene (paper_sensor's with a suffix)."""
+    links = []
+    for scene, (d, _) in runs.items():
+        dst = name if scene == "lab" else name.replace(".svg", f"_{scene}.svg")
+        copy_plot(d, name, docs, dst)
+        links.append(f"[{scene}](docs/results/{dst})")
+    return ", ".join(links)
+
+
+def section_share(out, docs, full_mae, sensor_out=None):
+    runs = sweep_scenes(out, sensor_out, "share")
     shares = [0.2, 0.4, 0.6, 0.8, 1.0]
-
-    def get(share, trunc):
-        r = rows.get(f"share={share},truncate={'true' if trunc else 'false'}")
-        return r and r["wss.mae_deg"][0]
-
-    ours = {s: get(s, False) for s in shares}
-    trunc = {s: get(s, True) for s in shares}
-    noedge = {s: rows[f"share={s},truncate=false"]["wss.no_edge"][0] for s in shares}
-    copy_plot(os.path.join(out, "share"), "fig7_share.svg", docs)
-    flat60 = ours[0.6] - ours[1.0] <= 0.5
-    first_jump = next((s for s in reversed(shares[:-1]) if ours[s] - ours[1.0] > 0.5), None)
-    return [
+    plots = copy_scene_plots(runs, "fig7_share.svg", docs)
+    lines = [
         "## Fig. 7: share of the palpation used",
         "",
-        f"Command: {cmd('share')}",
+        f"Command: {cmd('share')} (seeds 1..5 per share; mean ± SD over seeds)",
         "",
         "| share of the crossing | 20 % | 40 % | 60 % | 80 % | 100 % |",
         "| --- | --- | --- | --- | --- | --- |",
         "| paper MAE | rising | rising | 2.1 (+0.1 over 100 %) | flat | 1.67 (Table 1) |",
-        "| ours MAE (trial keeps its length) | " + " | ".join(f2(ours[s]) for s in shares) + " |",
-        "| ours \"no edge\" answers | " + " | ".join(f"{noedge[s]:.0f}" for s in shares) + " |",
-        "| ours MAE (trial ends at the cut) | " + " | ".join(f2(trunc[s]) for s in shares) + " |",
-        "",
-        "Plot: [docs/results/fig7_share.svg](docs/results/fig7_share.svg). `crop` keeps the spikes up to "
-        "t0 + share·(t1 − t0), [t0, t1] being the nominal crossing of the taxels; \"no edge\" answers are "
-        "left out of the MAE and counted beside it.",
-        "",
-        f"- Flat (within 0.5°) down to 60 %, as in the paper: **{yes_no(flat60)}**"
-        + ("" if flat60 else f"; ours already rises by {f2(ours[0.6] - ours[1.0])}° at 60 %"
-           + (f" and by more than 0.5° from {int(first_jump * 100)} %" if first_jump else "")) + ".",
-        f"- Monotone rise as the share falls: **{yes_no(all(ours[a] >= ours[b] for a, b in zip(shares, shares[1:])))}**.",
-        f"- At 100 % the cropped run gives {f2(ours[1.0])}°, not Table 1's {f2(full_mae)}°: `crop` drops every "
-        "spike after the nominal crossing t1, and in the lab scene the skin's spread and the creep make taxels "
-        "fire after it, so even share 1.0 loses the end of the response that WSS's templates align on. "
-        "The paper's ΔT is probably measured on the spikes instead; `crop` has no such option (reported).",
-        "- Our reading of why ours falls faster than the paper's (not tested separately): WSS aligns template 0 with the line leaving the array "
-        "(eq. 5 runs back in time from the exit), so a partial crossing either leaves empty frames where "
-        "the templates expect the end (trial keeps its length; 1 − SR gives those empty frames the "
-        "largest weight) or shifts the alignment (trial ends at the cut). The paper does not say how it "
-        "handled this; the shapes agree only in \"more palpation, lower error\".",
     ]
+    verdicts = []
+    for scene, (d, rows) in runs.items():
+        def get(share, trunc, metric="wss.mae_deg"):
+            r = rows.get(f"share={share},truncate={'true' if trunc else 'false'}")
+            return r and r[metric]
+        ours = {sh: get(sh, False) for sh in shares}
+        trunc = {sh: get(sh, True) for sh in shares}
+        noedge = {sh: get(sh, False, "wss.no_edge") for sh in shares}
+        lines += [
+            f"| {scene}: MAE (trial keeps its length) | " + " | ".join(pm(*ours[sh][:2]) for sh in shares) + " |",
+            f"| {scene}: \"no edge\" answers (mean) | " + " | ".join(f"{noedge[sh][0]:.1f}" for sh in shares) + " |",
+            f"| {scene}: MAE (trial ends at the cut) | " + " | ".join(pm(*trunc[sh][:2]) for sh in shares) + " |",
+        ]
+        o = {sh: ours[sh][0] for sh in shares}
+        flat60 = o[0.6] - o[1.0] <= 0.5
+        verdicts.append(
+            f"- {scene}: flat (within 0.5°) down to 60 %, as in the paper: **{yes_no(flat60)}**"
+            + ("" if flat60 else f" (+{f2(o[0.6] - o[1.0])}° at 60 %)")
+            + f"; monotone rise as the share falls: **{yes_no(all(o[a] >= o[b] for a, b in zip(shares, shares[1:])))}**.")
+    lines += [
+        "",
+        f"Plots: {plots}. `crop` keeps the spikes up to t0 + share·(t1 − t0), [t0, t1] being the nominal "
+        "crossing of the taxels; \"no edge\" answers are left out of the MAE and counted beside it.",
+        "",
+    ] + verdicts + [
+        f"- At 100 % the cropped run is not Table 1's {f2(full_mae)}°: `crop` drops every spike after the "
+        "nominal crossing t1, and the skin's spread and the creep make taxels fire after it, so even share 1.0 "
+        "loses the end of the response that WSS's templates align on. The paper's ΔT is probably measured on "
+        "the spikes instead; `crop` has no such option (reported).",
+        "- Our reading of why ours falls faster than the paper's (not tested separately): WSS aligns template 0 "
+        "with the line leaving the array (eq. 5 runs back in time from the exit), so a partial crossing either "
+        "leaves empty frames where the templates expect the end (trial keeps its length) or shifts the "
+        "alignment (trial ends at the cut). The paper does not say how it handled this; the shapes agree only "
+        "in \"more palpation, lower error\".",
+    ]
+    return lines
 
 
-def section_jitter(out, docs):
-    rows = sweep(os.path.join(out, "jitter"))
-    taus = sorted(rows, key=float)
-    m = {float(t): rows[t]["wss.mae_deg"] for t in taus}
-    base = m[0.0][0]
-    copy_plot(os.path.join(out, "jitter"), "fig8_jitter.svg", docs)
-    d = {t: v[0] - base for t, v in m.items()}
-    inc10 = d.get(10.0)
-    inc30 = d.get(30.0)
-    sd0 = m[0.0][1]
-    return [
+def section_jitter(out, docs, sensor_out=None):
+    runs = sweep_scenes(out, sensor_out, "jitter")
+    plots = copy_scene_plots(runs, "fig8_jitter.svg", docs)
+    d0, rows0 = runs["lab"]
+    taus = sorted((float(t) for t in rows0))
+    reps = next(iter(rows0.values()))["wss.mae_deg"][2]
+    lines = [
         "## Fig. 8: spike-time jitter",
         "",
-        f"Command: {cmd('jitter')} (Gaussian displacement of SD τ per spike; 3 repeats, seeds 1..3)",
+        f"Command: {cmd('jitter')} (Gaussian displacement of SD τ per spike; {reps} repeats, seeds 1..{reps})",
         "",
-        "| τ, ms | " + " | ".join(f"{t:g}" for t in m) + " |",
-        "| --- | " + " | ".join("---" for _ in m) + " |",
+        "| τ, ms | " + " | ".join(f"{t:g}" for t in taus) + " |",
+        "| --- | " + " | ".join("---" for _ in taus) + " |",
         "| paper, increase over τ = 0 | 0 | " + " | ".join(
-            {1.0: "+0.23", 10.0: "+1.33"}.get(t, "rising" if t > 10 else "–") for t in list(m)[1:]) + " |",
-        "| ours MAE (mean ± SD) | " + " | ".join(pm(*v[:2]) for v in m.values()) + " |",
-        "| ours increase over τ = 0 | " + " | ".join(f"{v:+.2f}" for v in d.values()) + " |",
-        "",
-        "Plot: [docs/results/fig8_jitter.svg](docs/results/fig8_jitter.svg). A repeat changes the graph "
-        "seed, so it also draws a new lab scene (the paper re-jittered one recording); τ = 0 is the "
-        "3-scene baseline.",
-        "",
-        f"- Increase at 10 ms: ours {f2(inc10)}° (paper +1.33°); at 30 ms: ours {f2(inc30)}°.",
-        f"- Visible increase at 1 ms (paper +0.23°): **{yes_no(d.get(1.0, 0) > sd0)}** "
-        f"(ours {d.get(1.0, 0):+.2f}°, repeat SD at τ = 0 is {f2(sd0)}°).",
-        f"- Rising with τ beyond 10 ms: **{yes_no(inc30 is not None and inc10 is not None and inc30 > inc10 + sd0)}**.",
-        "- Our reading (not tested separately): our FA-I spikes come in dense, "
-        "sharply timed bursts as the edge passes each taxel, and a 100 ms bin averages a few ms of "
-        "jitter away; the paper's real taxels already fire over ±1.6 s around the edge (its Fig. 5), "
-        "so its 1-SR-weighted sparse frames have less margin. Even 30 ms of jitter stays well inside "
-        "one 100 ms window.",
+            {1.0: "+0.23", 10.0: "+1.33"}.get(t, "rising" if t > 10 else "–") for t in taus[1:]) + " |",
     ]
+    verdicts = []
+    for scene, (d, rows) in runs.items():
+        m = {float(t): v["wss.mae_deg"] for t, v in rows.items()}
+        base, sd0 = m[0.0][0], m[0.0][1]
+        inc = {t: m[t][0] - base for t in taus if t in m}
+        lines += [
+            f"| {scene}: MAE (mean ± SD) | " + " | ".join(pm(*m[t][:2]) for t in taus) + " |",
+            f"| {scene}: increase over τ = 0 | " + " | ".join(f"{inc[t]:+.2f}" for t in taus) + " |",
+        ]
+        verdicts.append(
+            f"- {scene}: increase at 10 ms {f2(inc.get(10.0))}° (paper +1.33°), at 30 ms {f2(inc.get(30.0))}°; "
+            f"visible at 1 ms (paper +0.23°; above the seed SD at τ = 0, {f2(sd0)}°): "
+            f"**{yes_no(inc.get(1.0, 0) > sd0)}**; rising beyond 10 ms: "
+            f"**{yes_no(inc.get(30.0, 0) > inc.get(10.0, 0) + sd0)}**.")
+    lines += [
+        "",
+        f"Plots: {plots}. A repeat changes the graph seed, so it also draws a new simulated array (the paper "
+        "re-jittered one recording).",
+        "",
+    ] + verdicts + [
+        "- Our reading (not tested separately): FA-I spikes come in dense, sharply timed bursts as the edge "
+        "passes each taxel, and a 100 ms bin averages a few ms of jitter away; even 30 ms of jitter stays well "
+        "inside one 100 ms window.",
+    ]
+    return lines
 
 
-def section_area(out, docs, table2_ann_s=None):
-    d = os.path.join(out, "area")
-    rows = sweep(d)
-    by_size = {}
-    for label, ms in rows.items():
-        kv = dict(p.split("=") for p in label.split(","))
-        by_size.setdefault(int(kv["size"]), []).append((label, ms["wss.mae_deg"][0], ms["wss.no_edge"][0]))
-    avg = {s: sum(v for _, v, _ in lst) / len(lst) for s, lst in by_size.items()}
-    sizes = sorted(by_size, reverse=True)
-    copy_plot(d, "fig9_area.svg", docs)
-    mono = all(avg[a] < avg[b] for a, b in zip(sizes, sizes[1:]))
+def section_area(out, docs, table2_ann_s=None, sensor_out=None):
+    runs = sweep_scenes(out, sensor_out, "area")
+    plots = copy_scene_plots(runs, "fig9_area.svg", docs)
     lines = [
         "## Fig. 9: array area",
         "",
-        f"Command: {cmd('area')} (one `subarea` window per placement; averaged here)",
+        f"Command: {cmd('area')} (one `subarea` window per placement; seeds 1..5; averaged over placements here)",
         "",
-        "| area | placements | paper MAE | ours MAE (mean) | ours per placement (row,col: MAE) |",
-        "| --- | --- | --- | --- | --- |",
+        "| area | placements | paper MAE | " + " | ".join(f"{s}: MAE (mean over placements and seeds)" for s in runs)
+        + " | lab per placement (row,col: MAE) |",
+        "| --- | --- | --- | " + " | ".join("---" for _ in runs) + " | --- |",
     ]
-    for s in sizes:
-        per = ", ".join(f"{dict(p.split('=') for p in l.split(','))['row']},"
-                        f"{dict(p.split('=') for p in l.split(','))['col']}: {v:.2f}" for l, v, _ in by_size[s])
-        paper = PAPER_AREA.get(s)
-        lines.append(f"| {s}x{s} | {len(by_size[s])} | {paper if paper is not None else 'higher than 4x4'} | "
-                     f"{f2(avg[s])} | {per} |")
-    noedge = sum(n for lst in by_size.values() for _, _, n in lst)
-    lines += [
-        "",
-        "Plot: [docs/results/fig9_area.svg](docs/results/fig9_area.svg).",
-        "",
-        f"- MAE rises as the area shrinks (4x4 < 3x3 < 2x2), as in the paper: **{yes_no(mono)}**.",
-        f"- 2x2 against the paper's 5.88°: ours {f2(avg.get(2))}°; \"no edge\" answers over all placements: {noedge:.0f}.",
-    ]
+    avgs, noedges = {}, {}
+    for scene, (d, rows) in runs.items():
+        by_size = {}
+        for label, ms in rows.items():
+            kv = dict(p.split("=") for p in label.split(","))
+            by_size.setdefault(int(kv["size"]), []).append((kv, ms["wss.mae_deg"][0], ms["wss.no_edge"][0]))
+        avgs[scene] = {sz: sum(v for _, v, _ in lst) / len(lst) for sz, lst in by_size.items()}
+        noedges[scene] = (sum(n for lst in by_size.values() for _, _, n in lst), by_size)
+    lab_sizes = noedges["lab"][1]
+    for sz in sorted(lab_sizes, reverse=True):
+        per = ", ".join(f"{kv['row']},{kv['col']}: {v:.2f}" for kv, v, _ in lab_sizes[sz])
+        paper = PAPER_AREA.get(sz)
+        lines.append(f"| {sz}x{sz} | {len(lab_sizes[sz])} | {paper if paper is not None else 'higher than 4x4'} | "
+                     + " | ".join(f2(avgs[s].get(sz)) for s in runs) + f" | {per} |")
+    lines += ["", f"Plots: {plots}.", ""]
+    for scene in runs:
+        avg = avgs[scene]
+        sizes = sorted(avg, reverse=True)
+        mono = all(avg[a] < avg[b] for a, b in zip(sizes, sizes[1:]))
+        lines.append(f"- {scene}: MAE rises as the area shrinks (4x4 < 3x3 < 2x2), as in the paper: "
+                     f"**{yes_no(mono)}**; 2x2 {f2(avg.get(2))}° against the paper's 5.88°; \"no edge\" answers "
+                     f"over all placements (sum of seed means): {noedges[scene][0]:.1f}.")
     if table2_ann_s is not None:
-        lines.append(f"- The paper notes its 2x2 WSS still beats ANN (S) on the full array (5.88 < 7.61); ours: "
-                     f"**{yes_no(avg.get(2, 1e9) < table2_ann_s)}** ({f2(avg.get(2))} vs {f2(table2_ann_s)}).")
+        a2 = avgs["lab"].get(2, 1e9)
+        lines.append(f"- The paper notes its 2x2 WSS still beats ANN (S) on the full array (5.88 < 7.61); ours, lab: "
+                     f"**{yes_no(a2 < table2_ann_s)}** ({f2(a2)} vs {f2(table2_ann_s)}).")
     return lines
 
 
-def section_ridges(out, docs):
-    d = os.path.join(out, "ridges")
-    edge = mae_record(os.path.join(d, "edge", "mae.json"))
-    ridge = mae_record(os.path.join(d, "ridge", "mae.json"))
-    ce, cr = per_class(edge), per_class(ridge)
-    angles = sorted(ce)
-    copy_plot(d, "fig11_ridges.svg", docs)
-    diff = ridge["mae_deg"] - edge["mae_deg"]
-    return [
+def section_ridges(out, docs, sensor_out=None):
+    runs = sweep_scenes(out, sensor_out, "ridges")
+    plots = copy_scene_plots(runs, "fig11_ridges.svg", docs)
+    lines = [
         "## Fig. 11: ridges",
         "",
-        f"Command: {cmd('ridges')} (the same pipeline on `stimulus = \"edge\"` and `\"ridge\"`)",
+        f"Command: {cmd('ridges')} (the same pipeline on `stimulus = \"edge\"` and `\"ridge\"`; seeds 1..5)",
         "",
-        "| | paper | ours |",
-        "| --- | --- | --- |",
-        f"| edges, MAE (± SD) | 1.67 (± 1.79) | {f2(edge['mae_deg'])} (± {f2(edge['sd_deg'])}) |",
-        f"| ridges, MAE (± SD) | 1.97 | {f2(ridge['mae_deg'])} (± {f2(ridge['sd_deg'])}) |",
-        f"| ridges minus edges | +0.30 | {diff:+.2f} |",
-        f"| largest per-class MAE, edges / ridges | 5 / 5 | {f2(edge['max_class_mae_deg'])} / {f2(ridge['max_class_mae_deg'])} |",
-        f"| \"no edge\" answers, edges / ridges | – | {edge['no_edge']} / {ridge['no_edge']} |",
-        "",
-        "| orientation | " + " | ".join(f"{a}°" for a in angles) + " |",
-        "| --- | " + " | ".join("---" for _ in angles) + " |",
-        "| edges | " + " | ".join(f2(ce[a]["mae_deg"], 1) for a in angles) + " |",
-        "| ridges | " + " | ".join(f2(cr[a]["mae_deg"], 1) for a in angles) + " |",
-        "",
-        "Plot: [docs/results/fig11_ridges.svg](docs/results/fig11_ridges.svg); ridge confusion matrix: "
-        "`out/paper/ridges/ridge/confusion_wss.md`.",
-        "",
-        f"- Ridges slightly worse than edges, as in the paper: **{yes_no(0 < diff)}**; "
-        f"comparable (within 1°): **{yes_no(abs(diff) <= 1.0)}**.",
-        "- A ridge is crossed as two edges (onto the bar and off it) a ridge-width apart, so its spike images "
-        "are wider than WSS's thin-line templates; the paper kept the same templates, and so do we.",
+        "| | paper | " + " | ".join(f"ours, {s}" for s in runs) + " |",
+        "| --- | --- | " + " | ".join("---" for _ in runs) + " |",
     ]
+    data = {}
+    for scene, (d, rows) in runs.items():
+        reps = rows["edge"]["wss.mae_deg"][2]
+        e = _per_seed(d, "edge", reps)
+        r = _per_seed(d, "ridge", reps)
+        data[scene] = (e, r, [b["mae_deg"] - a["mae_deg"] for a, b in zip(e, r)])
+    row = lambda name, paper, f: f"| {name} | {paper} | " + " | ".join(f(*v) for v in data.values()) + " |"
+    lines += [
+        row("edges, MAE", "1.67", lambda e, r, dd: pms([x["mae_deg"] for x in e])),
+        row("ridges, MAE", "1.97", lambda e, r, dd: pms([x["mae_deg"] for x in r])),
+        row("ridges minus edges (per seed, then mean ± SD)", "+0.30", lambda e, r, dd: pms(dd)),
+        row("largest per-class MAE, edges / ridges", "5 / 5", lambda e, r, dd:
+            f"{pms([x['max_class_mae_deg'] for x in e])} / {pms([x['max_class_mae_deg'] for x in r])}"),
+        row("\"no edge\" answers, edges / ridges (mean)", "–", lambda e, r, dd:
+            f"{mean_sd([x['no_edge'] for x in e])[0]:.1f} / {mean_sd([x['no_edge'] for x in r])[0]:.1f}"),
+        "",
+        f"Plots: {plots}; ridge confusion matrices: `out/paper/ridges/ridge/r<k>/confusion_wss.md`.",
+        "",
+    ]
+    for scene, (e, r, dd) in data.items():
+        m = mean_sd(dd)[0]
+        lines.append(f"- {scene}: ridges worse than edges, as in the paper: **{yes_no(m > 0)}** "
+                     f"(on {sum(1 for x in dd if x > 0)} of {len(dd)} seeds); comparable (within 1°): "
+                     f"**{yes_no(abs(m) <= 1.0)}**.")
+    lines.append("- A ridge is crossed as two edges (onto the bar and off it) a ridge-width apart, so its spike "
+                 "images are wider than WSS's thin-line templates; the paper kept the same templates, and so do we.")
+    return lines
 
 
-def section_weightings(out):
-    d = os.path.join(out, "weightings")
-    rows = sweep(d)
+def section_weightings(out, sensor_out=None):
+    runs = sweep_scenes(out, sensor_out, "weightings")
     names = {"constant": "constant", "one_minus_sr": "1 − SR", "one_plus_sr": "1 + SR"}
-    m = {k: rows[k]["wss.mae_deg"] for k in names if k in rows}
-    reps = m["one_minus_sr"][2]
-    per_seed = {}
-    for k in m:
-        per_seed[k] = []
-        for r in range(reps):
-            p = os.path.join(d, k, f"r{r}", "mae.json") if reps > 1 else os.path.join(d, k, "mae.json")
-            per_seed[k].append(mae_record(p)["mae_deg"])
-    best = min(m, key=lambda k: m[k][0])
-    wins = sum(1 for r in range(reps)
-               if per_seed["one_minus_sr"][r] <= min(per_seed[k][r] for k in m))
     lines = [
         "## WSS frame weighting (text of section 3.2)",
         "",
-        f"Command: {cmd('weightings')} ({reps} repeats: seeds 1..{reps}, each a new simulated array and session)",
+        f"Command: {cmd('weightings')} (5 repeats: seeds 1..5, each a new simulated array and session)",
         "",
-        "| weighting w(i) | paper | ours MAE (mean ± SD over seeds) | ours per seed |",
-        "| --- | --- | --- | --- |",
+        "| weighting w(i) | paper | " + " | ".join(f"{s}: MAE (mean ± SD) | {s}: per seed" for s in runs) + " |",
+        "| --- | --- | " + " | ".join("--- | ---" for _ in runs) + " |",
     ]
-    for k, v in m.items():
-        lines.append(f"| {names[k]} | {'best' if k == 'one_minus_sr' else 'worse'} | {pm(v[0], v[1])} | "
-                     + ", ".join(f"{x:.2f}" for x in per_seed[k]) + " |")
-    lines += [
-        "",
-        f"- 1 − SR best, as in the paper: **{yes_no(best == 'one_minus_sr')}** (ours best on average: "
-        f"{names[best]}; 1 − SR best or tied on {wins} of {reps} seeds).",
+    per_seed = {}
+    for scene, (d, rows) in runs.items():
+        reps = rows["one_minus_sr"]["wss.mae_deg"][2]
+        per_seed[scene] = {k: [x["mae_deg"] for x in _per_seed(d, k, reps)] for k in names if k in rows}
+    for k in names:
+        cells = []
+        for scene in runs:
+            v = per_seed[scene].get(k)
+            cells.append(f"{pms(v)} | {seeds_str(v)}" if v else "– | –")
+        lines.append(f"| {names[k]} | {'best' if k == 'one_minus_sr' else 'worse'} | " + " | ".join(cells) + " |")
+    lines.append("")
+    for scene in runs:
+        ps = per_seed[scene]
+        means = {k: mean_sd(v)[0] for k, v in ps.items()}
+        best = min(means, key=lambda k: means[k])
+        reps = len(ps["one_minus_sr"])
+        wins = sum(1 for i in range(reps) if ps["one_minus_sr"][i] <= min(ps[k][i] for k in ps))
+        lines.append(f"- {scene}: 1 − SR best, as in the paper: **{yes_no(best == 'one_minus_sr')}** (best on "
+                     f"average: {names[best]}; 1 − SR best or tied on {wins} of {reps} seeds).")
+    lines.append(
         "- Our reading (not tested separately): 1 − SR gives the sparse frames at the start and end of a "
-        "crossing the most weight. On our simulated spikes those frames are where the burst of one taxel row begins or ends and the "
-        "images are least like a thin line, so emphasising them does not help; on the paper's sensor, "
-        "whose dense frames were blurred by taxels firing long before and after the edge, it did.",
-        f"- Seed spread of the headline (1 − SR, the Table 1 pipeline): {pm(m['one_minus_sr'][0], m['one_minus_sr'][1])}° "
-        f"over seeds 1..{reps} (Table 1 above is seed 1).",
-    ]
+        "crossing the most weight. On our simulated spikes those frames are where the burst of one taxel row "
+        "begins or ends and the images are least like a thin line, so emphasising them does not help.")
     return lines
-
 
 
 def section_fig5(out):
@@ -777,7 +919,8 @@ def section_seeds(out):
 def section_time(out, wall, docs, criterion):
     """What accuracy costs in time: the targets, each with its command."""
     lines = ["## What accuracy costs in time", ""]
-    run = load(os.path.join(out, "wss", "run.json")) if exists(os.path.join(out, "wss", "run.json")) else None
+    first = seed_dirs(os.path.join(out, "wss"))[0]
+    run = load(os.path.join(first, "run.json")) if exists(os.path.join(first, "run.json")) else None
     row = next((t for t in run["timing"] if t["stage"] == "wss"), None) if run else None
     targets = [
         "| target | measured | met | command |",
@@ -891,6 +1034,8 @@ def section_time(out, wall, docs, criterion):
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default="out/paper")
+    ap.add_argument("--sensor-out", default="out/paper_sensor",
+                    help="the paper graphs' reports on the paper_sensor scene (scripts/reproduce.sh's second pass)")
     ap.add_argument("--results", default="RESULTS.md")
     ap.add_argument("--docs", default="docs/results")
     ap.add_argument("--criterion", default="target/criterion", help="criterion's output (for the WSS bench)")
@@ -903,24 +1048,22 @@ def main():
     if exists(tpath):
         wall = load(tpath)
 
-    t1, wss_rec, coarse = section_table1(out, docs)
-    t2 = section_table2(out, wss_rec, docs)
+    so = args.sensor_out
+    t1, wss_recs, coarse = section_table1(out, docs, so)
+    t2 = section_table2(out, wss_recs, docs, so)
     ann_s = None
-    for line in t2:
-        if "(ANN (S))" in line:
-            try:
-                ann_s = float(line.split("|")[3].split("(")[0])
-            except ValueError:
-                pass
+    t2_lab = table2_records(os.path.join(out, "table2")) if exists(os.path.join(out, "table2")) else {}
+    if "ann_s" in t2_lab:
+        ann_s = mean_sd([r["mae_deg"] for r in t2_lab["ann_s"]])[0]
     sections = [
         t1,
-        section_acuity(out, coarse),
+        section_acuity(out, coarse, so),
         t2,
-        section_share(out, docs, wss_rec["mae_deg"]),
-        section_jitter(out, docs),
-        section_area(out, docs, ann_s),
-        section_ridges(out, docs),
-        section_weightings(out),
+        section_share(out, docs, mean_sd([r["mae_deg"] for r in wss_recs])[0], so),
+        section_jitter(out, docs, so),
+        section_area(out, docs, ann_s, so),
+        section_ridges(out, docs, so),
+        section_weightings(out, so),
         section_fig5(out),
         section_seeds(out),
         section_continuous(out, docs),

@@ -86,6 +86,17 @@ pub struct SceneConfig {
     #[serde(skip_serializing_if = "Option::is_none")]
     #[schemars(extend("default" = []))]
     pub effects: Option<Vec<EffectConfig>>,
+    /// Changes to effects of the `effects` list, by kind: each entry is a
+    /// table of that effect's keys, set on the one effect of that kind (the
+    /// scene's own, or a condition's inherited list), e.g. `adjust = { skin =
+    /// { sigma_mm = 1.0 } }` for a thicker skin. Unlike `effects`, which
+    /// replaces the whole list, this reaches one key, so a sweep or a
+    /// condition can shift one physical parameter
+    /// (`--set stages.scene.conditions.test.adjust.skin.sigma_mm=1.0`). An
+    /// error names the kind when the list holds no effect of it, or several.
+    /// Default: none.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub adjust: Option<std::collections::BTreeMap<String, serde_json::Map<String, serde_json::Value>>>,
     /// Which simulated copy of the array to draw: every copy has its own
     /// manufacturing draws (mismatch, dead taxels, per-taxel dynamics...), the
     /// same for every trial of the copy; copy 0 is the one the run seed gives.
@@ -449,7 +460,63 @@ impl SceneConfig {
             }
             None => inline,
         };
+        let mut merged = merged;
+        merged.apply_adjust()?;
         Ok((merged, warnings))
+    }
+
+    /// Applies and clears `adjust`: each listed kind's keys are merged into
+    /// the single effect of that kind in `effects`.
+    pub fn apply_adjust(&mut self) -> Result<(), ConfigError> {
+        let Some(adjust) = self.adjust.take() else {
+            return Ok(());
+        };
+        let effects = self.effects.take().unwrap_or_default();
+        let mut list = match serde_json::to_value(&effects) {
+            Ok(serde_json::Value::Array(a)) => a,
+            _ => return Err(ConfigError::key("adjust", "cannot read the effects list")),
+        };
+        let mut c = ConfigChecks::new();
+        for (kind, keys) in adjust {
+            let at: Vec<usize> = list
+                .iter()
+                .enumerate()
+                .filter(|(_, e)| e.get("kind").and_then(|k| k.as_str()) == Some(kind.as_str()))
+                .map(|(i, _)| i)
+                .collect();
+            let key = format!("adjust.{kind}");
+            match at.as_slice() {
+                [i] => {
+                    if keys.contains_key("kind") {
+                        c.push(ConfigError::key(key, "cannot change an effect's `kind`"));
+                        continue;
+                    }
+                    merge_json(&mut list[*i], serde_json::Value::Object(keys));
+                }
+                [] => c.push(ConfigError::key(
+                    key,
+                    format!("the scene lists no `{kind}` effect to adjust (list it under `effects`)"),
+                )),
+                _ => c.push(ConfigError::key(
+                    key,
+                    format!(
+                        "the scene lists {} `{kind}` effects; adjust needs exactly one",
+                        at.len()
+                    ),
+                )),
+            }
+        }
+        c.finish()?;
+        let effects: Vec<EffectConfig> = list
+            .into_iter()
+            .map(|e| {
+                let kind = e.get("kind").and_then(|k| k.as_str()).unwrap_or("?").to_string();
+                serde_json::from_value(e)
+                    .map_err(|err| ConfigError::key(format!("adjust.{kind}"), err.to_string()))
+            })
+            .collect::<Result<_, _>>()?;
+        self.effects = Some(effects);
+        Ok(())
     }
 
     /// The scene of every condition, resolved and checked: `(name, scene
@@ -504,7 +571,8 @@ impl SceneConfig {
                 return Err(ConfigError::key(key("conditions"), "conditions cannot nest"));
             }
             warnings.extend(cond.normalize_spelling().map_err(prefix)?.into_iter().map(prefix));
-            let cfg = cond.over(&merged)?;
+            let mut cfg = cond.over(&merged)?;
+            cfg.apply_adjust().map_err(prefix)?;
             let scene = cfg.check().map_err(prefix)?;
             out.push((Some(name), cfg, scene));
         }

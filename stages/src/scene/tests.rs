@@ -340,3 +340,68 @@ fn bad_conditions_are_named_errors() {
     let e = err("conditions = {}\n");
     assert_eq!(e.key.as_deref(), Some("conditions"), "{e}");
 }
+
+#[test]
+fn adjust_changes_one_key_of_an_inherited_effect() {
+    // A condition that thickens the skin: the same list, one key changed.
+    let src = build(
+        "angles = [45]\ntrials_per_angle = 1\n\
+         effects = [{ kind = \"skin\", sigma_mm = 0.5 }, { kind = \"mismatch\", gain_sd = 0.1, offset_sd = 0.0 }]\n\
+         [conditions.thin]\n\
+         [conditions.thick]\nadjust = { skin = { sigma_mm = 1.5 } }\n\
+         [conditions.same]\nadjust = { skin = { sigma_mm = 0.5 } }\n",
+    );
+    // Conditions in name order: same, thick, thin.
+    let same = produce(src.as_ref(), 0);
+    let thick = produce(src.as_ref(), 1);
+    let thin = produce(src.as_ref(), 2);
+    // Adjusting a key to its own value changes nothing (the mismatch, listed
+    // after the skin, is kept, with the same draw).
+    assert!(
+        same.data == thin.data,
+        "adjusting sigma_mm to its own value changed the signals"
+    );
+    // A thicker skin spreads the pressure: the transition of a taxel takes
+    // longer (10-90 % of its fall), and the mismatch is still applied.
+    let rise = |s: &Signals| {
+        let t = &s.data[5];
+        let (hi, lo) = (t[0], *t.last().unwrap());
+        let at = |f: f64| t.iter().position(|&v| v < lo + f * (hi - lo)).unwrap();
+        at(0.1) - at(0.9)
+    };
+    assert!(
+        rise(&thick) > rise(&thin) + 100,
+        "{} vs {}",
+        rise(&thick),
+        rise(&thin)
+    );
+}
+
+#[test]
+fn bad_adjust_names_the_kind() {
+    let ctx = BuildContext {
+        stage_id: "scene".into(),
+        seed: 3,
+        out_dir: std::env::temp_dir(),
+        base_dir: std::path::PathBuf::from("."),
+    };
+    let err = |keys: &str| {
+        let cfg: SceneConfig = toml::from_str(keys).unwrap();
+        match cfg.build(&ctx) {
+            Ok(_) => panic!("built: {keys}"),
+            Err(e) => e,
+        }
+    };
+    let skin = "effects = [{ kind = \"skin\", sigma_mm = 0.5 }]\n";
+    let e = err(&format!("{skin}adjust = {{ creep = {{ fraction = 0.2 }} }}\n"));
+    assert_eq!(e.key.as_deref(), Some("adjust.creep"), "{e}");
+    assert!(e.message.contains("no `creep` effect"), "{e}");
+    let e = err(&format!("{skin}adjust = {{ skin = {{ thickness = 1.0 }} }}\n"));
+    assert_eq!(e.key.as_deref(), Some("adjust.skin"), "{e}");
+    let e = err("effects = [{ kind = \"skin\", sigma_mm = 0.5 }, { kind = \"skin\", sigma_mm = 0.2 }]\nadjust = { skin = { sigma_mm = 1.0 } }\n");
+    assert!(e.message.contains("2 `skin` effects"), "{e}");
+    let e = err(&format!(
+        "{skin}[conditions.a]\nadjust = {{ skin = {{ kind = \"creep\" }} }}\n"
+    ));
+    assert_eq!(e.key.as_deref(), Some("conditions.a.adjust.skin"), "{e}");
+}
