@@ -5,6 +5,7 @@
 //! | `signal_file` | source | -> signals | [`signal_file`]: CSV, NPY, NPZ, MATLAB .mat, raw DAQ streams |
 //! | `spike_file` | source | -> spikes | [`spike_file`]: `(x, y, t[, p])` events from CSV or NPY |
 //! | `image_file` | source | -> images | [`image_file`]: the folder `write_images` wrote, read back |
+//! | `union` | source | -> any one kind | [`union`]: several named sources as one, each trial labelled `source = <name>` (train on one, test on another) |
 //! | `write_signals` | sink | signals | [`sinks`]: NPY or CSV, one file per trial |
 //! | `write_spikes` | sink | spikes | [`sinks`]: NPY or CSV, one file per trial |
 //! | `write_images` | sink | images | [`sinks`]: NPY or CSV, one file per trial |
@@ -28,6 +29,7 @@ pub mod live;
 pub mod signal_file;
 pub mod sinks;
 pub mod spike_file;
+pub mod union;
 
 pub use common::LayoutConfig;
 pub use image_file::ImageFileConfig;
