@@ -601,7 +601,7 @@ def section_weightings(out, sensor_out=None):
     return lines
 
 
-def section_fig5(out):
+def section_fig5(out, sensor_out=None):
     """Fig. 5 / section 3.1: per-taxel spike times around each taxel's edge
     crossing, on the ideal, lab and paper_sensor scenes, and the calibration
     table of graphs/scenes/paper_sensor.toml (sensor-level statistics only)."""
@@ -635,6 +635,8 @@ def section_fig5(out):
         "## Fig. 5: spike-time distributions, and the paper_sensor calibration",
         "",
         f"Commands: {cmd('fig5')}, {cmd('fig5_ideal')}, {cmd('fig5_paper_sensor')} (the spike_timing sink; "
+        f"the Fig. 3(a) rows: {cmd('fig3')}, the `signal_levels` sink on the 10 Hz low-pass of 10 trials at 90°, "
+        "and the same with `--set stages.scene.file=../scenes/paper_sensor.toml`; "
         "bins of 100 ms; times relative to the moment the edge crosses each taxel's centre, pooled over the "
         "17 orientations x 10 trials).",
         "",
@@ -643,8 +645,26 @@ def section_fig5(out):
         "",
         "| statistic | paper (real sensor) | " + " | ".join(names) + " |",
         "| --- | --- | " + " | ".join("---" for _ in names) + " |",
-        "| Fig. 3(a): level in full contact / off the object (V) | ≈ 1.75 / saturated | "
-        + " | ".join("1.75 / 3.3 (piezo)" if n != "ideal" else "– (pressure)" for n in names) + " |",
+    ]
+    levels = {}
+    for n, root in [("lab", out), ("paper_sensor", sensor_out)]:
+        lp = os.path.join(root or "", "fig3", "levels.json")
+        if root and exists(lp):
+            levels[n] = load(lp)["pooled"]
+
+    def lv(n, k, fmt):
+        v = levels.get(n, {}).get(k)
+        return "– (pressure, no read-out)" if n == "ideal" else ("–" if v is None else fmt.format(v))
+
+    lines += [
+        "| Fig. 3(a): level in full contact, V (mean ± SD over taxels and trials) | ≈ 1.75 | "
+        + " | ".join(lv(n, "start", "{:.2f}") + ("" if n == "ideal" or n not in levels else
+                     f" ± {levels[n]['start_sd']:.2f}") for n in names) + " |",
+        "| Fig. 3(a): level off the object, V | saturated (the 3.3 V supply) | "
+        + " | ".join(lv(n, "end", "{:.2f}") for n in names) + " |",
+        "| Fig. 3(a): 10-90 % transition at 90°, ms (mean ± SD) | – (shown, not measured) | "
+        + " | ".join(lv(n, "transition_ms", "{:.0f}") + ("" if n == "ideal" or n not in levels else
+                     f" ± {levels[n]['transition_sd_ms']:.0f}") for n in names) + " |",
     ]
     for label, paper, f in rows:
         lines.append(f"| {label} | {paper} | " + " | ".join(f(n) for n in names) + " |")
@@ -1064,7 +1084,7 @@ def main():
         section_area(out, docs, ann_s, so),
         section_ridges(out, docs, so),
         section_weightings(out, so),
-        section_fig5(out),
+        section_fig5(out, so),
         section_seeds(out),
         section_continuous(out, docs),
         section_speed_error(out, docs),

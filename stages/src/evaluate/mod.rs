@@ -3,4 +3,5 @@
 
 pub mod confusion;
 pub mod mae;
+pub mod signal_levels;
 pub mod spike_timing;
