@@ -676,6 +676,17 @@ def section_fig5(out, sensor_out=None):
                      f"(± {hr:.2f} s); peaks off zero on most taxels: "
                      f"**{yes_no(p('paper_sensor', 'peak_off_zero') >= 0.75)}**; taxels differ (CV of the spread "
                      f"above the ideal scene's): **{yes_no(p('paper_sensor', 'taxel_spread_cv') > p(names[0], 'taxel_spread_cv'))}**.")
+    lines.append(
+        "- Why the spreads moved since paper_sensor was calibrated (then ± 1.86 s): the FA-I drive's default "
+        "gain is set per trial from the trial's peak slope, and since that gain can no longer be captured by "
+        "the low-pass start-up transient or a clipped taxel, slow-angle trials (10-20°, whose peak slope is "
+        "several times smaller) get a gain large enough for the noise to fire the neurons while the array "
+        "slides, long before the edge arrives (negative skew, 5 % quantiles 10-20 s before the crossing). "
+        "The paper chose one G for all trials. Measured on 2026-11-23: `palpate run graphs/paper/fig5.toml "
+        "--set stages.drive.gain=17.3` (a fixed G: 20 over the peak slope of a 90° palpation) gives lab a "
+        "spread of ± 0.80 s; restricted to 45-90° (`--set stages.scene.angles=[45,60,75,90]`) the auto-gain "
+        "gives ± 0.63 s. Recalibrating paper_sensor under a fixed G is left for the next round; nothing here "
+        "was changed to move a method-level number.")
     if "ideal" in recs:
         lines.append(f"- Geometry alone (the ideal scene, no effect) already spreads spikes ± "
                      f"{p('ideal', 'half_range_s'):.2f} s when pooled over the 17 orientations: the paper's "
@@ -782,7 +793,8 @@ def section_shift(out, docs=None):
              "random_forest": "random forest", "knn": "k-NN", "logistic": "logistic"}
     what = {"none/2": "none (fresh trials, same conditions)", "speed_slow/1.5": "speed 1.5 mm/s (trained at 2)",
             "speed_fast/3": "speed 3 mm/s (trained at 2)", "force/0.7": "force -30 %",
-            "force/1.3": "force +30 %", "array/1": "a second array"}
+            "force/1.3": "force +30 %", "array/1": "a second array",
+            "skin/1": "skin twice as thick (2 mm: spread σ 0.5 -> 1.0 mm)"}
     labels = list(rows)
     runs = max(m[2] for r in rows.values() for m in r.values())
     lines = [
@@ -815,14 +827,23 @@ def section_shift(out, docs=None):
         "Shifts that cost an estimator more than 1 degree of MAE over the in-condition row: "
         + ("; ".join(worse) if worse else "none") + ".",
         "",
-        # Written after the 2026-11-23 run; check it against the table above when regenerating.
-        "Reading (of the 5-seed run of 2026-11-23): " + SHIFT_READING,
+    ]
+    # The reading, decided from the numbers: is WSS flat, and in which rows
+    # does it rank first (the paper's case: no retraining when conditions change)?
+    wss = [rows[l]["wss.mae_deg"][0] for l in labels if "wss.mae_deg" in rows[l]]
+    firsts = []
+    for label in labels:
+        m = {e: rows[label][f"{e}.mae_deg"][0] for e in estimators if f"{e}.mae_deg" in rows[label]}
+        if m and min(m, key=lambda e: m[e]) == "wss":
+            firsts.append(what.get(label.replace(".0", "") if label.endswith(".0") else label, label))
+    lines += [
+        f"- WSS across every row: {min(wss):.2f} to {max(wss):.2f}°, flat within 0.5°: "
+        f"**{yes_no(max(wss) - min(wss) <= 0.5)}**.",
+        "- Rows in which WSS has the lowest MAE of all estimators (the paper's ranking): "
+        + ("; ".join(firsts) if firsts else "none") + ".",
         "",
     ]
     return lines
-
-
-SHIFT_READING = ("on this simulator no shift moves WSS (0.08 to 0.14 degrees in every row), and the trained estimators lose little: ANN (S) and ANN (ST) go from 0.00-0.02 to 0.27-0.29 degrees at 1.5 mm/s and 0.16-0.22 at 30 % less force, still within 0.2 degrees of WSS; the SVM loses the most (1.07 to 2.57 at 1.5 mm/s). The paper's argument for WSS -- no retraining when conditions change -- therefore shows here as WSS's flatness, not as a reversal of the ranking: after low-pass, per-trial normalization and the FA-I drive, a -25 % or +50 % change of speed or a 30 % change of force leaves the spike images close enough to the training ones. The logistic regression (smartcore) is poor in every row (24 degrees in condition; 19 under leave-one-trial-out in Table 2): a weakness of that baseline on these inputs, not of the shift.")
 
 
 def section_speed_error(out, docs):
@@ -1101,13 +1122,18 @@ def main():
         "This page sets our numbers beside those of Kumar et al. 2020 (the paper's Tables 1-2, Figs. 6-11 and text), "
         "one section per finding, each with the command that produced ours.",
         "",
-        "**Our data is simulated; the paper's is real.** Every number of ours comes from the built-in lab "
-        "scene (graphs/scenes/lab.toml: a 4x4 array sliding at 2 mm/s over an edge, with skin spread, "
-        "stress concentration, creep, dead taxels, piezoresistive read-out, mismatch, crosstalk, hum, "
-        "noise and ADC), not from the paper's cloth sensor on a UR-10 robot. Absolute numbers therefore "
-        "differ (ours are mostly lower: the simulated taxels are better behaved than real ones); what we "
-        "compare is the *shape* of each finding, and every place where the shape differs is said below. "
-        "Each \"as in the paper: yes/no\" verdict is computed from the measured numbers by scripts/results.py.",
+        "**Our data is simulated; the paper's is real.** Every number of ours comes from two simulated "
+        "scenes, not from the paper's cloth sensor on a UR-10 robot: `lab` (graphs/scenes/lab.toml: a 4x4 "
+        "array sliding at 2 mm/s over an edge, with skin spread, stress concentration, creep, dead taxels, "
+        "piezoresistive read-out, mismatch, crosstalk, hum, noise and ADC) and `paper_sensor` "
+        "(graphs/scenes/paper_sensor.toml: the lab's effects plus the sleeve's stick-slip, tilt, the cloth's "
+        "hysteresis, per-taxel dynamics and read-out ghosting, calibrated only on the paper's sensor-level "
+        "evidence, Fig. 3a and Fig. 5; see its calibration table below). Every paper graph runs on both, over "
+        "seeds 1..5 (a seed draws a new simulated array and new trials): each number is the mean ± SD over "
+        "the seeds, with the per-seed values beside it. Absolute numbers differ from the paper's (ours are "
+        "mostly lower: the simulated taxels are better behaved than real ones); what we compare is the "
+        "*shape* of each finding. Each \"as in the paper: yes/no\" verdict is computed from the measured "
+        "numbers by scripts/results.py, per scene; nothing was tuned to make a verdict come out \"yes\".",
         "",
         "Reproduce everything (build, every graph in graphs/paper/, this file) with one command:",
         "",
@@ -1130,7 +1156,7 @@ def main():
         "",
         "Pipeline (every graph): lab scene -> low-pass 10 Hz -> normalize to [0, 1] (with a 0.1 V noise floor "
         "so a dead taxel is not stretched to full scale) -> FA-I drive G·|dV/dt| -> Izhikevich FA-I -> "
-        "100 ms images every 10 ms -> WSS (1 − SR) -> MAE; seed 1 unless stated.",
+        "100 ms images every 10 ms -> WSS (1 − SR) -> MAE; seeds 1..5 unless stated.",
         "",
     ]
     body = []
