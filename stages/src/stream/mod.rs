@@ -9,6 +9,9 @@
 //! | `normalize` | `mode = "causal"` | `mode = "causal"` with a calibrated `span` |
 //! | `drive` | a fixed `gain` (or `kind = "direct"`) | `gain = G` from a calibration palpation |
 //! | `izhikevich` | `input = "hold"` | `input = "hold"` (linear needs the next sample) |
+//! | `lif` | `input = "hold"` | `input = "hold"` (linear needs the next sample) |
+//! | `dead_taxels`, `subarea` | always | - |
+//! | `jitter` | always (output `B·τ` behind, see [`events`]) | - |
 //! | `bin` | always | - |
 //! | `wss` | always (model-based) | - |
 //!
@@ -18,6 +21,7 @@
 //! 1000 samples).
 
 mod encode;
+pub mod events;
 mod signal;
 mod spikes;
 mod wss;
