@@ -42,9 +42,9 @@
 //! end, the scene's last trial, `seconds`, or a pseudo-terminal's hang-up) and
 //! its trials are an ordinary source's. Live (`palpate run --live`), each
 //! trial's frames stream through the graph as they arrive
-//! ([`palpate_core::stream::LiveSource`]). Trials of an emulated scene carry
-//! the scene's labels (the `k`-th contact is the scene's `k`-th trial); others
-//! are named `<stage>-0000`, `<stage>-0001`, ... without a label.
+//! ([`palpate_core::stream::LiveSource`]). Contact trials of an emulated
+//! scene carry the scene's labels (the `k`-th contact is the scene's `k`-th
+//! trial); others are named `<stage>-0000`, `<stage>-0001`, ... without a label.
 
 use super::live::{acquire, open_serial, AcquireOptions, DaqErrorKind, DaqEvent, EmulateOptions, StopReason};
 use crate::io::common::LayoutConfig;
@@ -535,8 +535,12 @@ impl DaqSource {
     /// Acquires the stream to its end, cut into trials: `on` gets every
     /// trial's start (with its metadata), frames and end, in order.
     pub fn run(&self, on: &mut dyn FnMut(SourceEvent) -> Result<(), RunError>) -> Result<(), RunError> {
-        let metas = self.scene_metas()?;
-        let player_metas = metas.clone();
+        let player_metas = self.scene_metas()?;
+        // Only contact segments are the scene's trials (fixed windows are not).
+        let metas = match self.c.plan {
+            SegmentPlan::Contact { .. } => player_metas.clone(),
+            SegmentPlan::Fixed(_) => Vec::new(),
+        };
         let n = self.c.layout.len();
         let opts = AcquireOptions {
             channels: Some(n),
