@@ -17,7 +17,7 @@
 #[path = "common/memory.rs"]
 mod memory;
 
-use memory::{lab_trials, live_config, measure, quickstart, stage_table, table, Counting, MIB};
+use memory::{lab_trials, live_graph, measure, quickstart, stage_table, table, Counting, MIB};
 
 #[global_allocator]
 static ALLOC: Counting = Counting;
@@ -62,7 +62,7 @@ fn main() {
         t0.elapsed().as_secs_f64()
     );
     let g = quickstart();
-    let cfg = live_config();
+    let cfg = live_graph();
     let (tpl_bytes, state_bytes) = memory::stream_split(&cfg);
     eprintln!(
         "streaming, built: templates and their spectra {:.3} MiB (once per config), one stream's state {:.3} MiB",
