@@ -92,6 +92,18 @@ fn load(text: &str) -> palpate_core::Graph {
     palpate_core::load_str(text, "stream_blocks.toml", "stream_blocks", &opts).unwrap()
 }
 
+/// Runs a graph in batch, keeping every stage's outputs.
+fn run_kept(g: &palpate_core::Graph) -> palpate_core::RunResult {
+    palpate_core::run(
+        g,
+        &RunOptions {
+            keep_outputs: true,
+            ..RunOptions::default()
+        },
+    )
+    .unwrap()
+}
+
 fn bits(v: &[f64]) -> Vec<u64> {
     v.iter().map(|x| x.to_bits()).collect()
 }
@@ -146,14 +158,7 @@ fn assert_same(what: &str, streamed: &Payload, batch: &Payload) {
 #[test]
 fn every_stage_of_the_live_chain_streams_to_its_batch_output_in_blocks_of_1_7_and_1000() {
     let g = load(&live_graph());
-    let batch = palpate_core::run(
-        &g,
-        &RunOptions {
-            keep_outputs: true,
-            ..RunOptions::default()
-        },
-    )
-    .unwrap();
+    let batch = run_kept(&g);
     let plan = stream::plan(&g).unwrap_or_else(|p| panic!("{p:?}"));
     assert_eq!(plan.stages.len(), 6, "filter, norm, drive, enc, bins, wss stream");
     let scene = &batch.outputs["scene"];
@@ -295,14 +300,7 @@ fn both_blocks(
 #[test]
 fn spike_stages_and_lif_stream_to_their_batch_output_in_blocks_of_1_7_and_1000() {
     let g = load(&live_graph());
-    let batch = palpate_core::run(
-        &g,
-        &RunOptions {
-            keep_outputs: true,
-            ..RunOptions::default()
-        },
-    )
-    .unwrap();
+    let batch = run_kept(&g);
     let mut jitters = Vec::new();
     for (kind, tau_ms) in [
         (JitterKind::Gaussian, 1.0),

@@ -192,15 +192,7 @@ impl JitterState {
 impl StreamState for JitterState {
     fn push(&mut self, block: &Payload, out: &mut Vec<Payload>) -> Result<(), StageError> {
         let train = block.spikes()?;
-        match &self.layout {
-            Some(l) if *l != train.layout => {
-                return Err(StageError::new(
-                    "jitter: a block's layout differs from the trial's first block",
-                ))
-            }
-            Some(_) => {}
-            None => self.layout = Some(train.layout.clone()),
-        }
+        super::same_layout("jitter", &mut self.layout, &train.layout)?;
         if train.duration_ms.is_finite() && train.duration_ms > self.known_ms {
             self.known_ms = train.duration_ms;
         }

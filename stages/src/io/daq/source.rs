@@ -485,13 +485,16 @@ impl StageConfig for DaqConfig {
 }
 register_stage!("daq", DaqConfig);
 
+/// Every trial of a stream acquired offline, or why not.
+type Acquired = Result<Vec<(TrialMeta, Arc<Signals>)>, String>;
+
 /// The runtime `daq` source (offline and live).
 pub struct DaqSource {
     c: Checked,
     stage_id: String,
     seed: u64,
     /// Offline: every trial, acquired once.
-    trials: OnceLock<Result<Vec<(TrialMeta, Arc<Signals>)>, String>>,
+    trials: OnceLock<Acquired>,
 }
 
 impl DaqSource {
