@@ -1,7 +1,7 @@
 //! Memory against input length: the batch pipeline (graphs/quickstart.toml's
 //! chain from signals to a WSS estimate) and the streaming path
-//! (`LivePipeline` with graphs/live.toml, fed one sample frame at a time, as
-//! `palpate daq run` does) on 10, 100 and 1000 s of 16-taxel 1 kHz input
+//! (graphs/live.toml's streaming plan, fed one sample frame at a time, as
+//! the `daq` source does under `palpate run --live`) on 10, 100 and 1000 s of 16-taxel 1 kHz input
 //! (the lab scene's 45-degree palpations back to back; see
 //! `benches/common/memory.rs` for the input and what is counted).
 //!
@@ -65,7 +65,7 @@ fn main() {
     let cfg = live_graph();
     let (tpl_bytes, state_bytes) = memory::stream_split(&cfg);
     eprintln!(
-        "streaming, built: templates and their spectra {:.3} MiB (once per config), one stream's state {:.3} MiB",
+        "streaming, built: the plan and the first trial's state {:.3} MiB (once per graph), one more trial's state {:.3} MiB",
         tpl_bytes as f64 / MIB,
         state_bytes as f64 / MIB
     );

@@ -638,6 +638,12 @@ impl DaqSource {
             }
             Input::Port(port) => {
                 let dev = open_serial(port, self.c.baud).map_err(|e| self.error(e.message))?;
+                let played = |frames: u64| {
+                    eprintln!(
+                        "{port}: end of playback after {}",
+                        super::protocol::count(frames, "frame", "frames")
+                    )
+                };
                 match acquire(dev, &opts, &mut callback) {
                     // A pseudo-terminal's emulator hangs up after its last frame: the end.
                     Err(e)
@@ -645,6 +651,11 @@ impl DaqSource {
                             && is_pseudo_terminal(port)
                             && e.stats.frames > 0 =>
                     {
+                        played(e.stats.frames);
+                        Ok(())
+                    }
+                    Ok(r) if r.stopped == StopReason::EndOfStream && is_pseudo_terminal(port) => {
+                        played(r.stats.frames);
                         Ok(())
                     }
                     Ok(r) if r.stopped == StopReason::EndOfStream && !is_pseudo_terminal(port) => {
