@@ -1,18 +1,30 @@
-//! Live path cost per DAQ frame: a 60-degree trial of the lab scene (16
-//! taxels at 1 kHz, ~14 s, i.e. ~14 000 frames) pushed frame by frame through
-//! `LivePipeline` with graphs/live.toml's settings (causal low-pass,
+//! Live path cost per DAQ frame, graphs/live.toml at 16 taxels: a 60-degree
+//! trial of the lab scene (1 kHz, ~18 s, i.e. ~18 000 frames) streamed one
+//! frame at a time through the graph's streaming plan (causal low-pass,
 //! normalization, drive, Izhikevich at dt = 0.5 ms, 100/10 ms images,
-//! streaming WSS over 17 classes). Throughput is in frames per second
-//! (criterion's "elements"); the time per frame is its inverse. A 1 kHz
-//! board needs < 1 ms per frame.
+//! streaming WSS over 17 classes).
+//!
+//! * `graph_per_frame`: each frame made into a one-sample block (as the `daq`
+//!   source makes it) and pushed through every stage; the trial's open and
+//!   flush included. This is the latency a frame adds after it is decoded.
+//! * `daq_recording_per_frame`: the whole path of `palpate run --live` on
+//!   the same trial recorded as raw DAQ frames: reader thread, decoder (CRC,
+//!   sequence), contact segmentation, the graph. Reported per frame.
+//!
+//! Throughput is in frames per second (criterion's "elements"); the time per
+//! frame is its inverse. A 1 kHz board needs < 1 ms per frame; the target is
+//! <= 20 µs.
 //!
 //! Run: `cargo bench --bench live`.
 //!
-//! Timing: on-CPU time of the benchmark thread (`/proc/thread-self/schedstat`,
-//! Linux; wall time elsewhere), so a shared machine does not inflate it.
+//! Timing of `graph_per_frame`: on-CPU time of the benchmark thread
+//! (`/proc/thread-self/schedstat`, Linux; wall time elsewhere), so a shared
+//! machine does not inflate it. `daq_recording_per_frame` is wall time (two
+//! threads).
 
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
-use palpate_stages::io::live::{simulate_trial, LiveConfig, LivePipeline};
+use palpate::core::{self, stream, LoadOptions, Signals, TrialMeta};
+use palpate::stages::io::daq::{encode_frame, simulate_trial, SampleFormat};
 use std::hint::black_box;
 use std::path::Path;
 use std::time::{Duration, Instant};
@@ -23,28 +35,48 @@ fn cpu_time() -> Option<Duration> {
     Some(Duration::from_nanos(ns))
 }
 
+fn load(root: &Path, overrides: Vec<(String, toml::Value)>) -> core::Graph {
+    palpate::stages::link();
+    let opts = LoadOptions {
+        overrides,
+        out: Some(std::env::temp_dir().join("palpate-bench-live")),
+        base_dir: None,
+    };
+    core::load_file(&root.join("graphs/live.toml"), &opts).expect("graphs/live.toml")
+}
+
 fn live(c: &mut Criterion) {
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
-    let cfg = LiveConfig::from_file(&root.join("graphs/live.toml")).expect("graphs/live.toml");
     let sig = simulate_trial(&root.join("graphs/scenes/lab.toml"), 60.0, 3).expect("lab scene");
     let n = sig.n_samples();
-    let frames: Vec<Vec<f64>> = (0..n)
-        .map(|k| sig.data.iter().map(|xs| xs[k]).collect())
-        .collect();
-    let tpl = cfg.templates().expect("templates");
-    let mut g = c.benchmark_group("live");
-    g.sample_size(10);
-    g.throughput(Throughput::Elements(n as u64));
-    g.bench_function("push_60deg_lab_trial", |b| {
+    let g = load(root, Vec::new());
+    let plan = stream::plan(&g).expect("graphs/live.toml streams");
+    let meta = TrialMeta {
+        trial_id: "bench".into(),
+        ..TrialMeta::default()
+    };
+    let mut grp = c.benchmark_group("live");
+    grp.sample_size(10);
+    grp.throughput(Throughput::Elements(n as u64));
+    grp.bench_function("graph_per_frame", |b| {
         b.iter_custom(|iters| {
             let mut total = Duration::ZERO;
             for _ in 0..iters {
-                let mut p = LivePipeline::with_templates(&cfg, tpl.clone()).expect("pipeline");
                 let (c0, w0) = (cpu_time(), Instant::now());
-                for f in &frames {
-                    black_box(p.push(f).expect("push"));
+                let mut t = plan.start_trial(&g, &meta, false).expect("open");
+                for k in 0..n {
+                    let block = Signals {
+                        sample_rate_hz: sig.sample_rate_hz,
+                        layout: sig.layout.clone(),
+                        unit: sig.unit.clone(),
+                        data: sig.data.iter().map(|xs| vec![xs[k]]).collect(),
+                    };
+                    t.push(block.into(), &mut |_, out| {
+                        black_box(out);
+                    })
+                    .expect("push");
                 }
-                black_box(p.finish().expect("finish"));
+                black_box(t.finish(&mut |_, _| {}).expect("finish"));
                 total += match (c0, cpu_time()) {
                     (Some(a), Some(b)) => b - a,
                     _ => w0.elapsed(),
@@ -53,7 +85,32 @@ fn live(c: &mut Criterion) {
             total
         })
     });
-    g.finish();
+    // The same trial as a raw recording, through the daq source.
+    let dir = std::env::temp_dir().join("palpate-bench-live");
+    std::fs::create_dir_all(&dir).expect("temp dir");
+    let path = dir.join("lab-60deg.daq");
+    let mut bytes = Vec::new();
+    let mut frame = vec![0.0; sig.data.len()];
+    for k in 0..n {
+        for (f, xs) in frame.iter_mut().zip(&sig.data) {
+            *f = xs[k];
+        }
+        encode_frame(&mut bytes, SampleFormat::F32, k as u32, k as u64 * 1000, &frame);
+    }
+    std::fs::write(&path, &bytes).expect("write the recording");
+    let g = load(
+        root,
+        vec![("stages.daq.recording".into(), path.display().to_string().into())],
+    );
+    let plan = stream::plan(&g).expect("graphs/live.toml streams");
+    grp.bench_function("daq_recording_per_frame", |b| {
+        b.iter(|| {
+            let mut last = None;
+            stream::replay(&g, &plan, 1, |u| last = Some(u.estimate.angle_deg)).expect("replay");
+            assert_eq!(last, Some(Some(60.0)));
+        })
+    });
+    grp.finish();
 }
 
 criterion_group!(benches, live);

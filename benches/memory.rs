@@ -1,7 +1,7 @@
 //! Memory against input length: the batch pipeline (graphs/quickstart.toml's
 //! chain from signals to a WSS estimate) and the streaming path
-//! (`LivePipeline` with graphs/live.toml, fed one sample frame at a time, as
-//! `palpate daq run` does) on 10, 100 and 1000 s of 16-taxel 1 kHz input
+//! (graphs/live.toml's streaming plan, fed one sample frame at a time, as
+//! the `daq` source does under `palpate run --live`) on 10, 100 and 1000 s of 16-taxel 1 kHz input
 //! (the lab scene's 45-degree palpations back to back; see
 //! `benches/common/memory.rs` for the input and what is counted).
 //!
@@ -17,7 +17,7 @@
 #[path = "common/memory.rs"]
 mod memory;
 
-use memory::{lab_trials, live_config, measure, quickstart, stage_table, table, Counting, MIB};
+use memory::{lab_trials, live_graph, measure, quickstart, stage_table, table, Counting, MIB};
 
 #[global_allocator]
 static ALLOC: Counting = Counting;
@@ -62,10 +62,10 @@ fn main() {
         t0.elapsed().as_secs_f64()
     );
     let g = quickstart();
-    let cfg = live_config();
+    let cfg = live_graph();
     let (tpl_bytes, state_bytes) = memory::stream_split(&cfg);
     eprintln!(
-        "streaming, built: templates and their spectra {:.3} MiB (once per config), one stream's state {:.3} MiB",
+        "streaming, built: the plan and the first trial's state {:.3} MiB (once per graph), one more trial's state {:.3} MiB",
         tpl_bytes as f64 / MIB,
         state_bytes as f64 / MIB
     );

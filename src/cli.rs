@@ -198,28 +198,30 @@ enum DaqCommand {
         #[arg(long, default_value_t = 5.0, value_parser = parse_seconds)]
         delay: f64,
     },
-    /// Estimate edges live from a DAQ on a serial port (or an emulator's
-    /// pseudo-terminal), printing the estimate whenever it changes.
+    /// Estimate edges live from a DAQ on a serial port (or an emulated one):
+    /// `palpate run GRAPH --live` on a live graph whose `daq` source is pointed
+    /// at the port (GRAPH: --config, default the shipped graphs/live.toml).
     Run {
         /// The serial device, e.g. /dev/ttyACM0 (omit with --emulate-scene).
         #[arg(required_unless_present = "emulate_scene")]
         port: Option<String>,
-        /// Instead of a device, emulate one in this process: simulate a trial of
-        /// this scene file (at --angle, --seed) and play it at --speed.
+        /// Instead of a device, emulate one in this process: a trial of this
+        /// scene file (at --angle, --seed) played at --speed.
         #[arg(long)]
         emulate_scene: Option<PathBuf>,
         /// Edge angle of the emulated trial, degrees.
         #[arg(long, default_value_t = 45.0)]
         angle: f64,
-        /// Seed of the emulated trial.
+        /// Seed of the emulated trial (the graph's `[run] seed`).
         #[arg(long, default_value_t = 0)]
         seed: u64,
-        /// Playback speed of the emulated trial: 1 = real time.
+        /// Playback speed of the emulated trial: 1 = real time, 0 = as fast as
+        /// the graph reads.
         #[arg(long, default_value_t = 1.0)]
         speed: f64,
-        /// The live pipeline's settings (a graph with a `live` stage, or a file of
-        /// its keys). Default: the shipped graphs/live.toml, built into palpate,
-        /// so the command works from any folder.
+        /// The live graph (its one `daq` source gets the port). Default: the
+        /// shipped graphs/live.toml, built into palpate, so the command works
+        /// from any folder.
         #[arg(long)]
         config: Option<PathBuf>,
         /// Baud rate (USB CDC devices ignore it).
@@ -623,7 +625,14 @@ fn cmd_run_live(
     let Some(graph) = load(&path, set, out) else {
         return ExitCode::FAILURE;
     };
-    let plan = match core::stream::plan(&graph) {
+    run_live_graph(&graph, block)
+}
+
+/// Streams a loaded graph live (`run --live`, `daq run`), printing every
+/// estimate as it changes and the sinks' reports at the end.
+fn run_live_graph(graph: &Graph, block: usize) -> ExitCode {
+    let path = std::path::Path::new(&graph.file);
+    let plan = match core::stream::plan(graph) {
         Ok(p) => p,
         Err(problems) => {
             for p in &problems {
@@ -634,7 +643,7 @@ fn cmd_run_live(
         }
     };
     let t0 = std::time::Instant::now();
-    let result = core::stream::replay(&graph, &plan, block, |u| {
+    let result = core::stream::replay(graph, &plan, block, |u| {
         let what = if u.last { "final" } else { "now" };
         match u.estimate.angle_deg {
             Some(a) => println!(
@@ -717,7 +726,7 @@ fn cmd_stages(type_name: Option<String>) -> ExitCode {
 }
 
 fn cmd_daq(command: DaqCommand) -> ExitCode {
-    use crate::stages::io::{daq, live, signal_file};
+    use crate::stages::io::{daq, signal_file};
     match command {
         DaqCommand::Emulate {
             scene,
@@ -729,7 +738,7 @@ fn cmd_daq(command: DaqCommand) -> ExitCode {
             delay,
         } => {
             let signals = match (scene, recording) {
-                (Some(scene), None) => match live::simulate_trial(&scene, angle, seed) {
+                (Some(scene), None) => match daq::simulate_trial(&scene, angle, seed) {
                     Ok(s) => s,
                     Err(e) => {
                         eprintln!("{}: {e}", scene.display());
@@ -793,115 +802,79 @@ fn cmd_daq(command: DaqCommand) -> ExitCode {
             record,
             seconds,
         } => {
-            let loaded = match &config {
-                Some(path) => live::LiveConfig::from_file(path),
-                None => live::LiveConfig::from_toml_str(DEFAULT_LIVE_CONFIG)
-                    .map_err(|e| e.context("graphs/live.toml (built in)")),
+            let (text, file) = match &config {
+                Some(path) => match std::fs::read_to_string(path) {
+                    Ok(t) => (t, path.display().to_string()),
+                    Err(e) => {
+                        eprintln!("cannot read {}: {e}", path.display());
+                        return ExitCode::FAILURE;
+                    }
+                },
+                None => (
+                    DEFAULT_LIVE_CONFIG.to_string(),
+                    "graphs/live.toml (built in)".to_string(),
+                ),
             };
-            let cfg = match loaded {
-                Ok(c) => c,
+            let id = match daq_stage_id(&text) {
+                Ok(id) => id,
                 Err(e) => {
-                    eprintln!("{e}");
+                    eprintln!("{file}: {e}");
                     return ExitCode::FAILURE;
                 }
             };
-            let mut player = None;
-            // An emulated stream ends after its last frame, which is no error.
-            let mut max_frames = None;
-            let port = match (port, emulate_scene) {
+            let key = |k: &str| format!("stages.{id}.{k}");
+            let abs = |p: &std::path::Path| {
+                std::path::absolute(p)
+                    .unwrap_or_else(|_| p.to_path_buf())
+                    .display()
+                    .to_string()
+            };
+            let mut set: Vec<(String, toml::Value)> = Vec::new();
+            match (port, emulate_scene) {
                 (_, Some(scene)) => {
-                    let signals = match live::simulate_trial(&scene, angle, seed) {
-                        Ok(s) => s,
-                        Err(e) => {
-                            eprintln!("{}: {e}", scene.display());
-                            return ExitCode::FAILURE;
-                        }
-                    };
-                    max_frames = Some(signals.n_samples() as u64);
-                    let (tx, rx) = std::sync::mpsc::channel();
-                    player = Some(std::thread::spawn(move || {
-                        let opts = daq::EmulateOptions {
-                            speed,
-                            ..Default::default()
-                        };
-                        daq::emulate_pty(&signals, &opts, move |path| {
-                            let _ = tx.send(path.to_string());
-                        })
-                    }));
-                    match rx.recv() {
-                        Ok(p) => {
-                            println!(
-                                "emulated DAQ on {p}: {} at {angle} deg, seed {seed}, {speed}x",
-                                scene.display()
-                            );
-                            p
-                        }
-                        Err(_) => {
-                            eprintln!("the emulator did not start");
-                            return ExitCode::FAILURE;
-                        }
-                    }
+                    set.push((key("scene"), abs(&scene).into()));
+                    set.push((key("angles"), toml::Value::Array(vec![angle.into()])));
+                    set.push((key("trials_per_angle"), 1.into()));
+                    set.push((key("speed"), speed.into()));
+                    set.push(("run.seed".into(), (seed as i64).into()));
                 }
-                (Some(p), None) => p,
+                (Some(p), None) => {
+                    set.push((key("port"), p.into()));
+                    set.push((key("baud"), i64::from(baud).into()));
+                }
                 (None, None) => {
                     eprintln!("give a serial device or --emulate-scene FILE");
                     return ExitCode::FAILURE;
                 }
-            };
-            let acquire = daq::AcquireOptions {
-                record,
-                max_duration: seconds.map(std::time::Duration::from_secs_f64),
-                max_frames,
-                ..Default::default()
-            };
-            let result = live::run_live_serial(&port, baud, &cfg, &acquire, None, |u| match u {
-                live::LiveUpdate::Estimate(e) | live::LiveUpdate::Final(e) => {
-                    let what = if matches!(u, live::LiveUpdate::Final(_)) {
-                        "final"
-                    } else {
-                        "now"
-                    };
-                    match e.angle_deg {
-                        Some(a) => println!(
-                            "{:>9.1} s  {what}: {a:.1} deg (score {:.3}, margin {:.3}{})",
-                            e.t_ms / 1e3,
-                            e.score,
-                            e.margin,
-                            if e.decided { ", decided" } else { "" }
-                        ),
-                        None => println!("{:>9.1} s  {what}: no edge", e.t_ms / 1e3),
-                    }
-                }
-                other => eprintln!("daq: {}", describe_update(other)),
-            });
-            // The in-process emulator has played every frame when the run
-            // took them all; a run stopped earlier (--seconds) leaves it
-            // waiting for a reader, which is no error: it ends with palpate.
-            let took_all = matches!(
-                &result,
-                Ok(r) if r.ended == live::LiveEnd::Acquisition(daq::StopReason::MaxFrames)
-            );
-            if let Some(p) = player.filter(|_| took_all) {
-                if let Ok(Err(e)) = p.join() {
-                    eprintln!("emulator: {e}");
-                }
             }
-            match result {
-                Ok(report) => {
-                    if let Some(err) = report.error() {
-                        eprintln!("{port}: {err}");
-                        return ExitCode::FAILURE;
+            if let Some(r) = record {
+                set.push((key("record"), abs(&r).into()));
+            }
+            if let Some(sec) = seconds {
+                set.push((key("seconds"), sec.into()));
+            }
+            let opts = LoadOptions {
+                overrides: set,
+                out: None,
+                base_dir: config
+                    .as_ref()
+                    .map(|p| p.parent().map(std::path::Path::to_path_buf).unwrap_or_default()),
+            };
+            let stem = config
+                .as_ref()
+                .and_then(|p| p.file_stem())
+                .and_then(|s| s.to_str())
+                .unwrap_or("live")
+                .to_string();
+            match core::load_str(&text, &file, &stem, &opts) {
+                Ok(g) => {
+                    for w in &g.warnings {
+                        eprintln!("{w}");
                     }
-                    if report.ended == live::LiveEnd::Acquisition(daq::StopReason::EndOfStream) {
-                        eprintln!(
-                            "{port}: end of playback after {}",
-                            plural(report.stats.frames, "frame", "frames")
-                        );
-                    }
-                    ExitCode::SUCCESS
+                    run_live_graph(&g, 1)
                 }
                 Err(e) => {
-                    eprintln!("{port}: {e}");
+                    eprintln!("{e}");
                     ExitCode::FAILURE
                 }
             }
@@ -909,8 +882,33 @@ fn cmd_daq(command: DaqCommand) -> ExitCode {
     }
 }
 
+/// The id of a graph's one `daq` source (what `palpate daq run` points at the port).
+fn daq_stage_id(text: &str) -> Result<String, String> {
+    let doc: toml::Table = toml::from_str(text).map_err(|e| e.message().trim().to_string())?;
+    let ids: Vec<&String> = doc
+        .get("stages")
+        .and_then(|s| s.as_table())
+        .map(|stages| {
+            stages
+                .iter()
+                .filter(|(_, v)| v.get("type").and_then(|t| t.as_str()) == Some("daq"))
+                .map(|(id, _)| id)
+                .collect()
+        })
+        .unwrap_or_default();
+    match ids.as_slice() {
+        [id] => Ok((*id).clone()),
+        [] => Err("no stage of type \"daq\": `palpate daq run` needs a live graph with a DAQ source".into()),
+        _ => Err(format!(
+            "{} stages of type \"daq\"; a live graph has one source",
+            ids.len()
+        )),
+    }
+}
+
 /// graphs/live.toml, built in: the default `--config` of `palpate daq run`,
-/// so that it does not depend on the folder palpate runs in.
+/// so that it does not depend on the folder palpate runs in (its emulated
+/// scene is replaced by the port or `--emulate-scene`).
 const DEFAULT_LIVE_CONFIG: &str = include_str!("../graphs/live.toml");
 
 /// "1 frame", "2 frames".
@@ -933,41 +931,6 @@ fn describe_playback(r: &crate::stages::io::daq::EmulateReport) -> String {
         ));
     }
     s
-}
-
-/// One line on a stream anomaly of a live run.
-fn describe_update(u: &crate::stages::io::live::LiveUpdate) -> String {
-    use crate::stages::io::live::LiveUpdate;
-    match u {
-        LiveUpdate::Estimate(e) | LiveUpdate::Final(e) => format!("estimate at {:.1} s", e.t_ms / 1e3),
-        LiveUpdate::Lost {
-            expected,
-            got,
-            count,
-            held,
-        } => format!(
-            "{} lost (sequence {expected} due, {got} received){}",
-            plural(*count, "frame", "frames"),
-            if *held {
-                "; held the previous frame in their place"
-            } else {
-                "; the gap is over max_gap_ms"
-            }
-        ),
-        LiveUpdate::CrcError { total } => format!(
-            "a frame failed its CRC and was dropped ({} so far)",
-            plural(*total, "CRC error", "CRC errors")
-        ),
-        LiveUpdate::OutOfOrder { total } => format!(
-            "a frame from the past (device reset?) ({} so far)",
-            plural(*total, "out-of-order frame", "out-of-order frames")
-        ),
-        LiveUpdate::Stall { silent_ms } => format!("no frame for {:.1} s", silent_ms / 1e3),
-        LiveUpdate::NonFinite { total } => format!(
-            "non-finite samples replaced by the previous values ({} so far)",
-            plural(*total, "sample", "samples")
-        ),
-    }
 }
 
 /// Progress bars, drawn to stderr: an overall bar counting finished stages

@@ -13,6 +13,7 @@ pub const GUIDE_SRC: &str = "docs/guide/src";
 /// type; the section is the type's name (`## \`type\``, anchor `#type`).
 const PAGES: &[(&str, &str)] = &[
     ("scene", "stages/sources.md"),
+    ("daq", "stages/sources.md"),
     ("signal_file", "stages/sources.md"),
     ("spike_file", "stages/sources.md"),
     ("image_file", "stages/sources.md"),
@@ -34,7 +35,6 @@ const PAGES: &[(&str, &str)] = &[
     ("random_forest", "stages/estimators.md"),
     ("knn", "stages/estimators.md"),
     ("logistic", "stages/estimators.md"),
-    ("live", "stages/estimators.md"),
     ("mae", "stages/sinks.md"),
     ("confusion", "stages/sinks.md"),
     ("raster_plot", "stages/sinks.md"),

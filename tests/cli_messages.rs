@@ -153,7 +153,7 @@ fn daq_run_emulate_scene_works_outside_the_repository() {
     );
     assert!(out.status.success(), "{stdout}\n{stderr}");
     assert!(
-        stdout.lines().last().unwrap_or("").contains("final: 60.0 deg"),
+        stdout.lines().any(|l| l.contains("wss: final 60.0 deg")),
         "{stdout}"
     );
     assert_tidy("stdout", &stdout);
@@ -207,7 +207,7 @@ fn the_end_of_an_emulators_playback_is_not_an_error() {
     );
     assert!(run.status.success(), "{stdout}\n{stderr}");
     assert!(
-        stdout.lines().last().unwrap_or("").contains("final: 45.0 deg"),
+        stdout.lines().any(|l| l.contains("wss: final 45.0 deg")),
         "{stdout}"
     );
     assert!(

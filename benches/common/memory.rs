@@ -31,16 +31,16 @@
 //! runtime runs them (each stage's output replaces its input, which is then
 //! freed). Its peak includes the input signals, which a batch must hold.
 //!
-//! **Streaming** ([`stream_peak`]): `LivePipeline` with graphs/live.toml's
-//! settings (what `palpate daq run --config graphs/live.toml` runs), built
-//! inside the measurement (templates included) and fed the input one sample
-//! frame at a time; the input is not counted (a DAQ delivers it frame by frame).
+//! **Streaming** ([`stream_peak`]): the streaming plan of graphs/live.toml
+//! (what `palpate run graphs/live.toml --live` and `palpate daq run` run),
+//! built inside the measurement (WSS templates included) and fed the input as
+//! one trial, one sample frame at a time, as the `daq` source hands it on; the
+//! input is not counted (a DAQ delivers it frame by frame).
 
 #![allow(dead_code)]
 
 use palpate::core::{self, derive_seed, FitContext, Item, LoadOptions, RunOptions, Stage, TrialContext};
 use palpate::core::{Estimate, Signals};
-use palpate::stages::io::live::{LiveConfig, LiveEstimate, LivePipeline};
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicUsize, Ordering::Relaxed};
@@ -274,8 +274,6 @@ pub struct Row {
     pub stream_built_bytes: usize,
     /// Bytes the streaming path held at the end of the stream, before `finish`.
     pub stream_end_bytes: usize,
-    /// Alignments the WSS stream kept as possible bests at the end (all classes).
-    pub stream_wss_candidates: usize,
     /// Spike images the stream pushed into WSS.
     pub stream_images: usize,
     /// Batch estimate, degrees (None = no edge).
@@ -313,62 +311,90 @@ pub fn batch_peak(g: &core::Graph, input: Item, input_bytes: usize) -> BatchMemo
 pub struct StreamMemory {
     /// Peak bytes.
     pub peak: usize,
-    /// Bytes held once built.
+    /// Bytes held once built, before the first frame.
     pub built: usize,
-    /// Bytes held after the last frame.
+    /// Bytes held after the last frame, before the flush.
     pub end: usize,
-    /// WSS alignments kept at the end.
-    pub candidates: usize,
-    pub estimate: LiveEstimate,
+    /// Spike images the stream made.
+    pub images: usize,
+    /// The final estimate.
+    pub estimate: Estimate,
 }
 
-/// Runs the streaming path on `sig`, frame by frame.
-pub fn stream_peak(cfg: &LiveConfig, sig: &Signals) -> StreamMemory {
+/// One sample frame of `sig` as a block.
+fn frame_block(sig: &Signals, k: usize) -> core::Payload {
+    Signals {
+        sample_rate_hz: sig.sample_rate_hz,
+        layout: sig.layout.clone(),
+        unit: sig.unit.clone(),
+        data: sig.data.iter().map(|xs| vec![xs[k]]).collect(),
+    }
+    .into()
+}
+
+/// Runs the streaming plan of `live` on `sig` as one trial, frame by frame.
+pub fn stream_peak(live: &core::Graph, sig: &Signals) -> StreamMemory {
     let base = reset_peak();
-    let mut p = LivePipeline::new(cfg).expect("live config");
+    let plan = core::stream::plan(live).expect("graphs/live.toml streams");
+    let meta = core::TrialMeta {
+        trial_id: "long".into(),
+        ..core::TrialMeta::default()
+    };
+    let mut t = plan.start_trial(live, &meta, false).expect("open");
     let built = live_bytes() - base;
-    let mut frame = vec![0.0; sig.data.len()];
-    for k in 0..sig.n_samples() {
-        for (f, xs) in frame.iter_mut().zip(&sig.data) {
-            *f = xs[k];
+    let mut images = 0usize;
+    let mut count = |_: usize, b: &core::Payload| {
+        if let Ok(i) = b.images() {
+            images += i.n_frames;
         }
-        p.push(&frame).expect("push");
+    };
+    for k in 0..sig.n_samples() {
+        t.push(frame_block(sig, k), &mut count).expect("push");
     }
     let end = live_bytes() - base;
-    let candidates = p.wss_candidates();
-    let estimate = p.finish().expect("finish");
+    let kept = t.finish(&mut count).expect("finish");
+    let estimate = kept
+        .iter()
+        .rev()
+        .find_map(|(_, b)| {
+            b.last()
+                .and_then(|p| p.estimate().ok())
+                .map(|e| e.as_ref().clone())
+        })
+        .expect("an estimate");
     StreamMemory {
         peak: peak_bytes() - base,
         built,
         end,
-        candidates,
+        images,
         estimate,
     }
 }
 
-/// Splits what a built `LivePipeline` holds: (templates with their spectra,
-/// built once per config and shareable between streams; one stream's own
-/// state, reserved up front).
-pub fn stream_split(cfg: &LiveConfig) -> (usize, usize) {
+/// Splits what the built streaming path holds: (the plan: WSS templates with
+/// their spectra, built once per graph and shared by every trial; one trial's
+/// own state, reserved when the trial opens).
+pub fn stream_split(live: &core::Graph) -> (usize, usize) {
     let base = live_bytes();
-    let tpl = cfg.templates().expect("templates");
-    // The first pipeline builds the templates' streaming spectra (cached).
-    drop(LivePipeline::with_templates(cfg, tpl.clone()).expect("pipeline"));
+    let plan = core::stream::plan(live).expect("graphs/live.toml streams");
+    let meta = core::TrialMeta::default();
+    // The first trial builds the templates' streaming spectra (cached).
+    drop(plan.start_trial(live, &meta, false).expect("open"));
     let templates = live_bytes() - base;
-    let p = LivePipeline::with_templates(cfg, tpl.clone()).expect("pipeline");
+    let t = plan.start_trial(live, &meta, false).expect("open");
     let state = live_bytes() - base - templates;
-    drop(p);
+    drop(t);
     (templates, state)
 }
 
 /// Measures both paths on `seconds` of input made from `trials`.
-pub fn measure(g: &core::Graph, cfg: &LiveConfig, trials: &[Item], seconds: f64) -> Row {
+pub fn measure(g: &core::Graph, live: &core::Graph, trials: &[Item], seconds: f64) -> Row {
     let before = live_bytes();
     let input = long_input(trials, seconds);
     let input_bytes = live_bytes() - before;
     let sig = input.payload.signals().expect("signals").clone();
     let t0 = std::time::Instant::now();
-    let stream = stream_peak(cfg, &sig);
+    let stream = stream_peak(live, &sig);
     let stream_wall_s = t0.elapsed().as_secs_f64();
     drop(sig);
     let t0 = std::time::Instant::now();
@@ -382,8 +408,7 @@ pub fn measure(g: &core::Graph, cfg: &LiveConfig, trials: &[Item], seconds: f64)
         stream_peak_bytes: stream.peak,
         stream_built_bytes: stream.built,
         stream_end_bytes: stream.end,
-        stream_wss_candidates: stream.candidates,
-        stream_images: stream.estimate.frames,
+        stream_images: stream.images,
         batch_angle_deg: batch.estimate.angle_deg,
         stream_angle_deg: stream.estimate.angle_deg,
         batch_wall_s,
@@ -391,22 +416,31 @@ pub fn measure(g: &core::Graph, cfg: &LiveConfig, trials: &[Item], seconds: f64)
     }
 }
 
-/// The live config `palpate daq run --config graphs/live.toml` uses.
-pub fn live_config() -> LiveConfig {
-    LiveConfig::from_file(&root().join("graphs/live.toml")).expect("graphs/live.toml")
+/// graphs/live.toml, what `palpate daq run` streams.
+pub fn live_graph() -> core::Graph {
+    palpate::link();
+    let out = std::env::temp_dir().join(format!("palpate-memory-live-{}", std::process::id()));
+    core::load_file(
+        &root().join("graphs/live.toml"),
+        &LoadOptions {
+            out: Some(out),
+            ..LoadOptions::default()
+        },
+    )
+    .expect("graphs/live.toml")
 }
 
 /// The table the bench prints.
 pub fn table(rows: &[Row]) -> String {
     let mut s = String::from(
         "| input s | input MiB | batch peak MiB | batch B per input s | streaming peak MiB | \
-         streaming built MiB | streaming at end MiB | WSS alignments kept | images | batch / stream angle |\n\
-         | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- |\n",
+         streaming built MiB | streaming at end MiB | images | batch / stream angle |\n\
+         | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- |\n",
     );
     let deg = |a: Option<f64>| a.map_or("none".to_string(), |a| format!("{a:.1}"));
     for r in rows {
         s += &format!(
-            "| {} | {:.2} | {:.2} | {:.0} | {:.3} | {:.3} | {:.3} | {} | {} | {} / {} |\n",
+            "| {} | {:.2} | {:.2} | {:.0} | {:.3} | {:.3} | {:.3} | {} | {} / {} |\n",
             r.seconds,
             r.input_bytes as f64 / MIB,
             r.batch_peak_bytes as f64 / MIB,
@@ -414,7 +448,6 @@ pub fn table(rows: &[Row]) -> String {
             r.stream_peak_bytes as f64 / MIB,
             r.stream_built_bytes as f64 / MIB,
             r.stream_end_bytes as f64 / MIB,
-            r.stream_wss_candidates,
             r.stream_images,
             deg(r.batch_angle_deg),
             deg(r.stream_angle_deg),

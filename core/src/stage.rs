@@ -454,6 +454,11 @@ pub trait Source: Send + Sync {
     fn trials(&self) -> Result<Vec<TrialMeta>, StageError>;
     /// The payload of one trial: a pure function of (config, metadata, seed).
     fn produce(&self, ctx: &TrialContext<'_>) -> Result<Payload, StageError>;
+    /// Its live form, for a source that produces trials as they happen (a
+    /// DAQ): `palpate run --live` follows it instead of `trials`/`produce`.
+    fn live(&self) -> Option<&dyn crate::stream::LiveSource> {
+        None
+    }
 }
 
 /// A per-trial transformation.

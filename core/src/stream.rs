@@ -288,15 +288,7 @@ pub fn plan(graph: &crate::Graph) -> Result<LivePlan, Vec<LiveProblem>> {
             ));
             continue;
         }
-        let ctx = BuildContext {
-            stage_id: node.id.clone(),
-            seed: graph.run.seed,
-            out_dir: graph.out_dir.clone(),
-            base_dir: std::path::PathBuf::from(&graph.file)
-                .parent()
-                .map(std::path::Path::to_path_buf)
-                .unwrap_or_default(),
-        };
+        let ctx = build_context(graph, i);
         let settings = serde_json::to_value(node.config.as_ref()).unwrap_or(serde_json::Value::Null);
         match form(&node.type_name, &settings, &ctx) {
             Ok(StreamForm::Streams(s)) => stages.push((i, s)),
@@ -320,6 +312,38 @@ pub fn plan(graph: &crate::Graph) -> Result<LivePlan, Vec<LiveProblem>> {
 }
 
 impl LivePlan {
+    /// Opens every stage's state for one trial: push the source's blocks
+    /// into the returned [`TrialStream`] as they come, then finish it.
+    /// `keep`: keep every node's output blocks (tests), else only each
+    /// node's last block (the estimators' running answers).
+    pub fn start_trial<'p>(
+        &'p self,
+        graph: &'p crate::Graph,
+        meta: &crate::TrialMeta,
+        keep: bool,
+    ) -> Result<TrialStream<'p>, crate::RunError> {
+        let mut states = Vec::with_capacity(self.stages.len());
+        for (i, s) in &self.stages {
+            let id = graph.nodes[*i].id.as_str();
+            let ctx = TrialContext {
+                stage_id: id,
+                meta,
+                seed: crate::derive_seed(graph.run.seed, &[id, &meta.trial_id]),
+            };
+            states.push(s.open(&ctx).map_err(|e| run_error(graph, *i, meta, e))?);
+        }
+        let n = graph.nodes.len();
+        Ok(TrialStream {
+            plan: self,
+            graph,
+            meta: meta.clone(),
+            keep,
+            states,
+            kept: vec![Vec::new(); n],
+            pending: vec![Vec::new(); n],
+        })
+    }
+
     /// Streams one trial: pushes `blocks` of the source's output through every
     /// stage's fresh state, then flushes them in order. `on_block(node, block)`
     /// sees every output block as it is produced (a live display shows the
@@ -333,66 +357,131 @@ impl LivePlan {
         keep: bool,
         mut on_block: impl FnMut(usize, &Payload),
     ) -> Result<Vec<(usize, Vec<Payload>)>, crate::RunError> {
-        let err = |i: usize, e: StageError| crate::RunError {
-            stage: graph.nodes[i].id.clone(),
-            trial: Some(meta.trial_id.clone()),
-            message: e.message,
-        };
-        let mut states = Vec::with_capacity(self.stages.len());
-        for (i, s) in &self.stages {
-            let id = graph.nodes[*i].id.as_str();
-            let ctx = TrialContext {
-                stage_id: id,
-                meta,
-                seed: crate::derive_seed(graph.run.seed, &[id, &meta.trial_id]),
-            };
-            states.push(s.open(&ctx).map_err(|e| err(*i, e))?);
-        }
-        let n = graph.nodes.len();
-        let mut kept: Vec<Vec<Payload>> = vec![Vec::new(); n];
-        let mut pending: Vec<Vec<Payload>> = vec![Vec::new(); n];
-        let mut step = |pending: &mut Vec<Vec<Payload>>,
-                        kept: &mut Vec<Vec<Payload>>,
-                        states: &mut Vec<Box<dyn StreamState>>,
-                        flush: bool|
-         -> Result<(), crate::RunError> {
-            for (p, (i, _)) in self.stages.iter().enumerate() {
-                let input = graph.input_index[*i][0];
-                let mut out = Vec::new();
-                for b in &pending[input] {
-                    states[p].push(b, &mut out).map_err(|e| err(*i, e))?;
-                }
-                if flush {
-                    states[p].flush(&mut out).map_err(|e| err(*i, e))?;
-                }
-                for b in &out {
-                    on_block(*i, b);
-                }
-                if keep {
-                    kept[*i].extend(out.iter().cloned());
-                } else if let Some(last) = out.last() {
-                    kept[*i] = vec![last.clone()];
-                }
-                pending[*i] = out;
-            }
-            for v in pending.iter_mut() {
-                v.clear();
-            }
-            Ok(())
-        };
+        let mut t = self.start_trial(graph, meta, keep)?;
         for b in blocks {
-            if keep {
-                kept[self.source].push(b.clone());
-            }
-            pending[self.source].push(b);
-            step(&mut pending, &mut kept, &mut states, false)?;
+            t.push(b, &mut on_block)?;
         }
-        step(&mut pending, &mut kept, &mut states, true)?;
-        Ok(kept
+        t.finish(&mut on_block)
+    }
+}
+
+fn run_error(graph: &crate::Graph, i: usize, meta: &crate::TrialMeta, e: StageError) -> crate::RunError {
+    crate::RunError {
+        stage: graph.nodes[i].id.clone(),
+        trial: Some(meta.trial_id.clone()),
+        message: e.message,
+    }
+}
+
+/// One trial being streamed through a [`LivePlan`] (see [`LivePlan::start_trial`]).
+pub struct TrialStream<'p> {
+    plan: &'p LivePlan,
+    graph: &'p crate::Graph,
+    meta: crate::TrialMeta,
+    keep: bool,
+    states: Vec<Box<dyn StreamState>>,
+    kept: Vec<Vec<Payload>>,
+    pending: Vec<Vec<Payload>>,
+}
+
+impl TrialStream<'_> {
+    /// Pushes the source's next block through every stage.
+    pub fn push(
+        &mut self,
+        block: Payload,
+        on_block: &mut dyn FnMut(usize, &Payload),
+    ) -> Result<(), crate::RunError> {
+        if self.keep {
+            self.kept[self.plan.source].push(block.clone());
+        }
+        self.pending[self.plan.source].push(block);
+        self.step(false, on_block)
+    }
+
+    /// Flushes every stage, in order; returns the kept blocks of every node
+    /// that produced any (see [`LivePlan::run_trial`]).
+    pub fn finish(
+        mut self,
+        on_block: &mut dyn FnMut(usize, &Payload),
+    ) -> Result<Vec<(usize, Vec<Payload>)>, crate::RunError> {
+        self.step(true, on_block)?;
+        Ok(self
+            .kept
             .into_iter()
             .enumerate()
             .filter(|(_, v)| !v.is_empty())
             .collect())
+    }
+
+    fn step(
+        &mut self,
+        flush: bool,
+        on_block: &mut dyn FnMut(usize, &Payload),
+    ) -> Result<(), crate::RunError> {
+        let graph = self.graph;
+        for (p, (i, _)) in self.plan.stages.iter().enumerate() {
+            let input = graph.input_index[*i][0];
+            let mut out = Vec::new();
+            for b in &self.pending[input] {
+                self.states[p]
+                    .push(b, &mut out)
+                    .map_err(|e| run_error(graph, *i, &self.meta, e))?;
+            }
+            if flush {
+                self.states[p]
+                    .flush(&mut out)
+                    .map_err(|e| run_error(graph, *i, &self.meta, e))?;
+            }
+            for b in &out {
+                on_block(*i, b);
+            }
+            if self.keep {
+                self.kept[*i].extend(out.iter().cloned());
+            } else if let Some(last) = out.last() {
+                self.kept[*i] = vec![last.clone()];
+            }
+            self.pending[*i] = out;
+        }
+        for v in self.pending.iter_mut() {
+            v.clear();
+        }
+        Ok(())
+    }
+}
+
+/// What a streaming source (a DAQ) hands a live run, in stream order.
+#[derive(Clone, Debug)]
+pub enum SourceEvent {
+    /// A trial begins (its metadata; `index` is filled in by the run).
+    Start(crate::TrialMeta),
+    /// The trial's next block (signals of the source's kind).
+    Block(Payload),
+    /// The trial ends.
+    End,
+}
+
+/// A source that produces its trials as they happen (a DAQ), for live runs:
+/// instead of [`crate::Source::trials`] then `produce`, a live run calls
+/// [`LiveSource::stream`] once and follows its events. A source offers it
+/// through [`crate::Source::live`].
+pub trait LiveSource: Send + Sync {
+    /// Runs the stream to its end, handing every event to `on` as it comes;
+    /// an error from `on` stops the stream and is returned.
+    fn stream(
+        &self,
+        on: &mut dyn FnMut(SourceEvent) -> Result<(), crate::RunError>,
+    ) -> Result<(), crate::RunError>;
+}
+
+fn build_context(graph: &crate::Graph, node: usize) -> BuildContext {
+    BuildContext {
+        stage_id: graph.nodes[node].id.clone(),
+        seed: graph.run.seed,
+        out_dir: graph.out_dir.clone(),
+        base_dir: std::path::PathBuf::from(&graph.file)
+            .parent()
+            .map(std::path::Path::to_path_buf)
+            .unwrap_or_default(),
     }
 }
 
@@ -411,12 +500,15 @@ pub struct LiveUpdate {
     pub last: bool,
 }
 
-/// Streams every trial of a graph's source through its [`LivePlan`], in
-/// blocks of `block` samples (1 = frame by frame, as a board delivers them),
-/// trial after trial; `on_update` sees every estimate as it changes. Then the
-/// sinks get each estimator's final estimates, as after a batch run. Memory:
-/// one trial's source payload and the stages' states (the source produces a
-/// trial at a time; a DAQ source would produce its frames as they come).
+/// Streams every trial of a graph's source through its [`LivePlan`], trial
+/// after trial; `on_update` sees every estimate as it changes. Then the sinks
+/// get each estimator's final estimates, as after a batch run.
+///
+/// A source with a live form ([`LiveSource`], e.g. the DAQ) is followed as
+/// it produces its blocks (a board: frame by frame, as they arrive; `block`
+/// is unused). Any other source produces a trial at a time, cut into blocks
+/// of `block` samples (1 = frame by frame, as a board delivers them). Memory:
+/// the stages' states and, for a non-live source, one trial's payload.
 pub fn replay(
     graph: &crate::Graph,
     plan: &LivePlan,
@@ -437,10 +529,6 @@ pub fn replay(
         trial: trial.map(str::to_string),
         message: e.message,
     };
-    let mut metas = src.trials().map_err(|e| rerr(src_id, None, e))?;
-    for (k, m) in metas.iter_mut().enumerate() {
-        m.index = k;
-    }
     let estimators: Vec<usize> = plan
         .stages
         .iter()
@@ -448,51 +536,128 @@ pub fn replay(
         .filter(|&i| matches!(graph.nodes[i].stage, Stage::Estimator(_)))
         .collect();
     let mut finals: Vec<Vec<crate::Item>> = vec![Vec::new(); graph.nodes.len()];
-    for meta in &metas {
-        let ctx = TrialContext {
-            stage_id: src_id,
-            meta,
-            seed: crate::derive_seed(graph.run.seed, &[src_id, &meta.trial_id]),
-        };
-        let payload = src
-            .produce(&ctx)
-            .map_err(|e| rerr(src_id, Some(&meta.trial_id), e))?;
-        let signals = payload
-            .signals()
-            .map_err(|e| rerr(src_id, Some(&meta.trial_id), e))?;
-        let fs = signals.sample_rate_hz;
-        let fed = std::cell::Cell::new(0usize);
-        let blocks = signal_blocks(signals, block).into_iter().inspect(|b| {
-            if let Ok(s) = b.signals() {
-                fed.set(fed.get() + s.n_samples());
-            }
-        });
-        let kept = plan.run_trial(graph, meta, blocks, false, |node, b| {
-            if let (true, Ok(e)) = (estimators.contains(&node), b.estimate()) {
+    let live = src.live();
+    // One trial: its stream, the samples fed so far and their rate.
+    struct Open<'p> {
+        stream: TrialStream<'p>,
+        meta: crate::TrialMeta,
+        fed: usize,
+        fs: f64,
+    }
+    let push = |open: &mut Open<'_>,
+                b: Payload,
+                on_update: &mut dyn FnMut(&LiveUpdate)|
+     -> Result<(), crate::RunError> {
+        if let Ok(s) = b.signals() {
+            open.fed += s.n_samples();
+            open.fs = s.sample_rate_hz;
+        }
+        let t_ms = open.fed as f64 * 1000.0 / open.fs;
+        let meta = &open.meta;
+        open.stream.push(b, &mut |node, out| {
+            if let (true, Ok(e)) = (estimators.contains(&node), out.estimate()) {
                 on_update(&LiveUpdate {
                     trial_id: meta.trial_id.clone(),
                     stage: graph.nodes[node].id.clone(),
-                    t_ms: fed.get() as f64 * 1000.0 / fs,
+                    t_ms,
                     estimate: (**e).clone(),
                     last: false,
                 });
             }
-        })?;
+        })
+    };
+    let finish = |open: Open<'_>,
+                  finals: &mut Vec<Vec<crate::Item>>,
+                  on_update: &mut dyn FnMut(&LiveUpdate)|
+     -> Result<(), crate::RunError> {
+        let t_ms = if open.fs > 0.0 {
+            open.fed as f64 * 1000.0 / open.fs
+        } else {
+            0.0
+        };
+        let kept = open.stream.finish(&mut |_, _| {})?;
         for (node, blocks) in kept {
             if let (true, Some(last)) = (estimators.contains(&node), blocks.last()) {
                 if let Ok(e) = last.estimate() {
                     on_update(&LiveUpdate {
-                        trial_id: meta.trial_id.clone(),
+                        trial_id: open.meta.trial_id.clone(),
                         stage: graph.nodes[node].id.clone(),
-                        t_ms: fed.get() as f64 * 1000.0 / fs,
+                        t_ms,
                         estimate: (**e).clone(),
                         last: true,
                     });
                 }
                 finals[node].push(crate::Item {
-                    meta: std::sync::Arc::new(meta.clone()),
+                    meta: std::sync::Arc::new(open.meta.clone()),
                     payload: last.clone(),
                 });
+            }
+        }
+        Ok(())
+    };
+    match live {
+        Some(live) => {
+            let mut open: Option<Open<'_>> = None;
+            let mut index = 0usize;
+            live.stream(&mut |ev| match ev {
+                SourceEvent::Start(mut meta) => {
+                    if let Some(o) = open.take() {
+                        finish(o, &mut finals, &mut on_update)?;
+                    }
+                    meta.index = index;
+                    index += 1;
+                    open = Some(Open {
+                        stream: plan.start_trial(graph, &meta, false)?,
+                        meta,
+                        fed: 0,
+                        fs: 0.0,
+                    });
+                    Ok(())
+                }
+                SourceEvent::Block(b) => match open.as_mut() {
+                    Some(o) => push(o, b, &mut on_update),
+                    None => Err(crate::RunError {
+                        stage: src_id.to_string(),
+                        trial: None,
+                        message: "a block came before its trial began (internal error)".into(),
+                    }),
+                },
+                SourceEvent::End => match open.take() {
+                    Some(o) => finish(o, &mut finals, &mut on_update),
+                    None => Ok(()),
+                },
+            })?;
+            if let Some(o) = open.take() {
+                finish(o, &mut finals, &mut on_update)?;
+            }
+        }
+        None => {
+            let mut metas = src.trials().map_err(|e| rerr(src_id, None, e))?;
+            for (k, m) in metas.iter_mut().enumerate() {
+                m.index = k;
+            }
+            for meta in &metas {
+                let ctx = TrialContext {
+                    stage_id: src_id,
+                    meta,
+                    seed: crate::derive_seed(graph.run.seed, &[src_id, &meta.trial_id]),
+                };
+                let payload = src
+                    .produce(&ctx)
+                    .map_err(|e| rerr(src_id, Some(&meta.trial_id), e))?;
+                let signals = payload
+                    .signals()
+                    .map_err(|e| rerr(src_id, Some(&meta.trial_id), e))?;
+                let mut open = Open {
+                    stream: plan.start_trial(graph, meta, false)?,
+                    meta: meta.clone(),
+                    fed: 0,
+                    fs: signals.sample_rate_hz,
+                };
+                for b in signal_blocks(signals, block) {
+                    push(&mut open, b, &mut on_update)?;
+                }
+                finish(open, &mut finals, &mut on_update)?;
             }
         }
     }

@@ -2,20 +2,26 @@
 //! gives its batch output (`palpate_core::stream`'s contract): bit for bit
 //! for the signal stages, the encoder and the binner; the same answer with
 //! scores within 1e-9 for WSS (its streaming form keeps running sums that
-//! round differently from the batch FFT). Also: `stream::plan` names every
+//! round differently from the batch FFT). The spike stages (`lif`, `jitter`,
+//! `dead_taxels`, `subarea`) are fed the lab trials' spike trains and
+//! currents in blocks of 1, 7 and 1000 ms. Also: `stream::plan` names every
 //! stage of the offline quickstart that cannot stream, and hostile blocks
 //! give errors, not panics.
 
 use palpate_core::stream::{self, concat, signal_blocks, StreamForm};
 use palpate_core::{
-    BuildContext, Item, LoadOptions, Payload, RunOptions, Signals, Stage, StageConfig, TaxelLayout,
-    TrialContext, TrialMeta,
+    BuildContext, Item, LoadOptions, Payload, RunOptions, Signals, SpikeEvent, SpikeTrain, Stage,
+    StageConfig, TaxelLayout, TrialContext, TrialMeta,
 };
 use palpate_stages::encode::izhikevich::IzhikevichConfig;
+use palpate_stages::encode::lif::LifConfig;
 use palpate_stages::signal::drive::{DriveConfig, DriveKind};
 use palpate_stages::signal::lowpass::{FilterMode, LowpassConfig};
 use palpate_stages::signal::normalize::{NormalizeConfig, NormalizeMode};
 use palpate_stages::spikes::bin::BinConfig;
+use palpate_stages::spikes::dead::DeadTaxelsConfig;
+use palpate_stages::spikes::jitter::{JitterConfig, JitterKind};
+use palpate_stages::spikes::subarea::SubareaConfig;
 use proptest::prelude::*;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -86,6 +92,18 @@ fn load(text: &str) -> palpate_core::Graph {
     palpate_core::load_str(text, "stream_blocks.toml", "stream_blocks", &opts).unwrap()
 }
 
+/// Runs a graph in batch, keeping every stage's outputs.
+fn run_kept(g: &palpate_core::Graph) -> palpate_core::RunResult {
+    palpate_core::run(
+        g,
+        &RunOptions {
+            keep_outputs: true,
+            ..RunOptions::default()
+        },
+    )
+    .unwrap()
+}
+
 fn bits(v: &[f64]) -> Vec<u64> {
     v.iter().map(|x| x.to_bits()).collect()
 }
@@ -140,14 +158,7 @@ fn assert_same(what: &str, streamed: &Payload, batch: &Payload) {
 #[test]
 fn every_stage_of_the_live_chain_streams_to_its_batch_output_in_blocks_of_1_7_and_1000() {
     let g = load(&live_graph());
-    let batch = palpate_core::run(
-        &g,
-        &RunOptions {
-            keep_outputs: true,
-            ..RunOptions::default()
-        },
-    )
-    .unwrap();
+    let batch = run_kept(&g);
     let plan = stream::plan(&g).unwrap_or_else(|p| panic!("{p:?}"));
     assert_eq!(plan.stages.len(), 6, "filter, norm, drive, enc, bins, wss stream");
     let scene = &batch.outputs["scene"];
@@ -206,6 +217,46 @@ fn ctx() -> BuildContext {
 
 /// Batch output of `cfg` on `input`, and its streamed output in `block`s.
 fn both(cfg: &dyn StageConfig, type_name: &str, input: &Signals, block: usize) -> (Payload, Payload) {
+    both_blocks(
+        cfg,
+        type_name,
+        &input.clone().into(),
+        &signal_blocks(input, block),
+    )
+}
+
+/// A spike train cut as an upstream stage streams it: block `k` holds the
+/// events in `[k·block, (k+1)·block)` ms and is known up to its end.
+fn spike_blocks(t: &SpikeTrain, block_ms: f64) -> Vec<Payload> {
+    let n = (t.duration_ms / block_ms).ceil().max(1.0) as usize;
+    (0..n)
+        .map(|k| {
+            let (a, b) = (
+                k as f64 * block_ms,
+                ((k + 1) as f64 * block_ms).min(t.duration_ms),
+            );
+            SpikeTrain {
+                layout: t.layout.clone(),
+                duration_ms: b,
+                events: t
+                    .events
+                    .iter()
+                    .copied()
+                    .filter(|e| e.t_ms >= a && e.t_ms < b)
+                    .collect(),
+            }
+            .into()
+        })
+        .collect()
+}
+
+/// Batch output of `cfg` on `input`, and its output streamed from `blocks`.
+fn both_blocks(
+    cfg: &dyn StageConfig,
+    type_name: &str,
+    input: &Payload,
+    blocks: &[Payload],
+) -> (Payload, Payload) {
     let meta = TrialMeta {
         trial_id: "t".into(),
         ..TrialMeta::default()
@@ -217,7 +268,7 @@ fn both(cfg: &dyn StageConfig, type_name: &str, input: &Signals, block: usize) -
     };
     let item = Item {
         meta: Arc::new(meta.clone()),
-        payload: input.clone().into(),
+        payload: input.clone(),
     };
     let Ok(Stage::Map(map)) = cfg.build(&ctx()) else {
         panic!("{type_name} is a map")
@@ -227,8 +278,80 @@ fn both(cfg: &dyn StageConfig, type_name: &str, input: &Signals, block: usize) -
     let Ok(StreamForm::Streams(s)) = stream::form(type_name, &settings, &ctx()) else {
         panic!("{type_name} streams")
     };
-    let out = stream::run_blocks(s.as_ref(), &signal_blocks(input, block), &tctx).unwrap();
+    let out = stream::run_blocks(s.as_ref(), blocks, &tctx).unwrap();
+    // Every block but empty ones is time-sorted and known up to its duration.
+    let mut known = 0.0f64;
+    for b in &out {
+        if let Ok(t) = b.spikes() {
+            assert!(
+                t.events.windows(2).all(|w| w[0].t_ms <= w[1].t_ms),
+                "{type_name}: unsorted block"
+            );
+            assert!(
+                t.events.iter().all(|e| e.t_ms >= known),
+                "{type_name}: an event before the last block's end"
+            );
+            known = known.max(t.duration_ms);
+        }
+    }
     (concat(&out).unwrap(), batch)
+}
+
+#[test]
+fn spike_stages_and_lif_stream_to_their_batch_output_in_blocks_of_1_7_and_1000() {
+    let g = load(&live_graph());
+    let batch = run_kept(&g);
+    let mut jitters = Vec::new();
+    for (kind, tau_ms) in [
+        (JitterKind::Gaussian, 1.0),
+        (JitterKind::Gaussian, 5.0),
+        (JitterKind::Uniform, 3.0),
+    ] {
+        jitters.push(JitterConfig { kind, tau_ms });
+    }
+    for (t, item) in batch.outputs["enc"].iter().enumerate() {
+        let mut train = item.payload.spikes().unwrap().as_ref().clone();
+        // Spikes at the very start and end, so that jitter reflects some at 0
+        // and some at the trial's end.
+        let d = train.duration_ms;
+        for (taxel, t_ms) in [(0, 0.0), (3, 0.2), (5, 1.5), (2, d - 0.1), (7, d - 2.0)] {
+            train.events.push(SpikeEvent { taxel, t_ms });
+        }
+        train.sort();
+        let input: Payload = train.clone().into();
+        for block in [1.0, 7.0, 1000.0] {
+            let blocks = spike_blocks(&train, block);
+            let what = |s: &str| format!("{s}, trial {t}, blocks of {block} ms");
+            for j in &jitters {
+                let (a, b) = both_blocks(j, "jitter", &input, &blocks);
+                assert_same(&what(&format!("jitter {:?} {}", j.kind, j.tau_ms)), &a, &b);
+            }
+            let dead = DeadTaxelsConfig {
+                taxels: vec![1],
+                cells: vec![[2, 2]],
+                random_count: 3,
+            };
+            let (a, b) = both_blocks(&dead, "dead_taxels", &input, &blocks);
+            assert_same(&what("dead_taxels"), &a, &b);
+            for (row, col) in [(0, 0), (1, 1)] {
+                let sub = SubareaConfig { size: 3, row, col };
+                let (a, b) = both_blocks(&sub, "subarea", &input, &blocks);
+                assert_same(&what("subarea"), &a, &b);
+            }
+        }
+        // LIF on the drive's currents, in blocks of samples.
+        let cur = batch.outputs["drive"][t]
+            .payload
+            .signals()
+            .unwrap()
+            .as_ref()
+            .clone();
+        for block in [1usize, 7, 1000] {
+            let (a, b) = both(&LifConfig::default(), "lif", &cur, block);
+            assert_same(&format!("lif, trial {t}, blocks of {block}"), &a, &b);
+            assert!(!a.spikes().unwrap().events.is_empty());
+        }
+    }
 }
 
 fn signals(data: Vec<Vec<f64>>) -> Signals {
@@ -273,6 +396,9 @@ proptest! {
         let enc = IzhikevichConfig::default();
         let (a, b) = both(&enc, "izhikevich", &cur, block);
         assert_same("izhikevich", &a, &b);
+        let lif = LifConfig { tau_ms: 5.0, refractory_ms: 1.3, dt_ms: 0.3, ..LifConfig::default() };
+        let (a, b) = both(&lif, "lif", &cur, block);
+        assert_same("lif", &a, &b);
     }
 }
 

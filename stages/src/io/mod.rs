@@ -2,6 +2,7 @@
 //!
 //! | stage | role | kinds | module |
 //! |---|---|---|---|
+//! | `daq` | source | -> signals | [`daq::source`]: a board, a raw recording or an emulated scene, cut at contact |
 //! | `signal_file` | source | -> signals | [`signal_file`]: CSV, NPY, NPZ, MATLAB .mat, raw DAQ streams |
 //! | `spike_file` | source | -> spikes | [`spike_file`]: `(x, y, t[, p])` events from CSV or NPY |
 //! | `image_file` | source | -> images | [`image_file`]: the folder `write_images` wrote, read back |
@@ -11,9 +12,11 @@
 //! | `write_images` | sink | images | [`sinks`]: NPY or CSV, one file per trial |
 //! | `write_estimates` | sink | estimates | [`sinks`]: NPY or CSV, one file per run |
 //!
-//! [`daq`] holds the live path: the frame protocol (`docs/daq-protocol.md`),
-//! acquisition from a serial port or any byte stream with raw recording, and an
-//! emulator that plays signals through a pseudo-terminal.
+//! [`daq`] holds the live path: the `daq` source stage (a board, a raw
+//! recording or an emulated scene, cut into trials at contact), the frame
+//! protocol (`docs/daq-protocol.md`), acquisition from a serial port or any
+//! byte stream with raw recording, and an emulator that plays signals through
+//! a pseudo-terminal.
 //!
 //! Principle: lose nothing. Bad input (NaN or infinite samples, truncated
 //! files, wrong shapes, unknown columns, mismatched sample rates, corrupted
@@ -25,7 +28,6 @@ pub mod arrays;
 pub mod common;
 pub mod daq;
 pub mod image_file;
-pub mod live;
 pub mod signal_file;
 pub mod sinks;
 pub mod spike_file;

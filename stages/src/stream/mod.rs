@@ -9,6 +9,9 @@
 //! | `normalize` | `mode = "causal"` | `mode = "causal"` with a calibrated `span` |
 //! | `drive` | a fixed `gain` (or `kind = "direct"`) | `gain = G` from a calibration palpation |
 //! | `izhikevich` | `input = "hold"` | `input = "hold"` (linear needs the next sample) |
+//! | `lif` | `input = "hold"` | `input = "hold"` (linear needs the next sample) |
+//! | `dead_taxels`, `subarea` | always | - |
+//! | `jitter` | always (output `B·τ` behind, see [`events`]) | - |
 //! | `bin` | always | - |
 //! | `wss` | always (model-based) | - |
 //!
@@ -18,11 +21,12 @@
 //! 1000 samples).
 
 mod encode;
+pub mod events;
 mod signal;
 mod spikes;
 mod wss;
 
-use palpate_core::{Payload, Signals, StageError};
+use palpate_core::{Payload, Signals, StageError, TaxelLayout};
 
 /// The signals of a block, checked like the batch stage checks a trial
 /// (positive rate, one row per taxel, equal lengths, finite samples).
@@ -30,4 +34,23 @@ pub(crate) fn block_signals<'a>(what: &str, block: &'a Payload) -> Result<&'a Si
     let s = block.signals()?;
     crate::signal::check_signals(what, s)?;
     Ok(s)
+}
+
+/// Keeps the trial's layout from its first block in `slot`; a later block of
+/// another layout is an error naming the stage.
+pub(crate) fn same_layout(
+    what: &str,
+    slot: &mut Option<TaxelLayout>,
+    layout: &TaxelLayout,
+) -> Result<(), StageError> {
+    match slot {
+        Some(l) if l != layout => Err(StageError::new(format!(
+            "{what}: a block's layout differs from the trial's first block"
+        ))),
+        Some(_) => Ok(()),
+        None => {
+            *slot = Some(layout.clone());
+            Ok(())
+        }
+    }
 }

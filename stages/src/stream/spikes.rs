@@ -94,15 +94,7 @@ impl BinState {
 impl StreamState for BinState {
     fn push(&mut self, block: &Payload, out: &mut Vec<Payload>) -> Result<(), StageError> {
         let train = block.spikes()?;
-        match &self.layout {
-            Some(l) if *l != train.layout => {
-                return Err(StageError::new(
-                    "bin: a block's layout differs from the trial's first block",
-                ))
-            }
-            Some(_) => {}
-            None => self.layout = Some(train.layout.clone()),
-        }
+        super::same_layout("bin", &mut self.layout, &train.layout)?;
         let n_taxels = train.layout.len();
         let (window, hop) = (self.binner.window_ms, self.binner.hop_ms);
         for e in &train.events {

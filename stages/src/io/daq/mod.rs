@@ -7,7 +7,10 @@
 //!   [`Decoder`] (resynchronisation, CRC errors, lost frames) and
 //!   [`decode_recording`] for recorded streams;
 //! * [`live`]: [`acquire`] (any `Read`), [`acquire_serial`], [`RawRecorder`],
-//!   [`emulate`], [`emulate_pty`], [`open_pty`], [`signals_from_recording`].
+//!   [`emulate`], [`emulate_pty`], [`open_pty`], [`signals_from_recording`];
+//! * [`source`]: the `daq` source stage ([`DaqConfig`]): a port, a recording
+//!   or an emulated scene, cut into trials at contact ([`Segmenter`]), offline
+//!   or streamed live through a graph.
 //!
 //! The format is specified for firmware authors in `docs/daq-protocol.md`.
 //! Recorded streams are read back offline by the `signal_file` source
@@ -15,6 +18,7 @@
 
 pub mod live;
 pub mod protocol;
+pub mod source;
 
 pub use live::{
     acquire, acquire_serial, emulate, emulate_pty, emulate_pty_drain, open_pty, open_serial,
@@ -24,4 +28,7 @@ pub use live::{
 pub use protocol::{
     crc32, decode_recording, encode_frame, frame_len, DaqStats, DecodeEvent, DecodedRecording, Decoder,
     Frame, SampleFormat,
+};
+pub use source::{
+    is_pseudo_terminal, simulate_trial, DaqConfig, DaqSource, SegEvent, SegmentMode, SegmentPlan, Segmenter,
 };

@@ -1,0 +1,972 @@
+//! The `daq` source stage: trials from a DAQ byte stream, cut where the array
+//! touches the object (or in fixed windows).
+//!
+//! The bytes come from a serial port (`port`, `baud`), a recorded raw stream
+//! (`recording`) or an emulated scene (`scene`: the scene's trials played as
+//! DAQ frames, with `gap_ms` off the object between them), and go through the
+//! same path in every case: [`acquire`] (reader thread, stall detection, raw
+//! recording with `record`), the [`Decoder`](super::Decoder) (CRC, sequence
+//! gaps), gap filling, then a [`Segmenter`] that cuts the stream into trials.
+//! When several are given, `port` wins over `recording`, and `recording` over
+//! `scene`, so `--set stages.daq.port=...` turns an emulated graph into one
+//! on a board.
+//!
+//! ## Segmentation
+//!
+//! * `segment = "contact"` (default): a trial is a stretch of contact. Let
+//!   `m_k` be the lowest taxel value of frame `k` (a pressed piezoresistive
+//!   taxel reads low; a dead one reads open-circuit high, so the minimum is
+//!   not fooled by it). Contact begins at the first frame of a run of
+//!   `N_in = max(1, round(enter_ms·fs/1000))` frames with `m_k <= contact_v`,
+//!   and ends before the first frame of a run of
+//!   `N_out = max(1, round(exit_ms·fs/1000))` frames with `m_k >= release_v`.
+//!   `release_v > contact_v` is the hysteresis: noise around one threshold
+//!   cannot start and stop trials. The frames of a run that does not complete
+//!   belong to the state it interrupted (a short dip back to the open level
+//!   stays inside its trial). A trial still open when the stream ends ends
+//!   there. Latency: the first `N_in` frames of a trial are handed on
+//!   together once contact is confirmed; frames during a possible release are
+//!   held until it is confirmed or denied (at most `N_out` frames).
+//! * `segment = "fixed"`: consecutive trials of `W = round(window_ms·fs/1000)`
+//!   frames from the first frame on (the last may be shorter).
+//!
+//! ## The stream
+//!
+//! Time is the frame count over `sample_rate_hz`. A sequence gap of lost
+//! frames (CRC errors included) is filled by holding the previous frame, up
+//! to `max_gap_ms`; a longer gap ends the run with an error. A frame with a
+//! non-finite sample is an error naming it. Anomalies (CRC errors, gaps,
+//! out-of-order frames, stalls) are reported on stderr as they happen.
+//!
+//! Offline (`palpate run`), the stream is acquired to its end (a recording's
+//! end, the scene's last trial, `seconds`, or a pseudo-terminal's hang-up) and
+//! its trials are an ordinary source's. Live (`palpate run --live`), each
+//! trial's frames stream through the graph as they arrive
+//! ([`palpate_core::stream::LiveSource`]). Contact trials of an emulated
+//! scene carry the scene's labels (the `k`-th contact is the scene's `k`-th
+//! trial); others are named `<stage>-0000`, `<stage>-0001`, ... without a label.
+
+use super::live::{acquire, open_serial, AcquireOptions, DaqErrorKind, DaqEvent, EmulateOptions, StopReason};
+use crate::io::common::LayoutConfig;
+use crate::scene::SceneConfig;
+use palpate_core::stream::{LiveSource, SourceEvent};
+use palpate_core::{
+    check_positive, check_range, derive_seed, register_stage, BuildContext, ConfigChecks, ConfigError,
+    InputSpec, Payload, PayloadKind, RunError, Signals, Source, Stage, StageConfig, StageError, TaxelLayout,
+    TrialContext, TrialMeta,
+};
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
+use std::io::{Read, Write};
+use std::ops::ControlFlow;
+use std::path::PathBuf;
+use std::sync::{mpsc, Arc, OnceLock};
+use std::time::Duration;
+
+/// How the stream is cut into trials.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum SegmentMode {
+    /// A trial per stretch of contact (`contact_v`, `release_v`, `enter_ms`, `exit_ms`).
+    #[default]
+    Contact,
+    /// Consecutive trials of `window_ms`.
+    Fixed,
+}
+
+/// DAQ source: trials from a serial port, a raw recording or an emulated scene, cut at contact.
+///
+/// One of `port`, `recording`, `scene` (that order wins when several are
+/// set). Offline, the whole stream is acquired and cut into trials; with
+/// `palpate run --live` each trial streams through the graph frame by frame.
+#[derive(Clone, Debug, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields, default)]
+pub struct DaqConfig {
+    /// Serial device of the board, e.g. `/dev/ttyACM0` (or an emulator's
+    /// pseudo-terminal). Default none.
+    pub port: Option<String>,
+    /// Baud rate of `port`, bit/s (USB CDC devices ignore it). Default 921600.
+    pub baud: u32,
+    /// A recorded raw DAQ stream (what `record` writes), relative to the
+    /// graph's folder. Default none.
+    pub recording: Option<PathBuf>,
+    /// A scene file to emulate, relative to the graph's folder: its trials
+    /// are simulated and played as DAQ frames (f32), `gap_ms` apart. Default none.
+    pub scene: Option<PathBuf>,
+    /// With `scene`: the angles to simulate, degrees. Default the scene's.
+    pub angles: Option<Vec<f64>>,
+    /// With `scene`: trials per angle. Default the scene's.
+    pub trials_per_angle: Option<usize>,
+    /// With `scene`: playback speed, times real time; 0 plays as fast as the
+    /// graph reads. Default 0.
+    pub speed: f64,
+    /// With `scene`: time off the object between emulated trials, ms. Default 1000.
+    pub gap_ms: f64,
+    /// With `scene`: what every taxel reads off the object, DAQ units (V).
+    /// Default 3.3 (the paper's board saturates at its supply).
+    pub open_v: f64,
+    /// Taxel layout; channel `i` is taxel `i`. Default the paper's 4x4 grid
+    /// (3 mm pitch, 2 mm taxels).
+    pub layout: LayoutConfig,
+    /// Frame rate of the board, Hz (an emulated scene must sample at it). Default 1000.
+    pub sample_rate_hz: f64,
+    /// Decoded value = raw · `scale` + `offset` (e.g. V per ADC count). Default 1.
+    pub scale: f64,
+    /// See `scale`, DAQ units. Default 0.
+    pub offset: f64,
+    /// Unit of the decoded values. Default "V".
+    pub unit: String,
+    /// Trial segmentation: `contact` or `fixed`. Default `contact`.
+    pub segment: SegmentMode,
+    /// Contact begins when the lowest taxel reads at most this, DAQ units (V). Default 3.0.
+    pub contact_v: f64,
+    /// Contact ends when the lowest taxel reads at least this, DAQ units (V);
+    /// above `contact_v` (hysteresis). Default 3.2.
+    pub release_v: f64,
+    /// Contact must hold this long to begin a trial, ms. Default 20.
+    pub enter_ms: f64,
+    /// Release must hold this long to end a trial, ms. Default 200.
+    pub exit_ms: f64,
+    /// With `segment = "fixed"`: trial length, ms. Required there.
+    pub window_ms: Option<f64>,
+    /// Record the raw byte stream to this file as it arrives, relative to the
+    /// output folder. Default none.
+    pub record: Option<PathBuf>,
+    /// Stop acquiring after this much wall time, s. Default none (the stream's end).
+    pub seconds: Option<f64>,
+    /// Longest run of lost frames filled by holding the previous frame, ms; a
+    /// longer gap ends the run. Default 1000.
+    pub max_gap_ms: f64,
+    /// Silence longer than this counts as a stall (reported), ms. Default 500.
+    pub stall_ms: f64,
+    /// Silence longer than this ends the run with an error, ms. Default 5000.
+    pub give_up_ms: f64,
+}
+
+impl Default for DaqConfig {
+    fn default() -> Self {
+        DaqConfig {
+            port: None,
+            baud: 921_600,
+            recording: None,
+            scene: None,
+            angles: None,
+            trials_per_angle: None,
+            speed: 0.0,
+            gap_ms: 1000.0,
+            open_v: 3.3,
+            layout: LayoutConfig::default(),
+            sample_rate_hz: 1000.0,
+            scale: 1.0,
+            offset: 0.0,
+            unit: "V".into(),
+            segment: SegmentMode::Contact,
+            contact_v: 3.0,
+            release_v: 3.2,
+            enter_ms: 20.0,
+            exit_ms: 200.0,
+            window_ms: None,
+            record: None,
+            seconds: None,
+            max_gap_ms: 1000.0,
+            stall_ms: 500.0,
+            give_up_ms: 5000.0,
+        }
+    }
+}
+
+/// Where the bytes come from.
+#[derive(Clone)]
+enum Input {
+    Port(String),
+    Recording(PathBuf),
+    Scene(Arc<dyn Source>),
+}
+
+/// The checked segmentation.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum SegmentPlan {
+    /// See the module docs; run lengths in frames.
+    Contact {
+        /// `contact_v`.
+        contact: f64,
+        /// `release_v`.
+        release: f64,
+        /// `N_in`.
+        enter: usize,
+        /// `N_out`.
+        exit: usize,
+    },
+    /// Trials of this many frames.
+    Fixed(usize),
+}
+
+/// What the [`Segmenter`] hands on, in stream order.
+#[derive(Debug, PartialEq)]
+pub enum SegEvent<'a> {
+    /// A trial begins.
+    Start,
+    /// The trial's next frame (one value per taxel).
+    Frame(&'a [f64]),
+    /// The trial ends.
+    End,
+}
+
+/// Cuts a stream of frames into trials (see the module docs). Holds at most
+/// `max(N_in, N_out)` frames, whatever the stream's length.
+#[derive(Clone, Debug)]
+pub struct Segmenter {
+    plan: SegmentPlan,
+    in_trial: bool,
+    /// Frames of a run that has not yet decided (contact) or the frames of
+    /// the open trial so far (fixed: only counted).
+    held: Vec<Vec<f64>>,
+    count: usize,
+}
+
+impl Segmenter {
+    /// A segmenter following `plan`.
+    pub fn new(plan: SegmentPlan) -> Self {
+        Segmenter {
+            plan,
+            in_trial: false,
+            held: Vec::new(),
+            count: 0,
+        }
+    }
+
+    /// Whether a trial is open.
+    pub fn in_trial(&self) -> bool {
+        self.in_trial
+    }
+
+    /// Frames held back, waiting for a run to decide.
+    pub fn held(&self) -> usize {
+        self.held.len()
+    }
+
+    /// Takes the next frame; `on` gets what it completes.
+    pub fn push<E>(
+        &mut self,
+        frame: &[f64],
+        on: &mut impl FnMut(SegEvent<'_>) -> Result<(), E>,
+    ) -> Result<(), E> {
+        match self.plan {
+            SegmentPlan::Fixed(w) => {
+                if !self.in_trial {
+                    on(SegEvent::Start)?;
+                    self.in_trial = true;
+                    self.count = 0;
+                }
+                on(SegEvent::Frame(frame))?;
+                self.count += 1;
+                if self.count >= w {
+                    self.in_trial = false;
+                    on(SegEvent::End)?;
+                }
+            }
+            SegmentPlan::Contact {
+                contact,
+                release,
+                enter,
+                exit,
+            } => {
+                let low = frame.iter().copied().fold(f64::INFINITY, f64::min);
+                if !self.in_trial {
+                    if low <= contact {
+                        self.held.push(frame.to_vec());
+                        if self.held.len() >= enter {
+                            self.in_trial = true;
+                            on(SegEvent::Start)?;
+                            for f in std::mem::take(&mut self.held) {
+                                on(SegEvent::Frame(&f))?;
+                            }
+                        }
+                    } else {
+                        self.held.clear();
+                    }
+                } else if low >= release {
+                    self.held.push(frame.to_vec());
+                    if self.held.len() >= exit {
+                        self.held.clear();
+                        self.in_trial = false;
+                        on(SegEvent::End)?;
+                    }
+                } else {
+                    for f in std::mem::take(&mut self.held) {
+                        on(SegEvent::Frame(&f))?;
+                    }
+                    on(SegEvent::Frame(frame))?;
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// The stream ended: closes an open trial (with its held frames).
+    pub fn finish<E>(&mut self, on: &mut impl FnMut(SegEvent<'_>) -> Result<(), E>) -> Result<(), E> {
+        let held = std::mem::take(&mut self.held);
+        if self.in_trial {
+            for f in held {
+                on(SegEvent::Frame(&f))?;
+            }
+            self.in_trial = false;
+            on(SegEvent::End)?;
+        }
+        Ok(())
+    }
+}
+
+/// A checked [`DaqConfig`].
+#[derive(Clone)]
+struct Checked {
+    input: Input,
+    baud: u32,
+    layout: TaxelLayout,
+    fs: f64,
+    scale: f64,
+    offset: f64,
+    unit: String,
+    plan: SegmentPlan,
+    gap_frames: usize,
+    open_v: f64,
+    speed: f64,
+    record: Option<PathBuf>,
+    seconds: Option<f64>,
+    max_gap: u64,
+    stall: Duration,
+    give_up: Duration,
+}
+
+impl DaqConfig {
+    /// Checks every key, naming each bad one (all at once).
+    fn check(&self, ctx: &BuildContext) -> Result<Checked, ConfigError> {
+        let mut c = ConfigChecks::new();
+        let layout = c.take(self.layout.to_layout("layout"));
+        let fs = c.take(check_range("sample_rate_hz", self.sample_rate_hz, 1.0, 1e6, "Hz"));
+        let scale = c.take(check_range(
+            "scale",
+            self.scale,
+            -1e12,
+            1e12,
+            "DAQ units per count",
+        ));
+        if self.scale == 0.0 {
+            c.push(ConfigError::key("scale", "must not be 0"));
+        }
+        let offset = c.take(check_range("offset", self.offset, -1e12, 1e12, "DAQ units"));
+        let speed = c.take(check_range("speed", self.speed, 0.0, 1e6, "x real time"));
+        let gap_ms = c.take(check_range("gap_ms", self.gap_ms, 0.0, 3.6e6, "ms"));
+        let open_v = c.take(check_range("open_v", self.open_v, -1e12, 1e12, "DAQ units"));
+        let contact = c.take(check_range("contact_v", self.contact_v, -1e12, 1e12, "DAQ units"));
+        let release = c.take(check_range("release_v", self.release_v, -1e12, 1e12, "DAQ units"));
+        if let (Some(a), Some(b)) = (contact, release) {
+            if b <= a {
+                c.push(ConfigError::key(
+                    "release_v",
+                    format!("must lie above contact_v = {a} (the hysteresis), got {b}"),
+                ));
+            }
+        }
+        let enter_ms = c.take(check_range("enter_ms", self.enter_ms, 0.0, 3.6e6, "ms"));
+        let exit_ms = c.take(check_range("exit_ms", self.exit_ms, 0.0, 3.6e6, "ms"));
+        let window_ms = match (self.segment, self.window_ms) {
+            (SegmentMode::Fixed, None) => {
+                c.push(ConfigError::key(
+                    "window_ms",
+                    "required with segment = \"fixed\": the length of each trial, ms",
+                ));
+                None
+            }
+            (_, Some(w)) => c.take(check_positive("window_ms", w, "ms")),
+            (SegmentMode::Contact, None) => Some(0.0),
+        };
+        let max_gap_ms = c.take(check_range("max_gap_ms", self.max_gap_ms, 0.0, 3.6e6, "ms"));
+        let stall_ms = c.take(check_positive("stall_ms", self.stall_ms, "ms"));
+        let give_up_ms = c.take(check_positive("give_up_ms", self.give_up_ms, "ms"));
+        if let Some(s) = self.seconds {
+            c.take(check_positive("seconds", s, "s"));
+        }
+        if self.angles.is_some() && self.scene.is_none() {
+            c.push(ConfigError::key(
+                "angles",
+                "only with `scene` (the angles to emulate)",
+            ));
+        }
+        let input = match (&self.port, &self.recording, &self.scene) {
+            (Some(p), _, _) => Some(Input::Port(p.clone())),
+            (None, Some(r), _) => Some(Input::Recording(ctx.base_dir.join(r))),
+            (None, None, Some(file)) => {
+                let scene = SceneConfig {
+                    file: Some(file.clone()),
+                    angles: self.angles.clone().map(crate::scene::config::Angles::List),
+                    trials_per_angle: self.trials_per_angle,
+                    ..SceneConfig::default()
+                };
+                match c.take(scene.build(ctx).map_err(|e| e.within("scene"))) {
+                    Some(Stage::Source(src)) => Some(Input::Scene(Arc::from(src))),
+                    _ => None,
+                }
+            }
+            (None, None, None) => {
+                c.push(ConfigError::general(
+                    "give one of `port` (a serial device), `recording` (a raw DAQ file) or `scene` (a scene file to emulate)",
+                ));
+                None
+            }
+        };
+        c.finish()?;
+        let (
+            Some(input),
+            Some(layout),
+            Some(fs),
+            Some(scale),
+            Some(offset),
+            Some(speed),
+            Some(gap_ms),
+            Some(open_v),
+            Some(contact),
+            Some(release),
+            Some(enter_ms),
+            Some(exit_ms),
+            Some(window_ms),
+            Some(max_gap_ms),
+            Some(stall_ms),
+            Some(give_up_ms),
+        ) = (
+            input, layout, fs, scale, offset, speed, gap_ms, open_v, contact, release, enter_ms, exit_ms,
+            window_ms, max_gap_ms, stall_ms, give_up_ms,
+        )
+        else {
+            return Err(ConfigError::general("invalid daq config"));
+        };
+        let frames = |ms: f64| ((ms * fs / 1000.0).round() as usize).max(1);
+        let plan = match self.segment {
+            SegmentMode::Contact => SegmentPlan::Contact {
+                contact,
+                release,
+                enter: frames(enter_ms),
+                exit: frames(exit_ms),
+            },
+            SegmentMode::Fixed => SegmentPlan::Fixed(frames(window_ms)),
+        };
+        Ok(Checked {
+            input,
+            baud: self.baud,
+            layout,
+            fs,
+            scale,
+            offset,
+            unit: self.unit.clone(),
+            plan,
+            gap_frames: (gap_ms * fs / 1000.0).round() as usize,
+            open_v,
+            speed,
+            record: self.record.as_ref().map(|r| ctx.out_dir.join(r)),
+            seconds: self.seconds,
+            max_gap: (max_gap_ms * fs / 1000.0).floor() as u64,
+            stall: Duration::from_secs_f64(stall_ms / 1000.0),
+            give_up: Duration::from_secs_f64(give_up_ms / 1000.0),
+        })
+    }
+}
+
+#[typetag::serde(name = "daq")]
+impl StageConfig for DaqConfig {
+    fn inputs(&self) -> InputSpec {
+        InputSpec::none()
+    }
+    fn output(&self) -> Option<PayloadKind> {
+        Some(PayloadKind::Signals)
+    }
+    fn build(&self, ctx: &BuildContext) -> Result<Stage, ConfigError> {
+        Ok(Stage::Source(Box::new(DaqSource::new(self, ctx)?)))
+    }
+}
+register_stage!("daq", DaqConfig);
+
+/// Every trial of a stream acquired offline, or why not.
+type Acquired = Result<Vec<(TrialMeta, Arc<Signals>)>, String>;
+
+/// The runtime `daq` source (offline and live).
+pub struct DaqSource {
+    c: Checked,
+    stage_id: String,
+    seed: u64,
+    /// Offline: every trial, acquired once.
+    trials: OnceLock<Acquired>,
+}
+
+impl DaqSource {
+    /// Checks the config and builds the source (nothing is opened yet).
+    pub fn new(cfg: &DaqConfig, ctx: &BuildContext) -> Result<Self, ConfigError> {
+        Ok(DaqSource {
+            c: cfg.check(ctx)?,
+            stage_id: ctx.stage_id.clone(),
+            seed: ctx.seed,
+            trials: OnceLock::new(),
+        })
+    }
+
+    fn error(&self, message: impl Into<String>) -> RunError {
+        RunError {
+            stage: self.stage_id.clone(),
+            trial: None,
+            message: message.into(),
+        }
+    }
+
+    /// The scene's trials, for labels (none for a board or a recording).
+    fn scene_metas(&self) -> Result<Vec<TrialMeta>, RunError> {
+        match &self.c.input {
+            Input::Scene(src) => src.trials().map_err(|e| self.error(e.message)),
+            _ => Ok(Vec::new()),
+        }
+    }
+
+    /// A one-frame block of signals.
+    fn block(&self, frame: &[f64]) -> Payload {
+        Signals {
+            sample_rate_hz: self.c.fs,
+            layout: self.c.layout.clone(),
+            unit: self.c.unit.clone(),
+            data: frame.iter().map(|&v| vec![v]).collect(),
+        }
+        .into()
+    }
+
+    /// Acquires the stream to its end, cut into trials: `on` gets every
+    /// trial's start (with its metadata), frames and end, in order.
+    pub fn run(&self, on: &mut dyn FnMut(SourceEvent) -> Result<(), RunError>) -> Result<(), RunError> {
+        let player_metas = self.scene_metas()?;
+        // Only contact segments are the scene's trials (fixed windows are not).
+        let metas = match self.c.plan {
+            SegmentPlan::Contact { .. } => player_metas.clone(),
+            SegmentPlan::Fixed(_) => Vec::new(),
+        };
+        let n = self.c.layout.len();
+        let opts = AcquireOptions {
+            channels: Some(n),
+            scale: self.c.scale,
+            offset: self.c.offset,
+            record: self.c.record.clone(),
+            stall_timeout: self.c.stall,
+            give_up_after: Some(self.c.give_up),
+            max_duration: self.c.seconds.map(Duration::from_secs_f64),
+            ..AcquireOptions::default()
+        };
+        let mut seg = Segmenter::new(self.c.plan);
+        let mut trial = 0usize;
+        let mut last: Option<Vec<f64>> = None;
+        let mut fail: Option<RunError> = None;
+        let mut frames = 0u64;
+        let stage = self.stage_id.clone();
+        let mut on_seg = |ev: SegEvent<'_>| -> Result<(), RunError> {
+            match ev {
+                SegEvent::Start => {
+                    let meta = metas.get(trial).cloned().unwrap_or_else(|| TrialMeta {
+                        trial_id: format!("{stage}-{trial:04}"),
+                        group: trial,
+                        ..TrialMeta::default()
+                    });
+                    trial += 1;
+                    on(SourceEvent::Start(meta))
+                }
+                SegEvent::Frame(f) => on(SourceEvent::Block(self.block(f))),
+                SegEvent::End => on(SourceEvent::End),
+            }
+        };
+        let mut handle = |ev: DaqEvent<'_>| -> Result<(), RunError> {
+            match ev {
+                DaqEvent::Frame(f) => {
+                    if let Some(ch) = f.samples.iter().position(|v| !v.is_finite()) {
+                        return Err(self.error(format!(
+                            "frame {} (sequence {}), channel {ch}: sample {} is not finite",
+                            frames, f.seq, f.samples[ch]
+                        )));
+                    }
+                    frames += 1;
+                    seg.push(&f.samples, &mut on_seg)?;
+                    match last.as_mut() {
+                        Some(l) => l.copy_from_slice(&f.samples),
+                        None => last = Some(f.samples.clone()),
+                    }
+                }
+                DaqEvent::Lost { expected, got, count } => {
+                    if count > self.c.max_gap {
+                        return Err(self.error(format!(
+                            "{count} frames lost in one gap (sequence {expected} due, {got} received), \
+                             more than `max_gap_ms`"
+                        )));
+                    }
+                    eprintln!(
+                        "daq `{}`: {count} frames lost (sequence {expected} due, {got} received); held the previous frame",
+                        self.stage_id
+                    );
+                    if let Some(l) = last.clone() {
+                        for _ in 0..count {
+                            seg.push(&l, &mut on_seg)?;
+                        }
+                    }
+                }
+                DaqEvent::CrcError => {
+                    eprintln!("daq `{}`: a frame failed its CRC and was dropped", self.stage_id)
+                }
+                DaqEvent::OutOfOrder => {
+                    eprintln!("daq `{}`: a frame from the past (device reset?)", self.stage_id)
+                }
+                DaqEvent::Stall { silent } => eprintln!(
+                    "daq `{}`: no frame for {:.1} s",
+                    self.stage_id,
+                    silent.as_secs_f64()
+                ),
+            }
+            Ok(())
+        };
+        let mut callback = |ev: DaqEvent<'_>| match handle(ev) {
+            Ok(()) => ControlFlow::Continue(()),
+            Err(e) => {
+                fail = Some(e);
+                ControlFlow::Break(())
+            }
+        };
+        let result = match &self.c.input {
+            Input::Recording(path) => {
+                let file = std::fs::File::open(path)
+                    .map_err(|e| self.error(format!("cannot read {}: {e}", path.display())))?;
+                acquire(file, &opts, &mut callback).map(|_| ())
+            }
+            Input::Port(port) => {
+                let dev = open_serial(port, self.c.baud).map_err(|e| self.error(e.message))?;
+                let played = |frames: u64| {
+                    eprintln!(
+                        "{port}: end of playback after {}",
+                        super::protocol::count(frames, "frame", "frames")
+                    )
+                };
+                match acquire(dev, &opts, &mut callback) {
+                    // A pseudo-terminal's emulator hangs up after its last frame: the end.
+                    Err(e)
+                        if e.kind == DaqErrorKind::Disconnected
+                            && is_pseudo_terminal(port)
+                            && e.stats.frames > 0 =>
+                    {
+                        played(e.stats.frames);
+                        Ok(())
+                    }
+                    Ok(r) if r.stopped == StopReason::EndOfStream && is_pseudo_terminal(port) => {
+                        played(r.stats.frames);
+                        Ok(())
+                    }
+                    Ok(r) if r.stopped == StopReason::EndOfStream && !is_pseudo_terminal(port) => {
+                        Err(super::DaqError {
+                            kind: DaqErrorKind::Disconnected,
+                            message: format!(
+                                "serial port {port} closed after {} frames ({})",
+                                r.stats.frames, r.stats
+                            ),
+                            stats: r.stats,
+                            recorded_bytes: r.recorded_bytes,
+                        })
+                    }
+                    r => r.map(|_| ()),
+                }
+            }
+            Input::Scene(src) => {
+                let (tx, rx) = mpsc::sync_channel::<Vec<u8>>(64);
+                let player = self.spawn_emulator(src.clone(), player_metas, tx);
+                let r = acquire(
+                    ChanReader {
+                        rx,
+                        buf: Vec::new(),
+                        pos: 0,
+                    },
+                    &opts,
+                    &mut callback,
+                );
+                // The player ends once the reader is gone; its error explains a short stream.
+                if let (Ok(Err(e)), Ok(rep)) = (player.join(), &r) {
+                    if fail.is_none() && rep.stopped == StopReason::EndOfStream {
+                        return Err(self.error(format!("emulator: {e}")));
+                    }
+                }
+                r.map(|_| ())
+            }
+        };
+        if let Some(e) = fail {
+            return Err(e);
+        }
+        result.map_err(|e| self.error(e.message))?;
+        seg.finish(&mut on_seg)
+    }
+
+    /// Plays the scene's trials as frames into `tx`, `gap_ms` at `open_v` after each.
+    fn spawn_emulator(
+        &self,
+        src: Arc<dyn Source>,
+        metas: Vec<TrialMeta>,
+        tx: mpsc::SyncSender<Vec<u8>>,
+    ) -> std::thread::JoinHandle<Result<(), String>> {
+        let (stage, seed, c) = (self.stage_id.clone(), self.seed, self.c.clone());
+        std::thread::spawn(move || {
+            let mut out = ChanWriter(tx);
+            let mut first_seq = 0u32;
+            for meta in &metas {
+                let ctx = TrialContext {
+                    stage_id: &stage,
+                    meta,
+                    seed: derive_seed(seed, &[&stage, &meta.trial_id]),
+                };
+                let mut s = match src.produce(&ctx).map_err(|e| e.message)? {
+                    Payload::Signals(s) => Arc::unwrap_or_clone(s),
+                    _ => return Err("the scene gave no signals".into()),
+                };
+                if s.sample_rate_hz != c.fs {
+                    return Err(format!(
+                        "the scene samples at {} Hz, key `sample_rate_hz` = {} Hz",
+                        s.sample_rate_hz, c.fs
+                    ));
+                }
+                if s.layout.len() != c.layout.len() {
+                    return Err(format!(
+                        "the scene's array has {} taxels, key `layout` {}",
+                        s.layout.len(),
+                        c.layout.len()
+                    ));
+                }
+                for col in s.data.iter_mut() {
+                    col.extend(std::iter::repeat_n(c.open_v, c.gap_frames));
+                }
+                let opts = EmulateOptions {
+                    speed: if c.speed > 0.0 { c.speed } else { f64::INFINITY },
+                    scale: c.scale,
+                    offset: c.offset,
+                    first_seq,
+                    ..EmulateOptions::default()
+                };
+                let r = super::emulate(&s, &mut out, &opts)?;
+                first_seq = first_seq.wrapping_add(r.frames as u32);
+            }
+            Ok(())
+        })
+    }
+}
+
+/// True for a pseudo-terminal's device side (`/dev/pts/N`, BSD `/dev/ttyp*`):
+/// an emulator, not a board, is on the other end, and its hang-up ends the stream.
+pub fn is_pseudo_terminal(port: &str) -> bool {
+    port.starts_with("/dev/pts/") || port.starts_with("/dev/ttyp")
+}
+
+/// The emulator's end of an in-process byte pipe.
+struct ChanWriter(mpsc::SyncSender<Vec<u8>>);
+
+impl Write for ChanWriter {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        self.0
+            .send(buf.to_vec())
+            .map_err(|_| std::io::Error::new(std::io::ErrorKind::BrokenPipe, "the reader stopped"))?;
+        Ok(buf.len())
+    }
+    fn flush(&mut self) -> std::io::Result<()> {
+        Ok(())
+    }
+}
+
+/// The acquisition's end of the pipe: end of stream once the emulator is done.
+struct ChanReader {
+    rx: mpsc::Receiver<Vec<u8>>,
+    buf: Vec<u8>,
+    pos: usize,
+}
+
+impl Read for ChanReader {
+    fn read(&mut self, out: &mut [u8]) -> std::io::Result<usize> {
+        if self.pos == self.buf.len() {
+            match self.rx.recv() {
+                Ok(b) => {
+                    self.buf = b;
+                    self.pos = 0;
+                }
+                Err(_) => return Ok(0),
+            }
+        }
+        let n = out.len().min(self.buf.len() - self.pos);
+        out[..n].copy_from_slice(&self.buf[self.pos..self.pos + n]);
+        self.pos += n;
+        Ok(n)
+    }
+}
+
+impl Source for DaqSource {
+    fn trials(&self) -> Result<Vec<TrialMeta>, StageError> {
+        let all = self.trials.get_or_init(|| {
+            let mut out: Vec<(TrialMeta, Vec<Vec<f64>>)> = Vec::new();
+            let n = self.c.layout.len();
+            self.run(&mut |ev| {
+                match ev {
+                    SourceEvent::Start(m) => out.push((m, vec![Vec::new(); n])),
+                    SourceEvent::Block(b) => {
+                        if let (Some((_, data)), Ok(s)) = (out.last_mut(), b.signals()) {
+                            for (d, x) in data.iter_mut().zip(&s.data) {
+                                d.extend_from_slice(x);
+                            }
+                        }
+                    }
+                    SourceEvent::End => {}
+                }
+                Ok(())
+            })
+            .map_err(|e| e.message)?;
+            Ok(out
+                .into_iter()
+                .map(|(m, data)| {
+                    let s = Signals {
+                        sample_rate_hz: self.c.fs,
+                        layout: self.c.layout.clone(),
+                        unit: self.c.unit.clone(),
+                        data,
+                    };
+                    (m, Arc::new(s))
+                })
+                .collect())
+        });
+        match all {
+            Ok(t) if t.is_empty() => Err(StageError::new(format!(
+                "daq `{}`: the stream held no trial (no contact: is `contact_v` right for the board?)",
+                self.stage_id
+            ))),
+            Ok(t) => Ok(t.iter().map(|(m, _)| m.clone()).collect()),
+            Err(e) => Err(StageError::new(format!("daq `{}`: {e}", self.stage_id))),
+        }
+    }
+
+    fn live(&self) -> Option<&dyn LiveSource> {
+        Some(self)
+    }
+
+    fn produce(&self, ctx: &TrialContext<'_>) -> Result<Payload, StageError> {
+        let Some(Ok(all)) = self.trials.get() else {
+            return Err(StageError::new(
+                "daq: trials() was not called first (internal error)",
+            ));
+        };
+        all.iter()
+            .find(|(m, _)| m.trial_id == ctx.meta.trial_id)
+            .map(|(_, s)| Payload::Signals(s.clone()))
+            .ok_or_else(|| StageError::new(format!("daq: no trial `{}`", ctx.meta.trial_id)))
+    }
+}
+
+impl LiveSource for DaqSource {
+    fn stream(&self, on: &mut dyn FnMut(SourceEvent) -> Result<(), RunError>) -> Result<(), RunError> {
+        self.run(on)
+    }
+}
+
+/// Simulates one trial of a scene file at `angle_deg`: exactly the trial
+/// `r00` at that angle of a graph with `[run] seed = <seed>` and a stage
+/// `[stages.scene] type = "scene", file = <scene_file>` (the same seeds), for
+/// `palpate daq emulate` to play through a pseudo-terminal.
+pub fn simulate_trial(
+    scene_file: &std::path::Path,
+    angle_deg: f64,
+    seed: u64,
+) -> Result<Signals, StageError> {
+    use crate::scene::{config::Angles, trial_id, Simulator};
+    let config = SceneConfig {
+        file: Some(scene_file.to_path_buf()),
+        angles: Some(Angles::List(vec![angle_deg])),
+        trials_per_angle: Some(1),
+        ..SceneConfig::default()
+    };
+    let ctx = BuildContext {
+        stage_id: "scene".into(),
+        seed,
+        out_dir: PathBuf::from("."),
+        base_dir: PathBuf::from("."),
+    };
+    let scene = config
+        .resolve(&ctx)
+        .map_err(|e| StageError::new(format!("scene file {}: {e}", scene_file.display())))?;
+    let stimulus = scene.stimulus;
+    let sim = Simulator::new(scene, derive_seed(seed, &["scene", "array"]))
+        .map_err(|e| StageError::new(format!("scene file {}: {e}", scene_file.display())))?;
+    let id = trial_id(stimulus, angle_deg, 0);
+    sim.simulate(angle_deg, derive_seed(seed, &["scene", &id]))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn cut(plan: SegmentPlan, lows: &[f64]) -> Vec<String> {
+        let mut seg = Segmenter::new(plan);
+        let mut out = Vec::new();
+        let mut on = |e: SegEvent<'_>| -> Result<(), ()> {
+            out.push(match e {
+                SegEvent::Start => "S".to_string(),
+                SegEvent::Frame(f) => format!("{}", f[1]),
+                SegEvent::End => "E".to_string(),
+            });
+            Ok(())
+        };
+        for &v in lows {
+            // Taxel 0 is dead (open circuit, high); taxel 1 carries the contact.
+            seg.push(&[3.3, v], &mut on).unwrap();
+            assert!(seg.held() <= 3);
+        }
+        seg.finish(&mut on).unwrap();
+        out
+    }
+
+    #[test]
+    fn contact_needs_its_run_and_release_its_own_with_hysteresis() {
+        let plan = SegmentPlan::Contact {
+            contact: 3.0,
+            release: 3.2,
+            enter: 2,
+            exit: 3,
+        };
+        // A single low frame is noise; two begin a trial (both inside it).
+        // 3.1 lies between the thresholds: still contact. Two high frames
+        // then a low one: a dip, kept in the trial; three high frames end it.
+        let got = cut(
+            plan,
+            &[3.3, 2.0, 3.3, 2.0, 1.5, 3.1, 3.25, 3.3, 1.7, 3.3, 3.3, 3.3, 3.3],
+        );
+        assert_eq!(got, ["S", "2", "1.5", "3.1", "3.25", "3.3", "1.7", "E"]);
+        // A trial open at the stream's end ends there, with its held frames.
+        let got = cut(plan, &[2.0, 2.0, 3.3]);
+        assert_eq!(got, ["S", "2", "2", "3.3", "E"]);
+    }
+
+    #[test]
+    fn fixed_windows_cut_every_w_frames() {
+        let got = cut(SegmentPlan::Fixed(2), &[1.0, 2.0, 3.0, 4.0, 5.0]);
+        assert_eq!(got, ["S", "1", "2", "E", "S", "3", "4", "E", "S", "5", "E"]);
+    }
+
+    #[test]
+    fn bad_keys_are_named() {
+        let ctx = BuildContext {
+            stage_id: "daq".into(),
+            seed: 0,
+            out_dir: std::env::temp_dir(),
+            base_dir: std::env::temp_dir(),
+        };
+        let e = DaqConfig::default().build(&ctx).err().unwrap().to_string();
+        assert!(e.contains("`port`") && e.contains("`scene`"), "{e}");
+        let cfg = DaqConfig {
+            port: Some("/dev/null".into()),
+            release_v: 2.0,
+            segment: SegmentMode::Fixed,
+            sample_rate_hz: -1.0,
+            ..DaqConfig::default()
+        };
+        let e = cfg.build(&ctx).err().unwrap().to_string();
+        for key in ["release_v", "window_ms", "sample_rate_hz"] {
+            assert!(e.contains(key), "{key}: {e}");
+        }
+    }
+}

@@ -1,0 +1,294 @@
+//! The live path end to end: the `daq` source stage reading frames that an
+//! emulator writes into a pseudo-terminal, streamed through a graph
+//! (`palpate_core::stream::replay`, what `palpate run --live` runs) with (a)
+//! Izhikevich + WSS and (b) LIF + WSS; a corrupted raw recording read
+//! offline; an emulated scene's trials cut at contact; bad settings.
+//!
+//! TODO(lead): (c) a trained ANN estimator through the same pseudo-terminal
+//! path, once its streaming form exists.
+
+use palpate_core::stream::{self, LiveUpdate};
+use palpate_core::{LoadOptions, RunOptions, Signals};
+use palpate_stages::io::daq::{emulate_pty, encode_frame, simulate_trial, EmulateOptions, SampleFormat};
+use std::path::{Path, PathBuf};
+
+const ANGLE: f64 = 60.0;
+
+fn root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
+}
+
+fn lab_scene() -> PathBuf {
+    root().join("graphs/scenes/lab.toml")
+}
+
+/// The lab scene's 60-degree trial (seed 3), as a board would stream it.
+fn trial() -> Signals {
+    simulate_trial(&lab_scene(), ANGLE, 3).unwrap()
+}
+
+/// A live graph: `source` keys for the `daq` stage, then the causal chain of
+/// graphs/live.toml with `encoder` (a stage table's keys) and WSS.
+fn graph(source: &str, encoder: &str) -> palpate_core::Graph {
+    palpate_stages::link();
+    let text = format!(
+        r#"
+[run]
+seed = 1
+
+[stages.daq]
+type = "daq"
+{source}
+
+[stages.filter]
+type = "lowpass"
+inputs = ["daq"]
+mode = "causal"
+cutoff_hz = 10.0
+
+[stages.norm]
+type = "normalize"
+inputs = ["filter"]
+mode = "causal"
+baseline_ms = 500.0
+span = 1.55
+
+[stages.drive]
+type = "drive"
+inputs = ["norm"]
+kind = "fa_i"
+gain = 30.0
+
+[stages.enc]
+inputs = ["drive"]
+{encoder}
+
+[stages.bins]
+type = "bin"
+inputs = ["enc"]
+
+[stages.wss]
+type = "wss"
+inputs = ["bins"]
+weighting = "one_minus_sr"
+sigma_mm = 1.0
+threshold = 0.1
+"#
+    );
+    let opts = LoadOptions {
+        out: Some(std::env::temp_dir().join("palpate-live-daq")),
+        base_dir: Some(root().join("graphs")),
+        ..LoadOptions::default()
+    };
+    palpate_core::load_str(&text, "live_daq.toml", "live_daq", &opts).unwrap_or_else(|e| panic!("{e}"))
+}
+
+const IZHIKEVICH: &str = "type = \"izhikevich\"\npreset = \"fa_i\"\ninput = \"hold\"";
+const LIF: &str = "type = \"lif\"";
+
+/// Streams `g` live; every update, in order.
+fn live(g: &palpate_core::Graph) -> Vec<LiveUpdate> {
+    let plan = stream::plan(g).unwrap_or_else(|p| panic!("{p:?}"));
+    let mut updates = Vec::new();
+    stream::replay(g, &plan, 1, |u| updates.push(u.clone())).unwrap_or_else(|e| panic!("{e}"));
+    updates
+}
+
+/// Plays `sig` into a pseudo-terminal as fast as the graph reads, streams a
+/// graph whose `daq` source reads that port, and checks the answer.
+fn through_a_pty(encoder: &str) -> Vec<LiveUpdate> {
+    let sig = trial();
+    let n = sig.n_samples() as u64;
+    let (tx, rx) = std::sync::mpsc::channel();
+    let play = sig.clone();
+    let player = std::thread::spawn(move || {
+        let opts = EmulateOptions {
+            speed: f64::INFINITY,
+            ..Default::default()
+        };
+        emulate_pty(&play, &opts, move |path| tx.send(path.to_string()).unwrap())
+    });
+    let port = rx.recv().unwrap();
+    let g = graph(&format!("port = \"{port}\""), encoder);
+    let updates = live(&g);
+    assert_eq!(player.join().unwrap().unwrap().frames, n);
+    // One trial (the stream is one contact), the whole of it streamed.
+    let last = updates.last().expect("an estimate");
+    assert!(last.last, "the final estimate comes last");
+    assert_eq!(last.trial_id, "daq-0000");
+    assert!(updates.iter().all(|u| u.trial_id == "daq-0000"));
+    assert!(
+        (last.t_ms - sig.duration_ms()).abs() < 1e-6,
+        "{} ms streamed of {} ms",
+        last.t_ms,
+        sig.duration_ms()
+    );
+    // The estimate changed as the frames came, before the end.
+    let running: Vec<&LiveUpdate> = updates.iter().filter(|u| !u.last).collect();
+    assert!(!running.is_empty());
+    assert!(running.windows(2).all(|w| w[0].t_ms <= w[1].t_ms));
+    assert!(running.iter().any(|u| u.t_ms < last.t_ms));
+    updates
+}
+
+#[test]
+fn izhikevich_and_wss_through_a_pseudo_terminal() {
+    let updates = through_a_pty(IZHIKEVICH);
+    assert_eq!(updates.last().unwrap().estimate.angle_deg, Some(ANGLE));
+}
+
+#[test]
+fn lif_and_wss_through_a_pseudo_terminal() {
+    let updates = through_a_pty(LIF);
+    let e = &updates.last().unwrap().estimate;
+    let a = e.angle_deg.expect("an edge");
+    assert!((a - ANGLE).abs() <= 5.0, "LIF + WSS answered {a} deg");
+}
+
+/// Offline and live, a recording with corrupted frames: a flipped byte (a
+/// CRC error, so one frame lost), two frames dropped and garbage between
+/// frames. Lost frames are held, so the trial keeps its length, and the
+/// answer is the clean stream's.
+#[test]
+fn a_corrupted_recording_is_held_over_and_still_estimated() {
+    let sig = trial();
+    let n = sig.n_samples();
+    let mut bytes = Vec::new();
+    let mut frame = vec![0.0; sig.data.len()];
+    for k in 0..n {
+        if k == 3000 || k == 3001 {
+            continue;
+        }
+        for (f, xs) in frame.iter_mut().zip(&sig.data) {
+            *f = xs[k];
+        }
+        let start = bytes.len();
+        encode_frame(&mut bytes, SampleFormat::F32, k as u32, k as u64 * 1000, &frame);
+        if k == 5000 {
+            bytes[start + 30] ^= 0x40;
+        }
+        if k == 7000 {
+            bytes.extend_from_slice(b"noise\xAA\x55 noise");
+        }
+    }
+    let dir = std::env::temp_dir().join("palpate-live-daq");
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join("corrupt.daq");
+    std::fs::write(&path, &bytes).unwrap();
+    let g = graph(
+        &format!("recording = {:?}", path.display().to_string()),
+        IZHIKEVICH,
+    );
+    let updates = live(&g);
+    let last = updates.last().unwrap();
+    assert_eq!(last.estimate.angle_deg, Some(ANGLE));
+    assert!((last.t_ms - sig.duration_ms()).abs() < 1e-6, "{}", last.t_ms);
+    // Offline, the same trial.
+    let out = palpate_core::run(
+        &g,
+        &RunOptions {
+            keep_outputs: true,
+            ..RunOptions::default()
+        },
+    )
+    .unwrap();
+    let s = out.outputs["daq"][0].payload.signals().unwrap().clone();
+    assert_eq!(s.n_samples(), n);
+    // Held: the dropped frames repeat frame 2999, the corrupted one 4999.
+    assert_eq!(s.data[5][3000], s.data[5][2999]);
+    assert_eq!(s.data[5][5000], s.data[5][4999]);
+    assert_eq!(s.data[5][4000], sig.data[5][4000] as f32 as f64);
+    let e = out.outputs["wss"][0].payload.estimate().unwrap().clone();
+    assert_eq!(e.angle_deg, Some(ANGLE));
+}
+
+/// An emulated scene is cut at contact into exactly its trials (the gaps
+/// between them read open), each equal to the scene's trial to f32 (the
+/// frames' format) and carrying its label; `fixed` windows cut the same
+/// stream every `window_ms`.
+#[test]
+fn an_emulated_scene_is_cut_into_its_trials() {
+    let keys = "scene = \"scenes/lab.toml\"\nangles = [30.0, 75.0]\ntrials_per_angle = 1";
+    let g = graph(keys, IZHIKEVICH);
+    let opts = RunOptions {
+        keep_outputs: true,
+        ..RunOptions::default()
+    };
+    let out = palpate_core::run(&g, &opts).unwrap();
+    let daq = &out.outputs["daq"];
+    assert_eq!(daq.len(), 2);
+    // The same trials from the scene itself (same stage id, so same seeds).
+    let scene_text = format!(
+        "[run]\nseed = 1\n[stages.daq]\ntype = \"scene\"\nfile = {:?}\nangles = [30.0, 75.0]\ntrials_per_angle = 1\n[stages.w]\ntype = \"write_signals\"\ninputs = [\"daq\"]\n",
+        lab_scene().display().to_string()
+    );
+    let sg = palpate_core::load_str(
+        &scene_text,
+        "scene.toml",
+        "scene",
+        &LoadOptions {
+            out: Some(std::env::temp_dir().join("palpate-live-daq-scene")),
+            ..LoadOptions::default()
+        },
+    )
+    .unwrap();
+    let want = palpate_core::run(&sg, &opts).unwrap();
+    for (got, want) in daq.iter().zip(want.outputs["daq"].iter()) {
+        assert_eq!(got.meta.trial_id, want.meta.trial_id);
+        assert_eq!(got.meta.label.angle_deg, want.meta.label.angle_deg);
+        let (a, b) = (got.payload.signals().unwrap(), want.payload.signals().unwrap());
+        assert_eq!(a.n_samples(), b.n_samples(), "{}", got.meta.trial_id);
+        for (x, y) in a.data.iter().zip(&b.data) {
+            assert!(x.iter().zip(y).all(|(x, y)| *x == *y as f32 as f64));
+        }
+    }
+    for (it, want) in out.outputs["wss"].iter().zip([30.0, 75.0]) {
+        assert_eq!(it.payload.estimate().unwrap().angle_deg, Some(want));
+    }
+    // Fixed windows of 5 s over the same stream (two trials and two 1 s gaps).
+    let total: usize = daq
+        .iter()
+        .map(|t| t.payload.signals().unwrap().n_samples() + 1000)
+        .sum();
+    let g = graph(
+        &format!("{keys}\nsegment = \"fixed\"\nwindow_ms = 5000.0"),
+        IZHIKEVICH,
+    );
+    let out = palpate_core::run(&g, &opts).unwrap();
+    let lens: Vec<usize> = out.outputs["daq"]
+        .iter()
+        .map(|t| t.payload.signals().unwrap().n_samples())
+        .collect();
+    assert_eq!(lens.iter().sum::<usize>(), total);
+    assert!(lens[..lens.len() - 1].iter().all(|&l| l == 5000), "{lens:?}");
+    assert_eq!(out.outputs["daq"][1].meta.trial_id, "daq-0001");
+}
+
+#[test]
+fn bad_settings_name_their_key_and_a_missing_port_its_path() {
+    palpate_stages::link();
+    let load = |keys: &str| {
+        let text = format!("[stages.daq]\ntype = \"daq\"\n{keys}\n[stages.w]\ntype = \"write_signals\"\ninputs = [\"daq\"]\n");
+        palpate_core::load_str(&text, "bad.toml", "bad", &LoadOptions::default())
+    };
+    let e = load("port = \"/dev/x\"\nsegment = \"fixed\"")
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("window_ms"), "{e}");
+    let e = load("port = \"/dev/x\"\ncontact_v = 3.0\nrelease_v = 2.0")
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("release_v"), "{e}");
+    let e = load("port = \"/dev/x\"\nbuad = 9600").unwrap_err().to_string();
+    assert!(e.contains("buad"), "{e}");
+    let e = load("").unwrap_err().to_string();
+    assert!(
+        e.contains("`port`") && e.contains("`recording`") && e.contains("`scene`"),
+        "{e}"
+    );
+    let g = load("port = \"/dev/palpate-no-such-port\"").unwrap();
+    let e = palpate_core::run(&g, &RunOptions::default())
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("/dev/palpate-no-such-port"), "{e}");
+}
