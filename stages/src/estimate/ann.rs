@@ -34,6 +34,7 @@
 //! fit is bit-identical for the same seed. Loops run in a fixed order on one
 //! thread (folds run in parallel in the runtime).
 
+use super::dense;
 use super::features::{
     Classifier, FeatureKeys, FittedModel, Standardizer, TrainSet, TrainingLog, Vote, MODEL_FORMAT,
 };
@@ -326,20 +327,22 @@ impl Mlp {
     }
 
     /// [`Self::frame_scores`] of every row of `x` (row-major, `dim` wide) into
-    /// the rows of `out` (`classes` wide), with the working buffers allocated
-    /// once: the same bits as row by row.
+    /// the rows of `out` (`classes` wide): both layers as one tiled product
+    /// each over the whole batch ([`dense::gemm_nt`]), the same bits as
+    /// [`Self::forward`] row by row.
     pub fn scores_batch(&self, x: &[f64], out: &mut [f64]) {
-        let mut z = vec![0.0; self.dim.max(1)];
-        let mut s = self.scratch();
-        for (row, o) in x
-            .chunks_exact(self.dim.max(1))
-            .zip(out.chunks_exact_mut(self.classes.max(1)))
-        {
-            z.copy_from_slice(row);
-            self.scaler.apply(&mut z);
-            self.forward(&z, &mut s);
-            o.copy_from_slice(&s.p);
-        }
+        let (w1, b1, w2, b2) = self.offsets();
+        let p = &self.params;
+        let z = self.scaler.apply_rows(x);
+        let k = self.classes.max(1);
+        let n = (z.len() / self.dim.max(1)).min(out.len() / k);
+        let mut a = vec![0.0; n * self.hidden];
+        dense::gemm_nt(&z[..n * self.dim], &p[w1..b1], self.dim, &mut a);
+        dense::add_bias_map(&mut a, &p[b1..w2], f64::tanh);
+        let out = &mut out[..n * k];
+        dense::gemm_nt(&a, &p[w2..b2], self.hidden, out);
+        dense::add_bias_map(out, &p[b2..], |v| v);
+        out.chunks_exact_mut(k).for_each(softmax);
     }
 
     /// Mean cross-entropy of standardised rows `x` (row-major) with labels `y`,
@@ -485,25 +488,7 @@ impl Mlp {
     }
 }
 
-/// Dot product; written over fixed-width chunks so that it vectorises, with a
-/// fixed summation order (so the same bits on every run).
-pub(crate) fn dot(a: &[f64], b: &[f64]) -> f64 {
-    let mut acc = [0.0f64; 4];
-    let ca = a.chunks_exact(4);
-    let cb = b.chunks_exact(4);
-    let (ra, rb) = (ca.remainder(), cb.remainder());
-    for (x, y) in ca.zip(cb) {
-        acc[0] += x[0] * y[0];
-        acc[1] += x[1] * y[1];
-        acc[2] += x[2] * y[2];
-        acc[3] += x[3] * y[3];
-    }
-    let mut s = (acc[0] + acc[1]) + (acc[2] + acc[3]);
-    for (x, y) in ra.iter().zip(rb) {
-        s += x * y;
-    }
-    s
-}
+pub(crate) use super::dense::dot;
 
 /// In-place softmax, shifted by the maximum so it never overflows.
 pub(crate) fn softmax(z: &mut [f64]) {

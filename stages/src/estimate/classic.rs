@@ -55,11 +55,12 @@
 //! are gathered (and their support vectors pooled) in pair order, so 1 or N
 //! threads give the same bits.
 
-use super::ann::{dot, softmax};
+use super::ann::softmax;
+use super::dense::sq_dist;
 use super::features::{
     Classifier, FeatureKeys, FittedModel, Standardizer, TrainSet, TrainingLog, Vote, MODEL_FORMAT,
 };
-use super::smo;
+use super::{dense, forest, lbfgs, smo};
 use crate::estimate::features::{FitBaseline, TrainedEstimator};
 use palpate_core::{
     check_positive, check_range, register_stage, BuildContext, ConfigChecks, ConfigError, FitContext,
@@ -70,18 +71,11 @@ use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
-use smartcore::ensemble::random_forest_classifier::{
-    RandomForestClassifier, RandomForestClassifierParameters,
-};
-use smartcore::linalg::basic::arrays::Array;
-use smartcore::linalg::basic::matrix::DenseMatrix;
-use smartcore::linear::logistic_regression::{LogisticRegression, LogisticRegressionParameters};
 
-/// Standardised training rows of a fold, as a smartcore matrix with `i32` labels.
+/// Standardised training rows of a fold: one `Vec` per row, and flat (row-major).
 struct Design {
-    x: DenseMatrix<f64>,
     rows: Vec<Vec<f64>>,
-    y: Vec<i32>,
+    flat: Vec<f64>,
 }
 
 fn design(set: &TrainSet, scaler: &Standardizer) -> Result<Design, StageError> {
@@ -93,13 +87,7 @@ fn design(set: &TrainSet, scaler: &Standardizer) -> Result<Design, StageError> {
         flat.extend_from_slice(&r);
         rows.push(r);
     }
-    let x = DenseMatrix::new(set.len(), set.dim, flat, false).map_err(smart_err)?;
-    let y = set.y.iter().map(|&c| c as i32).collect();
-    Ok(Design { x, rows, y })
-}
-
-fn smart_err(e: smartcore::error::Failed) -> StageError {
-    StageError::new(format!("smartcore: {e}"))
+    Ok(Design { rows, flat })
 }
 
 /// Shared fit after the features are built: standardisation on every
@@ -246,7 +234,7 @@ impl OvoSvm {
         // same bits with or without AVX2 (crate::wide).
         crate::wide::with_avx2(|| {
             for (k, s) in out.iter_mut().zip(self.sv.chunks_exact(self.dim.max(1))) {
-                *k = (-gamma * smo::sq_dist(s, x)).exp();
+                *k = (-gamma * sq_dist(s, x)).exp();
             }
         });
     }
@@ -269,34 +257,51 @@ impl OvoSvm {
     /// the rows of `out` (`classes` wide), with the working buffers allocated
     /// once: the same bits as row by row.
     pub fn scores_batch(&self, x: &[f64], out: &mut [f64]) {
+        // Rows per block of kernel rows: the block's distances come from one
+        // tiled call ([`dense::sq_dists`], the bits of `sq_dist`).
+        const QB: usize = 32;
         let dim = self.dim.max(1);
         let k = self.classes;
-        let mut z = vec![0.0; dim];
-        let mut kernel = vec![0.0; self.sv.len() / dim];
+        let n_sv = self.sv.len() / dim;
+        let z = self.scaler.apply_rows(x);
+        let n = (z.len() / dim).min(out.len() / k.max(1));
+        let mut kernels = vec![0.0; QB * n_sv];
         let mut votes = vec![0.0; k];
         let mut conf = vec![0.0; k];
         let norm = 1.0 / (k.max(2) - 1) as f64;
-        for (row, o) in x.chunks_exact(dim).zip(out.chunks_exact_mut(k.max(1))) {
-            z.copy_from_slice(row);
-            self.scaler.apply(&mut z);
-            self.kernel_into(&z, &mut kernel);
-            votes.iter_mut().for_each(|v| *v = 0.0);
-            conf.iter_mut().for_each(|v| *v = 0.0);
-            for m in &self.machines {
-                let f = self.decision(m, &kernel);
-                if f > 0.0 {
-                    votes[m.b] += 1.0;
-                } else {
-                    votes[m.a] += 1.0;
-                }
-                conf[m.b] += f;
-                conf[m.a] -= f;
+        let gamma = self.gamma;
+        for q0 in (0..n).step_by(QB) {
+            let qb = QB.min(n - q0);
+            let kb = &mut kernels[..qb * n_sv];
+            dense::sq_dists(&z[q0 * dim..(q0 + qb) * dim], &self.sv, dim, kb);
+            kb.iter_mut().for_each(|d| *d = (-gamma * *d).exp());
+            for q in 0..qb {
+                let kernel = &kb[q * n_sv..(q + 1) * n_sv];
+                let o = &mut out[(q0 + q) * k..(q0 + q + 1) * k];
+                self.vote_row(kernel, &mut votes, &mut conf, norm, o);
             }
-            let cmax = conf.iter().fold(0.0f64, |a, c| a.max(c.abs()));
-            for c in 0..k {
-                let s = votes[c] + conf[c] / (3.0 * (cmax + 1.0));
-                o[c] = (s * norm).max(0.0);
+        }
+    }
+
+    /// Votes and tie-broken shares of one frame from its kernel row.
+    #[inline]
+    fn vote_row(&self, kernel: &[f64], votes: &mut [f64], conf: &mut [f64], norm: f64, o: &mut [f64]) {
+        votes.iter_mut().for_each(|v| *v = 0.0);
+        conf.iter_mut().for_each(|v| *v = 0.0);
+        for m in &self.machines {
+            let f = self.decision(m, kernel);
+            if f > 0.0 {
+                votes[m.b] += 1.0;
+            } else {
+                votes[m.a] += 1.0;
             }
+            conf[m.b] += f;
+            conf[m.a] -= f;
+        }
+        let cmax = conf.iter().fold(0.0f64, |a, c| a.max(c.abs()));
+        for c in 0..self.classes {
+            let s = votes[c] + conf[c] / (3.0 * (cmax + 1.0));
+            o[c] = (s * norm).max(0.0);
         }
     }
 }
@@ -545,32 +550,47 @@ impl Default for RandomForestConfig {
     }
 }
 
-/// A fitted random forest.
-#[derive(Debug, Serialize, Deserialize)]
+/// A fitted random forest (trees grown by [`forest`]).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Forest {
     /// Number of classes.
     pub classes: usize,
+    /// Input size.
+    pub dim: usize,
     /// Input standardisation.
     pub scaler: Standardizer,
-    /// smartcore's forest (labels are class indices).
-    pub forest: RandomForestClassifier<f64, i32, DenseMatrix<f64>, Vec<i32>>,
+    /// The trees.
+    pub trees: Vec<forest::Tree>,
 }
 
 impl Forest {
-    /// One vote (score 1) for the predicted class.
+    /// One vote (score 1) for the forest's class: the class most trees
+    /// predict (ties: the lower class index).
     pub fn frame_scores(&self, x: &[f64], out: &mut [f64]) {
-        out.iter_mut().for_each(|o| *o = 0.0);
-        let mut z = x.to_vec();
-        self.scaler.apply(&mut z);
-        let n = z.len();
-        let Ok(m) = DenseMatrix::new(1, n, z, false) else {
-            return;
-        };
-        if let Ok(p) = self.forest.predict(&m) {
-            if let Some(&c) = p.first() {
-                if let Some(o) = usize::try_from(c).ok().and_then(|c| out.get_mut(c)) {
-                    *o = 1.0;
+        self.scores_batch(x, out);
+    }
+
+    /// [`Self::frame_scores`] of every row of `x` into the rows of `out`.
+    pub fn scores_batch(&self, x: &[f64], out: &mut [f64]) {
+        let k = self.classes.max(1);
+        let z = self.scaler.apply_rows(x);
+        let mut votes = vec![0u32; k];
+        for (zi, o) in z.chunks_exact(self.dim.max(1)).zip(out.chunks_exact_mut(k)) {
+            votes.iter_mut().for_each(|v| *v = 0);
+            for t in &self.trees {
+                if let Some(v) = votes.get_mut(t.predict(zi)) {
+                    *v += 1;
                 }
+            }
+            let mut best = 0;
+            for (c, &v) in votes.iter().enumerate() {
+                if v > votes[best] {
+                    best = c;
+                }
+            }
+            o.iter_mut().for_each(|o| *o = 0.0);
+            if !self.trees.is_empty() {
+                o[best] = 1.0;
             }
         }
     }
@@ -617,21 +637,26 @@ impl RandomForestConfig {
     pub fn fit_set(&self, set: TrainSet, rng: &mut ChaCha8Rng) -> Result<FittedModel, StageError> {
         self.check()?;
         fit_classic_set(set, self.vote, "random_forest", rng, |set, d, scaler, seed| {
-            let mut p = RandomForestClassifierParameters::default()
-                .with_n_trees(self.n_trees)
-                .with_min_samples_leaf(self.min_samples_leaf)
-                .with_seed(seed);
-            if self.max_depth > 0 {
-                p = p.with_max_depth(self.max_depth);
-            }
-            if self.m > 0 {
-                p = p.with_m(self.m.min(set.dim));
-            }
-            let forest = RandomForestClassifier::fit(&d.x, &d.y, p).map_err(smart_err)?;
+            let g = forest::Growth {
+                m: if self.m > 0 {
+                    self.m.min(set.dim)
+                } else {
+                    ((set.dim as f64).sqrt() as usize).max(1)
+                },
+                max_depth: usize::from(self.max_depth),
+                min_samples_leaf: self.min_samples_leaf,
+            };
+            let k = set.classes.len();
+            // Each tree from its own generator: the same forest on any thread count.
+            let trees = (0..usize::from(self.n_trees))
+                .into_par_iter()
+                .map(|t| forest::grow(&d.flat, &set.y, set.dim, k, &g, &mut forest::tree_rng(seed, t)))
+                .collect();
             Ok(Classifier::RandomForest(Forest {
-                classes: set.classes.len(),
+                classes: k,
+                dim: set.dim,
                 scaler,
-                forest,
+                trees,
             }))
         })
     }
@@ -750,15 +775,7 @@ impl Knn {
         let k = self.k.min(self.y.len());
         best.clear();
         for (i, row) in self.x.chunks_exact(self.dim.max(1)).enumerate() {
-            let d2 = sq_dist(row, z);
-            // Inputs are checked finite, so d2 is; a non-finite one is never a neighbour.
-            if !d2.is_finite() || (best.len() == k && d2 >= best[k - 1].0) {
-                continue;
-            }
-            // Insert keeping (distance, index) order; equal distances keep the earlier index first.
-            let pos = best.partition_point(|&(d, _)| d <= d2);
-            best.insert(pos, (d2, i));
-            best.truncate(k);
+            push_neighbour(best, k, sq_dist(row, z), i);
         }
     }
 
@@ -768,18 +785,41 @@ impl Knn {
         self.scores_batch(x, out);
     }
 
-    /// [`Self::frame_scores`] of every row of `x` into the rows of `out`, buffers allocated once per call.
+    /// [`Self::frame_scores`] of every row of `x` into the rows of `out`.
+    /// The distances come in blocks of `QB` query rows by `TB` training rows
+    /// from the tiled kernel ([`dense::sq_dists`], the bits of [`sq_dist`]),
+    /// sized so a block of training rows stays in the L2 cache while every
+    /// query of the block passes over it; each query then scans its block of
+    /// distances in training order, so the neighbours (and ties) are those
+    /// of [`Self::neighbours`].
     pub fn scores_batch(&self, x: &[f64], out: &mut [f64]) {
-        let mut z = vec![0.0; self.dim.max(1)];
-        let mut nb = Vec::with_capacity(self.k.min(self.y.len()) + 1);
-        for (row, o) in x
-            .chunks_exact(self.dim.max(1))
-            .zip(out.chunks_exact_mut(self.classes.max(1)))
-        {
-            z.copy_from_slice(row);
-            self.scaler.apply(&mut z);
-            crate::wide::with_avx2(|| self.neighbours_into(&z, &mut nb));
-            self.shares(&nb, o);
+        const QB: usize = 16;
+        const TB: usize = 256;
+        let dim = self.dim.max(1);
+        let k = self.k.min(self.y.len());
+        let kc = self.classes.max(1);
+        let z = self.scaler.apply_rows(x);
+        let n = (z.len() / dim).min(out.len() / kc);
+        let n_train = self.x.len() / dim;
+        let mut d = vec![0.0; QB * TB];
+        let mut best: Vec<Vec<(f64, usize)>> = (0..QB).map(|_| Vec::with_capacity(k + 1)).collect();
+        for q0 in (0..n).step_by(QB) {
+            let qb = QB.min(n - q0);
+            best.iter_mut().for_each(Vec::clear);
+            let zq = &z[q0 * dim..(q0 + qb) * dim];
+            for t0 in (0..n_train).step_by(TB) {
+                let tb = TB.min(n_train - t0);
+                let d = &mut d[..qb * tb];
+                dense::sq_dists(zq, &self.x[t0 * dim..(t0 + tb) * dim], dim, d);
+                for (b, dq) in best.iter_mut().zip(d.chunks_exact(tb)) {
+                    for (t, &d2) in dq.iter().enumerate() {
+                        push_neighbour(b, k, d2, t0 + t);
+                    }
+                }
+            }
+            for (q, b) in best.iter().take(qb).enumerate() {
+                self.shares(b, &mut out[(q0 + q) * kc..(q0 + q + 1) * kc]);
+            }
         }
     }
 
@@ -806,23 +846,18 @@ impl Knn {
     }
 }
 
-/// Squared Euclidean distance, over fixed-width chunks (vectorises; fixed order).
+/// Offers training vector `i` at squared distance `d2` to the sorted list
+/// `best` of the `k` nearest so far: kept in `(distance, index)` order, equal
+/// distances keep the earlier index first (vectors are offered in index order).
 #[inline]
-fn sq_dist(a: &[f64], b: &[f64]) -> f64 {
-    let mut acc = [0.0f64; 4];
-    let (ca, cb) = (a.chunks_exact(4), b.chunks_exact(4));
-    let (ra, rb) = (ca.remainder(), cb.remainder());
-    for (x, y) in ca.zip(cb) {
-        for j in 0..4 {
-            let d = x[j] - y[j];
-            acc[j] += d * d;
-        }
+fn push_neighbour(best: &mut Vec<(f64, usize)>, k: usize, d2: f64, i: usize) {
+    // Inputs are checked finite, so d2 is; a non-finite one is never a neighbour.
+    if k == 0 || !d2.is_finite() || (best.len() == k && d2 >= best[k - 1].0) {
+        return;
     }
-    let mut s = (acc[0] + acc[1]) + (acc[2] + acc[3]);
-    for (x, y) in ra.iter().zip(rb) {
-        s += (x - y) * (x - y);
-    }
-    s
+    let pos = best.partition_point(|&(d, _)| d <= d2);
+    best.insert(pos, (d2, i));
+    best.truncate(k);
 }
 
 impl KnnConfig {
@@ -918,8 +953,14 @@ pub struct LogisticConfig {
     pub min_spikes: f64,
     /// Most vectors a training trial contributes (evenly spaced). Default 20.
     pub max_train_frames: usize,
-    /// L2 penalty on the coefficients. Default 1.
+    /// L2 penalty on the coefficients (not the intercepts), added as
+    /// `alpha/2 · ‖W‖²` to the summed log loss (scikit-learn's `C = 1/alpha`). Default 1.
     pub alpha: f64,
+    /// L-BFGS stopping tolerance: largest gradient component of the mean
+    /// objective (scikit-learn's `tol`). Default 1e-4.
+    pub tol: f64,
+    /// Most L-BFGS iterations (scikit-learn's `max_iter`). Default 1000.
+    pub max_iter: usize,
     /// `winner` (paper) or `sum`. Default `winner`.
     pub vote: Vote,
     /// Write each fold's fitted model to `<out>/<stage id>.fold<f>.model.json`. Default false.
@@ -935,6 +976,8 @@ impl Default for LogisticConfig {
             min_spikes: 1.0,
             max_train_frames: 20,
             alpha: 1.0,
+            tol: 1e-4,
+            max_iter: 1000,
             vote: Vote::Winner,
             save_model: false,
         }
@@ -962,21 +1005,90 @@ impl Softmax {
         self.scores_batch(x, out);
     }
 
-    /// [`Self::frame_scores`] of every row of `x` into the rows of `out`, one buffer per call.
+    /// [`Self::frame_scores`] of every row of `x` into the rows of `out`: the
+    /// rows standardised, then all logits in one tiled product
+    /// ([`dense::gemm_nt`], the bits of a row-by-row dot product).
     pub fn scores_batch(&self, x: &[f64], out: &mut [f64]) {
-        let mut z = vec![0.0; self.dim.max(1)];
-        for (row, o) in x
-            .chunks_exact(self.dim.max(1))
-            .zip(out.chunks_exact_mut(self.classes.max(1)))
-        {
-            z.copy_from_slice(row);
-            self.scaler.apply(&mut z);
-            for (c, o) in o.iter_mut().enumerate().take(self.classes) {
-                *o = dot(&self.w[c * self.dim..(c + 1) * self.dim], &z) + self.b[c];
-            }
-            softmax(&mut o[..self.classes]);
+        let z = self.scaler.apply_rows(x);
+        let k = self.classes.max(1);
+        let n = (z.len() / self.dim.max(1)).min(out.len() / k);
+        let out = &mut out[..n * k];
+        dense::gemm_nt(&z[..n * self.dim], &self.w, self.dim, out);
+        for o in out.chunks_exact_mut(k) {
+            o.iter_mut().zip(&self.b).for_each(|(o, b)| *o += b);
+            softmax(o);
         }
     }
+}
+
+/// Fits multinomial logistic regression on standardised rows `x` (row-major,
+/// `dim` wide) with classes `y` in `0..k`: minimises the mean objective
+/// `(1/n) [Σ_i −log softmax(W x_i + b)_{y_i} + alpha/2 ‖W‖²]` (scikit-learn's,
+/// with `C = 1/alpha`; the intercepts are not penalised) by [`lbfgs`] from
+/// zero, stopping at `max |∇| ≤ tol` as scikit-learn's `lbfgs` solver.
+/// Returns `(W, b)`, `W` `k x dim` row-major.
+///
+/// Each evaluation is two tiled products ([`dense::gemm_nt`]): the logits
+/// `X Wᵀ`, and the gradient `Rᵀ X` (as `Rᵀ (Xᵀ)ᵀ`, with `Xᵀ` formed once) of
+/// the residuals `R = P − Y`.
+fn fit_softmax(
+    x: &[f64],
+    y: &[usize],
+    dim: usize,
+    k: usize,
+    alpha: f64,
+    tol: f64,
+    max_iter: usize,
+) -> (Vec<f64>, Vec<f64>) {
+    let n = y.len();
+    let inv_n = 1.0 / n.max(1) as f64;
+    let mut xt = vec![0.0; dim * n];
+    for i in 0..n {
+        for j in 0..dim {
+            xt[j * n + i] = x[i * dim + j];
+        }
+    }
+    let mut z = vec![0.0; n * k];
+    let mut rt = vec![0.0; k * n];
+    let nw = k * dim;
+    let fg = |theta: &[f64], g: &mut [f64]| -> f64 {
+        let (w, b) = theta.split_at(nw);
+        dense::gemm_nt(x, w, dim, &mut z);
+        let mut loss = 0.0;
+        for (i, zi) in z.chunks_exact_mut(k).enumerate() {
+            zi.iter_mut().zip(b).for_each(|(z, b)| *z += b);
+            let m = zi.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+            let sum: f64 = zi.iter().map(|v| (v - m).exp()).sum();
+            let lse = m + sum.ln();
+            loss += lse - zi[y[i]];
+            for (c, &v) in zi.iter().enumerate() {
+                rt[c * n + i] = ((v - lse).exp() - f64::from(u8::from(c == y[i]))) * inv_n;
+            }
+        }
+        let (gw, gb) = g.split_at_mut(nw);
+        dense::gemm_nt(&rt, &xt, n, gw);
+        let mut sq = 0.0;
+        for (gw, w) in gw.iter_mut().zip(w) {
+            *gw += alpha * inv_n * w;
+            sq += w * w;
+        }
+        for (c, gb) in gb.iter_mut().enumerate() {
+            *gb = rt[c * n..(c + 1) * n].iter().sum();
+        }
+        (loss + 0.5 * alpha * sq) * inv_n
+    };
+    let params = lbfgs::Params {
+        memory: 10,
+        gtol: tol,
+        // scipy's L-BFGS-B as scikit-learn sets it (64 machine epsilons).
+        ftol: 64.0 * f64::EPSILON,
+        max_iter,
+        max_line_search: 50,
+    };
+    let out = lbfgs::minimize(vec![0.0; nw + k], fg, &params);
+    let mut theta = out.x;
+    let b = theta.split_off(nw);
+    (theta, b)
 }
 
 impl LogisticConfig {
@@ -1000,6 +1112,10 @@ impl LogisticConfig {
         let mut c = ConfigChecks::new();
         c.take(self.keys().check());
         c.take(check_range("alpha", self.alpha, 0.0, 1e9, ""));
+        c.take(check_positive("tol", self.tol, ""));
+        if self.max_iter == 0 {
+            c.push(ConfigError::key("max_iter", "must be at least 1"));
+        }
         c.finish()
     }
 
@@ -1015,27 +1131,8 @@ impl LogisticConfig {
     pub fn fit_set(&self, set: TrainSet, rng: &mut ChaCha8Rng) -> Result<FittedModel, StageError> {
         self.check()?;
         fit_classic_set(set, self.vote, "logistic", rng, |set, d, scaler, _| {
-            let p = LogisticRegressionParameters::default().with_alpha(self.alpha);
-            let lr = LogisticRegression::fit(&d.x, &d.y, p).map_err(smart_err)?;
             let k = set.classes.len();
-            let (coef, icpt) = (lr.coefficients(), lr.intercept());
-            let mut w = vec![0.0; k * set.dim];
-            let mut b = vec![0.0; k];
-            if k == 2 {
-                // smartcore's binary model has one row, for class 1: softmax over
-                // (0, z) is exactly sigmoid(z).
-                for j in 0..set.dim {
-                    w[set.dim + j] = *coef.get((0, j));
-                }
-                b[1] = *icpt.get((0, 0));
-            } else {
-                for c in 0..k {
-                    for j in 0..set.dim {
-                        w[c * set.dim + j] = *coef.get((c, j));
-                    }
-                    b[c] = *icpt.get((c, 0));
-                }
-            }
+            let (w, b) = fit_softmax(&d.flat, &set.y, set.dim, k, self.alpha, self.tol, self.max_iter);
             if w.iter().chain(&b).any(|v| !v.is_finite()) {
                 return Err(StageError::new(
                     "logistic regression diverged (non-finite coefficients); raise `alpha`",

@@ -485,6 +485,15 @@ impl Standardizer {
             .zip(&self.inv_sd)
             .for_each(|((x, m), s)| *x = (*x - m) * s);
     }
+
+    /// A standardised copy of the rows of `x` (row-major, as wide as the
+    /// standardiser; a ragged tail is dropped).
+    pub fn apply_rows(&self, x: &[f64]) -> Vec<f64> {
+        let d = self.mean.len().max(1);
+        let mut z = x[..x.len() / d * d].to_vec();
+        z.chunks_exact_mut(d).for_each(|r| self.apply(r));
+        z
+    }
 }
 
 /// The fitted per-frame classifier of a baseline.
@@ -525,20 +534,14 @@ impl Classifier {
     /// the same bits as calling it row by row, with the working buffers
     /// allocated once per call where the model has a batch path.
     pub fn scores_batch(&self, x: &[f64], dim: usize, classes: usize, rng: &mut ChaCha8Rng, out: &mut [f64]) {
+        debug_assert_eq!(out.len() % classes.max(1), 0);
         match self {
             Classifier::Ann(m) => m.scores_batch(x, out),
             Classifier::Svm(m) => m.scores_batch(x, out),
             Classifier::Knn(m) => m.scores_batch(x, out),
             Classifier::Logistic(m) => m.scores_batch(x, out),
             Classifier::Edbn(m) => m.scores_batch(x, dim, rng, out),
-            _ => {
-                for (row, o) in x
-                    .chunks_exact(dim.max(1))
-                    .zip(out.chunks_exact_mut(classes.max(1)))
-                {
-                    self.frame_scores(row, rng, o);
-                }
-            }
+            Classifier::RandomForest(m) => m.scores_batch(x, out),
         }
     }
 }
@@ -578,7 +581,7 @@ pub struct FittedModel {
 }
 
 /// Current [`FittedModel::format`].
-pub const MODEL_FORMAT: u32 = 2;
+pub const MODEL_FORMAT: u32 = 3;
 
 impl FittedModel {
     /// A streaming estimator over this model; `seed` drives stochastic inference.

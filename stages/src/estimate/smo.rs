@@ -417,26 +417,7 @@ pub fn rbf(a: &[f64], b: &[f64], gamma: f64) -> f64 {
     (-gamma * sq_dist(a, b)).exp()
 }
 
-/// `‖a − b‖²` with four partial sums in a fixed order (same bits everywhere).
-#[inline]
-pub fn sq_dist(a: &[f64], b: &[f64]) -> f64 {
-    let mut acc = [0.0f64; 4];
-    let ca = a.chunks_exact(4);
-    let cb = b.chunks_exact(4);
-    let (ra, rb) = (ca.remainder(), cb.remainder());
-    for (x, y) in ca.zip(cb) {
-        for l in 0..4 {
-            let d = x[l] - y[l];
-            acc[l] += d * d;
-        }
-    }
-    let mut s = (acc[0] + acc[1]) + (acc[2] + acc[3]);
-    for (x, y) in ra.iter().zip(rb) {
-        let d = x - y;
-        s += d * d;
-    }
-    s
-}
+pub use super::dense::sq_dist;
 
 #[cfg(test)]
 mod tests {
