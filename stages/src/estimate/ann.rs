@@ -312,7 +312,7 @@ impl Mlp {
         let p = &self.params;
         for j in 0..self.hidden {
             let row = &p[w1 + j * self.dim..w1 + (j + 1) * self.dim];
-            s.a[j] = (dot(row, x) + p[b1 + j]).tanh();
+            s.a[j] = tanh(dot(row, x) + p[b1 + j]);
         }
         for c in 0..self.classes {
             let row = &p[w2 + c * self.hidden..w2 + (c + 1) * self.hidden];
@@ -338,7 +338,7 @@ impl Mlp {
         let n = (z.len() / self.dim.max(1)).min(out.len() / k);
         let mut a = vec![0.0; n * self.hidden];
         dense::gemm_nt(&z[..n * self.dim], &p[w1..b1], self.dim, &mut a);
-        dense::add_bias_map(&mut a, &p[b1..w2], f64::tanh);
+        dense::add_bias_map(&mut a, &p[b1..w2], tanh);
         let out = &mut out[..n * k];
         dense::gemm_nt(&a, &p[w2..b2], self.hidden, out);
         dense::add_bias_map(out, &p[b2..], |v| v);
@@ -490,6 +490,18 @@ impl Mlp {
 
 pub(crate) use super::dense::dot;
 
+/// `tanh x = sign(x) (1 − e) / (1 + e)` with `e = exp(−2|x|)`: one
+/// exponential, about half the time of the C library's `tanh` (which goes
+/// through `expm1`), within a few ulps of it in absolute terms (relative
+/// accuracy degrades only where `|x|` is tiny and the value is too). Used
+/// in training and prediction alike, so the network is trained with the
+/// function it predicts with.
+#[inline]
+pub(crate) fn tanh(x: f64) -> f64 {
+    let e = (-2.0 * x.abs()).exp();
+    ((1.0 - e) / (1.0 + e)).copysign(x)
+}
+
 /// In-place softmax, shifted by the maximum so it never overflows.
 pub(crate) fn softmax(z: &mut [f64]) {
     let m = z.iter().copied().fold(f64::NEG_INFINITY, f64::max);
@@ -537,6 +549,17 @@ mod tests {
             let err = (num - gp).abs() / (num.abs() + gp.abs()).max(1e-8);
             assert!(err < 1e-5, "param {p}: analytic {gp} vs numeric {num}");
         }
+    }
+
+    #[test]
+    fn tanh_matches_the_library_function() {
+        for i in -4000..=4000 {
+            let x = f64::from(i) * 0.005;
+            assert!((tanh(x) - x.tanh()).abs() <= 4.0 * f64::EPSILON, "{x}");
+        }
+        assert_eq!(tanh(1e6), 1.0);
+        assert_eq!(tanh(-1e6), -1.0);
+        assert_eq!(tanh(0.0), 0.0);
     }
 
     #[test]

@@ -183,6 +183,45 @@ struct Disc {
     u_ok: bool,
 }
 
+/// Accumulates a batch's statistics `Σ_rows h vᵀ` (as the tiled product
+/// `(hᵀ)(vᵀ)ᵀ` of the transposed rows), `Σ h` and `Σ v`.
+struct Outer {
+    ht: Vec<f64>,
+    vt: Vec<f64>,
+    prod: Vec<f64>,
+    nv: usize,
+    nh: usize,
+}
+
+impl Outer {
+    fn new(rows: usize, nv: usize, nh: usize) -> Self {
+        Outer {
+            ht: vec![0.0; nh * rows],
+            vt: vec![0.0; nv * rows],
+            prod: vec![0.0; nh * nv],
+            nv,
+            nh,
+        }
+    }
+
+    /// Adds `scale ·` the statistics of rows `h` (`nh` wide) and `v` (`nv`
+    /// wide) to `gw` (`nh x nv`), `gb` and `ga`.
+    fn add(&mut self, h: &[f64], v: &[f64], scale: f64, gw: &mut [f64], gb: &mut [f64], ga: &mut [f64]) {
+        let m = v.len() / self.nv.max(1);
+        let (ht, vt) = (&mut self.ht[..self.nh * m], &mut self.vt[..self.nv * m]);
+        dense::transpose(h, m, self.nh, ht);
+        dense::transpose(v, m, self.nv, vt);
+        dense::gemm_nt(ht, vt, m, &mut self.prod);
+        gw.iter_mut().zip(&self.prod).for_each(|(g, p)| *g += scale * p);
+        for (g, col) in gb.iter_mut().zip(ht.chunks_exact(m.max(1))) {
+            *g += scale * col.iter().sum::<f64>();
+        }
+        for (g, col) in ga.iter_mut().zip(vt.chunks_exact(m.max(1))) {
+            *g += scale * col.iter().sum::<f64>();
+        }
+    }
+}
+
 /// Largest `|z|` whose `e^z` is taken in the product form of the posterior:
 /// `e^{±300}` and their product stay finite and normal.
 const EXP_SAFE: f64 = 300.0;
@@ -287,6 +326,19 @@ impl Rbm {
     /// `p(v | h)`: Bernoulli units, then the label softmax group.
     fn vis_prob(&self, h: &[f64], out: &mut [f64]) {
         self.vis_input(h, out);
+        self.vis_activate(out);
+    }
+
+    /// `p(h | v)` of every row of `v` (row-major, `n_vis` wide) into the rows
+    /// of `out`, as one tiled product.
+    fn hid_prob_rows(&self, v: &[f64], out: &mut [f64]) {
+        dense::gemm_nt(v, &self.w, self.n_vis, out);
+        dense::add_bias_map(out, &self.b, sigmoid);
+    }
+
+    /// Turns visible net inputs `out` (biases included) into probabilities:
+    /// sigmoids, and a softmax over the label units.
+    fn vis_activate(&self, out: &mut [f64]) {
         let nb = self.n_vis - self.labels;
         out[..nb].iter_mut().for_each(|z| *z = sigmoid(*z));
         if self.labels > 0 {
@@ -436,6 +488,12 @@ impl Rbm {
         let mut h = vec![0.0; nh];
         let mut vbuf = vec![0.0; nv];
         let mut disc = Disc::new(self.labels, nh);
+        // Batch buffers: the batch's rows, hidden probabilities or samples,
+        // and the transposes and product of the outer-product sums.
+        let mut rows: Vec<f64> = Vec::with_capacity(bs * nv);
+        let mut hb = vec![0.0; bs * nh];
+        let mut outer = Outer::new(bs, nv, nh);
+        let mut wt = vec![0.0; nv * nh];
         let mut order: Vec<usize> = (0..n).collect();
         let mut errors = Vec::with_capacity(cfg.epochs);
         for epoch in 0..cfg.epochs {
@@ -449,39 +507,34 @@ impl Rbm {
                 if self.labels > 0 && cfg.discriminative > 0.0 {
                     disc.prepare(self);
                 }
-                // Positive phase: data with p(h | v).
-                for &i in batch {
-                    let v = &data[i * nv..(i + 1) * nv];
-                    self.hid_prob(v, &mut h);
-                    for j in 0..nh {
-                        let row = &mut gw[j * nv..(j + 1) * nv];
-                        let hj = h[j];
-                        row.iter_mut().zip(v).for_each(|(g, x)| *g += hj * x);
-                        gb[j] += hj;
-                    }
-                    ga.iter_mut().zip(v).for_each(|(g, x)| *g += x);
-                    if self.labels > 0 && cfg.discriminative > 0.0 {
+                // Positive phase: data with p(h | v), the whole batch at once.
+                let m = batch.len();
+                rows.clear();
+                batch
+                    .iter()
+                    .for_each(|&i| rows.extend_from_slice(&data[i * nv..(i + 1) * nv]));
+                self.hid_prob_rows(&rows, &mut hb[..m * nh]);
+                outer.add(&hb[..m * nh], &rows, 1.0, &mut gw, &mut gb, &mut ga);
+                if self.labels > 0 && cfg.discriminative > 0.0 {
+                    for v in rows.chunks_exact(nv) {
                         self.add_discriminative(v, cfg.discriminative, &mut gw, &mut ga, &mut gb, &mut disc);
                     }
                 }
-                // Negative phase: one Gibbs step of each persistent chain.
-                let scale_neg = batch.len() as f64 / bs as f64;
-                for c in 0..bs {
-                    let v = &mut chains[c * nv..(c + 1) * nv];
-                    self.hid_prob(v, &mut h);
-                    h.iter_mut()
-                        .for_each(|p| *p = f64::from(u8::from(rng.random::<f64>() < *p)));
-                    self.vis_prob(&h, v);
+                // Negative phase: one Gibbs step of every persistent chain:
+                // sample h ~ p(h | v) (chain by chain), v ~ p(v | h), then p(h | v).
+                let scale_neg = m as f64 / bs as f64;
+                self.hid_prob_rows(&chains, &mut hb);
+                hb.iter_mut()
+                    .for_each(|p| *p = f64::from(u8::from(rng.random::<f64>() < *p)));
+                dense::transpose(&self.w, nh, nv, &mut wt);
+                dense::gemm_nt(&hb, &wt, nh, &mut chains);
+                for v in chains.chunks_exact_mut(nv) {
+                    v.iter_mut().zip(&self.a).for_each(|(v, a)| *v += a);
+                    self.vis_activate(v);
                     self.sample_vis(v, rng);
-                    self.hid_prob(v, &mut h);
-                    for j in 0..nh {
-                        let row = &mut gw[j * nv..(j + 1) * nv];
-                        let hj = h[j] * scale_neg;
-                        row.iter_mut().zip(v.iter()).for_each(|(g, x)| *g -= hj * x);
-                        gb[j] -= hj;
-                    }
-                    ga.iter_mut().zip(v.iter()).for_each(|(g, x)| *g -= scale_neg * x);
                 }
+                self.hid_prob_rows(&chains, &mut hb);
+                outer.add(&hb, &chains, -scale_neg, &mut gw, &mut gb, &mut ga);
                 let inv = 1.0 / batch.len() as f64;
                 for k in 0..nh * nv {
                     vw[k] = mom * vw[k] + lr * (gw[k] * inv - cfg.l2 * self.w[k]);
