@@ -50,9 +50,10 @@
 //! touches: ~10 s per Table 2 fold, against well under 1 s here (the `svm`
 //! stage's `fit median ms` in the timing table of graphs/paper/table2.toml).
 //! The stage's accuracy "cliff" (5 training vectors per trial: 34.9° MAE with
-//! LaSVM, 8: 0.26°) is **not** the solver: this exact solver gives 39.18° at 5
-//! and 0.38° at 8 on the same graph (`palpate run` of table2.toml's front end
-//! with only the `svm` stage, `--set stages.svm.max_train_frames=5` / `8`).
+//! LaSVM, 8: 0.26°) was **not** the solver: this exact solver, and
+//! scikit-learn's `SVC` on the same vectors, gave the same cliff. Its cause
+//! was which vectors a capped trial contributed (see the training caps in
+//! `features`).
 
 use std::collections::HashMap;
 
