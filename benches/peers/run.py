@@ -471,9 +471,10 @@ def fit_knn(cfg, X, y, k, seed):
 
 
 def fit_logistic(cfg, X, y, k, seed):
-    """Multinomial L-BFGS logistic regression; palpate (smartcore) minimises
-    the summed log loss + alpha/2 |W|^2, sklearn C * summed loss + 1/2 |W|^2,
-    so C = 1 / alpha."""
+    """Multinomial L-BFGS logistic regression; palpate minimises the summed
+    log loss + alpha/2 |W|^2 (intercepts unpenalised, stopping at tol = 1e-4
+    on the mean objective's gradient, as here), sklearn C * summed loss +
+    1/2 |W|^2, so C = 1 / alpha."""
     from sklearn.linear_model import LogisticRegression
 
     return LogisticRegression(C=1.0 / cfg["alpha"], max_iter=1000).fit(X, y)

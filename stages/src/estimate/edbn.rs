@@ -54,6 +54,7 @@
 //! In both modes a trial's answer is the winner-take-all vote of the paper.
 
 use super::ann::softmax;
+use super::dense;
 use super::features::{Classifier, FeatureKeys, FittedModel, TrainSet, TrainingLog, Vote, MODEL_FORMAT};
 use crate::estimate::features::{FitBaseline, TrainedEstimator};
 use palpate_core::{
@@ -163,17 +164,91 @@ pub struct Rbm {
     pub b: Vec<f64>,
 }
 
-/// Scratch of the label posterior.
+/// Scratch of the label posterior, with `exp(U)` of the weights it was
+/// last [prepared](Disc::prepare) for.
 struct Disc {
+    /// Hidden net inputs `o_yj = base_j + U_jy`, label-major (`y·n_hid + j`).
     o: Vec<f64>,
+    /// `e^{o_yj}` (clamped to `e^{±700}`), same layout: `σ(o) = t / (1 + t)`.
+    t: Vec<f64>,
+    /// Label posterior.
     p: Vec<f64>,
+    /// `base_j = b_j + W_j·x`.
+    base: Vec<f64>,
+    /// `e^{base_j}`, or NaN where `|base_j| > EXP_SAFE` (that unit takes the exact path).
+    eb: Vec<f64>,
+    /// `e^{U_jy}`, label-major.
+    eu: Vec<f64>,
+    /// Every `|U_jy| ≤ EXP_SAFE`, so `e^{base}·e^{U}` is finite for the fast units.
+    u_ok: bool,
 }
+
+/// Accumulates a batch's statistics `Σ_rows h vᵀ` (as the tiled product
+/// `(hᵀ)(vᵀ)ᵀ` of the transposed rows), `Σ h` and `Σ v`.
+struct Outer {
+    ht: Vec<f64>,
+    vt: Vec<f64>,
+    prod: Vec<f64>,
+    nv: usize,
+    nh: usize,
+}
+
+impl Outer {
+    fn new(rows: usize, nv: usize, nh: usize) -> Self {
+        Outer {
+            ht: vec![0.0; nh * rows],
+            vt: vec![0.0; nv * rows],
+            prod: vec![0.0; nh * nv],
+            nv,
+            nh,
+        }
+    }
+
+    /// Adds `scale ·` the statistics of rows `h` (`nh` wide) and `v` (`nv`
+    /// wide) to `gw` (`nh x nv`), `gb` and `ga`.
+    fn add(&mut self, h: &[f64], v: &[f64], scale: f64, gw: &mut [f64], gb: &mut [f64], ga: &mut [f64]) {
+        let m = v.len() / self.nv.max(1);
+        let (ht, vt) = (&mut self.ht[..self.nh * m], &mut self.vt[..self.nv * m]);
+        dense::transpose(h, m, self.nh, ht);
+        dense::transpose(v, m, self.nv, vt);
+        dense::gemm_nt(ht, vt, m, &mut self.prod);
+        gw.iter_mut().zip(&self.prod).for_each(|(g, p)| *g += scale * p);
+        for (g, col) in gb.iter_mut().zip(ht.chunks_exact(m.max(1))) {
+            *g += scale * col.iter().sum::<f64>();
+        }
+        for (g, col) in ga.iter_mut().zip(vt.chunks_exact(m.max(1))) {
+            *g += scale * col.iter().sum::<f64>();
+        }
+    }
+}
+
+/// Largest `|z|` whose `e^z` is taken in the product form of the posterior:
+/// `e^{±300}` and their product stay finite and normal.
+const EXP_SAFE: f64 = 300.0;
 
 impl Disc {
     fn new(k: usize, nh: usize) -> Self {
         Disc {
             o: vec![0.0; k * nh],
+            t: vec![0.0; k * nh],
             p: vec![0.0; k],
+            base: vec![0.0; nh],
+            eb: vec![0.0; nh],
+            eu: vec![0.0; k * nh],
+            u_ok: false,
+        }
+    }
+
+    /// Takes `e^{U}` of `rbm`'s label weights (after every weight update).
+    fn prepare(&mut self, rbm: &Rbm) {
+        let (nb, nh) = (rbm.n_vis - rbm.labels, rbm.n_hid);
+        self.u_ok = true;
+        for y in 0..rbm.labels {
+            for j in 0..nh {
+                let u = rbm.w[j * rbm.n_vis + nb + y];
+                self.u_ok &= u.abs() <= EXP_SAFE;
+                self.eu[y * nh + j] = u.clamp(-EXP_SAFE, EXP_SAFE).exp();
+            }
         }
     }
 }
@@ -251,6 +326,19 @@ impl Rbm {
     /// `p(v | h)`: Bernoulli units, then the label softmax group.
     fn vis_prob(&self, h: &[f64], out: &mut [f64]) {
         self.vis_input(h, out);
+        self.vis_activate(out);
+    }
+
+    /// `p(h | v)` of every row of `v` (row-major, `n_vis` wide) into the rows
+    /// of `out`, as one tiled product.
+    fn hid_prob_rows(&self, v: &[f64], out: &mut [f64]) {
+        dense::gemm_nt(v, &self.w, self.n_vis, out);
+        dense::add_bias_map(out, &self.b, sigmoid);
+    }
+
+    /// Turns visible net inputs `out` (biases included) into probabilities:
+    /// sigmoids, and a softmax over the label units.
+    fn vis_activate(&self, out: &mut [f64]) {
         let nb = self.n_vis - self.labels;
         out[..nb].iter_mut().for_each(|z| *z = sigmoid(*z));
         if self.labels > 0 {
@@ -284,23 +372,57 @@ impl Rbm {
 
     /// Label posterior `p(y | x)` of a label-augmented RBM, exactly (free
     /// energies): `p(y|x) ∝ exp(c_y + Σ_j softplus(b_j + W_j·x + U_jy))`. Fills
-    /// `d.o` with the hidden net inputs `o_yj` (x with label y) and `d.p` with p.
+    /// `d.o` with the hidden net inputs `o_yj` (x with label y), `d.t` with
+    /// `e^{o_yj}` and `d.p` with p. `d` must be [prepared](Disc::prepare) for
+    /// these weights.
     fn label_posterior(&self, x: &[f64], d: &mut Disc) {
         let nb = self.n_vis - self.labels;
-        let k = self.labels;
         for j in 0..self.n_hid {
             let row = &self.w[j * self.n_vis..(j + 1) * self.n_vis];
-            let base = self.b[j] + super::ann::dot(&row[..nb], &x[..nb]);
-            for y in 0..k {
-                d.o[y * self.n_hid + j] = base + row[nb + y];
-            }
+            d.base[j] = self.b[j] + super::ann::dot(&row[..nb], &x[..nb]);
         }
-        for y in 0..k {
-            let f: f64 = d.o[y * self.n_hid..(y + 1) * self.n_hid]
-                .iter()
-                .map(|&o| softplus(o))
-                .sum();
-            d.p[y] = self.a[nb + y] + f;
+        self.posterior_from_base(d);
+    }
+
+    /// [`Self::label_posterior`] from `d.base`. The `n_hid · labels`
+    /// softplus terms are summed as logarithms of products,
+    /// `Σ_j ln(1 + e^{base_j} e^{U_jy}) = ln Π_j (1 + e^{base_j} e^{U_jy})`
+    /// (the product flushed into the logarithm whenever it passes 1e30, so it
+    /// never overflows): `n_hid` exponentials and a few logarithms per frame
+    /// instead of `n_hid · labels` of each, the same value to a few ulps. A
+    /// unit with `|base_j| > 300` (or any `|U| > 300`) takes the exact
+    /// `softplus` instead.
+    fn posterior_from_base(&self, d: &mut Disc) {
+        let nb = self.n_vis - self.labels;
+        let nh = self.n_hid;
+        for (eb, &b) in d.eb.iter_mut().zip(&d.base) {
+            *eb = if d.u_ok && b.abs() <= EXP_SAFE {
+                b.exp()
+            } else {
+                f64::NAN
+            };
+        }
+        for y in 0..self.labels {
+            let (mut log, mut prod) = (0.0, 1.0);
+            for j in 0..nh {
+                let o = d.base[j] + self.w[j * self.n_vis + nb + y];
+                let at = y * nh + j;
+                d.o[at] = o;
+                let eb = d.eb[j];
+                d.t[at] = if eb.is_nan() {
+                    log += softplus(o);
+                    o.clamp(-700.0, 700.0).exp()
+                } else {
+                    let t = eb * d.eu[at];
+                    prod *= 1.0 + t;
+                    if prod > 1e30 {
+                        log += prod.ln();
+                        prod = 1.0;
+                    }
+                    t
+                };
+            }
+            d.p[y] = self.a[nb + y] + (log + prod.ln());
         }
         softmax(&mut d.p);
     }
@@ -320,15 +442,20 @@ impl Rbm {
         let k = self.labels;
         let y = (0..k).position(|c| v[nb + c] > 0.5).unwrap_or(0);
         self.label_posterior(v, d);
+        // σ(o) = e^o / (1 + e^o) from the posterior's e^o: no exponential here.
+        let sig = |at: usize| {
+            let t = d.t[at];
+            t / (1.0 + t)
+        };
         for j in 0..self.n_hid {
             let mut expect = 0.0;
             for c in 0..k {
-                let s = sigmoid(d.o[c * self.n_hid + j]);
+                let s = sig(c * self.n_hid + j);
                 expect += d.p[c] * s;
                 let t = f64::from(u8::from(c == y));
                 gw[j * self.n_vis + nb + c] += weight * (t - d.p[c]) * s;
             }
-            let gj = sigmoid(d.o[y * self.n_hid + j]) - expect;
+            let gj = sig(y * self.n_hid + j) - expect;
             gb[j] += weight * gj;
             let row = &mut gw[j * self.n_vis..j * self.n_vis + nb];
             let wg = weight * gj;
@@ -361,6 +488,12 @@ impl Rbm {
         let mut h = vec![0.0; nh];
         let mut vbuf = vec![0.0; nv];
         let mut disc = Disc::new(self.labels, nh);
+        // Batch buffers: the batch's rows, hidden probabilities or samples,
+        // and the transposes and product of the outer-product sums.
+        let mut rows: Vec<f64> = Vec::with_capacity(bs * nv);
+        let mut hb = vec![0.0; bs * nh];
+        let mut outer = Outer::new(bs, nv, nh);
+        let mut wt = vec![0.0; nv * nh];
         let mut order: Vec<usize> = (0..n).collect();
         let mut errors = Vec::with_capacity(cfg.epochs);
         for epoch in 0..cfg.epochs {
@@ -371,39 +504,37 @@ impl Rbm {
                 gw.iter_mut().for_each(|g| *g = 0.0);
                 ga.iter_mut().for_each(|g| *g = 0.0);
                 gb.iter_mut().for_each(|g| *g = 0.0);
-                // Positive phase: data with p(h | v).
-                for &i in batch {
-                    let v = &data[i * nv..(i + 1) * nv];
-                    self.hid_prob(v, &mut h);
-                    for j in 0..nh {
-                        let row = &mut gw[j * nv..(j + 1) * nv];
-                        let hj = h[j];
-                        row.iter_mut().zip(v).for_each(|(g, x)| *g += hj * x);
-                        gb[j] += hj;
-                    }
-                    ga.iter_mut().zip(v).for_each(|(g, x)| *g += x);
-                    if self.labels > 0 && cfg.discriminative > 0.0 {
+                if self.labels > 0 && cfg.discriminative > 0.0 {
+                    disc.prepare(self);
+                }
+                // Positive phase: data with p(h | v), the whole batch at once.
+                let m = batch.len();
+                rows.clear();
+                batch
+                    .iter()
+                    .for_each(|&i| rows.extend_from_slice(&data[i * nv..(i + 1) * nv]));
+                self.hid_prob_rows(&rows, &mut hb[..m * nh]);
+                outer.add(&hb[..m * nh], &rows, 1.0, &mut gw, &mut gb, &mut ga);
+                if self.labels > 0 && cfg.discriminative > 0.0 {
+                    for v in rows.chunks_exact(nv) {
                         self.add_discriminative(v, cfg.discriminative, &mut gw, &mut ga, &mut gb, &mut disc);
                     }
                 }
-                // Negative phase: one Gibbs step of each persistent chain.
-                let scale_neg = batch.len() as f64 / bs as f64;
-                for c in 0..bs {
-                    let v = &mut chains[c * nv..(c + 1) * nv];
-                    self.hid_prob(v, &mut h);
-                    h.iter_mut()
-                        .for_each(|p| *p = f64::from(u8::from(rng.random::<f64>() < *p)));
-                    self.vis_prob(&h, v);
+                // Negative phase: one Gibbs step of every persistent chain:
+                // sample h ~ p(h | v) (chain by chain), v ~ p(v | h), then p(h | v).
+                let scale_neg = m as f64 / bs as f64;
+                self.hid_prob_rows(&chains, &mut hb);
+                hb.iter_mut()
+                    .for_each(|p| *p = f64::from(u8::from(rng.random::<f64>() < *p)));
+                dense::transpose(&self.w, nh, nv, &mut wt);
+                dense::gemm_nt(&hb, &wt, nh, &mut chains);
+                for v in chains.chunks_exact_mut(nv) {
+                    v.iter_mut().zip(&self.a).for_each(|(v, a)| *v += a);
+                    self.vis_activate(v);
                     self.sample_vis(v, rng);
-                    self.hid_prob(v, &mut h);
-                    for j in 0..nh {
-                        let row = &mut gw[j * nv..(j + 1) * nv];
-                        let hj = h[j] * scale_neg;
-                        row.iter_mut().zip(v.iter()).for_each(|(g, x)| *g -= hj * x);
-                        gb[j] -= hj;
-                    }
-                    ga.iter_mut().zip(v.iter()).for_each(|(g, x)| *g -= scale_neg * x);
                 }
+                self.hid_prob_rows(&chains, &mut hb);
+                outer.add(&hb, &chains, -scale_neg, &mut gw, &mut gb, &mut ga);
                 let inv = 1.0 / batch.len() as f64;
                 for k in 0..nh * nv {
                     vw[k] = mom * vw[k] + lr * (gw[k] * inv - cfg.l2 * self.w[k]);
@@ -463,11 +594,18 @@ impl Dbn {
 
     /// [`Self::frame_scores`] of every row of `x` (row-major, `dim` wide) into
     /// the rows of `out` (`classes` wide), in row order: the same bits as row
-    /// by row; rate inference reuses its buffers across rows.
+    /// by row. Rate inference runs each layer over the whole batch as one
+    /// tiled product ([`dense::gemm_nt`], the bits of a row's dot products).
     pub fn scores_batch(&self, x: &[f64], dim: usize, rng: &mut ChaCha8Rng, out: &mut [f64]) {
         let k = self.classes.max(1);
         let shapes_ok = |top: &Rbm, below: &[Rbm]| {
-            let fed = below.last().map_or(dim, |r| r.n_hid);
+            let mut fed = dim;
+            for r in below {
+                if r.n_vis != fed || r.labels != 0 {
+                    return false;
+                }
+                fed = r.n_hid;
+            }
             top.labels == self.classes && top.n_vis.checked_sub(top.labels) == Some(fed)
         };
         let (Inference::Rate, Some((top, below))) = (self.inference, self.rbms.split_last()) else {
@@ -483,20 +621,30 @@ impl Dbn {
             }
             return;
         }
-        // One buffer per layer's activities; the top one has room for the labels.
-        let mut acts: Vec<Vec<f64>> = below.iter().map(|r| vec![0.0; r.n_hid]).collect();
-        let mut top_in = vec![0.0; top.n_vis];
+        let n = (x.len() / dim.max(1)).min(out.len() / k);
+        let mut v = x[..n * dim].to_vec();
+        for r in below {
+            let mut h = vec![0.0; n * r.n_hid];
+            dense::gemm_nt(&v, &r.w, r.n_vis, &mut h);
+            dense::add_bias_map(&mut h, &r.b, sigmoid);
+            v = h;
+        }
+        // The top layer's net inputs without labels, `b + W[:, ..nb] h`, from
+        // a compact copy of the weights' data columns.
+        let nb = top.n_vis - top.labels;
+        let wc: Vec<f64> = top
+            .w
+            .chunks_exact(top.n_vis.max(1))
+            .flat_map(|r| r[..nb].iter().copied())
+            .collect();
+        let mut base = vec![0.0; n * top.n_hid];
+        dense::gemm_nt(&v, &wc, nb, &mut base);
+        dense::add_bias_map(&mut base, &top.b, |z| z);
         let mut d = Disc::new(self.classes, top.n_hid);
-        for (row, o) in x.chunks_exact(dim.max(1)).zip(out.chunks_exact_mut(k)) {
-            let mut v: &[f64] = row;
-            for (r, h) in below.iter().zip(acts.iter_mut()) {
-                r.hid_prob(v, h);
-                v = &h[..];
-            }
-            let nb = top.n_vis - top.labels;
-            top_in[..nb].copy_from_slice(&v[..nb]);
-            top_in[nb..].iter_mut().for_each(|t| *t = 0.0);
-            top.label_posterior(&top_in, &mut d);
+        d.prepare(top);
+        for (bi, o) in base.chunks_exact(top.n_hid.max(1)).zip(out.chunks_exact_mut(k)) {
+            d.base.copy_from_slice(bi);
+            top.posterior_from_base(&mut d);
             o[..self.classes].copy_from_slice(&d.p);
         }
     }
@@ -516,6 +664,7 @@ impl Dbn {
         let k = self.classes;
         v.extend(std::iter::repeat_n(0.0, k));
         let mut d = Disc::new(k, top.n_hid);
+        d.prepare(top);
         top.label_posterior(&v, &mut d);
         out[..k].copy_from_slice(&d.p);
     }

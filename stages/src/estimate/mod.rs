@@ -24,8 +24,11 @@
 
 pub mod ann;
 pub mod classic;
+pub mod dense;
 pub mod edbn;
 pub mod features;
+pub mod forest;
+pub mod lbfgs;
 pub mod smo;
 pub mod wss;
 

@@ -50,9 +50,10 @@
 //! touches: ~10 s per Table 2 fold, against well under 1 s here (the `svm`
 //! stage's `fit median ms` in the timing table of graphs/paper/table2.toml).
 //! The stage's accuracy "cliff" (5 training vectors per trial: 34.9° MAE with
-//! LaSVM, 8: 0.26°) is **not** the solver: this exact solver gives 39.18° at 5
-//! and 0.38° at 8 on the same graph (`palpate run` of table2.toml's front end
-//! with only the `svm` stage, `--set stages.svm.max_train_frames=5` / `8`).
+//! LaSVM, 8: 0.26°) was **not** the solver: this exact solver, and
+//! scikit-learn's `SVC` on the same vectors, gave the same cliff. Its cause
+//! was which vectors a capped trial contributed (see the training caps in
+//! `features`).
 
 use std::collections::HashMap;
 
@@ -417,26 +418,7 @@ pub fn rbf(a: &[f64], b: &[f64], gamma: f64) -> f64 {
     (-gamma * sq_dist(a, b)).exp()
 }
 
-/// `‖a − b‖²` with four partial sums in a fixed order (same bits everywhere).
-#[inline]
-pub fn sq_dist(a: &[f64], b: &[f64]) -> f64 {
-    let mut acc = [0.0f64; 4];
-    let ca = a.chunks_exact(4);
-    let cb = b.chunks_exact(4);
-    let (ra, rb) = (ca.remainder(), cb.remainder());
-    for (x, y) in ca.zip(cb) {
-        for l in 0..4 {
-            let d = x[l] - y[l];
-            acc[l] += d * d;
-        }
-    }
-    let mut s = (acc[0] + acc[1]) + (acc[2] + acc[3]);
-    for (x, y) in ra.iter().zip(rb) {
-        let d = x - y;
-        s += d * d;
-    }
-    s
-}
+pub use super::dense::sq_dist;
 
 #[cfg(test)]
 mod tests {
