@@ -30,7 +30,7 @@
 //!   in `[0, 1]` with a maximum of 1. The spatiotemporal *pattern* is kept, the
 //!   overall rate (which varies with force, skin and encoder gain) is not. The
 //!   `[0, 1]` range is what the RBMs' Bernoulli visible units need; the MLP and
-//!   the smartcore classifiers further standardise each feature ([`Standardizer`]).
+//!   the classical classifiers (SVM, forest, k-NN, logistic) further standardise each feature ([`Standardizer`]).
 //! * Training caps: a trial contributes at most `max_train_frames` active vectors,
 //!   evenly spaced over its active ones (deterministic, no RNG), so that every
 //!   trial weighs about the same whatever its duration (a 10° trial is ~6x longer
