@@ -17,6 +17,7 @@ const PAGES: &[(&str, &str)] = &[
     ("signal_file", "stages/sources.md"),
     ("spike_file", "stages/sources.md"),
     ("image_file", "stages/sources.md"),
+    ("union", "stages/sources.md"),
     ("lowpass", "stages/signals.md"),
     ("normalize", "stages/signals.md"),
     ("derivative", "stages/signals.md"),
@@ -44,6 +45,7 @@ const PAGES: &[(&str, &str)] = &[
     ("write_images", "stages/sinks.md"),
     ("write_estimates", "stages/sinks.md"),
     ("spike_timing", "stages/sinks.md"),
+    ("signal_levels", "stages/sinks.md"),
 ];
 
 /// The trained baselines share one section of the estimators page.
