@@ -1394,4 +1394,132 @@ mod tests {
         assert!(mae[0] < 5.0, "5 vectors per trial: MAE {}°", mae[0]);
         assert!(mae[1] < 5.0, "8 vectors per trial: MAE {}°", mae[1]);
     }
+
+    /// Three Gaussian blobs in 5 dimensions, overlapping a little: rows,
+    /// labels.
+    fn blobs(n: usize, seed: u64) -> (Vec<f64>, Vec<usize>) {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let dim = 5;
+        let centres = [
+            [1.0, 0.0, 0.5, -0.5, 0.0],
+            [-1.0, 0.5, 0.0, 0.5, 0.0],
+            [0.0, -1.0, -0.5, 0.0, 0.5],
+        ];
+        let mut x = Vec::with_capacity(n * dim);
+        let mut y = Vec::with_capacity(n);
+        for i in 0..n {
+            let c = i % 3;
+            for centre in &centres[c] {
+                // A sum of uniforms: close enough to a normal for blobs.
+                let noise: f64 = (0..4).map(|_| rng.random_range(-0.5..0.5)).sum::<f64>() * 0.6;
+                x.push(centre + noise);
+            }
+            y.push(c);
+        }
+        (x, y)
+    }
+
+    fn smart_matrix(x: &[f64], dim: usize) -> smartcore::linalg::basic::matrix::DenseMatrix<f64> {
+        smartcore::linalg::basic::matrix::DenseMatrix::new(x.len() / dim, dim, x.to_vec(), false)
+            .expect("a well-formed matrix")
+    }
+
+    /// smartcore's L-BFGS logistic regression (which this one replaced)
+    /// minimises the same penalised loss: on the same rows the two must give
+    /// the same answers, up to points on a decision boundary.
+    #[test]
+    fn logistic_agrees_with_smartcore() {
+        use smartcore::linear::logistic_regression::{LogisticRegression, LogisticRegressionParameters};
+        let (dim, k) = (5, 3);
+        let (x, y) = blobs(300, 11);
+        let (tx, _) = blobs(300, 12);
+        let (w, b) = fit_softmax(&x, &y, dim, k, 1.0, 1e-8, 1000);
+        let ours: Vec<usize> = tx
+            .chunks_exact(dim)
+            .map(|r| {
+                let z: Vec<f64> = (0..k)
+                    .map(|c| dense::dot(&w[c * dim..(c + 1) * dim], r) + b[c])
+                    .collect();
+                (0..k).max_by(|&a, &c| z[a].total_cmp(&z[c])).unwrap_or(0)
+            })
+            .collect();
+        let yi: Vec<i32> = y.iter().map(|&c| c as i32).collect();
+        let lr = LogisticRegression::fit(
+            &smart_matrix(&x, dim),
+            &yi,
+            LogisticRegressionParameters::default().with_alpha(1.0),
+        )
+        .expect("smartcore fits");
+        let theirs = lr.predict(&smart_matrix(&tx, dim)).expect("smartcore predicts");
+        let same = ours
+            .iter()
+            .zip(&theirs)
+            .filter(|(a, b)| **a as i32 == **b)
+            .count();
+        assert!(
+            same * 100 >= 97 * ours.len(),
+            "{same} of {} answers agree",
+            ours.len()
+        );
+    }
+
+    /// The CART forest against smartcore's random forest: on held-out rows
+    /// both must be about as accurate (their trees differ by their draws).
+    #[test]
+    fn forest_is_as_accurate_as_smartcores() {
+        use smartcore::ensemble::random_forest_classifier::{
+            RandomForestClassifier, RandomForestClassifierParameters,
+        };
+        let dim = 5;
+        let (x, y) = blobs(300, 21);
+        let (tx, ty) = blobs(300, 22);
+        let g = forest::Growth {
+            m: 2,
+            max_depth: 0,
+            min_samples_leaf: 1,
+        };
+        let trees: Vec<forest::Tree> = (0..30)
+            .map(|t| {
+                // A bootstrap per tree, as the forest stage draws it.
+                let mut rng = forest::tree_rng(5, t);
+                let rows: Vec<usize> = (0..y.len()).map(|_| rng.random_range(0..y.len())).collect();
+                let bx: Vec<f64> = rows
+                    .iter()
+                    .flat_map(|&i| x[i * dim..(i + 1) * dim].to_vec())
+                    .collect();
+                let by: Vec<usize> = rows.iter().map(|&i| y[i]).collect();
+                forest::grow(&bx, &by, dim, 3, &g, &mut rng)
+            })
+            .collect();
+        let ours = tx
+            .chunks_exact(dim)
+            .zip(&ty)
+            .filter(|(r, &c)| {
+                let mut votes = [0usize; 3];
+                trees.iter().for_each(|t| votes[t.predict(r)] += 1);
+                (0..3).max_by_key(|&v| votes[v]) == Some(c)
+            })
+            .count() as f64
+            / ty.len() as f64;
+        let yi: Vec<i32> = y.iter().map(|&c| c as i32).collect();
+        let rf = RandomForestClassifier::fit(
+            &smart_matrix(&x, dim),
+            &yi,
+            RandomForestClassifierParameters::default()
+                .with_n_trees(30)
+                .with_m(2)
+                .with_seed(5),
+        )
+        .expect("smartcore fits");
+        let pred = rf.predict(&smart_matrix(&tx, dim)).expect("smartcore predicts");
+        let theirs = pred.iter().zip(&ty).filter(|(p, &c)| **p == c as i32).count() as f64 / ty.len() as f64;
+        assert!(
+            ours > 0.8 && theirs > 0.8,
+            "accuracy ours {ours}, smartcore {theirs}"
+        );
+        assert!(
+            (ours - theirs).abs() <= 0.05,
+            "accuracy ours {ours}, smartcore {theirs}"
+        );
+    }
 }
