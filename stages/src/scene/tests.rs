@@ -5,15 +5,27 @@ use super::*;
 use palpate_core::{Signals, Source, Stage, TrialContext};
 use proptest::prelude::*;
 
-fn build(toml_keys: &str) -> Box<dyn Source> {
-    let cfg: SceneConfig = toml::from_str(toml_keys).unwrap();
-    let ctx = BuildContext {
+fn ctx() -> BuildContext {
+    BuildContext {
         stage_id: "scene".into(),
         seed: 3,
         out_dir: std::env::temp_dir(),
         base_dir: std::path::PathBuf::from("."),
-    };
-    match cfg.build(&ctx).unwrap() {
+    }
+}
+
+/// The config error building a scene from `keys` gives (panics if it builds).
+fn build_error(keys: &str) -> ConfigError {
+    let cfg: SceneConfig = toml::from_str(keys).unwrap();
+    match cfg.build(&ctx()) {
+        Ok(_) => panic!("built: {keys}"),
+        Err(e) => e,
+    }
+}
+
+fn build(toml_keys: &str) -> Box<dyn Source> {
+    let cfg: SceneConfig = toml::from_str(toml_keys).unwrap();
+    match cfg.build(&ctx()).unwrap() {
         Stage::Source(s) => s,
         other => panic!("scene built a {}", other.role()),
     }
@@ -318,19 +330,7 @@ fn conditions_simulate_each_scene_variant_with_labels_and_prefixed_ids() {
 
 #[test]
 fn bad_conditions_are_named_errors() {
-    let ctx = BuildContext {
-        stage_id: "scene".into(),
-        seed: 3,
-        out_dir: std::env::temp_dir(),
-        base_dir: std::path::PathBuf::from("."),
-    };
-    let err = |keys: &str| {
-        let cfg: SceneConfig = toml::from_str(keys).unwrap();
-        match cfg.build(&ctx) {
-            Ok(_) => panic!("built: {keys}"),
-            Err(e) => e,
-        }
-    };
+    let err = build_error;
     let e = err("[conditions.\"a/b\"]\n");
     assert!(e.message.contains("letters, digits"), "{e}");
     let e = err("[conditions.fast]\nmotion = { speed_mm_s = -1.0 }\n");
@@ -379,19 +379,7 @@ fn adjust_changes_one_key_of_an_inherited_effect() {
 
 #[test]
 fn bad_adjust_names_the_kind() {
-    let ctx = BuildContext {
-        stage_id: "scene".into(),
-        seed: 3,
-        out_dir: std::env::temp_dir(),
-        base_dir: std::path::PathBuf::from("."),
-    };
-    let err = |keys: &str| {
-        let cfg: SceneConfig = toml::from_str(keys).unwrap();
-        match cfg.build(&ctx) {
-            Ok(_) => panic!("built: {keys}"),
-            Err(e) => e,
-        }
-    };
+    let err = build_error;
     let skin = "effects = [{ kind = \"skin\", sigma_mm = 0.5 }]\n";
     let e = err(&format!("{skin}adjust = {{ creep = {{ fraction = 0.2 }} }}\n"));
     assert_eq!(e.key.as_deref(), Some("adjust.creep"), "{e}");
