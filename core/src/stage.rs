@@ -154,8 +154,8 @@ impl ConfigError {
     /// nested table: `ridge` + `width_mm` gives `ridge.width_mm`).
     pub fn within(mut self, prefix: &str) -> ConfigError {
         self.key = Some(match self.key.take() {
-            Some(k) => format!("{prefix}.{k}"),
-            None => prefix.to_string(),
+            Some(k) if !k.is_empty() => format!("{prefix}.{k}"),
+            _ => prefix.to_string(),
         });
         self.more = self.more.into_iter().map(|m| m.within(prefix)).collect();
         self

@@ -140,13 +140,13 @@ pub fn pair_levels(x: &[f64], rate_hz: f64, rest_ms: f64, min_change: f64) -> Op
     })
 }
 
+/// Population mean and SD; NaN when nothing was measured (core's `mean_sd`
+/// gives 0 there, which would read as a measured level).
 fn mean_sd(v: &[f64]) -> (f64, f64) {
     if v.is_empty() {
         return (f64::NAN, f64::NAN);
     }
-    let n = v.len() as f64;
-    let m = v.iter().sum::<f64>() / n;
-    (m, (v.iter().map(|x| (x - m).powi(2)).sum::<f64>() / n).sqrt())
+    palpate_core::sweep::mean_sd(v)
 }
 
 impl Sink for SignalLevelsConfig {

@@ -128,22 +128,6 @@ fn bad_name(name: &str) -> bool {
             .all(|c| c.is_ascii_alphanumeric() || matches!(c, '_' | '-'))
 }
 
-/// Prefixes every problem's key with `sources.<name>.`.
-fn within(name: &str, e: ConfigError) -> ConfigError {
-    let all: Vec<ConfigError> = e
-        .problems()
-        .into_iter()
-        .map(|(k, m)| {
-            let key = match k {
-                Some(k) if !k.is_empty() => format!("sources.{name}.{k}"),
-                _ => format!("sources.{name}"),
-            };
-            ConfigError::key(key, m.to_string())
-        })
-        .collect();
-    ConfigError::join(all).unwrap_or_else(|| ConfigError::key(format!("sources.{name}"), "invalid"))
-}
-
 impl UnionConfig {
     /// The one payload kind of every source, or an error naming the first
     /// source that differs (or is not a source at all).
@@ -213,7 +197,7 @@ impl StageConfig for UnionConfig {
                     format!("sources.{name}.type"),
                     "is not a source stage",
                 )),
-                Err(e) => errors.push(within(name, e)),
+                Err(e) => errors.push(e.within(&format!("sources.{name}"))),
             }
         }
         if let Some(e) = ConfigError::join(errors) {
@@ -231,9 +215,16 @@ impl StageConfig for UnionConfig {
         let mut rate: Option<(String, f64)> = None;
         for (name, cfg) in &self.sources {
             let sub = cfg.inspect(&Self::sub_context(ctx, name), &[]);
-            out.errors.extend(sub.errors.into_iter().map(|e| within(name, e)));
-            out.warnings
-                .extend(sub.warnings.into_iter().map(|e| within(name, e)));
+            out.errors.extend(
+                sub.errors
+                    .into_iter()
+                    .map(|e| e.within(&format!("sources.{name}"))),
+            );
+            out.warnings.extend(
+                sub.warnings
+                    .into_iter()
+                    .map(|e| e.within(&format!("sources.{name}"))),
+            );
             if let Some(r) = sub.facts.sample_rate_hz {
                 match &rate {
                     Some((first, fr)) if *fr != r => out.errors.push(ConfigError::key(

@@ -542,13 +542,7 @@ impl SceneConfig {
         let mut out = Vec::with_capacity(conditions.len());
         for (name, mut cond) in conditions {
             let key = |k: &str| format!("conditions.{name}{}{k}", if k.is_empty() { "" } else { "." });
-            let prefix = |e: ConfigError| {
-                let mut all: Vec<ConfigError> = Vec::new();
-                for (k, m) in e.problems() {
-                    all.push(ConfigError::key(key(k.unwrap_or("")), m.to_string()));
-                }
-                ConfigError::join(all).unwrap_or_else(|| ConfigError::key(key(""), "invalid"))
-            };
+            let prefix = |e: ConfigError| e.within(&format!("conditions.{name}"));
             if name.is_empty()
                 || !name
                     .chars()

@@ -35,6 +35,28 @@
 //! fixed `G` the current, falls ~7-fold and would drop below the neuron's
 //! rheobase (~3.8) at shallow angles. A fixed `gain` is the biologically
 //! literal choice (faster indentation, more spikes) and is available.
+//!
+//! # Why the paper graphs set a fixed `gain = 30`
+//!
+//! The paper chose one `G` for every trial ("chosen empirically" so that the
+//! spikes behave like FA-I afferents), and a live board cannot know a trial's
+//! peak before it ends, so the per-trial rule cannot stream. It has a cost
+//! too: on a shallow edge (10-20°) the peak slope is several times smaller,
+//! so the per-trial `G` is several times larger and the sensor's noise fires
+//! the neurons while the array slides, seconds before the edge (Fig. 5
+//! statistic on the lab scene: spikes spread ±6.1 s around the crossing).
+//! A fixed `G` has an FA-I window, measured on the lab scene with the
+//! `spike_timing` sink (`palpate run graphs/paper/fig5.toml --set
+//! stages.drive.gain=G`, with `--set stages.scene.file=../scenes/ideal.toml
+//! --set stages.scene.angles=[10]` for the lower end):
+//! * lower end, every crossing fires: the ideal scene's 10° crossing gives
+//!   0 spikes at `G = 17.3` and 6,400 at `G = 22`;
+//! * upper end, rest stays silent: the lab scene's spike-time skew is +0.90
+//!   at `G = 30` and −1.82 at `G = 35` (noise firing before the crossing),
+//!   −6.6 at `G = 40`.
+//!
+//! `G = 30` lies inside it and is also graphs/live.toml's `G`, so the offline
+//! and live graphs run the same arithmetic.
 
 use super::{check_signals, derivative::differentiate, derivative::DiffScheme};
 use palpate_core::{
