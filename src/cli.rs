@@ -365,10 +365,6 @@ pub fn main() -> ExitCode {
         Command::Check { graph, set, .. } => match load(&graph, set.clone(), None) {
             Some(g) if g.sweep.is_some() && load_sweep_points(&graph, set, &g).is_none() => ExitCode::FAILURE,
             Some(g) => {
-                if let Err(e) = crate::frontier::check(&g) {
-                    eprintln!("{}: {e}", g.file);
-                    return ExitCode::FAILURE;
-                }
                 println!(
                     "{}: ok ({} stages, {} warning{})",
                     graph.display(),
@@ -560,10 +556,6 @@ fn cmd_run(
         cache: None,
     };
     if graph.sweep.is_some() {
-        if let Err(e) = crate::frontier::check(&graph) {
-            eprintln!("{}: {e}", graph.file);
-            return ExitCode::FAILURE;
-        }
         let job = crate::cluster::SweepJob {
             path: &path,
             source: None,

@@ -61,7 +61,7 @@
 
 use palpate_core::runtime::median_p95;
 use palpate_core::sweep::{label, SweepRun};
-use palpate_core::{Graph, RunResult, Stage};
+use palpate_core::{Graph, RunResult};
 use serde::Serialize;
 use std::collections::{HashMap, HashSet};
 use std::fmt::Write as _;
@@ -128,36 +128,6 @@ pub fn pareto(points: &[(f64, f64)]) -> Vec<bool> {
                     .any(|q| finite(q) && q.0 <= p.0 && q.1 <= p.1 && (q.0 < p.0 || q.1 < p.1))
         })
         .collect()
-}
-
-/// Checks a graph's `frontier` list before anything runs: each id must be an
-/// estimator read by an `mae` sink.
-pub fn check(graph: &Graph) -> Result<(), String> {
-    let Some(sweep) = &graph.sweep else {
-        return Ok(());
-    };
-    for id in &sweep.frontier {
-        let Some(node) = graph.nodes.iter().find(|n| &n.id == id) else {
-            return Err(format!("[sweep] frontier: no stage `{id}`"));
-        };
-        if !matches!(node.stage, Stage::Estimator(_)) {
-            return Err(format!(
-                "[sweep] frontier: `{id}` is a {} stage ({}), not an estimator",
-                node.stage.role(),
-                node.type_name
-            ));
-        }
-        let read = graph
-            .nodes
-            .iter()
-            .any(|n| n.type_name == "mae" && n.inputs.contains(id));
-        if !read {
-            return Err(format!(
-                "[sweep] frontier: estimator `{id}` feeds no `mae` sink; add it to an mae sink's inputs"
-            ));
-        }
-    }
-    Ok(())
 }
 
 /// The stages on `id`'s upstream path in `graph`: every stage it reads,

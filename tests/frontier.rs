@@ -232,7 +232,6 @@ fn the_frontier_of_a_small_series_sweep() {
         ..Default::default()
     };
     let g = core::load_str(&text, "s.toml", "s", &opts).unwrap_or_else(|e| panic!("{e}"));
-    frontier::check(&g).unwrap();
     let runs = core::sweep::run_text(&text, "s.toml", "s", &opts, &g, &RunOptions::default())
         .unwrap_or_else(|e| panic!("{e}"));
     assert_eq!(runs.len(), 4);
@@ -384,9 +383,11 @@ fn the_frontier_list_is_checked() {
         ..Default::default()
     };
     let text = sweep_text().replace("frontier = [\"wss\", \"wss_stop\"]", "frontier = [\"bins\"]");
-    let g = core::load_str(&text, "s.toml", "s", &opts).unwrap();
-    let e = frontier::check(&g).unwrap_err();
-    assert!(e.contains("`bins` is a map stage"), "{e}");
+    // The loader checks the list, so a library caller gets the same errors.
+    let e = core::load_str(&text, "s.toml", "s", &opts)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("`bins`, a map stage (bin), not an estimator"), "{e}");
     let text = sweep_text()
         .replace(
             "inputs = [\"wss\", \"wss_stop\"]\nper_class",
@@ -396,9 +397,13 @@ fn the_frontier_list_is_checked() {
             "[stages.wss_stop]",
             "[stages.raster]\ntype = \"raster_plot\"\ninputs = [\"enc\"]\n\n[stages.wss_stop]",
         );
-    let g = core::load_str(&text, "s.toml", "s", &opts).unwrap_or_else(|e| panic!("{e}"));
-    let e = frontier::check(&g).unwrap_err();
-    assert!(e.contains("`wss_stop` feeds no `mae` sink"), "{e}");
+    let e = core::load_str(&text, "s.toml", "s", &opts)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("estimator `wss_stop`, which feeds no sink that scores estimates"),
+        "{e}"
+    );
 }
 
 #[test]

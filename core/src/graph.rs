@@ -721,6 +721,9 @@ impl<'t> Loader<'t> {
             base_dir: base_dir.clone(),
         };
         self.inspect(&pending, &order, &input_index, &ctx, &lines);
+        if let Some(sweep) = &sweep {
+            self.check_frontier(sweep, &pending, &lines);
+        }
         // In file order, so that a reader goes down the file once; those
         // without a line (overrides, the graph as a whole) first.
         self.diags.sort_by_key(|d| d.line.unwrap_or(0));
@@ -1417,6 +1420,49 @@ impl<'t> Loader<'t> {
                 }
             }
             facts[i] = found.facts;
+        }
+    }
+
+    /// `[sweep] frontier`: each id must be an estimator that a sink scoring
+    /// estimates ([`crate::stage::Sink::scores_estimates`], e.g. `mae`) reads, since the
+    /// frontier's rows are that sink's metrics. (Ids that name no stage were
+    /// reported by `load_sweep`; stages whose build failed were reported too.)
+    fn check_frontier(&mut self, sweep: &SweepSettings, nodes: &[Pending], lines: &Lines) {
+        let line = lines.top.get("sweep").copied();
+        for id in &sweep.frontier {
+            let Some(node) = nodes.iter().find(|n| &n.id == id) else {
+                continue;
+            };
+            let Some(stage) = &node.stage else {
+                continue;
+            };
+            if !matches!(stage, Stage::Estimator(_)) {
+                self.error(
+                    line,
+                    None,
+                    Some("frontier"),
+                    format!(
+                        "in [sweep]: `frontier` names `{id}`, a {} stage ({}), not an estimator",
+                        stage.role(),
+                        node.type_name
+                    ),
+                );
+                continue;
+            }
+            let scored = nodes.iter().any(|n| {
+                matches!(&n.stage, Some(Stage::Sink(s)) if s.scores_estimates()) && n.inputs.contains(id)
+            });
+            if !scored {
+                self.error(
+                    line,
+                    None,
+                    Some("frontier"),
+                    format!(
+                        "in [sweep]: `frontier` names estimator `{id}`, which feeds no sink that scores \
+                         estimates; add it to an `mae` sink's inputs"
+                    ),
+                );
+            }
         }
     }
 

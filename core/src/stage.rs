@@ -550,6 +550,15 @@ pub struct ClassMetric {
 pub trait Sink: Send + Sync {
     /// Consumes the inputs, in declaration order.
     fn consume(&self, inputs: &[SinkInput<'_>], ctx: &SinkContext<'_>) -> Result<SinkReport, StageError>;
+
+    /// Whether this sink reports, for each estimator it reads, the metrics the
+    /// accuracy-time frontier reads: `<id>.mae_deg`, `<id>.sd_deg`,
+    /// `<id>.no_edge` and `<id>.decision_ms`. The graph loader accepts an
+    /// estimator in `[sweep] frontier` only when such a sink reads it, so a
+    /// sink of a plugin can score estimates too. Default: no.
+    fn scores_estimates(&self) -> bool {
+        false
+    }
 }
 
 /// Derives a 64-bit seed from the graph's seed and a list of labels (stage id,

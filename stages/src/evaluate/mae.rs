@@ -555,6 +555,10 @@ pub fn render(stats: &MaeStats, per_class: bool) -> String {
 }
 
 impl Sink for MaeSink {
+    fn scores_estimates(&self) -> bool {
+        true
+    }
+
     fn consume(&self, inputs: &[SinkInput<'_>], ctx: &SinkContext<'_>) -> Result<SinkReport, StageError> {
         let mut report = SinkReport::default();
         let mut all = Vec::new();
