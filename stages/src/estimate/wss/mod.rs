@@ -172,7 +172,7 @@ mod tests;
 pub mod timing;
 
 pub use batch::{pearson, wss_batch, wss_batch_speeds, wss_reference, wss_reference_series, wss_series};
-pub use params::{AngleGrid, BeforeStart, Distance, Refine, Weighting, WssParams};
+pub use params::{AngleGrid, BeforeStart, Distance, Refine, Weighting, WssConfig, WssParams, WssSettings};
 pub use stream::WssStream;
 pub use templates::{raw_template, ClassTemplates, Templates};
 
@@ -180,138 +180,8 @@ use palpate_core::{
     register_stage, BuildContext, ConfigError, Estimate, Estimator, FitContext, InputSpec, Item, Model,
     PayloadKind, Stage, StageConfig, StageError, TrialContext,
 };
-use schemars::JsonSchema;
-use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
-
-/// Weighted spatiotemporal similarity (WSS) edge-orientation estimator (model-based, no training).
-///
-/// Matches a trial's spike images against simulated templates of a line
-/// crossing the array at each class angle (paper eqs. 5 to 7) and answers the
-/// best class, optionally refined to a continuous angle, or "no edge".
-/// Templates follow the images' layout and hop, and are built once per run.
-#[derive(Clone, Debug, Serialize, Deserialize, JsonSchema)]
-#[serde(deny_unknown_fields, default)]
-pub struct WssConfig {
-    /// Sliding speed the templates assume, mm/s ("known beforehand"). Default 2.
-    pub speed_mm_s: f64,
-    /// Spread `σ` of eq. 6, mm. Default 1 (half the paper's 2 mm taxel).
-    pub sigma_mm: f64,
-    /// Width of the simulated line, mm. Default 0.2 (the paper's).
-    pub line_width_mm: f64,
-    /// Class angles, degrees in (0, 180): a list `[10, 20, 30]` or a range
-    /// `{ from = 10, to = 90, step = 5 }` (inclusive). Default 10 to 170 by 5
-    /// (33 classes: the paper's 17, 10 to 90, and their mirror images).
-    pub angles: AngleGrid,
-    /// Frame weighting `w` of eq. 5: `constant`, `one_minus_sr` or
-    /// `one_plus_sr`. Default `constant`: exact on the ideal scene, where
-    /// `one_minus_sr` (the paper's best) misses classes, and as good or better
-    /// on the lab scene (RESULTS.md); the paper graphs set `one_minus_sr`.
-    pub weighting: Weighting,
-    /// Best score (a weighted mean correlation, in [-1, 1]) under which the
-    /// answer is "no edge". Default 0.1.
-    pub threshold: f64,
-    /// Continuous angle: `none` (the grid class), `parabola`, `search` (of
-    /// the WSS score over the angle) or `timing` (the arrival-time plane of
-    /// the taxels' spikes: unbiased and speed-free, see the module docs).
-    /// Default `none`.
-    pub refine: Refine,
-    /// Angle tolerance of `refine = "search"`, degrees. Default 0.05.
-    pub refine_tol_deg: f64,
-    /// For `refine = "timing"`: a taxel's arrival time is the centroid of its
-    /// spikes within this many ms of its busiest frame. Default 3000.
-    pub timing_window_ms: f64,
-    /// Longest template, s of palpation (crossings near 0 or 180 degrees are
-    /// long); a longer crossing keeps its last part. Default 120.
-    pub max_template_s: f64,
-    /// Frames before the trial's start: `silent` (spike-free frames:
-    /// correlation 0, weight 1, so a partial window at the trial's start cannot
-    /// win) or `exclude` (not part of the sums). Default `silent`.
-    pub before_start: BeforeStart,
-    /// Stop early, frame by frame, once the best class's score leads the
-    /// second best by this margin (and passes `threshold`); `decision_time_ms`
-    /// then tells how much palpation was used (ms from the trial's start, to
-    /// the end of the stopping frame). Default: none (whole trial).
-    pub stop_margin: Option<f64>,
-    /// Where eq. 6's distance `d` is measured from: `centre` (the taxel's
-    /// centre, eq. 6 read literally) or `area` (every point of the taxel's
-    /// square, `exp(−d²/σ²)` averaged over it). Default `centre`.
-    pub distance: Distance,
-    /// Relative error of `speed_mm_s` to allow for, estimating the speed
-    /// jointly with the angle: templates are built at `speed_steps` speeds
-    /// over `speed_mm_s · (1 ± speed_tolerance)`, every class scores its best
-    /// speed, and `refine = "search"` refines the speed too. Costs
-    /// `speed_steps` times the classes. Batch only (not with `stop_margin`).
-    /// In [0, 0.9]; default 0 (the speed is known, as in the paper).
-    pub speed_tolerance: f64,
-    /// Speeds of the grid searched when `speed_tolerance > 0`, 2 to 41.
-    /// Default 5 (steps of 10 % at a tolerance of 20 %).
-    pub speed_steps: usize,
-    /// The answer is flagged `uncertain` when a class that is not the best
-    /// class's grid neighbour scores within this much of the best score
-    /// (scores are weighted mean correlations; the margin is their
-    /// difference, no unit). 0 never flags. Default 0.05 (see the module docs).
-    pub uncertain_margin: f64,
-}
-
-impl Default for WssConfig {
-    fn default() -> Self {
-        let p = WssParams::default();
-        WssConfig {
-            speed_mm_s: p.speed_mm_s,
-            sigma_mm: p.sigma_mm,
-            line_width_mm: p.line_width_mm,
-            angles: AngleGrid::default(),
-            weighting: p.weighting,
-            threshold: p.threshold,
-            refine: p.refine,
-            refine_tol_deg: p.refine_tol_deg,
-            timing_window_ms: p.timing_window_ms,
-            max_template_s: p.max_template_s,
-            before_start: p.before_start,
-            stop_margin: None,
-            distance: p.distance,
-            speed_tolerance: p.speed_tolerance,
-            speed_steps: p.speed_steps,
-            uncertain_margin: p.uncertain_margin,
-        }
-    }
-}
-
-impl WssConfig {
-    /// The checked parameters, or an error naming the key.
-    pub fn params(&self) -> Result<WssParams, ConfigError> {
-        let p = WssParams {
-            speed_mm_s: self.speed_mm_s,
-            sigma_mm: self.sigma_mm,
-            line_width_mm: self.line_width_mm,
-            angles: self.angles.resolve()?,
-            weighting: self.weighting,
-            threshold: self.threshold,
-            refine: self.refine,
-            refine_tol_deg: self.refine_tol_deg,
-            timing_window_ms: self.timing_window_ms,
-            max_template_s: self.max_template_s,
-            before_start: self.before_start,
-            distance: self.distance,
-            speed_tolerance: self.speed_tolerance,
-            speed_steps: self.speed_steps,
-            uncertain_margin: self.uncertain_margin,
-        };
-        p.validate()?;
-        if let Some(m) = self.stop_margin {
-            palpate_core::check_range("stop_margin", m, 0.0, 2.0, "")?;
-            if p.speed_tolerance > 0.0 {
-                return Err(ConfigError::key(
-                    "speed_tolerance",
-                    "the joint speed search is batch only: it cannot be combined with stop_margin",
-                ));
-            }
-        }
-        Ok(p)
-    }
-}
 
 #[typetag::serde(name = "wss")]
 impl StageConfig for WssConfig {
