@@ -406,14 +406,21 @@ def section_share(out, docs, full_mae, sensor_out=None):
     for scene, (d, rows) in runs.items():
         def get(share, trunc, metric="wss.mae_deg"):
             r = rows.get(f"share={share},truncate={'true' if trunc else 'false'}")
-            return r and r[metric]
+            return r.get(metric) if r else None
+
+        def cell(v):
+            # No MAE when every trial of every seed answered "no edge".
+            return "– (every answer \"no edge\")" if v is None else pm(*v[:2])
         ours = {sh: get(sh, False) for sh in shares}
         trunc = {sh: get(sh, True) for sh in shares}
         noedge = {sh: get(sh, False, "wss.no_edge") for sh in shares}
+        noedge_cut = {sh: get(sh, True, "wss.no_edge") for sh in shares}
         lines += [
-            f"| {scene}: MAE (trial keeps its length) | " + " | ".join(pm(*ours[sh][:2]) for sh in shares) + " |",
+            f"| {scene}: MAE (trial keeps its length) | " + " | ".join(cell(ours[sh]) for sh in shares) + " |",
             f"| {scene}: \"no edge\" answers (mean) | " + " | ".join(f"{noedge[sh][0]:.1f}" for sh in shares) + " |",
-            f"| {scene}: MAE (trial ends at the cut) | " + " | ".join(pm(*trunc[sh][:2]) for sh in shares) + " |",
+            f"| {scene}: MAE (trial ends at the cut) | " + " | ".join(cell(trunc[sh]) for sh in shares) + " |",
+            f"| {scene}: \"no edge\" answers, trial ends at the cut (mean) | "
+            + " | ".join("–" if noedge_cut[sh] is None else f"{noedge_cut[sh][0]:.1f}" for sh in shares) + " |",
         ]
         o = {sh: ours[sh][0] for sh in shares}
         flat60 = o[0.6] - o[1.0] <= 0.5
@@ -1143,6 +1150,11 @@ def main():
         "mostly lower: the simulated taxels are better behaved than real ones); what we compare is the "
         "*shape* of each finding. Each \"as in the paper: yes/no\" verdict is computed from the measured "
         "numbers by scripts/results.py, per scene; nothing was tuned to make a verdict come out \"yes\".",
+        "",
+        "Every paper graph drives its Izhikevich FA-I neurons with one fixed gain, G = 30, for all trials, as "
+        "the paper chose one G (eq. 4). Versions of this page before 2026-11-24 used a gain set per trial "
+        "from the trial's peak slope; that rule amplified the sensor's noise on shallow edges, and its method-"
+        "level numbers are not comparable with these (the Fig. 5 section says how G was chosen).",
         "",
         "Reproduce everything (build, every graph in graphs/paper/, this file) with one command:",
         "",
