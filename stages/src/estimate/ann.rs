@@ -39,6 +39,7 @@ use super::features::{
     Classifier, FeatureKeys, FittedModel, Standardizer, TrainSet, TrainingLog, Vote, MODEL_FORMAT,
 };
 use crate::estimate::features::{FitBaseline, TrainedEstimator};
+use crate::estimate::saved;
 use palpate_core::{
     check_positive, check_range, register_stage, BuildContext, ConfigChecks, ConfigError, FitContext,
     InputSpec, Item, PayloadKind, Stage, StageConfig, StageError,
@@ -110,6 +111,14 @@ pub struct AnnConfig {
     pub vote: Vote,
     /// Write each fold's fitted model to `<out>/<stage id>.fold<f>.model.json`. Default false.
     pub save_model: bool,
+    /// A model saved by an offline run of this stage type (`save_model =
+    /// true`), JSON, relative to the graph file. With it the stage does not
+    /// fit: it predicts every trial with the loaded model (no folds or
+    /// training trials) and streams under `palpate run --live`; the feature
+    /// and training keys are then unused (the model keeps its own). Default
+    /// none: fit per fold.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub model_in: Option<String>,
 }
 
 impl Default for AnnConfig {
@@ -132,6 +141,7 @@ impl Default for AnnConfig {
             val_fraction: 0.15,
             vote: Vote::Winner,
             save_model: false,
+            model_in: None,
         }
     }
 }
@@ -223,6 +233,9 @@ impl StageConfig for AnnConfig {
     }
     fn build(&self, ctx: &BuildContext) -> Result<Stage, ConfigError> {
         self.check()?;
+        if let Some(stage) = saved::stage("ann", self.model_in.as_deref(), self.save_model, ctx)? {
+            return Ok(stage);
+        }
         Ok(TrainedEstimator::stage(self, ctx))
     }
 }
