@@ -243,11 +243,7 @@ fn lif_and_a_saved_ann_through_a_pseudo_terminal() {
 
 #[test]
 fn izhikevich_and_a_saved_edbn_through_a_pseudo_terminal() {
-    trained_through_a_pty(
-        "edbn",
-        IZHIKEVICH,
-        "type = \"edbn\"",
-    );
+    trained_through_a_pty("edbn", IZHIKEVICH, "type = \"edbn\"");
 }
 
 /// Offline and live, a recording with corrupted frames: a flipped byte (a

@@ -109,7 +109,10 @@ fn a_saved_ann_and_edbn_predict_the_fitting_runs_estimates_bit_for_bit() {
         &graph_text(&estimators("save_model = true", "save_model = true")),
         &out,
     );
-    let (ann, edbn) = (out.join("ann.fold0.model.json"), out.join("edbn.fold0.model.json"));
+    let (ann, edbn) = (
+        out.join("ann.fold0.model.json"),
+        out.join("edbn.fold0.model.json"),
+    );
     assert!(ann.is_file() && edbn.is_file() && out.join("ann.fold1.model.json").is_file());
     let loaded = run(
         &graph_text(&estimators(
@@ -165,10 +168,16 @@ fn saved_models(dir: &Path) -> Vec<(&'static str, PathBuf)> {
         epochs: 1,
         ..EdbnConfig::default()
     };
-    let fits: Vec<(&'static str, Box<dyn Fn() -> palpate_stages::estimate::features::FittedModel>)> = vec![
+    let fits: Vec<(
+        &'static str,
+        Box<dyn Fn() -> palpate_stages::estimate::features::FittedModel>,
+    )> = vec![
         ("ann", Box::new(|| ann.fit_fold(&refs, &fctx).unwrap())),
         ("edbn", Box::new(|| edbn.fit_fold(&refs, &fctx).unwrap())),
-        ("svm", Box::new(|| SvmConfig::default().fit_fold(&refs, &fctx).unwrap())),
+        (
+            "svm",
+            Box::new(|| SvmConfig::default().fit_fold(&refs, &fctx).unwrap()),
+        ),
         (
             "random_forest",
             Box::new(|| {
@@ -180,8 +189,14 @@ fn saved_models(dir: &Path) -> Vec<(&'static str, PathBuf)> {
                 .unwrap()
             }),
         ),
-        ("knn", Box::new(|| KnnConfig::default().fit_fold(&refs, &fctx).unwrap())),
-        ("logistic", Box::new(|| LogisticConfig::default().fit_fold(&refs, &fctx).unwrap())),
+        (
+            "knn",
+            Box::new(|| KnnConfig::default().fit_fold(&refs, &fctx).unwrap()),
+        ),
+        (
+            "logistic",
+            Box::new(|| LogisticConfig::default().fit_fold(&refs, &fctx).unwrap()),
+        ),
     ];
     fits.into_iter()
         .map(|(t, fit)| {
@@ -208,13 +223,13 @@ fn load_error(dir: &Path, type_name: &str, keys: &str) -> String {
     };
     match palpate_core::load_str(&text, "bad.toml", "bad", &opts) {
         Ok(_) => panic!("`{keys}` loaded"),
-        Err(e) => e
-            .0
-            .iter()
-            .filter(|d| d.stage.as_deref() == Some("est"))
-            .map(|d| d.to_string())
-            .collect::<Vec<_>>()
-            .join("\n"),
+        Err(e) => {
+            e.0.iter()
+                .filter(|d| d.stage.as_deref() == Some("est"))
+                .map(|d| d.to_string())
+                .collect::<Vec<_>>()
+                .join("\n")
+        }
     }
 }
 
@@ -257,13 +272,25 @@ fn every_trained_type_loads_its_own_model_and_refuses_bad_ones_naming_stage_key_
     // Bad JSON.
     std::fs::write(dir.join("bad.json"), "{\"format\": 3, \"classes\": [").unwrap();
     let e = load_error(&dir, "ann", "model_in = \"bad.json\"");
-    check(&e, &["est", "model_in", "bad.json", "not a palpate baseline model"]);
+    check(
+        &e,
+        &["est", "model_in", "bad.json", "not a palpate baseline model"],
+    );
     // Another stage type's model, each way round.
     for (t, f) in &models {
         let other = if *t == "ann" { "edbn" } else { "ann" };
         let name = f.file_name().unwrap().to_string_lossy().to_string();
         let e = load_error(&dir, other, &format!("model_in = {name:?}"));
-        check(&e, &["est", "model_in", &name, &format!("`{t}` stage"), &format!("`{other}`")]);
+        check(
+            &e,
+            &[
+                "est",
+                "model_in",
+                &name,
+                &format!("`{t}` stage"),
+                &format!("`{other}`"),
+            ],
+        );
     }
     // A model inconsistent with itself: a class missing, a taxel count that
     // is not its classifier's, an unsorted class list, a kind tag edited.
@@ -277,9 +304,13 @@ fn every_trained_type_loads_its_own_model_and_refuses_bad_ones_naming_stage_key_
     };
     let e = edit("one_class.json", &|j| j["classes"] = serde_json::json!([30.0]));
     check(&e, &["est", "model_in", "one_class.json", "classes"]);
-    let e = edit("taxels.json", &|j| j["features"]["n_taxels"] = serde_json::json!(9));
+    let e = edit("taxels.json", &|j| {
+        j["features"]["n_taxels"] = serde_json::json!(9)
+    });
     check(&e, &["est", "model_in", "taxels.json", "input size"]);
-    let e = edit("unsorted.json", &|j| j["classes"] = serde_json::json!([75.0, 30.0]));
+    let e = edit("unsorted.json", &|j| {
+        j["classes"] = serde_json::json!([75.0, 30.0])
+    });
     check(&e, &["est", "model_in", "unsorted.json", "increasing"]);
     let e = edit("params.json", &|j| {
         j["classifier"]["params"].as_array_mut().unwrap().pop();

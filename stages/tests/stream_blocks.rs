@@ -528,7 +528,11 @@ fn saved_ann_and_edbn_stream_to_their_batch_estimates_in_blocks_of_1_7_and_1000(
     let g = load(&saved_models_graph(&ann_file, &edbn_file));
     let batch = run_kept(&g);
     let plan = stream::plan(&g).unwrap_or_else(|p| panic!("{p:?}"));
-    assert_eq!(plan.stages.len(), 7, "filter, norm, drive, enc, bins, ann, edbn stream");
+    assert_eq!(
+        plan.stages.len(),
+        7,
+        "filter, norm, drive, enc, bins, ann, edbn stream"
+    );
     for id in ["ann", "edbn"] {
         assert_eq!(batch.outputs[id].len(), 2, "{id} estimates every trial, no fold");
     }

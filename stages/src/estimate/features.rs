@@ -618,8 +618,15 @@ impl Classifier {
                     let what = |x: &str| format!("layer {l}'s {x}");
                     let vis = if l + 1 == d.rbms.len() { fed + classes } else { fed };
                     want(&what("visible units"), r.n_vis, vis)?;
-                    want(&what("label units"), r.labels, if l + 1 == d.rbms.len() { classes } else { 0 })?;
-                    let w = r.n_hid.checked_mul(r.n_vis).ok_or_else(|| what("size overflows"))?;
+                    want(
+                        &what("label units"),
+                        r.labels,
+                        if l + 1 == d.rbms.len() { classes } else { 0 },
+                    )?;
+                    let w = r
+                        .n_hid
+                        .checked_mul(r.n_vis)
+                        .ok_or_else(|| what("size overflows"))?;
                     want(&what("weight count"), r.w.len(), w)?;
                     want(&what("visible bias count"), r.a.len(), r.n_vis)?;
                     want(&what("hidden bias count"), r.b.len(), r.n_hid)?;
@@ -641,14 +648,21 @@ impl Classifier {
                 want("the SVM's classes", m.classes, classes)?;
                 scaler(&m.scaler)?;
                 if dim == 0 || m.sv.len() % dim != 0 {
-                    return Err(format!("{} support-vector values are not rows of {dim}", m.sv.len()));
+                    return Err(format!(
+                        "{} support-vector values are not rows of {dim}",
+                        m.sv.len()
+                    ));
                 }
                 let n_sv = m.sv.len() / dim;
                 for (i, b) in m.machines.iter().enumerate() {
                     if b.a >= classes || b.b >= classes {
                         return Err(format!("machine {i} names class {} / {} of {classes}", b.a, b.b));
                     }
-                    want(&format!("machine {i}'s coefficient count"), b.coef.len(), b.sv_index.len())?;
+                    want(
+                        &format!("machine {i}'s coefficient count"),
+                        b.coef.len(),
+                        b.sv_index.len(),
+                    )?;
                     if let Some(j) = b.sv_index.iter().find(|&&j| j as usize >= n_sv) {
                         return Err(format!("machine {i} names support vector {j} of {n_sv}"));
                     }
@@ -673,7 +687,9 @@ impl Classifier {
                             (n.feature as usize) < dim && left > i && left + 1 < tree.nodes.len()
                         };
                         if !ok {
-                            return Err(format!("tree {t}, node {i} points outside the tree, the features or the classes"));
+                            return Err(format!(
+                                "tree {t}, node {i} points outside the tree, the features or the classes"
+                            ));
                         }
                     }
                 }
@@ -697,7 +713,9 @@ impl Classifier {
                 want("the regression's input size", m.dim, dim)?;
                 want("the regression's classes", m.classes, classes)?;
                 scaler(&m.scaler)?;
-                let n = classes.checked_mul(dim).ok_or("the regression's size overflows")?;
+                let n = classes
+                    .checked_mul(dim)
+                    .ok_or("the regression's size overflows")?;
                 want("the regression's weight count", m.w.len(), n)?;
                 want("the regression's bias count", m.b.len(), classes)
             }
@@ -750,7 +768,10 @@ impl FittedModel {
 
     /// [`Self::stream`] owning a share of the model, for a stream that
     /// outlives the borrow (a live stage's per-trial state).
-    pub fn stream_shared(model: std::sync::Arc<FittedModel>, seed: u64) -> Streamer<std::sync::Arc<FittedModel>> {
+    pub fn stream_shared(
+        model: std::sync::Arc<FittedModel>,
+        seed: u64,
+    ) -> Streamer<std::sync::Arc<FittedModel>> {
         Streamer::new(model, seed)
     }
 
@@ -796,7 +817,13 @@ impl FittedModel {
         }
         self.classifier
             .check_shape(f.dim(), self.classes.len())
-            .map_err(|e| format!("its classifier does not fit its {} classes and {}-value features: {e}", self.classes.len(), f.dim()))
+            .map_err(|e| {
+                format!(
+                    "its classifier does not fit its {} classes and {}-value features: {e}",
+                    self.classes.len(),
+                    f.dim()
+                )
+            })
     }
 
     /// Estimates a whole trial of images (by streaming every frame).

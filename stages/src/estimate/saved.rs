@@ -48,8 +48,8 @@
 
 use super::features::{load_model, FittedModel};
 use palpate_core::{
-    BuildContext, ConfigError, Estimate, Estimator, FitContext, Item, Model, SpikeImages, Stage,
-    StageError, TrialContext,
+    BuildContext, ConfigError, Estimate, Estimator, FitContext, Item, Model, SpikeImages, Stage, StageError,
+    TrialContext,
 };
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -105,11 +105,7 @@ impl ModelIn {
 
     /// `e`, naming the key and the file.
     pub fn error(&self, e: StageError) -> StageError {
-        StageError::new(format!(
-            "key `model_in` ({}): {}",
-            self.file.display(),
-            e.message
-        ))
+        StageError::new(format!("key `model_in` ({}): {}", self.file.display(), e.message))
     }
 }
 
