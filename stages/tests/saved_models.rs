@@ -168,47 +168,30 @@ fn saved_models(dir: &Path) -> Vec<(&'static str, PathBuf)> {
         epochs: 1,
         ..EdbnConfig::default()
     };
-    let fits: Vec<(
-        &'static str,
-        Box<dyn Fn() -> palpate_stages::estimate::features::FittedModel>,
-    )> = vec![
-        ("ann", Box::new(|| ann.fit_fold(&refs, &fctx).unwrap())),
-        ("edbn", Box::new(|| edbn.fit_fold(&refs, &fctx).unwrap())),
-        (
-            "svm",
-            Box::new(|| SvmConfig::default().fit_fold(&refs, &fctx).unwrap()),
-        ),
-        (
-            "random_forest",
-            Box::new(|| {
-                RandomForestConfig {
-                    n_trees: 3,
-                    ..RandomForestConfig::default()
-                }
-                .fit_fold(&refs, &fctx)
-                .unwrap()
-            }),
-        ),
-        (
-            "knn",
-            Box::new(|| KnnConfig::default().fit_fold(&refs, &fctx).unwrap()),
-        ),
-        (
-            "logistic",
-            Box::new(|| LogisticConfig::default().fit_fold(&refs, &fctx).unwrap()),
-        ),
+    let forest = RandomForestConfig {
+        n_trees: 3,
+        ..RandomForestConfig::default()
+    };
+    let fits = [
+        ("ann", ann.fit_fold(&refs, &fctx)),
+        ("edbn", edbn.fit_fold(&refs, &fctx)),
+        ("svm", SvmConfig::default().fit_fold(&refs, &fctx)),
+        ("random_forest", forest.fit_fold(&refs, &fctx)),
+        ("knn", KnnConfig::default().fit_fold(&refs, &fctx)),
+        ("logistic", LogisticConfig::default().fit_fold(&refs, &fctx)),
     ];
     fits.into_iter()
-        .map(|(t, fit)| {
+        .map(|(t, m)| {
             let f = dir.join(format!("{t}.model.json"));
-            save_model(&fit(), &f).unwrap();
+            save_model(&m.unwrap(), &f).unwrap();
             (t, f)
         })
         .collect()
 }
 
-/// Loads a graph whose stage `est` (of `type_name`) reads images from a
-/// `write_images` folder, with `keys`; the load error's text.
+/// Loads a graph whose stage `est` (of `type_name`, with `keys`) reads an
+/// `image_file` source; the text of the load errors about `est` (the
+/// source's folder need not exist: its own error is left out).
 fn load_error(dir: &Path, type_name: &str, keys: &str) -> String {
     palpate_stages::link();
     let text = format!(

@@ -806,10 +806,13 @@ impl FittedModel {
         if f.frames.checked_mul(f.n_taxels).is_none() || (f.frames - 1).checked_mul(f.step).is_none() {
             return Err("its feature spec's sizes overflow".into());
         }
-        if !(f.min_spikes.is_finite() && f.min_spikes >= 0.0)
-            || !(f.window_ms.is_finite() && f.window_ms > 0.0)
-            || !(f.hop_ms.is_finite() && f.hop_ms > 0.0)
-        {
+        let usable = f.min_spikes.is_finite()
+            && f.min_spikes >= 0.0
+            && f.window_ms.is_finite()
+            && f.window_ms > 0.0
+            && f.hop_ms.is_finite()
+            && f.hop_ms > 0.0;
+        if !usable {
             return Err(format!(
                 "its feature spec (min_spikes {}, window {} ms, hop {} ms) needs finite values, window and hop > 0",
                 f.min_spikes, f.window_ms, f.hop_ms
