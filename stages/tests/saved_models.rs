@@ -299,6 +299,10 @@ fn every_trained_type_loads_its_own_model_and_refuses_bad_ones_naming_stage_key_
         j["classifier"]["params"].as_array_mut().unwrap().pop();
     });
     check(&e, &["est", "model_in", "params.json", "parameter count"]);
+    let e = edit("step.json", &|j| {
+        j["features"]["step"] = serde_json::json!(1u64 << 60)
+    });
+    check(&e, &["est", "model_in", "step.json", "spans more than"]);
     let e = edit("kind.json", &|j| j["stage_type"] = serde_json::json!("edbn"));
     check(&e, &["est", "model_in", "kind.json", "`edbn` stage"]);
     // save_model beside model_in.

@@ -757,6 +757,9 @@ pub struct FittedModel {
     pub log: TrainingLog,
 }
 
+/// Most frames a loaded model's stacked vector may span (see [`FittedModel::check`]).
+pub const MAX_SPAN_FRAMES: usize = 1_000_000;
+
 /// Current [`FittedModel::format`].
 pub const MODEL_FORMAT: u32 = 3;
 
@@ -803,8 +806,14 @@ impl FittedModel {
                 f.frames, f.step, f.stride, f.n_taxels
             ));
         }
-        if f.frames.checked_mul(f.n_taxels).is_none() || (f.frames - 1).checked_mul(f.step).is_none() {
-            return Err("its feature spec's sizes overflow".into());
+        // A stream keeps the last `span` frames: bound it (10^6 frames is
+        // 10^4 s at a 10 ms hop), and the vector length.
+        let span = (f.frames - 1).checked_mul(f.step).and_then(|x| x.checked_add(1));
+        if f.frames.checked_mul(f.n_taxels).is_none() || span.is_none_or(|s| s > MAX_SPAN_FRAMES) {
+            return Err(format!(
+                "its feature spec (frames {}, step {}) spans more than {MAX_SPAN_FRAMES} frames",
+                f.frames, f.step
+            ));
         }
         let usable = f.min_spikes.is_finite()
             && f.min_spikes >= 0.0
