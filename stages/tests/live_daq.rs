@@ -3,8 +3,9 @@
 //! (`palpate_core::stream::replay`, what `palpate run --live` runs) with (a)
 //! Izhikevich + WSS, (b) LIF + WSS, (c) LIF + a trained ANN and (d)
 //! Izhikevich + a trained EDBN, each model fitted offline in the test on the
-//! emulated lab scene, saved (`save_model`) and loaded (`model_in`); a
-//! corrupted raw recording read offline; an emulated scene's trials cut at
+//! emulated lab scene, saved (`save_model`) and loaded (`model_in`); the
+//! shipped graphs/live_ann.toml with its shipped model; a corrupted raw
+//! recording read offline; an emulated scene's trials cut at
 //! contact; bad settings.
 
 use palpate_core::stream::{self, LiveUpdate};
@@ -244,6 +245,46 @@ fn lif_and_a_saved_ann_through_a_pseudo_terminal() {
 #[test]
 fn izhikevich_and_a_saved_edbn_through_a_pseudo_terminal() {
     trained_through_a_pty("edbn", IZHIKEVICH, "type = \"edbn\"");
+}
+
+/// The shipped graphs/live_ann.toml streams with its shipped model: on two
+/// emulated trials it answers their angles live, as its batch run does.
+#[test]
+fn the_shipped_live_ann_graph_streams_its_saved_model() {
+    palpate_stages::link();
+    let text = std::fs::read_to_string(root().join("graphs/live_ann.toml"))
+        .unwrap()
+        .replace(
+            "trials_per_angle = 2",
+            "trials_per_angle = 1\nangles = [25.0, 80.0]",
+        );
+    let opts = LoadOptions {
+        out: Some(std::env::temp_dir().join("palpate-live-daq-shipped")),
+        base_dir: Some(root().join("graphs")),
+        ..LoadOptions::default()
+    };
+    let g =
+        palpate_core::load_str(&text, "live_ann.toml", "live_ann", &opts).unwrap_or_else(|e| panic!("{e}"));
+    let finals: Vec<LiveUpdate> = live(&g).into_iter().filter(|u| u.last).collect();
+    let answers: Vec<Option<f64>> = finals.iter().map(|u| u.estimate.angle_deg).collect();
+    assert_eq!(answers, [Some(25.0), Some(80.0)]);
+    assert!(finals.iter().all(|u| u.stage == "ann"));
+    let out = palpate_core::run(
+        &g,
+        &RunOptions {
+            keep_outputs: true,
+            ..RunOptions::default()
+        },
+    )
+    .unwrap_or_else(|e| panic!("{e}"));
+    for (u, it) in finals.iter().zip(out.outputs["ann"].iter()) {
+        assert_eq!(
+            &u.estimate,
+            it.payload.estimate().unwrap().as_ref(),
+            "{}",
+            u.trial_id
+        );
+    }
 }
 
 /// Offline and live, a recording with corrupted frames: a flipped byte (a
