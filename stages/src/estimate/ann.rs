@@ -33,6 +33,10 @@
 //! RNG, which also shuffles the minibatches and draws the validation split, so a
 //! fit is bit-identical for the same seed. Loops run in a fixed order on one
 //! thread (folds run in parallel in the runtime).
+//!
+//! Saved models: `save_model = true` writes each fold's fitted network; a
+//! stage given one with `model_in` predicts with it instead of fitting, and
+//! streams under `palpate run --live` (see [`super::saved`]).
 
 use super::dense;
 use super::features::{

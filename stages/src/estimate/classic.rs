@@ -5,8 +5,9 @@
 //! Design: one stage type per model (rather than one `classic` type with a
 //! `model` key), so that each type's keys are exactly the ones that model has
 //! and `palpate stages svm` documents them; the feature keys (`frames`, `step`,
-//! `stride`, `min_spikes`, `max_train_frames`, `vote`, `save_model`) are the same
-//! in all four and mean what they mean for `ann` (see [`super::features`]). Every
+//! `stride`, `min_spikes`, `max_train_frames`, `vote`, `save_model`, `model_in`)
+//! are the same in all four and mean what they mean for `ann` (see
+//! [`super::features`] and, for `model_in`, [`super::saved`]). Every
 //! model classifies single feature vectors (default: 5 stacked images, the
 //! ANN (ST) input), standardised per feature on the training vectors; a trial's
 //! answer is the paper's winner-take-all vote over its active frames.

@@ -52,6 +52,10 @@
 //!   reproducible.
 //!
 //! In both modes a trial's answer is the winner-take-all vote of the paper.
+//!
+//! Saved models: `save_model = true` writes each fold's fitted network; a
+//! stage given one with `model_in` predicts with it instead of fitting, and
+//! streams under `palpate run --live` (see [`super::saved`]).
 
 use super::ann::softmax;
 use super::dense;

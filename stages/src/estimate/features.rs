@@ -82,6 +82,9 @@
 //! one batch ([`Classifier::scores_batch`], the same bits row by row) and votes
 //! in the same order, so the two agree (except in `decision_time_ms`, which the batch caps at the
 //! trial's end: a stream cannot know where the trial ends; see `estimate`).
+//! A stage given a saved model (`model_in`, see [`super::saved`]) loads it
+//! with [`load_model`], checks it ([`FittedModel::check`]) and predicts or
+//! streams with it instead of fitting.
 
 use palpate_core::output::write_atomic;
 use palpate_core::{
