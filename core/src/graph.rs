@@ -454,6 +454,11 @@ pub struct Graph {
     pub run: RunSettings,
     /// Where reports go.
     pub out_dir: PathBuf,
+    /// Directory that relative paths in the graph resolve against (the
+    /// graph file's directory, or [`LoadOptions::base_dir`]): what every
+    /// stage was built with, kept so that a stage's streaming form resolves
+    /// its paths (`model_in`, a scene file) the same way.
+    pub base_dir: PathBuf,
     /// Stages in file order.
     pub nodes: Vec<StageNode>,
     /// Indices into `nodes`, in an order where every stage follows its inputs.
@@ -749,6 +754,7 @@ impl<'t> Loader<'t> {
             file: self.file,
             run,
             out_dir,
+            base_dir,
             nodes,
             order,
             input_index,

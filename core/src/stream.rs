@@ -478,10 +478,9 @@ fn build_context(graph: &crate::Graph, node: usize) -> BuildContext {
         stage_id: graph.nodes[node].id.clone(),
         seed: graph.run.seed,
         out_dir: graph.out_dir.clone(),
-        base_dir: std::path::PathBuf::from(&graph.file)
-            .parent()
-            .map(std::path::Path::to_path_buf)
-            .unwrap_or_default(),
+        // The batch build's base directory: `LoadOptions::base_dir` may
+        // differ from the graph file's directory.
+        base_dir: graph.base_dir.clone(),
     }
 }
 

@@ -1,11 +1,12 @@
 //! The live path end to end: the `daq` source stage reading frames that an
 //! emulator writes into a pseudo-terminal, streamed through a graph
 //! (`palpate_core::stream::replay`, what `palpate run --live` runs) with (a)
-//! Izhikevich + WSS and (b) LIF + WSS; a corrupted raw recording read
-//! offline; an emulated scene's trials cut at contact; bad settings.
-//!
-//! TODO(lead): (c) a trained ANN estimator through the same pseudo-terminal
-//! path, once its streaming form exists.
+//! Izhikevich + WSS, (b) LIF + WSS, (c) LIF + a trained ANN and (d)
+//! Izhikevich + a trained EDBN, each model fitted offline in the test on the
+//! emulated lab scene, saved (`save_model`) and loaded (`model_in`); the
+//! shipped graphs/live_ann.toml with its shipped model; a corrupted raw
+//! recording read offline; an emulated scene's trials cut at
+//! contact; bad settings.
 
 use palpate_core::stream::{self, LiveUpdate};
 use palpate_core::{LoadOptions, RunOptions, Signals};
@@ -27,9 +28,23 @@ fn trial() -> Signals {
     simulate_trial(&lab_scene(), ANGLE, 3).unwrap()
 }
 
+/// WSS as the graph's estimator (stage id `wss`).
+const WSS: &str = "[stages.wss]
+type = \"wss\"
+inputs = [\"bins\"]
+weighting = \"one_minus_sr\"
+sigma_mm = 1.0
+threshold = 0.1";
+
 /// A live graph: `source` keys for the `daq` stage, then the causal chain of
 /// graphs/live.toml with `encoder` (a stage table's keys) and WSS.
 fn graph(source: &str, encoder: &str) -> palpate_core::Graph {
+    graph_with(source, encoder, WSS, "palpate-live-daq")
+}
+
+/// [`graph`] with `estimator` (a whole stage table reading `bins`) instead of
+/// WSS, its reports in the temporary folder `out`.
+fn graph_with(source: &str, encoder: &str, estimator: &str, out: &str) -> palpate_core::Graph {
     palpate_stages::link();
     let text = format!(
         r#"
@@ -67,16 +82,11 @@ inputs = ["drive"]
 type = "bin"
 inputs = ["enc"]
 
-[stages.wss]
-type = "wss"
-inputs = ["bins"]
-weighting = "one_minus_sr"
-sigma_mm = 1.0
-threshold = 0.1
+{estimator}
 "#
     );
     let opts = LoadOptions {
-        out: Some(std::env::temp_dir().join("palpate-live-daq")),
+        out: Some(std::env::temp_dir().join(out)),
         base_dir: Some(root().join("graphs")),
         ..LoadOptions::default()
     };
@@ -97,6 +107,11 @@ fn live(g: &palpate_core::Graph) -> Vec<LiveUpdate> {
 /// Plays `sig` into a pseudo-terminal as fast as the graph reads, streams a
 /// graph whose `daq` source reads that port, and checks the answer.
 fn through_a_pty(encoder: &str) -> Vec<LiveUpdate> {
+    through_a_pty_with(encoder, WSS)
+}
+
+/// [`through_a_pty`] with `estimator` (a stage table) instead of WSS.
+fn through_a_pty_with(encoder: &str, estimator: &str) -> Vec<LiveUpdate> {
     let sig = trial();
     let n = sig.n_samples() as u64;
     let (tx, rx) = std::sync::mpsc::channel();
@@ -109,7 +124,12 @@ fn through_a_pty(encoder: &str) -> Vec<LiveUpdate> {
         emulate_pty(&play, &opts, move |path| tx.send(path.to_string()).unwrap())
     });
     let port = rx.recv().unwrap();
-    let g = graph(&format!("port = \"{port}\""), encoder);
+    let g = graph_with(
+        &format!("port = \"{port}\""),
+        encoder,
+        estimator,
+        "palpate-live-daq",
+    );
     let updates = live(&g);
     assert_eq!(player.join().unwrap().unwrap().frames, n);
     // One trial (the stream is one contact), the whole of it streamed.
@@ -143,6 +163,128 @@ fn lif_and_wss_through_a_pseudo_terminal() {
     let e = &updates.last().unwrap().estimate;
     let a = e.angle_deg.expect("an edge");
     assert!((a - ANGLE).abs() <= 5.0, "LIF + WSS answered {a} deg");
+}
+
+/// Fits `estimator` (a trained stage's type and keys) offline on the
+/// emulated lab scene (5 trials at each of 30, 60 and 90 degrees, run seed 1,
+/// so none is the live trial) through the live chain with `encoder`, saving
+/// each fold's model; returns fold 0's (fitted on 4 trials per class).
+fn fit_offline(name: &str, encoder: &str, estimator: &str) -> PathBuf {
+    let out = format!("palpate-live-daq-fit-{name}-{}", std::process::id());
+    let source = "scene = \"scenes/lab.toml\"\nangles = [30.0, 60.0, 90.0]\ntrials_per_angle = 5";
+    let table = format!("[stages.est]\ninputs = [\"bins\"]\n{estimator}\nsave_model = true");
+    let g = graph_with(source, encoder, &table, &out);
+    palpate_core::run(&g, &RunOptions::default()).unwrap_or_else(|e| panic!("{e}"));
+    let model = std::env::temp_dir().join(&out).join("est.fold0.model.json");
+    assert!(model.is_file(), "{} was not saved", model.display());
+    model
+}
+
+/// The trial of [`trial`] as a raw recording (f32 frames, as the emulator
+/// plays them into the pseudo-terminal).
+fn recording(name: &str) -> PathBuf {
+    let sig = trial();
+    let mut bytes = Vec::new();
+    let mut frame = vec![0.0; sig.data.len()];
+    for k in 0..sig.n_samples() {
+        for (f, xs) in frame.iter_mut().zip(&sig.data) {
+            *f = xs[k];
+        }
+        encode_frame(&mut bytes, SampleFormat::F32, k as u32, k as u64 * 1000, &frame);
+    }
+    let dir = std::env::temp_dir().join("palpate-live-daq");
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join(format!("{name}-{}.daq", std::process::id()));
+    std::fs::write(&path, &bytes).unwrap();
+    path
+}
+
+/// A trained estimator fitted offline, then loaded with `model_in` and run
+/// live through a pseudo-terminal: its final live estimate is the offline
+/// (batch) estimate of the same trial read from a recording, bit for bit,
+/// and it is the true angle.
+fn trained_through_a_pty(name: &str, encoder: &str, estimator: &str) {
+    let model = fit_offline(name, encoder, estimator);
+    let kind = estimator.lines().next().unwrap_or_default();
+    let table = format!(
+        "[stages.est]\ninputs = [\"bins\"]\n{kind}\nmodel_in = {:?}",
+        model.display().to_string()
+    );
+    let updates = through_a_pty_with(encoder, &table);
+    let live_e = &updates.last().unwrap().estimate;
+    let rec = recording(name);
+    let g = graph_with(
+        &format!("recording = {:?}", rec.display().to_string()),
+        encoder,
+        &table,
+        "palpate-live-daq",
+    );
+    let out = palpate_core::run(
+        &g,
+        &RunOptions {
+            keep_outputs: true,
+            ..RunOptions::default()
+        },
+    )
+    .unwrap_or_else(|e| panic!("{e}"));
+    let batch_e = out.outputs["est"][0].payload.estimate().unwrap();
+    assert_eq!(live_e, batch_e.as_ref(), "{name}: live vs offline");
+    assert_eq!(live_e.angle_deg, Some(ANGLE), "{name}: {live_e:?}");
+    let _ = std::fs::remove_file(rec);
+}
+
+#[test]
+fn lif_and_a_saved_ann_through_a_pseudo_terminal() {
+    trained_through_a_pty(
+        "ann",
+        LIF,
+        "type = \"ann\"\nhidden = 12\nmax_epochs = 40\nval_fraction = 0.0",
+    );
+}
+
+#[test]
+fn izhikevich_and_a_saved_edbn_through_a_pseudo_terminal() {
+    trained_through_a_pty("edbn", IZHIKEVICH, "type = \"edbn\"");
+}
+
+/// The shipped graphs/live_ann.toml streams with its shipped model: on two
+/// emulated trials it answers their angles live, as its batch run does.
+#[test]
+fn the_shipped_live_ann_graph_streams_its_saved_model() {
+    palpate_stages::link();
+    let text = std::fs::read_to_string(root().join("graphs/live_ann.toml"))
+        .unwrap()
+        .replace(
+            "trials_per_angle = 2",
+            "trials_per_angle = 1\nangles = [25.0, 80.0]",
+        );
+    let opts = LoadOptions {
+        out: Some(std::env::temp_dir().join("palpate-live-daq-shipped")),
+        base_dir: Some(root().join("graphs")),
+        ..LoadOptions::default()
+    };
+    let g =
+        palpate_core::load_str(&text, "live_ann.toml", "live_ann", &opts).unwrap_or_else(|e| panic!("{e}"));
+    let finals: Vec<LiveUpdate> = live(&g).into_iter().filter(|u| u.last).collect();
+    let answers: Vec<Option<f64>> = finals.iter().map(|u| u.estimate.angle_deg).collect();
+    assert_eq!(answers, [Some(25.0), Some(80.0)]);
+    assert!(finals.iter().all(|u| u.stage == "ann"));
+    let out = palpate_core::run(
+        &g,
+        &RunOptions {
+            keep_outputs: true,
+            ..RunOptions::default()
+        },
+    )
+    .unwrap_or_else(|e| panic!("{e}"));
+    for (u, it) in finals.iter().zip(out.outputs["ann"].iter()) {
+        assert_eq!(
+            &u.estimate,
+            it.payload.estimate().unwrap().as_ref(),
+            "{}",
+            u.trial_id
+        );
+    }
 }
 
 /// Offline and live, a recording with corrupted frames: a flipped byte (a

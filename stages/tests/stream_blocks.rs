@@ -457,3 +457,131 @@ fn hostile_blocks_are_errors_not_panics() {
     .unwrap_err();
     assert!(e.message.contains("cutoff_hz"), "{e}");
 }
+
+/// The live chain's images, then a saved ANN (spatiotemporal) and a saved
+/// EDBN (spiking inference, so the streamed and batch random draws must
+/// agree too) loading `model_in`, each with its `mae` sink.
+fn saved_models_graph(ann: &Path, edbn: &Path) -> String {
+    let text = live_graph();
+    let (chain, _) = text.split_once("[stages.wss]").unwrap();
+    format!(
+        r#"{chain}
+[stages.ann]
+type = "ann"
+inputs = ["bins"]
+model_in = {ann:?}
+
+[stages.edbn]
+type = "edbn"
+inputs = ["bins"]
+model_in = {edbn:?}
+
+[stages.mae_ann]
+type = "mae"
+inputs = ["ann"]
+
+[stages.mae_edbn]
+type = "mae"
+inputs = ["edbn"]
+"#,
+        ann = ann.display().to_string(),
+        edbn = edbn.display().to_string(),
+    )
+}
+
+/// Trained estimators with a saved model (`model_in`) stream to their batch
+/// estimate, the same bits, in blocks of 1, 7 and 1000 samples; the models
+/// are fitted on the live chain's two lab trials and saved as an offline run
+/// saves them.
+#[test]
+fn saved_ann_and_edbn_stream_to_their_batch_estimates_in_blocks_of_1_7_and_1000() {
+    use palpate_core::FitContext;
+    use palpate_stages::estimate::ann::AnnConfig;
+    use palpate_stages::estimate::edbn::{EdbnConfig, Inference};
+    use palpate_stages::estimate::features::{save_model, FitBaseline};
+    let g = load(&live_graph());
+    let batch = run_kept(&g);
+    let images: Vec<&Item> = batch.outputs["bins"].iter().collect();
+    let dir = std::env::temp_dir().join(format!("palpate-stream-saved-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let fctx = FitContext {
+        stage_id: "ann",
+        fold: 0,
+        seed: 5,
+    };
+    let ann = AnnConfig {
+        hidden: 12,
+        max_epochs: 30,
+        val_fraction: 0.0,
+        ..AnnConfig::default()
+    };
+    let edbn = EdbnConfig {
+        layers: vec![30],
+        epochs: 6,
+        inference: Inference::Spiking,
+        ..EdbnConfig::default()
+    };
+    let (ann_file, edbn_file) = (dir.join("ann.model.json"), dir.join("edbn.model.json"));
+    save_model(&ann.fit_fold(&images, &fctx).unwrap(), &ann_file).unwrap();
+    save_model(&edbn.fit_fold(&images, &fctx).unwrap(), &edbn_file).unwrap();
+
+    let g = load(&saved_models_graph(&ann_file, &edbn_file));
+    let batch = run_kept(&g);
+    let plan = stream::plan(&g).unwrap_or_else(|p| panic!("{p:?}"));
+    assert_eq!(
+        plan.stages.len(),
+        7,
+        "filter, norm, drive, enc, bins, ann, edbn stream"
+    );
+    for id in ["ann", "edbn"] {
+        assert_eq!(batch.outputs[id].len(), 2, "{id} estimates every trial, no fold");
+    }
+    // The ANN learnt its two training trials.
+    for it in batch.outputs["ann"].iter() {
+        let e = it.payload.estimate().unwrap();
+        assert_eq!(e.angle_deg, it.meta.label.angle_deg, "{}", it.meta.trial_id);
+    }
+    for (t, item) in batch.outputs["scene"].iter().enumerate() {
+        let s = item.payload.signals().unwrap();
+        for block in [1usize, 7, 1000] {
+            let kept = plan
+                .run_trial(&g, &item.meta, signal_blocks(s, block), true, |_, _| {})
+                .unwrap();
+            for id in ["ann", "edbn"] {
+                let node = g.index_of(id).unwrap();
+                let blocks = &kept.iter().find(|(n, _)| *n == node).unwrap().1;
+                let got = concat(blocks).unwrap();
+                let want = &batch.outputs[id][t].payload;
+                assert_eq!(
+                    got.estimate().unwrap(),
+                    want.estimate().unwrap(),
+                    "{id}, trial {t}, blocks of {block}"
+                );
+                assert!(want.estimate().unwrap().angle_deg.is_some(), "{id}: an edge");
+                // Running estimates came before the final one.
+                assert!(blocks.len() >= 2, "{id}, trial {t}: {} blocks", blocks.len());
+            }
+        }
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Without `model_in` a trained estimator cannot stream, and the plan says
+/// so, naming `model_in` as the alternative.
+#[test]
+fn a_trained_estimator_without_model_in_names_model_in_as_its_alternative() {
+    let text = live_graph().replace(
+        "type = \"wss\"\ninputs = [\"bins\"]\nweighting = \"one_minus_sr\"",
+        "type = \"ann\"\ninputs = [\"bins\"]",
+    );
+    let g = load(&text);
+    let problems = match stream::plan(&g) {
+        Ok(_) => panic!("a fitting ANN cannot stream"),
+        Err(p) => p,
+    };
+    assert_eq!(problems.len(), 1, "{problems:?}");
+    assert_eq!(problems[0].stage, "wss");
+    assert_eq!(problems[0].type_name, "ann");
+    assert!(problems[0].instead.contains("model_in"), "{}", problems[0]);
+    assert!(problems[0].to_string().contains("save_model"), "{}", problems[0]);
+}

@@ -33,12 +33,17 @@
 //! RNG, which also shuffles the minibatches and draws the validation split, so a
 //! fit is bit-identical for the same seed. Loops run in a fixed order on one
 //! thread (folds run in parallel in the runtime).
+//!
+//! Saved models: `save_model = true` writes each fold's fitted network; a
+//! stage given one with `model_in` predicts with it instead of fitting, and
+//! streams under `palpate run --live` (see [`super::saved`]).
 
 use super::dense;
 use super::features::{
     Classifier, FeatureKeys, FittedModel, Standardizer, TrainSet, TrainingLog, Vote, MODEL_FORMAT,
 };
 use crate::estimate::features::{FitBaseline, TrainedEstimator};
+use crate::estimate::saved;
 use palpate_core::{
     check_positive, check_range, register_stage, BuildContext, ConfigChecks, ConfigError, FitContext,
     InputSpec, Item, PayloadKind, Stage, StageConfig, StageError,
@@ -110,6 +115,14 @@ pub struct AnnConfig {
     pub vote: Vote,
     /// Write each fold's fitted model to `<out>/<stage id>.fold<f>.model.json`. Default false.
     pub save_model: bool,
+    /// A model saved by an offline run of this stage type (`save_model =
+    /// true`), JSON, relative to the graph file. With it the stage does not
+    /// fit: it predicts every trial with the loaded model (no folds or
+    /// training trials) and streams under `palpate run --live`; the feature
+    /// and training keys are then unused (the model keeps its own). Default
+    /// none: fit per fold.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub model_in: Option<String>,
 }
 
 impl Default for AnnConfig {
@@ -132,6 +145,7 @@ impl Default for AnnConfig {
             val_fraction: 0.15,
             vote: Vote::Winner,
             save_model: false,
+            model_in: None,
         }
     }
 }
@@ -223,6 +237,9 @@ impl StageConfig for AnnConfig {
     }
     fn build(&self, ctx: &BuildContext) -> Result<Stage, ConfigError> {
         self.check()?;
+        if let Some(stage) = saved::stage("ann", self.model_in.as_deref(), self.save_model, ctx)? {
+            return Ok(stage);
+        }
         Ok(TrainedEstimator::stage(self, ctx))
     }
 }

@@ -5,8 +5,9 @@
 //! Design: one stage type per model (rather than one `classic` type with a
 //! `model` key), so that each type's keys are exactly the ones that model has
 //! and `palpate stages svm` documents them; the feature keys (`frames`, `step`,
-//! `stride`, `min_spikes`, `max_train_frames`, `vote`, `save_model`) are the same
-//! in all four and mean what they mean for `ann` (see [`super::features`]). Every
+//! `stride`, `min_spikes`, `max_train_frames`, `vote`, `save_model`, `model_in`)
+//! are the same in all four and mean what they mean for `ann` (see
+//! [`super::features`] and, for `model_in`, [`super::saved`]). Every
 //! model classifies single feature vectors (default: 5 stacked images, the
 //! ANN (ST) input), standardised per feature on the training vectors; a trial's
 //! answer is the paper's winner-take-all vote over its active frames.
@@ -77,6 +78,7 @@ use super::features::{
 };
 use super::{dense, forest, lbfgs, smo};
 use crate::estimate::features::{FitBaseline, TrainedEstimator};
+use crate::estimate::saved;
 use palpate_core::{
     check_positive, check_range, register_stage, BuildContext, ConfigChecks, ConfigError, FitContext,
     InputSpec, Item, PayloadKind, Stage, StageConfig, StageError,
@@ -171,6 +173,14 @@ pub struct SvmConfig {
     pub vote: Vote,
     /// Write each fold's fitted model to `<out>/<stage id>.fold<f>.model.json`. Default false.
     pub save_model: bool,
+    /// A model saved by an offline run of this stage type (`save_model =
+    /// true`), JSON, relative to the graph file. With it the stage does not
+    /// fit: it predicts every trial with the loaded model (no folds or
+    /// training trials) and streams under `palpate run --live`; the feature
+    /// and training keys are then unused (the model keeps its own). Default
+    /// none: fit per fold.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub model_in: Option<String>,
 }
 
 impl Default for SvmConfig {
@@ -189,6 +199,7 @@ impl Default for SvmConfig {
             cache_mb: 256,
             vote: Vote::Winner,
             save_model: false,
+            model_in: None,
         }
     }
 }
@@ -494,6 +505,9 @@ impl StageConfig for SvmConfig {
     }
     fn build(&self, ctx: &BuildContext) -> Result<Stage, ConfigError> {
         self.check()?;
+        if let Some(stage) = saved::stage("svm", self.model_in.as_deref(), self.save_model, ctx)? {
+            return Ok(stage);
+        }
         Ok(TrainedEstimator::stage(self, ctx))
     }
 }
@@ -538,6 +552,14 @@ pub struct RandomForestConfig {
     pub vote: Vote,
     /// Write each fold's fitted model to `<out>/<stage id>.fold<f>.model.json`. Default false.
     pub save_model: bool,
+    /// A model saved by an offline run of this stage type (`save_model =
+    /// true`), JSON, relative to the graph file. With it the stage does not
+    /// fit: it predicts every trial with the loaded model (no folds or
+    /// training trials) and streams under `palpate run --live`; the feature
+    /// and training keys are then unused (the model keeps its own). Default
+    /// none: fit per fold.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub model_in: Option<String>,
 }
 
 impl Default for RandomForestConfig {
@@ -554,6 +576,7 @@ impl Default for RandomForestConfig {
             m: 0,
             vote: Vote::Winner,
             save_model: false,
+            model_in: None,
         }
     }
 }
@@ -680,6 +703,9 @@ impl StageConfig for RandomForestConfig {
     }
     fn build(&self, ctx: &BuildContext) -> Result<Stage, ConfigError> {
         self.check()?;
+        if let Some(stage) = saved::stage("random_forest", self.model_in.as_deref(), self.save_model, ctx)? {
+            return Ok(stage);
+        }
         Ok(TrainedEstimator::stage(self, ctx))
     }
 }
@@ -730,6 +756,14 @@ pub struct KnnConfig {
     pub vote: Vote,
     /// Write each fold's fitted model to `<out>/<stage id>.fold<f>.model.json`. Default false.
     pub save_model: bool,
+    /// A model saved by an offline run of this stage type (`save_model =
+    /// true`), JSON, relative to the graph file. With it the stage does not
+    /// fit: it predicts every trial with the loaded model (no folds or
+    /// training trials) and streams under `palpate run --live`; the feature
+    /// and training keys are then unused (the model keeps its own). Default
+    /// none: fit per fold.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub model_in: Option<String>,
 }
 
 impl Default for KnnConfig {
@@ -744,6 +778,7 @@ impl Default for KnnConfig {
             weight: KnnWeight::Uniform,
             vote: Vote::Winner,
             save_model: false,
+            model_in: None,
         }
     }
 }
@@ -955,6 +990,9 @@ impl StageConfig for KnnConfig {
     }
     fn build(&self, ctx: &BuildContext) -> Result<Stage, ConfigError> {
         self.check()?;
+        if let Some(stage) = saved::stage("knn", self.model_in.as_deref(), self.save_model, ctx)? {
+            return Ok(stage);
+        }
         Ok(TrainedEstimator::stage(self, ctx))
     }
 }
@@ -999,6 +1037,14 @@ pub struct LogisticConfig {
     pub vote: Vote,
     /// Write each fold's fitted model to `<out>/<stage id>.fold<f>.model.json`. Default false.
     pub save_model: bool,
+    /// A model saved by an offline run of this stage type (`save_model =
+    /// true`), JSON, relative to the graph file. With it the stage does not
+    /// fit: it predicts every trial with the loaded model (no folds or
+    /// training trials) and streams under `palpate run --live`; the feature
+    /// and training keys are then unused (the model keeps its own). Default
+    /// none: fit per fold.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub model_in: Option<String>,
 }
 
 impl Default for LogisticConfig {
@@ -1014,6 +1060,7 @@ impl Default for LogisticConfig {
             max_iter: 1000,
             vote: Vote::Winner,
             save_model: false,
+            model_in: None,
         }
     }
 }
@@ -1199,6 +1246,9 @@ impl StageConfig for LogisticConfig {
     }
     fn build(&self, ctx: &BuildContext) -> Result<Stage, ConfigError> {
         self.check()?;
+        if let Some(stage) = saved::stage("logistic", self.model_in.as_deref(), self.save_model, ctx)? {
+            return Ok(stage);
+        }
         Ok(TrainedEstimator::stage(self, ctx))
     }
 }

@@ -52,11 +52,16 @@
 //!   reproducible.
 //!
 //! In both modes a trial's answer is the winner-take-all vote of the paper.
+//!
+//! Saved models: `save_model = true` writes each fold's fitted network; a
+//! stage given one with `model_in` predicts with it instead of fitting, and
+//! streams under `palpate run --live` (see [`super::saved`]).
 
 use super::ann::softmax;
 use super::dense;
 use super::features::{Classifier, FeatureKeys, FittedModel, TrainSet, TrainingLog, Vote, MODEL_FORMAT};
 use crate::estimate::features::{FitBaseline, TrainedEstimator};
+use crate::estimate::saved;
 use palpate_core::{
     check_positive, check_range, register_stage, BuildContext, ConfigChecks, ConfigError, FitContext,
     InputSpec, Item, PayloadKind, Stage, StageConfig, StageError,
@@ -117,6 +122,14 @@ pub struct EdbnConfig {
     pub vote: Vote,
     /// Write each fold's fitted model to `<out>/<stage id>.fold<f>.model.json`. Default false.
     pub save_model: bool,
+    /// A model saved by an offline run of this stage type (`save_model =
+    /// true`), JSON, relative to the graph file. With it the stage does not
+    /// fit: it predicts every trial with the loaded model (no folds or
+    /// training trials) and streams under `palpate run --live`; the feature
+    /// and training keys are then unused (the model keeps its own). Default
+    /// none: fit per fold.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub model_in: Option<String>,
 }
 
 impl Default for EdbnConfig {
@@ -139,6 +152,7 @@ impl Default for EdbnConfig {
             dt_ms: 1.0,
             vote: Vote::Winner,
             save_model: false,
+            model_in: None,
         }
     }
 }
@@ -867,6 +881,9 @@ impl StageConfig for EdbnConfig {
     }
     fn build(&self, ctx: &BuildContext) -> Result<Stage, ConfigError> {
         self.check()?;
+        if let Some(stage) = saved::stage("edbn", self.model_in.as_deref(), self.save_model, ctx)? {
+            return Ok(stage);
+        }
         Ok(TrainedEstimator::stage(self, ctx))
     }
 }

@@ -82,6 +82,9 @@
 //! one batch ([`Classifier::scores_batch`], the same bits row by row) and votes
 //! in the same order, so the two agree (except in `decision_time_ms`, which the batch caps at the
 //! trial's end: a stream cannot know where the trial ends; see `estimate`).
+//! A stage given a saved model (`model_in`, see [`super::saved`]) loads it
+//! with [`load_model`], checks it ([`FittedModel::check`]) and predicts or
+//! streams with it instead of fitting.
 
 use palpate_core::output::write_atomic;
 use palpate_core::{
@@ -563,6 +566,166 @@ impl Classifier {
     }
 }
 
+impl Classifier {
+    /// The stage type that fits this kind of classifier (`ann`, `edbn`,
+    /// `svm`, `random_forest`, `knn`, `logistic`): the `kind` tag of a saved model.
+    pub fn kind(&self) -> &'static str {
+        match self {
+            Classifier::Ann(_) => "ann",
+            Classifier::Edbn(_) => "edbn",
+            Classifier::Svm(_) => "svm",
+            Classifier::RandomForest(_) => "random_forest",
+            Classifier::Knn(_) => "knn",
+            Classifier::Logistic(_) => "logistic",
+        }
+    }
+
+    /// Checks that the classifier takes vectors of `dim` values and scores
+    /// `classes` classes, and that every weight array and index agrees with
+    /// its stated shape, so that a hand-edited or corrupted model file is an
+    /// error here rather than a panic (an index out of range) when it predicts.
+    pub fn check_shape(&self, dim: usize, classes: usize) -> Result<(), String> {
+        let want = |what: &str, got: usize, want: usize| {
+            if got == want {
+                Ok(())
+            } else {
+                Err(format!("{what} is {got}, expected {want}"))
+            }
+        };
+        let scaler = |s: &Standardizer| {
+            want("the standardiser's mean length", s.mean.len(), dim)?;
+            want("the standardiser's 1/sd length", s.inv_sd.len(), dim)
+        };
+        match self {
+            Classifier::Ann(m) => {
+                want("the network's input size", m.dim, dim)?;
+                want("the network's outputs", m.classes, classes)?;
+                if m.hidden == 0 {
+                    return Err("the network has no hidden unit".into());
+                }
+                let n = m
+                    .hidden
+                    .checked_mul(dim + 1 + classes)
+                    .and_then(|x| x.checked_add(classes))
+                    .ok_or("the network's size overflows")?;
+                want("the network's parameter count", m.params.len(), n)?;
+                scaler(&m.scaler)
+            }
+            Classifier::Edbn(d) => {
+                want("the network's label units", d.classes, classes)?;
+                if d.rbms.is_empty() {
+                    return Err("the network has no layer".into());
+                }
+                let mut fed = dim;
+                for (l, r) in d.rbms.iter().enumerate() {
+                    let what = |x: &str| format!("layer {l}'s {x}");
+                    let vis = if l + 1 == d.rbms.len() { fed + classes } else { fed };
+                    want(&what("visible units"), r.n_vis, vis)?;
+                    want(
+                        &what("label units"),
+                        r.labels,
+                        if l + 1 == d.rbms.len() { classes } else { 0 },
+                    )?;
+                    let w = r
+                        .n_hid
+                        .checked_mul(r.n_vis)
+                        .ok_or_else(|| what("size overflows"))?;
+                    want(&what("weight count"), r.w.len(), w)?;
+                    want(&what("visible bias count"), r.a.len(), r.n_vis)?;
+                    want(&what("hidden bias count"), r.b.len(), r.n_hid)?;
+                    fed = r.n_hid;
+                }
+                for (what, x) in [
+                    ("input_rate_hz", d.input_rate_hz),
+                    ("duration_ms", d.duration_ms),
+                    ("dt_ms", d.dt_ms),
+                ] {
+                    if !(x.is_finite() && x > 0.0) {
+                        return Err(format!("its spiking `{what}` is {x}, not a finite value > 0"));
+                    }
+                }
+                Ok(())
+            }
+            Classifier::Svm(m) => {
+                want("the SVM's input size", m.dim, dim)?;
+                want("the SVM's classes", m.classes, classes)?;
+                scaler(&m.scaler)?;
+                if dim == 0 || m.sv.len() % dim != 0 {
+                    return Err(format!(
+                        "{} support-vector values are not rows of {dim}",
+                        m.sv.len()
+                    ));
+                }
+                let n_sv = m.sv.len() / dim;
+                for (i, b) in m.machines.iter().enumerate() {
+                    if b.a >= classes || b.b >= classes {
+                        return Err(format!("machine {i} names class {} / {} of {classes}", b.a, b.b));
+                    }
+                    want(
+                        &format!("machine {i}'s coefficient count"),
+                        b.coef.len(),
+                        b.sv_index.len(),
+                    )?;
+                    if let Some(j) = b.sv_index.iter().find(|&&j| j as usize >= n_sv) {
+                        return Err(format!("machine {i} names support vector {j} of {n_sv}"));
+                    }
+                }
+                Ok(())
+            }
+            Classifier::RandomForest(f) => {
+                want("the forest's input size", f.dim, dim)?;
+                want("the forest's classes", f.classes, classes)?;
+                scaler(&f.scaler)?;
+                for (t, tree) in f.trees.iter().enumerate() {
+                    if tree.nodes.is_empty() {
+                        return Err(format!("tree {t} has no node"));
+                    }
+                    for (i, n) in tree.nodes.iter().enumerate() {
+                        let ok = if n.feature == u32::MAX {
+                            (n.left_or_class as usize) < classes
+                        } else {
+                            // Children come after their parent (depth-first),
+                            // so a walk from the root always ends.
+                            let left = n.left_or_class as usize;
+                            (n.feature as usize) < dim && left > i && left + 1 < tree.nodes.len()
+                        };
+                        if !ok {
+                            return Err(format!(
+                                "tree {t}, node {i} points outside the tree, the features or the classes"
+                            ));
+                        }
+                    }
+                }
+                Ok(())
+            }
+            Classifier::Knn(m) => {
+                want("k-NN's input size", m.dim, dim)?;
+                want("k-NN's classes", m.classes, classes)?;
+                scaler(&m.scaler)?;
+                if m.k == 0 {
+                    return Err("k-NN's k is 0".into());
+                }
+                let n = m.y.len().checked_mul(dim).ok_or("k-NN's size overflows")?;
+                want("k-NN's training values", m.x.len(), n)?;
+                if let Some(c) = m.y.iter().find(|&&c| c >= classes) {
+                    return Err(format!("k-NN has a training vector of class {c} of {classes}"));
+                }
+                Ok(())
+            }
+            Classifier::Logistic(m) => {
+                want("the regression's input size", m.dim, dim)?;
+                want("the regression's classes", m.classes, classes)?;
+                scaler(&m.scaler)?;
+                let n = classes
+                    .checked_mul(dim)
+                    .ok_or("the regression's size overflows")?;
+                want("the regression's weight count", m.w.len(), n)?;
+                want("the regression's bias count", m.b.len(), classes)
+            }
+        }
+    }
+}
+
 /// What training recorded, for reports and tests.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct TrainingLog {
@@ -597,19 +760,85 @@ pub struct FittedModel {
     pub log: TrainingLog,
 }
 
+/// Most frames a loaded model's stacked vector may span (see [`FittedModel::check`]).
+pub const MAX_SPAN_FRAMES: usize = 1_000_000;
+
 /// Current [`FittedModel::format`].
 pub const MODEL_FORMAT: u32 = 3;
 
 impl FittedModel {
     /// A streaming estimator over this model; `seed` drives stochastic inference.
-    pub fn stream(&self, seed: u64) -> Streamer<'_> {
-        Streamer {
-            model: self,
-            frames: FrameStream::new(self.features.clone()),
-            acc: Accumulator::new(self.classes.len()),
-            rng: rand_chacha::rand_core::SeedableRng::seed_from_u64(seed),
-            scratch: vec![0.0; self.classes.len()],
+    pub fn stream(&self, seed: u64) -> Streamer<&FittedModel> {
+        Streamer::new(self, seed)
+    }
+
+    /// [`Self::stream`] owning a share of the model, for a stream that
+    /// outlives the borrow (a live stage's per-trial state).
+    pub fn stream_shared(
+        model: std::sync::Arc<FittedModel>,
+        seed: u64,
+    ) -> Streamer<std::sync::Arc<FittedModel>> {
+        Streamer::new(model, seed)
+    }
+
+    /// Checks a loaded model before use: it was fitted by a stage of type
+    /// `stage_type` (its `stage_type` and its classifier's kind), its classes
+    /// are finite and increasing, its feature spec is usable, and its
+    /// classifier's shape agrees with both. What is wrong, as a sentence.
+    pub fn check(&self, stage_type: &str) -> Result<(), String> {
+        let kind = self.classifier.kind();
+        if self.stage_type != stage_type || kind != stage_type {
+            return Err(format!(
+                "a model fitted by a `{}` stage ({kind} classifier), not by a `{stage_type}` stage: give this stage type `{kind}` or load a `{stage_type}` model",
+                self.stage_type
+            ));
         }
+        if self.classes.is_empty() {
+            return Err("a model without classes".into());
+        }
+        if !self.classes.iter().all(|c| c.is_finite()) || !self.classes.windows(2).all(|w| w[0] < w[1]) {
+            return Err(format!(
+                "its classes {:?} are not finite, increasing angles",
+                self.classes
+            ));
+        }
+        let f = &self.features;
+        if f.frames == 0 || f.frames > 1000 || f.step == 0 || f.stride == 0 || f.n_taxels == 0 {
+            return Err(format!(
+                "its feature spec (frames {}, step {}, stride {}, taxels {}) needs each at least 1 (frames at most 1000)",
+                f.frames, f.step, f.stride, f.n_taxels
+            ));
+        }
+        // A stream keeps the last `span` frames: bound it (10^6 frames is
+        // 10^4 s at a 10 ms hop), and the vector length.
+        let span = (f.frames - 1).checked_mul(f.step).and_then(|x| x.checked_add(1));
+        if f.frames.checked_mul(f.n_taxels).is_none() || span.is_none_or(|s| s > MAX_SPAN_FRAMES) {
+            return Err(format!(
+                "its feature spec (frames {}, step {}) spans more than {MAX_SPAN_FRAMES} frames",
+                f.frames, f.step
+            ));
+        }
+        let usable = f.min_spikes.is_finite()
+            && f.min_spikes >= 0.0
+            && f.window_ms.is_finite()
+            && f.window_ms > 0.0
+            && f.hop_ms.is_finite()
+            && f.hop_ms > 0.0;
+        if !usable {
+            return Err(format!(
+                "its feature spec (min_spikes {}, window {} ms, hop {} ms) needs finite values, window and hop > 0",
+                f.min_spikes, f.window_ms, f.hop_ms
+            ));
+        }
+        self.classifier
+            .check_shape(f.dim(), self.classes.len())
+            .map_err(|e| {
+                format!(
+                    "its classifier does not fit its {} classes and {}-value features: {e}",
+                    self.classes.len(),
+                    f.dim()
+                )
+            })
     }
 
     /// Estimates a whole trial of images (by streaming every frame).
@@ -822,16 +1051,34 @@ pub fn argmax(v: &[f64]) -> usize {
     best
 }
 
-/// Frame-by-frame estimation with a fitted model.
-pub struct Streamer<'a> {
-    model: &'a FittedModel,
+/// Frame-by-frame estimation with a fitted model (borrowed, `&FittedModel`,
+/// or shared, `Arc<FittedModel>`).
+pub struct Streamer<M> {
+    model: M,
     frames: FrameStream,
     acc: Accumulator,
     rng: ChaCha8Rng,
     scratch: Vec<f64>,
 }
 
-impl Streamer<'_> {
+impl<M: std::ops::Deref<Target = FittedModel>> Streamer<M> {
+    /// A stream at frame 0; `seed` drives stochastic inference.
+    pub fn new(model: M, seed: u64) -> Self {
+        let n = model.classes.len();
+        Streamer {
+            frames: FrameStream::new(model.features.clone()),
+            acc: Accumulator::new(n),
+            rng: rand_chacha::rand_core::SeedableRng::seed_from_u64(seed),
+            scratch: vec![0.0; n],
+            model,
+        }
+    }
+
+    /// Frames pushed so far.
+    pub fn frames_seen(&self) -> usize {
+        self.frames.frames_seen()
+    }
+
     /// Pushes the next frame (one count per taxel). Returns this frame's class
     /// scores when it was used in the vote (an active anchor frame).
     pub fn push(&mut self, frame: &[f64]) -> Result<Option<&[f64]>, StageError> {

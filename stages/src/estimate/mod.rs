@@ -20,6 +20,8 @@
 //! * WSS with `stop_margin`: the frame at which it stopped.
 //! * Trained baselines (ANN, EDBN, ...): the last frame that voted; later
 //!   frames are inactive (too few spikes) and cannot change the answer.
+//! * Trained baselines with a saved model (`model_in`): the same, batch or
+//!   streamed.
 //! * "No edge" for want of data (no frame, or no active frame): `None`.
 
 pub mod ann;
@@ -29,6 +31,7 @@ pub mod edbn;
 pub mod features;
 pub mod forest;
 pub mod lbfgs;
+pub mod saved;
 pub mod smo;
 pub mod wss;
 

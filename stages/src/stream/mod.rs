@@ -14,16 +14,19 @@
 //! | `jitter` | always (output `B·τ` behind, see [`events`]) | - |
 //! | `bin` | always | - |
 //! | `wss` | always (model-based) | - |
+//! | `ann`, `edbn`, `svm`, `random_forest`, `knn`, `logistic` | `model_in` (a model saved offline) | `model_in = "<file>"` from an offline run with `save_model = true` |
 //!
 //! Every form gives, concatenated over a trial's blocks, its batch stage's
 //! output on the whole trial, bit for bit (WSS: the same answer, scores to
-//! 1e-9; tested in `stages/tests/stream_blocks.rs` with blocks of 1, 7 and
-//! 1000 samples).
+//! 1e-9; the trained estimators with `model_in`: their batch estimate;
+//! tested in `stages/tests/stream_blocks.rs` with blocks of 1, 7 and 1000
+//! samples).
 
 mod encode;
 pub mod events;
 mod signal;
 mod spikes;
+mod trained;
 mod wss;
 
 use palpate_core::{Payload, Signals, StageError, TaxelLayout};
