@@ -40,7 +40,8 @@
 
 use super::dense;
 use super::features::{
-    Classifier, FeatureKeys, FittedModel, Standardizer, TrainSet, TrainingLog, Vote, MODEL_FORMAT,
+    check_scaler, want, FeatureKeys, FittedModel, FrameClassifier, Standardizer, TrainSet, TrainingLog, Vote,
+    MODEL_FORMAT,
 };
 use crate::estimate::features::{FitBaseline, TrainedEstimator};
 use crate::estimate::saved;
@@ -221,7 +222,7 @@ impl AnnConfig {
             classes: set.classes,
             features: set.spec,
             vote: self.vote,
-            classifier: Classifier::Ann(mlp),
+            classifier: Box::new(mlp),
             log,
         }
     }
@@ -528,6 +529,41 @@ pub(crate) fn softmax(z: &mut [f64]) {
         sum += *v;
     }
     z.iter_mut().for_each(|v| *v /= sum);
+}
+
+#[typetag::serde(name = "ann")]
+impl FrameClassifier for Mlp {
+    fn frame_scores(&self, x: &[f64], _rng: &mut ChaCha8Rng, out: &mut [f64]) {
+        Mlp::frame_scores(self, x, out)
+    }
+
+    fn scores_batch(&self, x: &[f64], _dim: usize, _classes: usize, _rng: &mut ChaCha8Rng, out: &mut [f64]) {
+        Mlp::scores_batch(self, x, out)
+    }
+
+    fn kind(&self) -> &'static str {
+        "ann"
+    }
+
+    fn check_shape(&self, dim: usize, classes: usize) -> Result<(), String> {
+        let m = self;
+        want("the network's input size", m.dim, dim)?;
+        want("the network's outputs", m.classes, classes)?;
+        if m.hidden == 0 {
+            return Err("the network has no hidden unit".into());
+        }
+        let n = m
+            .hidden
+            .checked_mul(dim + 1 + classes)
+            .and_then(|x| x.checked_add(classes))
+            .ok_or("the network's size overflows")?;
+        want("the network's parameter count", m.params.len(), n)?;
+        check_scaler(&m.scaler, dim)
+    }
+
+    fn as_any(&self) -> &dyn std::any::Any {
+        self
+    }
 }
 
 #[cfg(test)]

@@ -74,7 +74,8 @@
 use super::ann::softmax;
 use super::dense::sq_dist;
 use super::features::{
-    Classifier, FeatureKeys, FittedModel, Standardizer, TrainSet, TrainingLog, Vote, MODEL_FORMAT,
+    check_scaler, want, Classifier, FeatureKeys, FittedModel, FrameClassifier, Standardizer, TrainSet,
+    TrainingLog, Vote, MODEL_FORMAT,
 };
 use super::{dense, forest, lbfgs, smo};
 use crate::estimate::features::{FitBaseline, TrainedEstimator};
@@ -484,7 +485,7 @@ impl SvmConfig {
                 bias,
             });
         }
-        Ok(Classifier::Svm(OvoSvm {
+        Ok(Box::new(OvoSvm {
             dim,
             classes: k,
             gamma,
@@ -683,7 +684,7 @@ impl RandomForestConfig {
                 .into_par_iter()
                 .map(|t| forest::grow(&d.flat, &set.y, set.dim, k, &g, &mut forest::tree_rng(seed, t)))
                 .collect();
-            Ok(Classifier::RandomForest(Forest {
+            Ok(Box::new(Forest {
                 classes: k,
                 dim: set.dim,
                 scaler,
@@ -967,7 +968,7 @@ impl KnnConfig {
     pub fn fit_set(&self, set: TrainSet, rng: &mut ChaCha8Rng) -> Result<FittedModel, StageError> {
         self.check()?;
         fit_classic_set(set, self.vote, "knn", rng, |set, d, scaler, _| {
-            Ok(Classifier::Knn(Knn {
+            Ok(Box::new(Knn {
                 classes: set.classes.len(),
                 dim: set.dim,
                 k: self.k.min(set.len()),
@@ -1225,7 +1226,7 @@ impl LogisticConfig {
                     "logistic regression diverged (non-finite coefficients); raise `alpha`",
                 ));
             }
-            Ok(Classifier::Logistic(Softmax {
+            Ok(Box::new(Softmax {
                 dim: set.dim,
                 classes: k,
                 w,
@@ -1259,6 +1260,166 @@ impl FitBaseline for LogisticConfig {
     }
     fn saves_models(&self) -> bool {
         self.save_model
+    }
+}
+
+#[typetag::serde(name = "svm")]
+impl FrameClassifier for OvoSvm {
+    fn frame_scores(&self, x: &[f64], _rng: &mut ChaCha8Rng, out: &mut [f64]) {
+        OvoSvm::frame_scores(self, x, out)
+    }
+
+    fn scores_batch(&self, x: &[f64], _dim: usize, _classes: usize, _rng: &mut ChaCha8Rng, out: &mut [f64]) {
+        OvoSvm::scores_batch(self, x, out)
+    }
+
+    fn kind(&self) -> &'static str {
+        "svm"
+    }
+
+    fn check_shape(&self, dim: usize, classes: usize) -> Result<(), String> {
+        let m = self;
+        want("the SVM's input size", m.dim, dim)?;
+        want("the SVM's classes", m.classes, classes)?;
+        check_scaler(&m.scaler, dim)?;
+        if dim == 0 || m.sv.len() % dim != 0 {
+            return Err(format!(
+                "{} support-vector values are not rows of {dim}",
+                m.sv.len()
+            ));
+        }
+        let n_sv = m.sv.len() / dim;
+        for (i, b) in m.machines.iter().enumerate() {
+            if b.a >= classes || b.b >= classes {
+                return Err(format!("machine {i} names class {} / {} of {classes}", b.a, b.b));
+            }
+            want(
+                &format!("machine {i}'s coefficient count"),
+                b.coef.len(),
+                b.sv_index.len(),
+            )?;
+            if let Some(j) = b.sv_index.iter().find(|&&j| j as usize >= n_sv) {
+                return Err(format!("machine {i} names support vector {j} of {n_sv}"));
+            }
+        }
+        Ok(())
+    }
+
+    fn as_any(&self) -> &dyn std::any::Any {
+        self
+    }
+}
+
+#[typetag::serde(name = "random_forest")]
+impl FrameClassifier for Forest {
+    fn frame_scores(&self, x: &[f64], _rng: &mut ChaCha8Rng, out: &mut [f64]) {
+        Forest::frame_scores(self, x, out)
+    }
+
+    fn scores_batch(&self, x: &[f64], _dim: usize, _classes: usize, _rng: &mut ChaCha8Rng, out: &mut [f64]) {
+        Forest::scores_batch(self, x, out)
+    }
+
+    fn kind(&self) -> &'static str {
+        "random_forest"
+    }
+
+    fn check_shape(&self, dim: usize, classes: usize) -> Result<(), String> {
+        let f = self;
+        want("the forest's input size", f.dim, dim)?;
+        want("the forest's classes", f.classes, classes)?;
+        check_scaler(&f.scaler, dim)?;
+        for (t, tree) in f.trees.iter().enumerate() {
+            if tree.nodes.is_empty() {
+                return Err(format!("tree {t} has no node"));
+            }
+            for (i, n) in tree.nodes.iter().enumerate() {
+                let ok = if n.feature == u32::MAX {
+                    (n.left_or_class as usize) < classes
+                } else {
+                    // Children come after their parent (depth-first),
+                    // so a walk from the root always ends.
+                    let left = n.left_or_class as usize;
+                    (n.feature as usize) < dim && left > i && left + 1 < tree.nodes.len()
+                };
+                if !ok {
+                    return Err(format!(
+                        "tree {t}, node {i} points outside the tree, the features or the classes"
+                    ));
+                }
+            }
+        }
+        Ok(())
+    }
+
+    fn as_any(&self) -> &dyn std::any::Any {
+        self
+    }
+}
+
+#[typetag::serde(name = "knn")]
+impl FrameClassifier for Knn {
+    fn frame_scores(&self, x: &[f64], _rng: &mut ChaCha8Rng, out: &mut [f64]) {
+        Knn::frame_scores(self, x, out)
+    }
+
+    fn scores_batch(&self, x: &[f64], _dim: usize, _classes: usize, _rng: &mut ChaCha8Rng, out: &mut [f64]) {
+        Knn::scores_batch(self, x, out)
+    }
+
+    fn kind(&self) -> &'static str {
+        "knn"
+    }
+
+    fn check_shape(&self, dim: usize, classes: usize) -> Result<(), String> {
+        let m = self;
+        want("k-NN's input size", m.dim, dim)?;
+        want("k-NN's classes", m.classes, classes)?;
+        check_scaler(&m.scaler, dim)?;
+        if m.k == 0 {
+            return Err("k-NN's k is 0".into());
+        }
+        let n = m.y.len().checked_mul(dim).ok_or("k-NN's size overflows")?;
+        want("k-NN's training values", m.x.len(), n)?;
+        if let Some(c) = m.y.iter().find(|&&c| c >= classes) {
+            return Err(format!("k-NN has a training vector of class {c} of {classes}"));
+        }
+        Ok(())
+    }
+
+    fn as_any(&self) -> &dyn std::any::Any {
+        self
+    }
+}
+
+#[typetag::serde(name = "logistic")]
+impl FrameClassifier for Softmax {
+    fn frame_scores(&self, x: &[f64], _rng: &mut ChaCha8Rng, out: &mut [f64]) {
+        Softmax::frame_scores(self, x, out)
+    }
+
+    fn scores_batch(&self, x: &[f64], _dim: usize, _classes: usize, _rng: &mut ChaCha8Rng, out: &mut [f64]) {
+        Softmax::scores_batch(self, x, out)
+    }
+
+    fn kind(&self) -> &'static str {
+        "logistic"
+    }
+
+    fn check_shape(&self, dim: usize, classes: usize) -> Result<(), String> {
+        let m = self;
+        want("the regression's input size", m.dim, dim)?;
+        want("the regression's classes", m.classes, classes)?;
+        check_scaler(&m.scaler, dim)?;
+        let n = classes
+            .checked_mul(dim)
+            .ok_or("the regression's size overflows")?;
+        want("the regression's weight count", m.w.len(), n)?;
+        want("the regression's bias count", m.b.len(), classes)
+    }
+
+    fn as_any(&self) -> &dyn std::any::Any {
+        self
     }
 }
 
@@ -1369,10 +1530,12 @@ mod tests {
                 .build()
                 .expect("pool");
             let m = pool.install(|| cfg.fit_set(set.clone(), &mut ChaCha8Rng::seed_from_u64(9)));
-            match m.expect("fit").classifier {
-                Classifier::RandomForest(f) => f,
-                _ => unreachable!("a forest"),
-            }
+            let m = m.expect("fit");
+            m.classifier
+                .as_any()
+                .downcast_ref::<Forest>()
+                .expect("a forest")
+                .clone()
         };
         let (one, two) = (fit(1), fit(2));
         assert_eq!(one, two);

@@ -59,7 +59,9 @@
 
 use super::ann::softmax;
 use super::dense;
-use super::features::{Classifier, FeatureKeys, FittedModel, TrainSet, TrainingLog, Vote, MODEL_FORMAT};
+use super::features::{
+    want, FeatureKeys, FittedModel, FrameClassifier, TrainSet, TrainingLog, Vote, MODEL_FORMAT,
+};
 use crate::estimate::features::{FitBaseline, TrainedEstimator};
 use crate::estimate::saved;
 use palpate_core::{
@@ -858,7 +860,7 @@ impl EdbnConfig {
             classes: set.classes,
             features: set.spec,
             vote: self.vote,
-            classifier: Classifier::Edbn(Dbn {
+            classifier: Box::new(Dbn {
                 rbms,
                 classes: k,
                 inference: self.inference,
@@ -895,6 +897,62 @@ impl FitBaseline for EdbnConfig {
     }
     fn saves_models(&self) -> bool {
         self.save_model
+    }
+}
+
+#[typetag::serde(name = "edbn")]
+impl FrameClassifier for Dbn {
+    fn frame_scores(&self, x: &[f64], rng: &mut ChaCha8Rng, out: &mut [f64]) {
+        Dbn::frame_scores(self, x, rng, out)
+    }
+
+    fn scores_batch(&self, x: &[f64], dim: usize, _classes: usize, rng: &mut ChaCha8Rng, out: &mut [f64]) {
+        Dbn::scores_batch(self, x, dim, rng, out)
+    }
+
+    fn kind(&self) -> &'static str {
+        "edbn"
+    }
+
+    fn check_shape(&self, dim: usize, classes: usize) -> Result<(), String> {
+        let d = self;
+        want("the network's label units", d.classes, classes)?;
+        if d.rbms.is_empty() {
+            return Err("the network has no layer".into());
+        }
+        let mut fed = dim;
+        for (l, r) in d.rbms.iter().enumerate() {
+            let what = |x: &str| format!("layer {l}'s {x}");
+            let vis = if l + 1 == d.rbms.len() { fed + classes } else { fed };
+            want(&what("visible units"), r.n_vis, vis)?;
+            want(
+                &what("label units"),
+                r.labels,
+                if l + 1 == d.rbms.len() { classes } else { 0 },
+            )?;
+            let w = r
+                .n_hid
+                .checked_mul(r.n_vis)
+                .ok_or_else(|| what("size overflows"))?;
+            want(&what("weight count"), r.w.len(), w)?;
+            want(&what("visible bias count"), r.a.len(), r.n_vis)?;
+            want(&what("hidden bias count"), r.b.len(), r.n_hid)?;
+            fed = r.n_hid;
+        }
+        for (what, x) in [
+            ("input_rate_hz", d.input_rate_hz),
+            ("duration_ms", d.duration_ms),
+            ("dt_ms", d.dt_ms),
+        ] {
+            if !(x.is_finite() && x > 0.0) {
+                return Err(format!("its spiking `{what}` is {x}, not a finite value > 0"));
+            }
+        }
+        Ok(())
+    }
+
+    fn as_any(&self) -> &dyn std::any::Any {
+        self
     }
 }
 

@@ -98,8 +98,6 @@ use serde::{Deserialize, Serialize};
 use std::collections::VecDeque;
 use std::path::Path;
 
-use super::{ann, classic, edbn};
-
 /// How per-frame outputs are combined over a trial.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, JsonSchema, Default)]
 #[serde(rename_all = "snake_case")]
@@ -516,214 +514,67 @@ impl Standardizer {
     }
 }
 
-/// The fitted per-frame classifier of a baseline.
-#[derive(Debug, Serialize, Deserialize)]
-#[serde(tag = "kind", rename_all = "snake_case")]
-pub enum Classifier {
-    /// One-hidden-layer perceptron.
-    Ann(ann::Mlp),
-    /// Deep belief network.
-    Edbn(edbn::Dbn),
-    /// One-vs-one RBF SVM.
-    Svm(classic::OvoSvm),
-    /// Random forest.
-    RandomForest(classic::Forest),
-    /// k nearest neighbours.
-    Knn(classic::Knn),
-    /// Multinomial logistic regression.
-    Logistic(classic::Softmax),
-}
-
-impl Classifier {
+/// The fitted per-frame classifier of a trained estimator: what a saved
+/// model's `classifier` holds, tagged by `kind` (the stage type that fits it).
+///
+/// Open to plugins: a crate that adds a trained estimator implements this
+/// trait for its fitted model with `#[typetag::serde(name = "<stage type>")]`
+/// and returns it in a [`FittedModel`]; its models then vote, save, load
+/// (`model_in`), check their shape and stream like the built-in ones, and
+/// nothing here names them (the built-in kinds live in `ann`, `edbn` and
+/// `classic`).
+#[typetag::serde(tag = "kind")]
+pub trait FrameClassifier: std::fmt::Debug + Send + Sync + std::any::Any {
     /// Per-frame class scores of a normalised feature vector (non-negative,
     /// larger is more likely). `rng` feeds stochastic inference (EDBN spiking).
-    pub fn frame_scores(&self, x: &[f64], rng: &mut ChaCha8Rng, out: &mut [f64]) {
-        match self {
-            Classifier::Ann(m) => m.frame_scores(x, out),
-            Classifier::Edbn(m) => m.frame_scores(x, rng, out),
-            Classifier::Svm(m) => m.frame_scores(x, out),
-            Classifier::RandomForest(m) => m.frame_scores(x, out),
-            Classifier::Knn(m) => m.frame_scores(x, out),
-            Classifier::Logistic(m) => m.frame_scores(x, out),
-        }
-    }
+    fn frame_scores(&self, x: &[f64], rng: &mut ChaCha8Rng, out: &mut [f64]);
 
     /// [`Self::frame_scores`] of every row of `x` (row-major, `dim` wide) into
     /// the rows of `out` (`classes` wide, so `out.len() / classes` rows), in
     /// row order (so stochastic inference draws from `rng` as row by row):
-    /// the same bits as calling it row by row, with the working buffers
-    /// allocated once per call where the model has a batch path.
-    pub fn scores_batch(&self, x: &[f64], dim: usize, classes: usize, rng: &mut ChaCha8Rng, out: &mut [f64]) {
-        debug_assert_eq!(out.len() % classes.max(1), 0);
-        match self {
-            Classifier::Ann(m) => m.scores_batch(x, out),
-            Classifier::Svm(m) => m.scores_batch(x, out),
-            Classifier::Knn(m) => m.scores_batch(x, out),
-            Classifier::Logistic(m) => m.scores_batch(x, out),
-            Classifier::Edbn(m) => m.scores_batch(x, dim, rng, out),
-            Classifier::RandomForest(m) => m.scores_batch(x, out),
+    /// the same bits as calling it row by row. The default does exactly
+    /// that; a model with a faster batch path overrides it.
+    fn scores_batch(&self, x: &[f64], dim: usize, classes: usize, rng: &mut ChaCha8Rng, out: &mut [f64]) {
+        if dim == 0 || classes == 0 {
+            return;
+        }
+        for (row, o) in x.chunks_exact(dim).zip(out.chunks_exact_mut(classes)) {
+            self.frame_scores(row, rng, o);
         }
     }
-}
 
-impl Classifier {
     /// The stage type that fits this kind of classifier (`ann`, `edbn`,
-    /// `svm`, `random_forest`, `knn`, `logistic`): the `kind` tag of a saved model.
-    pub fn kind(&self) -> &'static str {
-        match self {
-            Classifier::Ann(_) => "ann",
-            Classifier::Edbn(_) => "edbn",
-            Classifier::Svm(_) => "svm",
-            Classifier::RandomForest(_) => "random_forest",
-            Classifier::Knn(_) => "knn",
-            Classifier::Logistic(_) => "logistic",
-        }
-    }
+    /// `svm`, `random_forest`, `knn`, `logistic`, or a plugin's): the `kind`
+    /// tag of a saved model.
+    fn kind(&self) -> &'static str;
 
     /// Checks that the classifier takes vectors of `dim` values and scores
     /// `classes` classes, and that every weight array and index agrees with
     /// its stated shape, so that a hand-edited or corrupted model file is an
     /// error here rather than a panic (an index out of range) when it predicts.
-    pub fn check_shape(&self, dim: usize, classes: usize) -> Result<(), String> {
-        let want = |what: &str, got: usize, want: usize| {
-            if got == want {
-                Ok(())
-            } else {
-                Err(format!("{what} is {got}, expected {want}"))
-            }
-        };
-        let scaler = |s: &Standardizer| {
-            want("the standardiser's mean length", s.mean.len(), dim)?;
-            want("the standardiser's 1/sd length", s.inv_sd.len(), dim)
-        };
-        match self {
-            Classifier::Ann(m) => {
-                want("the network's input size", m.dim, dim)?;
-                want("the network's outputs", m.classes, classes)?;
-                if m.hidden == 0 {
-                    return Err("the network has no hidden unit".into());
-                }
-                let n = m
-                    .hidden
-                    .checked_mul(dim + 1 + classes)
-                    .and_then(|x| x.checked_add(classes))
-                    .ok_or("the network's size overflows")?;
-                want("the network's parameter count", m.params.len(), n)?;
-                scaler(&m.scaler)
-            }
-            Classifier::Edbn(d) => {
-                want("the network's label units", d.classes, classes)?;
-                if d.rbms.is_empty() {
-                    return Err("the network has no layer".into());
-                }
-                let mut fed = dim;
-                for (l, r) in d.rbms.iter().enumerate() {
-                    let what = |x: &str| format!("layer {l}'s {x}");
-                    let vis = if l + 1 == d.rbms.len() { fed + classes } else { fed };
-                    want(&what("visible units"), r.n_vis, vis)?;
-                    want(
-                        &what("label units"),
-                        r.labels,
-                        if l + 1 == d.rbms.len() { classes } else { 0 },
-                    )?;
-                    let w = r
-                        .n_hid
-                        .checked_mul(r.n_vis)
-                        .ok_or_else(|| what("size overflows"))?;
-                    want(&what("weight count"), r.w.len(), w)?;
-                    want(&what("visible bias count"), r.a.len(), r.n_vis)?;
-                    want(&what("hidden bias count"), r.b.len(), r.n_hid)?;
-                    fed = r.n_hid;
-                }
-                for (what, x) in [
-                    ("input_rate_hz", d.input_rate_hz),
-                    ("duration_ms", d.duration_ms),
-                    ("dt_ms", d.dt_ms),
-                ] {
-                    if !(x.is_finite() && x > 0.0) {
-                        return Err(format!("its spiking `{what}` is {x}, not a finite value > 0"));
-                    }
-                }
-                Ok(())
-            }
-            Classifier::Svm(m) => {
-                want("the SVM's input size", m.dim, dim)?;
-                want("the SVM's classes", m.classes, classes)?;
-                scaler(&m.scaler)?;
-                if dim == 0 || m.sv.len() % dim != 0 {
-                    return Err(format!(
-                        "{} support-vector values are not rows of {dim}",
-                        m.sv.len()
-                    ));
-                }
-                let n_sv = m.sv.len() / dim;
-                for (i, b) in m.machines.iter().enumerate() {
-                    if b.a >= classes || b.b >= classes {
-                        return Err(format!("machine {i} names class {} / {} of {classes}", b.a, b.b));
-                    }
-                    want(
-                        &format!("machine {i}'s coefficient count"),
-                        b.coef.len(),
-                        b.sv_index.len(),
-                    )?;
-                    if let Some(j) = b.sv_index.iter().find(|&&j| j as usize >= n_sv) {
-                        return Err(format!("machine {i} names support vector {j} of {n_sv}"));
-                    }
-                }
-                Ok(())
-            }
-            Classifier::RandomForest(f) => {
-                want("the forest's input size", f.dim, dim)?;
-                want("the forest's classes", f.classes, classes)?;
-                scaler(&f.scaler)?;
-                for (t, tree) in f.trees.iter().enumerate() {
-                    if tree.nodes.is_empty() {
-                        return Err(format!("tree {t} has no node"));
-                    }
-                    for (i, n) in tree.nodes.iter().enumerate() {
-                        let ok = if n.feature == u32::MAX {
-                            (n.left_or_class as usize) < classes
-                        } else {
-                            // Children come after their parent (depth-first),
-                            // so a walk from the root always ends.
-                            let left = n.left_or_class as usize;
-                            (n.feature as usize) < dim && left > i && left + 1 < tree.nodes.len()
-                        };
-                        if !ok {
-                            return Err(format!(
-                                "tree {t}, node {i} points outside the tree, the features or the classes"
-                            ));
-                        }
-                    }
-                }
-                Ok(())
-            }
-            Classifier::Knn(m) => {
-                want("k-NN's input size", m.dim, dim)?;
-                want("k-NN's classes", m.classes, classes)?;
-                scaler(&m.scaler)?;
-                if m.k == 0 {
-                    return Err("k-NN's k is 0".into());
-                }
-                let n = m.y.len().checked_mul(dim).ok_or("k-NN's size overflows")?;
-                want("k-NN's training values", m.x.len(), n)?;
-                if let Some(c) = m.y.iter().find(|&&c| c >= classes) {
-                    return Err(format!("k-NN has a training vector of class {c} of {classes}"));
-                }
-                Ok(())
-            }
-            Classifier::Logistic(m) => {
-                want("the regression's input size", m.dim, dim)?;
-                want("the regression's classes", m.classes, classes)?;
-                scaler(&m.scaler)?;
-                let n = classes
-                    .checked_mul(dim)
-                    .ok_or("the regression's size overflows")?;
-                want("the regression's weight count", m.w.len(), n)?;
-                want("the regression's bias count", m.b.len(), classes)
-            }
-        }
+    fn check_shape(&self, dim: usize, classes: usize) -> Result<(), String>;
+
+    /// The concrete model, for callers (and tests) that need it.
+    fn as_any(&self) -> &dyn std::any::Any;
+}
+
+/// A fitted per-frame classifier of any kind.
+pub type Classifier = Box<dyn FrameClassifier>;
+
+/// `Ok` when `got == want`, else "`what` is `got`, expected `want`"
+/// (the shape checks of [`FrameClassifier::check_shape`]).
+pub(crate) fn want(what: &str, got: usize, want: usize) -> Result<(), String> {
+    if got == want {
+        Ok(())
+    } else {
+        Err(format!("{what} is {got}, expected {want}"))
     }
+}
+
+/// A standardiser fits `dim`-value features.
+pub(crate) fn check_scaler(s: &Standardizer, dim: usize) -> Result<(), String> {
+    want("the standardiser's mean length", s.mean.len(), dim)?;
+    want("the standardiser's 1/sd length", s.inv_sd.len(), dim)
 }
 
 /// What training recorded, for reports and tests.
@@ -1240,6 +1091,95 @@ pub fn synthetic_items(angles: &[f64], reps: usize, p: &SynthParams, seed: u64) 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A classifier no built-in stage names, as a plugin would add one:
+    /// nearest centre, score `1 / (1 + squared distance)`.
+    #[derive(Debug, Serialize, Deserialize)]
+    struct NearestCentre {
+        centres: Vec<Vec<f64>>,
+    }
+
+    #[typetag::serde(name = "test_nearest_centre")]
+    impl FrameClassifier for NearestCentre {
+        fn frame_scores(&self, x: &[f64], _rng: &mut ChaCha8Rng, out: &mut [f64]) {
+            for (o, c) in out.iter_mut().zip(&self.centres) {
+                let d: f64 = x.iter().zip(c).map(|(a, b)| (a - b) * (a - b)).sum();
+                *o = 1.0 / (1.0 + d);
+            }
+        }
+        fn kind(&self) -> &'static str {
+            "test_nearest_centre"
+        }
+        fn check_shape(&self, dim: usize, classes: usize) -> Result<(), String> {
+            want("centres", self.centres.len(), classes)?;
+            self.centres
+                .iter()
+                .try_for_each(|c| want("a centre's length", c.len(), dim))
+        }
+        fn as_any(&self) -> &dyn std::any::Any {
+            self
+        }
+    }
+
+    #[test]
+    fn a_plugin_classifier_saves_loads_checks_and_votes_like_a_built_in_one() {
+        let model = FittedModel {
+            format: MODEL_FORMAT,
+            stage_type: "test_nearest_centre".into(),
+            classes: vec![30.0, 60.0],
+            features: FeatureSpec {
+                frames: 1,
+                step: 1,
+                stride: 1,
+                min_spikes: 0.0,
+                n_taxels: 2,
+                window_ms: 100.0,
+                hop_ms: 10.0,
+            },
+            vote: Vote::Winner,
+            classifier: Box::new(NearestCentre {
+                centres: vec![vec![1.0, 0.0], vec![0.0, 1.0]],
+            }),
+            log: TrainingLog::default(),
+        };
+        model.check("test_nearest_centre").unwrap();
+        let wrong = model.check("ann").unwrap_err();
+        assert!(wrong.contains("test_nearest_centre classifier"), "{wrong}");
+        let path = std::env::temp_dir().join(format!("palpate-plugin-model-{}.json", std::process::id()));
+        save_model(&model, &path).unwrap();
+        let text = std::fs::read_to_string(&path).unwrap();
+        assert!(
+            text.contains("\"kind\": \"test_nearest_centre\"")
+                || text.contains("\"kind\":\"test_nearest_centre\"")
+        );
+        let loaded = load_model(&path).unwrap();
+        let _ = std::fs::remove_file(&path);
+        loaded.check("test_nearest_centre").unwrap();
+        // Frames lit on the second taxel vote for the second class, through the
+        // default batch path as through the stream.
+        let mut s = loaded.stream(1);
+        for _ in 0..3 {
+            s.push(&[0.0, 4.0]).unwrap();
+        }
+        assert_eq!(s.estimate().angle_deg, Some(60.0));
+        let mut rng: ChaCha8Rng = rand_chacha::rand_core::SeedableRng::seed_from_u64(1);
+        let mut out = vec![0.0; 4];
+        loaded
+            .classifier
+            .scores_batch(&[1.0, 0.0, 0.0, 1.0], 2, 2, &mut rng, &mut out);
+        assert!(out[0] > out[1] && out[3] > out[2], "{out:?}");
+        // A centre of the wrong length is a shape error, not a panic.
+        let bad = FittedModel {
+            classifier: Box::new(NearestCentre {
+                centres: vec![vec![1.0], vec![0.0, 1.0]],
+            }),
+            ..loaded
+        };
+        assert!(bad
+            .check("test_nearest_centre")
+            .unwrap_err()
+            .contains("a centre's length"));
+    }
 
     #[test]
     fn capped_trials_contribute_segment_centres_not_their_ends() {

@@ -26,7 +26,7 @@ mod encode;
 pub mod events;
 mod signal;
 mod spikes;
-mod trained;
+pub mod trained;
 mod wss;
 
 use palpate_core::{Payload, Signals, StageError, TaxelLayout};

@@ -22,8 +22,11 @@ use palpate_core::stream::{StreamForm, StreamStage, StreamState};
 use palpate_core::{register_stream, BuildContext, ConfigError, Payload, StageError, TrialContext};
 use std::sync::Arc;
 
-/// The streaming form of a trained estimator of type `stage_type`.
-fn form(
+/// The streaming form of a trained estimator of type `stage_type`: streams
+/// the model `model_in` names, or says (naming `model_in`) that a fitting
+/// stage cannot stream. A plugin's trained estimator registers its own with
+/// `register_stream!` and a function that calls this one.
+pub fn form(
     stage_type: &str,
     model_in: Option<&str>,
     save_model: bool,
