@@ -2,11 +2,13 @@
 //! trial of the lab scene (1 kHz, ~18 s, i.e. ~18 000 frames) streamed one
 //! frame at a time through the graph's streaming plan (causal low-pass,
 //! normalization, drive, Izhikevich at dt = 0.5 ms, 100/10 ms images,
-//! streaming WSS over 17 classes).
+//! streaming WSS over its default 33 classes).
 //!
 //! * `graph_per_frame`: each frame made into a one-sample block (as the `daq`
 //!   source makes it) and pushed through every stage; the trial's open and
 //!   flush included. This is the latency a frame adds after it is decoded.
+//! * `ann_graph_per_frame`: the same for graphs/live_ann.toml, the same chain
+//!   with its saved ANN (`model_in`) streaming instead of WSS.
 //! * `daq_recording_per_frame`: the whole path of `palpate run --live` on
 //!   the same trial recorded as raw DAQ frames: reader thread, decoder (CRC,
 //!   sequence), contact segmentation, the graph. Reported per frame.
@@ -36,34 +38,36 @@ fn cpu_time() -> Option<Duration> {
 }
 
 fn load(root: &Path, overrides: Vec<(String, toml::Value)>) -> core::Graph {
+    load_graph(root, "graphs/live.toml", overrides)
+}
+
+fn load_graph(root: &Path, file: &str, overrides: Vec<(String, toml::Value)>) -> core::Graph {
     palpate::stages::link();
     let opts = LoadOptions {
         overrides,
         out: Some(std::env::temp_dir().join("palpate-bench-live")),
         base_dir: None,
     };
-    core::load_file(&root.join("graphs/live.toml"), &opts).expect("graphs/live.toml")
+    core::load_file(&root.join(file), &opts).expect(file)
 }
 
-fn live(c: &mut Criterion) {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
-    let sig = simulate_trial(&root.join("graphs/scenes/lab.toml"), 60.0, 3).expect("lab scene");
+/// Pushes `sig` frame by frame through `plan`, trial open and flush included:
+/// on-CPU time of the thread.
+fn per_frame(
+    grp: &mut criterion::BenchmarkGroup<'_, criterion::measurement::WallTime>,
+    name: &str,
+    g: &core::Graph,
+    plan: &stream::LivePlan,
+    sig: &Signals,
+    meta: &TrialMeta,
+) {
     let n = sig.n_samples();
-    let g = load(root, Vec::new());
-    let plan = stream::plan(&g).expect("graphs/live.toml streams");
-    let meta = TrialMeta {
-        trial_id: "bench".into(),
-        ..TrialMeta::default()
-    };
-    let mut grp = c.benchmark_group("live");
-    grp.sample_size(10);
-    grp.throughput(Throughput::Elements(n as u64));
-    grp.bench_function("graph_per_frame", |b| {
+    grp.bench_function(name, |b| {
         b.iter_custom(|iters| {
             let mut total = Duration::ZERO;
             for _ in 0..iters {
                 let (c0, w0) = (cpu_time(), Instant::now());
-                let mut t = plan.start_trial(&g, &meta, false).expect("open");
+                let mut t = plan.start_trial(g, meta, false).expect("open");
                 for k in 0..n {
                     let block = Signals {
                         sample_rate_hz: sig.sample_rate_hz,
@@ -85,6 +89,25 @@ fn live(c: &mut Criterion) {
             total
         })
     });
+}
+
+fn live(c: &mut Criterion) {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let sig = simulate_trial(&root.join("graphs/scenes/lab.toml"), 60.0, 3).expect("lab scene");
+    let n = sig.n_samples();
+    let g = load(root, Vec::new());
+    let plan = stream::plan(&g).expect("graphs/live.toml streams");
+    let meta = TrialMeta {
+        trial_id: "bench".into(),
+        ..TrialMeta::default()
+    };
+    let mut grp = c.benchmark_group("live");
+    grp.sample_size(10);
+    grp.throughput(Throughput::Elements(n as u64));
+    per_frame(&mut grp, "graph_per_frame", &g, &plan, &sig, &meta);
+    let ann = load_graph(root, "graphs/live_ann.toml", Vec::new());
+    let ann_plan = stream::plan(&ann).expect("graphs/live_ann.toml streams");
+    per_frame(&mut grp, "ann_graph_per_frame", &ann, &ann_plan, &sig, &meta);
     // The same trial as a raw recording, through the daq source.
     let dir = std::env::temp_dir().join("palpate-bench-live");
     std::fs::create_dir_all(&dir).expect("temp dir");

@@ -589,6 +589,17 @@ struct Lines {
     keys: HashMap<(String, String), usize>,
 }
 
+/// What the passes produced, for [`Loader::assemble`].
+struct Assembly {
+    pending: Vec<Pending>,
+    run: RunSettings,
+    sweep: Option<SweepSettings>,
+    out_dir: PathBuf,
+    base_dir: PathBuf,
+    order: Vec<usize>,
+    input_index: Vec<Vec<usize>>,
+}
+
 struct Pending {
     id: String,
     type_name: String,
@@ -656,18 +667,71 @@ impl<'t> Loader<'t> {
         lines
     }
 
+    /// Loads a graph as a sequence of passes, each reporting into the same
+    /// diagnostics so that every error of a file shows at once:
+    ///
+    /// 1. `parse`: the TOML (a syntax error stops here);
+    /// 2. `apply_overrides`: `--set key=value` into the document;
+    /// 3. `check_top_level`: only `[run]`, `[sweep]` and `[stages.*]`;
+    /// 4. `load_run` and 5. `load_sweep`: the run and sweep settings;
+    /// 6. `load_stages`: each stage's config deserialised and built;
+    /// 7. `check_graph`: edges, payload kinds, cycles, sources (the order);
+    /// 8. `inspect`: each config checked against what its inputs produce;
+    /// 9. `check_frontier`: the sweep's frontier names scored estimators;
+    /// 10. `assemble`: the graph, when no pass reported an error.
     fn load(mut self, stem: &str, opts: &LoadOptions) -> Result<Graph, LoadErrors> {
-        let mut doc: toml::Table = match toml::from_str(self.text) {
-            Ok(t) => t,
-            Err(e) => {
-                let line = e.span().map(|s| self.line_of(s.start));
-                self.error(line, None, None, format!("not valid TOML: {}", e.message()));
-                return Err(LoadErrors(self.diags));
-            }
+        let Some(mut doc) = self.parse() else {
+            return Err(LoadErrors(self.diags));
         };
         let lines = self.lines();
         self.apply_overrides(&mut doc, &opts.overrides);
+        self.check_top_level(&doc, &lines);
+        let run = self.load_run(doc.get("run"), &lines);
+        let sweep = self.load_sweep(doc.get("sweep"), &lines, &doc);
+        let out_dir = opts
+            .out
+            .clone()
+            .or_else(|| run.out.clone())
+            .unwrap_or_else(|| PathBuf::from("out").join(stem));
+        let base_dir = opts.base_dir.clone().unwrap_or_default();
+        let pending = self.load_stages(&doc, &lines, &run, &out_dir, &base_dir);
+        let (order, input_index) =
+            self.check_graph(&pending, &lines, stages_declared(&doc), &inputs_declared(&doc));
+        let ctx = BuildContext {
+            stage_id: String::new(),
+            seed: run.seed,
+            out_dir: out_dir.clone(),
+            base_dir: base_dir.clone(),
+        };
+        self.inspect(&pending, &order, &input_index, &ctx, &lines);
+        if let Some(sweep) = &sweep {
+            self.check_frontier(sweep, &pending, &lines);
+        }
+        self.assemble(Assembly {
+            pending,
+            run,
+            sweep,
+            out_dir,
+            base_dir,
+            order,
+            input_index,
+        })
+    }
 
+    /// Pass 1: the document, or `None` after reporting a TOML syntax error.
+    fn parse(&mut self) -> Option<toml::Table> {
+        match toml::from_str(self.text) {
+            Ok(t) => Some(t),
+            Err(e) => {
+                let line = e.span().map(|s| self.line_of(s.start));
+                self.error(line, None, None, format!("not valid TOML: {}", e.message()));
+                None
+            }
+        }
+    }
+
+    /// Pass 3: a graph has `[run]`, `[sweep]` and `[stages.<id>]` tables only.
+    fn check_top_level(&mut self, doc: &toml::Table, lines: &Lines) {
         for key in doc.keys() {
             if key != "run" && key != "stages" && key != "sweep" {
                 let line = lines.top.get(key).copied();
@@ -681,16 +745,18 @@ impl<'t> Loader<'t> {
                 );
             }
         }
+    }
 
-        let run = self.load_run(doc.get("run"), &lines);
-        let sweep = self.load_sweep(doc.get("sweep"), &lines, &doc);
-        let out_dir = opts
-            .out
-            .clone()
-            .or_else(|| run.out.clone())
-            .unwrap_or_else(|| PathBuf::from("out").join(stem));
-
-        let base_dir = opts.base_dir.clone().unwrap_or_default();
+    /// Pass 6: every `[stages.<id>]` table deserialised and built (a stage
+    /// whose build failed is kept, unbuilt, so later passes still check it).
+    fn load_stages(
+        &mut self,
+        doc: &toml::Table,
+        lines: &Lines,
+        run: &RunSettings,
+        out_dir: &Path,
+        base_dir: &Path,
+    ) -> Vec<Pending> {
         let mut pending = Vec::new();
         match doc.get("stages") {
             None => self.error(
@@ -701,7 +767,7 @@ impl<'t> Loader<'t> {
             ),
             Some(toml::Value::Table(stages)) => {
                 for (id, value) in stages {
-                    if let Some(p) = self.load_stage(id, value, &lines, &run, &out_dir, &base_dir) {
+                    if let Some(p) = self.load_stage(id, value, lines, run, out_dir, base_dir) {
                         pending.push(p);
                     }
                 }
@@ -716,27 +782,20 @@ impl<'t> Loader<'t> {
                 );
             }
         }
+        pending
+    }
 
-        let (order, input_index) =
-            self.check_graph(&pending, &lines, stages_declared(&doc), &inputs_declared(&doc));
-        let ctx = BuildContext {
-            stage_id: String::new(),
-            seed: run.seed,
-            out_dir: out_dir.clone(),
-            base_dir: base_dir.clone(),
-        };
-        self.inspect(&pending, &order, &input_index, &ctx, &lines);
-        if let Some(sweep) = &sweep {
-            self.check_frontier(sweep, &pending, &lines);
-        }
+    /// Pass 10: the diagnostics in file order and, when none is an error,
+    /// the graph.
+    fn assemble(mut self, a: Assembly) -> Result<Graph, LoadErrors> {
         // In file order, so that a reader goes down the file once; those
         // without a line (overrides, the graph as a whole) first.
         self.diags.sort_by_key(|d| d.line.unwrap_or(0));
         if self.diags.iter().any(|d| d.severity == Severity::Error) {
             return Err(LoadErrors(self.diags));
         }
-        let mut nodes = Vec::with_capacity(pending.len());
-        for p in pending {
+        let mut nodes = Vec::with_capacity(a.pending.len());
+        for p in a.pending {
             let Some(stage) = p.stage else {
                 // Unreachable: a refused build reported an error above.
                 return Err(LoadErrors(self.diags));
@@ -752,14 +811,14 @@ impl<'t> Loader<'t> {
         }
         Ok(Graph {
             file: self.file,
-            run,
-            out_dir,
-            base_dir,
+            run: a.run,
+            out_dir: a.out_dir,
+            base_dir: a.base_dir,
             nodes,
-            order,
-            input_index,
+            order: a.order,
+            input_index: a.input_index,
             warnings: self.diags,
-            sweep,
+            sweep: a.sweep,
         })
     }
 
