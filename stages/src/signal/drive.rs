@@ -57,6 +57,14 @@
 //!
 //! `G = 30` lies inside it and is also graphs/live.toml's `G`, so the offline
 //! and live graphs run the same arithmetic.
+//!
+//! The window's lower end scales with 1 / speed (the slope does): at 2 mm/s
+//! `G = 30` drives a 10° crossing to about 6, above the rheobase; at 1 mm/s
+//! to about 3, and WSS still answers every lab trial (MAE 0.27 ± 0.13° over
+//! 5 seeds); at 0.5 mm/s the shallowest edges stay silent (16 of 170 trials
+//! "no edge", MAE 1.65 ± 0.43°; `palpate run graphs/paper/wss.toml --set
+//! stages.scene.motion.speed_mm_s=S --set stages.wss.speed_mm_s=S`). Palpating
+//! slower than about 1 mm/s needs a larger `G`, measured as above.
 
 use super::{check_signals, derivative::differentiate, derivative::DiffScheme};
 use palpate_core::{
