@@ -8,6 +8,8 @@
 //! recording read offline; an emulated scene's trials cut at
 //! contact; bad settings.
 
+mod common;
+
 use palpate_core::stream::{self, LiveUpdate};
 use palpate_core::{LoadOptions, RunOptions, Signals};
 use palpate_stages::io::daq::{emulate_pty, encode_frame, simulate_trial, EmulateOptions, SampleFormat};
@@ -46,6 +48,7 @@ fn graph(source: &str, encoder: &str) -> palpate_core::Graph {
 /// WSS, its reports in the temporary folder `out`.
 fn graph_with(source: &str, encoder: &str, estimator: &str, out: &str) -> palpate_core::Graph {
     palpate_stages::link();
+    let front = common::causal_front_end("daq");
     let text = format!(
         r#"
 [run]
@@ -55,25 +58,7 @@ seed = 1
 type = "daq"
 {source}
 
-[stages.filter]
-type = "lowpass"
-inputs = ["daq"]
-mode = "causal"
-cutoff_hz = 10.0
-
-[stages.norm]
-type = "normalize"
-inputs = ["filter"]
-mode = "causal"
-baseline_ms = 500.0
-span = 1.55
-
-[stages.drive]
-type = "drive"
-inputs = ["norm"]
-kind = "fa_i"
-gain = 30.0
-
+{front}
 [stages.enc]
 inputs = ["drive"]
 {encoder}

@@ -6,6 +6,8 @@
 //! count, frame window or hop, `save_model` beside it) is an error naming the
 //! stage, the key and the file.
 
+mod common;
+
 use palpate_core::stream::{self, StreamForm};
 use palpate_core::{
     BuildContext, FitContext, Item, LoadOptions, RunOptions, SpikeImages, Stage, StageConfig, TaxelLayout,
@@ -31,6 +33,7 @@ fn tmp(name: &str) -> PathBuf {
 /// graphs/live.toml's causal chain on two lab trials of 30 and 75 degrees,
 /// then `estimators` (stage tables reading `bins`).
 fn graph_text(estimators: &str) -> String {
+    let front = common::causal_front_end("scene");
     format!(
         r#"
 [run]
@@ -42,24 +45,7 @@ file = "{}"
 trials_per_angle = 2
 angles = [30.0, 75.0]
 
-[stages.filter]
-type = "lowpass"
-inputs = ["scene"]
-cutoff_hz = 10.0
-mode = "causal"
-
-[stages.norm]
-type = "normalize"
-inputs = ["filter"]
-mode = "causal"
-baseline_ms = 500.0
-span = 1.55
-
-[stages.drive]
-type = "drive"
-inputs = ["norm"]
-gain = 30.0
-
+{front}
 [stages.enc]
 type = "izhikevich"
 inputs = ["drive"]

@@ -8,6 +8,8 @@
 //! stage of the offline quickstart that cannot stream, and hostile blocks
 //! give errors, not panics.
 
+mod common;
+
 use palpate_core::stream::{self, concat, signal_blocks, StreamForm};
 use palpate_core::{
     BuildContext, Item, LoadOptions, Payload, RunOptions, Signals, SpikeEvent, SpikeTrain, Stage,
@@ -33,6 +35,7 @@ fn root() -> PathBuf {
 /// The quickstart's chain in its causal form (graphs/live.toml's settings),
 /// on two lab-scene trials.
 fn live_graph() -> String {
+    let front = common::causal_front_end("scene");
     format!(
         r#"
 [run]
@@ -44,24 +47,7 @@ file = "{}"
 trials_per_angle = 1
 angles = [30.0, 75.0]
 
-[stages.filter]
-type = "lowpass"
-inputs = ["scene"]
-cutoff_hz = 10.0
-mode = "causal"
-
-[stages.norm]
-type = "normalize"
-inputs = ["filter"]
-mode = "causal"
-baseline_ms = 500.0
-span = 1.55
-
-[stages.drive]
-type = "drive"
-inputs = ["norm"]
-gain = 30.0
-
+{front}
 [stages.enc]
 type = "izhikevich"
 inputs = ["drive"]

@@ -6,6 +6,7 @@ use std::path::Path;
 /// Writes `toml` to `<dir>/<name>`, loads it as a graph file (so relative
 /// paths resolve against `dir`) and runs it keeping every stage's outputs;
 /// load and run errors come back as their messages.
+#[allow(dead_code)] // not every test binary that includes this module uses it
 pub fn run_graph_file(dir: &Path, name: &str, toml: &str) -> Result<palpate_core::RunResult, String> {
     palpate_stages::link();
     let path = dir.join(name);
@@ -19,4 +20,34 @@ pub fn run_graph_file(dir: &Path, name: &str, toml: &str) -> Result<palpate_core
         },
     )
     .map_err(|e| e.to_string())
+}
+
+/// graphs/live.toml's causal front end as graph tables: `filter` (causal
+/// 10 Hz low-pass), `norm` (causal, 1.55 V span) and `drive` (FA-I, the
+/// paper graphs' fixed G = 30), reading the stage `input`. The live and
+/// streaming tests put an encoder, bins and an estimator after it.
+#[allow(dead_code)] // not every test binary that includes this module uses it
+pub fn causal_front_end(input: &str) -> String {
+    format!(
+        r#"
+[stages.filter]
+type = "lowpass"
+inputs = ["{input}"]
+cutoff_hz = 10.0
+mode = "causal"
+
+[stages.norm]
+type = "normalize"
+inputs = ["filter"]
+mode = "causal"
+baseline_ms = 500.0
+span = 1.55
+
+[stages.drive]
+type = "drive"
+inputs = ["norm"]
+kind = "fa_i"
+gain = 30.0
+"#
+    )
 }
