@@ -297,6 +297,14 @@ fn every_trained_type_loads_its_own_model_and_refuses_bad_ones_naming_stage_key_
     // An empty path.
     let e = load_error(&dir, "knn", "model_in = \"\"");
     check(&e, &["est", "model_in", "empty"]);
+    // A file too large to be a model (sparse: no disk used) is refused
+    // before it is read.
+    std::fs::File::create(dir.join("huge.json"))
+        .unwrap()
+        .set_len((1 << 30) + 1)
+        .unwrap();
+    let e = load_error(&dir, "ann", "model_in = \"huge.json\"");
+    check(&e, &["est", "model_in", "huge.json", "a model file may have"]);
 
     // Images the model was not trained on: 9 taxels, another hop. Batch and
     // streamed, each error names the key and the file.

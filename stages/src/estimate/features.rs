@@ -614,6 +614,12 @@ pub struct FittedModel {
 /// Most frames a loaded model's stacked vector may span (see [`FittedModel::check`]).
 pub const MAX_SPAN_FRAMES: usize = 1_000_000;
 
+/// Largest model file [`load_model`] reads: 1 GiB. A hostile or mistaken
+/// path (a recording, a device) must not be read whole into memory; the
+/// largest built-in model, k-NN keeping its training vectors, is tens of MB
+/// on the paper's data.
+pub const MAX_MODEL_BYTES: u64 = 1 << 30;
+
 /// Current [`FittedModel::format`].
 pub const MODEL_FORMAT: u32 = 3;
 
@@ -747,6 +753,15 @@ pub fn save_model(model: &FittedModel, path: &Path) -> Result<(), StageError> {
 
 /// Reads a fitted model written by [`save_model`].
 pub fn load_model(path: &Path) -> Result<FittedModel, StageError> {
+    let len = std::fs::metadata(path)
+        .map_err(|e| StageError::new(format!("reading {}: {e}", path.display())))?
+        .len();
+    if len > MAX_MODEL_BYTES {
+        return Err(StageError::new(format!(
+            "{}: {len} bytes, more than the {MAX_MODEL_BYTES} a model file may have",
+            path.display()
+        )));
+    }
     let bytes =
         std::fs::read(path).map_err(|e| StageError::new(format!("reading {}: {e}", path.display())))?;
     let m: FittedModel = serde_json::from_slice(&bytes)

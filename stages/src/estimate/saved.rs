@@ -109,14 +109,15 @@ impl ModelIn {
     }
 }
 
-/// The stage of a trained estimator given `model_in`, or `None` without it.
-/// `save_model` with `model_in` is refused.
-pub fn stage(
+/// The model a trained estimator's `model_in` names, or `None` without it;
+/// `save_model` with `model_in` is refused. Shared by the batch stage and its
+/// streaming form, so both accept and refuse the same configs.
+pub fn load_model_in(
     stage_type: &str,
     model_in: Option<&str>,
     save_model: bool,
     ctx: &BuildContext,
-) -> Result<Option<Stage>, ConfigError> {
+) -> Result<Option<ModelIn>, ConfigError> {
     let Some(path) = model_in else {
         return Ok(None);
     };
@@ -126,8 +127,18 @@ pub fn stage(
             "cannot be true with `model_in`: a loaded model is not fitted, so there is nothing new to save",
         ));
     }
-    let m = ModelIn::load(stage_type, path, ctx)?;
-    Ok(Some(Stage::Estimator(Box::new(SavedEstimator(m)))))
+    ModelIn::load(stage_type, path, ctx).map(Some)
+}
+
+/// The stage of a trained estimator given `model_in`, or `None` without it.
+pub fn stage(
+    stage_type: &str,
+    model_in: Option<&str>,
+    save_model: bool,
+    ctx: &BuildContext,
+) -> Result<Option<Stage>, ConfigError> {
+    Ok(load_model_in(stage_type, model_in, save_model, ctx)?
+        .map(|m| Stage::Estimator(Box::new(SavedEstimator(m)) as Box<dyn Estimator>)))
 }
 
 /// A trained estimator's stage with a loaded model: model-based (no fit).

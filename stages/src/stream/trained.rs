@@ -17,7 +17,7 @@ use crate::estimate::ann::AnnConfig;
 use crate::estimate::classic::{KnnConfig, LogisticConfig, RandomForestConfig, SvmConfig};
 use crate::estimate::edbn::EdbnConfig;
 use crate::estimate::features::{FittedModel, Streamer};
-use crate::estimate::saved::ModelIn;
+use crate::estimate::saved::{self, ModelIn};
 use palpate_core::stream::{StreamForm, StreamStage, StreamState};
 use palpate_core::{register_stream, BuildContext, ConfigError, Payload, StageError, TrialContext};
 use std::sync::Arc;
@@ -32,21 +32,13 @@ pub fn form(
     save_model: bool,
     ctx: &BuildContext,
 ) -> Result<StreamForm, ConfigError> {
-    let Some(path) = model_in else {
-        return Ok(StreamForm::batch(
+    match saved::load_model_in(stage_type, model_in, save_model, ctx)? {
+        Some(m) => Ok(StreamForm::Streams(Box::new(TrainedStream(m)))),
+        None => Ok(StreamForm::batch(
             "a trained estimator fits per fold on whole labelled trials, which a live stream does not have",
             "model_in = \"<file>\": a model saved by an offline run of this stage with save_model = true",
-        ));
-    };
-    if save_model {
-        return Err(ConfigError::key(
-            "save_model",
-            "cannot be true with `model_in`: a loaded model is not fitted",
-        ));
+        )),
     }
-    Ok(StreamForm::Streams(Box::new(TrainedStream(ModelIn::load(
-        stage_type, path, ctx,
-    )?))))
 }
 
 macro_rules! trained_stream {
