@@ -21,7 +21,6 @@ use std::sync::{Arc, Mutex};
 fn wss_stream(cfg: &WssConfig, _ctx: &BuildContext) -> Result<StreamForm, ConfigError> {
     Ok(StreamForm::Streams(Box::new(WssStage {
         params: cfg.params()?,
-        stop_margin: cfg.stop_margin,
         templates: Arc::new(Mutex::new(None)),
     })))
 }
@@ -32,7 +31,6 @@ type Cached = (TaxelLayout, u64, Arc<Templates>);
 
 struct WssStage {
     params: WssParams,
-    stop_margin: Option<f64>,
     /// The last templates built, shared by every trial's state.
     templates: Arc<Mutex<Option<Cached>>>,
 }
@@ -63,7 +61,6 @@ impl StreamStage for WssStage {
     fn open(&self, _ctx: &TrialContext<'_>) -> Result<Box<dyn StreamState>, StageError> {
         Ok(Box::new(WssState {
             params: self.params.clone(),
-            stop_margin: self.stop_margin,
             cache: self.templates.clone(),
             stream: None,
             first: None,
@@ -76,7 +73,6 @@ impl StreamStage for WssStage {
 
 struct WssState {
     params: WssParams,
-    stop_margin: Option<f64>,
     cache: Arc<Mutex<Option<Cached>>>,
     stream: Option<WssStream>,
     /// The first block's frame (layout, window, hop), no counts.
@@ -128,6 +124,7 @@ impl StreamState for WssState {
             }
             let e = stream.push(&images.counts[k * n..(k + 1) * n])?;
             let decided = self
+                .params
                 .stop_margin
                 .is_some_and(|m| e.angle_deg.is_some() && stream.margin() >= m);
             let key = (

@@ -193,17 +193,13 @@ impl StageConfig for WssConfig {
     }
     fn build(&self, _ctx: &BuildContext) -> Result<Stage, ConfigError> {
         let params = self.params()?;
-        Ok(Stage::Estimator(Box::new(WssEstimator {
-            params,
-            stop_margin: self.stop_margin,
-        })))
+        Ok(Stage::Estimator(Box::new(WssEstimator { params })))
     }
 }
 register_stage!("wss", WssConfig);
 
 struct WssEstimator {
     params: WssParams,
-    stop_margin: Option<f64>,
 }
 
 impl Estimator for WssEstimator {
@@ -213,7 +209,6 @@ impl Estimator for WssEstimator {
     fn fit(&self, _train: &[&Item], _ctx: &FitContext<'_>) -> Result<Box<dyn Model>, StageError> {
         Ok(Box::new(WssModel {
             params: self.params.clone(),
-            stop_margin: self.stop_margin,
             cache: Mutex::new(HashMap::new()),
         }))
     }
@@ -225,7 +220,6 @@ type SpeedSets = Arc<Vec<(f64, Arc<Templates>)>>;
 /// The fitted (model-based) WSS: parameters and templates cached per (layout, hop).
 struct WssModel {
     params: WssParams,
-    stop_margin: Option<f64>,
     cache: Mutex<HashMap<(String, u64), SpeedSets>>,
 }
 
@@ -256,7 +250,7 @@ impl Model for WssModel {
     fn predict(&self, item: &Item, _ctx: &TrialContext<'_>) -> Result<Estimate, StageError> {
         let images = item.payload.images()?;
         let sets = self.templates(images)?;
-        let e = match self.stop_margin {
+        let e = match self.params.stop_margin {
             None => {
                 let refs: Vec<(f64, &Templates)> = sets.iter().map(|(f, t)| (*f, t.as_ref())).collect();
                 wss_batch_speeds(images, &refs, &self.params)?
