@@ -31,6 +31,30 @@ pub fn avx2() -> bool {
     cpu_avx2() && !BASELINE.with(Cell::get)
 }
 
+/// True when the AVX-512 path may run (F, VL and DQ; `PALPATE_NO_AVX512`
+/// turns it off).
+pub fn avx512() -> bool {
+    avx2() && cpu_avx512()
+}
+
+fn cpu_avx512() -> bool {
+    use std::sync::OnceLock;
+    static ON: OnceLock<bool> = OnceLock::new();
+    *ON.get_or_init(|| {
+        #[cfg(target_arch = "x86_64")]
+        {
+            std::env::var_os("PALPATE_NO_AVX512").is_none()
+                && std::arch::is_x86_feature_detected!("avx512f")
+                && std::arch::is_x86_feature_detected!("avx512vl")
+                && std::arch::is_x86_feature_detected!("avx512dq")
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        {
+            false
+        }
+    })
+}
+
 fn cpu_avx2() -> bool {
     use std::sync::OnceLock;
     static ON: OnceLock<bool> = OnceLock::new();
@@ -56,10 +80,247 @@ pub fn with_avx2<R>(f: impl FnOnce() -> R) -> R {
         fn wide<R>(f: impl FnOnce() -> R) -> R {
             f()
         }
+        #[target_feature(enable = "avx2,avx512f,avx512vl,avx512dq")]
+        fn wide512<R>(f: impl FnOnce() -> R) -> R {
+            f()
+        }
+        if avx512() {
+            // SAFETY: the CPU supports these (checked at run time).
+            return unsafe { wide512(f) };
+        }
         if avx2() {
             // SAFETY: the CPU supports AVX2 (checked at run time above).
             return unsafe { wide(f) };
         }
     }
     f()
+}
+
+/// Rows held in lock step by the lane kernels (filter, encoders): the
+/// paper's 4x4 array in one block.
+pub const LANES: usize = 16;
+
+/// Appends `rows[l][range]` to `out` sample-major (`out[..][l]`), up to
+/// [`LANES`] rows, each sample clamped to `±clamp` when given; missing
+/// lanes hold 0. `rows` must hold at least `range.end` samples each.
+/// Returns whether every sample read was finite (neither NaN nor ±inf), so
+/// that a stage need not read its input a second time to check it.
+///
+/// Why a kernel of its own: a transpose done one lane at a time walks the
+/// sample-major buffer once per lane with 128-byte strides (16 passes
+/// through a buffer larger than L2). With AVX2, 4 rows x 4 samples are
+/// loaded as four vectors and transposed in registers (4 unpacks, 4 lane
+/// swaps), so every byte is read once and written once, whole vectors at a
+/// time. Only moves, min and max: the values are bit-exact.
+pub fn gather_lanes(
+    rows: &[Vec<f64>],
+    range: std::ops::Range<usize>,
+    out: &mut Vec<[f64; LANES]>,
+    clamp: Option<f64>,
+) -> bool {
+    let w = rows.len().min(LANES);
+    let rows = &rows[..w];
+    let len = range.end.saturating_sub(range.start);
+    assert!(
+        rows.iter().all(|r| r.len() >= range.end),
+        "gather_lanes: a row is shorter than the range"
+    );
+    let base = out.len();
+    out.resize(base + len, [0.0; LANES]);
+    let dst = &mut out[base..];
+    let (done, mut finite) = transpose_in(rows, range.start, dst, clamp);
+    let f = |x: f64| match clamp {
+        Some(m) => x.clamp(-m, m),
+        None => x,
+    };
+    // Rows not taken by the vector path, and the last few samples.
+    for (l, row) in rows.iter().enumerate() {
+        let from = if l < done.0 { done.1 } else { 0 };
+        for (d, &x) in dst[from..].iter_mut().zip(&row[range.start + from..range.end]) {
+            finite &= x.abs() <= f64::MAX;
+            d[l] = f(x);
+        }
+    }
+    finite
+}
+
+/// Writes `src[..][l]` to `rows[l][offset..offset + src.len()]` for every
+/// row (up to [`LANES`]): the inverse of [`gather_lanes`], by the same
+/// in-register transposes. `rows` must hold `offset + src.len()` samples.
+pub fn scatter_lanes(src: &[[f64; LANES]], rows: &mut [Vec<f64>], offset: usize) {
+    let w = rows.len().min(LANES);
+    let rows = &mut rows[..w];
+    assert!(
+        rows.iter().all(|r| r.len() >= offset + src.len()),
+        "scatter_lanes: a row is too short"
+    );
+    let done = transpose_out(src, rows, offset);
+    for (l, row) in rows.iter_mut().enumerate() {
+        let from = if l < done.0 { done.1 } else { 0 };
+        for (d, s) in row[offset + from..offset + src.len()]
+            .iter_mut()
+            .zip(&src[from..])
+        {
+            *d = s[l];
+        }
+    }
+}
+
+/// The vector part of [`gather_lanes`]: `(rows, samples)` done (the first
+/// `rows` rows, a multiple of 4, over the first `samples` samples, a
+/// multiple of 4), or `(0, 0)` without AVX2; and whether what it read was
+/// finite.
+fn transpose_in(
+    rows: &[Vec<f64>],
+    start: usize,
+    dst: &mut [[f64; LANES]],
+    clamp: Option<f64>,
+) -> ((usize, usize), bool) {
+    #[cfg(target_arch = "x86_64")]
+    if avx2() {
+        let groups = rows.len() / 4;
+        let n4 = dst.len() / 4 * 4;
+        // SAFETY: AVX2 is present (checked); every row holds
+        // `start + dst.len()` samples (asserted by the caller) and the
+        // kernel reads rows `< 4·groups` at `start .. start + n4` and
+        // writes `dst[..n4]`, lanes `< 4·groups`.
+        let finite = unsafe { x86::transpose_in(rows, groups, start, n4, dst, clamp) };
+        return ((4 * groups, n4), finite);
+    }
+    let _ = (rows, start, dst, clamp);
+    ((0, 0), true)
+}
+
+/// The vector part of [`scatter_lanes`], as [`transpose_in`].
+fn transpose_out(src: &[[f64; LANES]], rows: &mut [Vec<f64>], offset: usize) -> (usize, usize) {
+    #[cfg(target_arch = "x86_64")]
+    if avx2() {
+        let groups = rows.len() / 4;
+        let n4 = src.len() / 4 * 4;
+        // SAFETY: AVX2 is present; rows hold `offset + src.len()` samples
+        // (asserted by the caller); reads `src[..n4]`, writes rows
+        // `< 4·groups` at `offset .. offset + n4`.
+        unsafe { x86::transpose_out(src, groups, n4, rows, offset) };
+        return (4 * groups, n4);
+    }
+    let _ = (src, rows, offset);
+    (0, 0)
+}
+
+#[cfg(target_arch = "x86_64")]
+mod x86 {
+    use super::LANES;
+    use std::arch::x86_64::*;
+
+    /// Transposes a 4 x 4 block of doubles held as four row vectors.
+    #[inline(always)]
+    unsafe fn t4(r: [__m256d; 4]) -> [__m256d; 4] {
+        let t0 = _mm256_unpacklo_pd(r[0], r[1]);
+        let t1 = _mm256_unpackhi_pd(r[0], r[1]);
+        let t2 = _mm256_unpacklo_pd(r[2], r[3]);
+        let t3 = _mm256_unpackhi_pd(r[2], r[3]);
+        [
+            _mm256_permute2f128_pd(t0, t2, 0x20),
+            _mm256_permute2f128_pd(t1, t3, 0x20),
+            _mm256_permute2f128_pd(t0, t2, 0x31),
+            _mm256_permute2f128_pd(t1, t3, 0x31),
+        ]
+    }
+
+    #[target_feature(enable = "avx2")]
+    pub(super) unsafe fn transpose_in(
+        rows: &[Vec<f64>],
+        groups: usize,
+        start: usize,
+        n4: usize,
+        dst: &mut [[f64; LANES]],
+        clamp: Option<f64>,
+    ) -> bool {
+        let abs = _mm256_set1_pd(f64::from_bits(!(1u64 << 63)));
+        let max = _mm256_set1_pd(f64::MAX);
+        let mut bad = _mm256_setzero_pd();
+        let clamped = clamp.is_some();
+        let (lo, hi) = match clamp {
+            Some(m) => (_mm256_set1_pd(-m), _mm256_set1_pd(m)),
+            None => (_mm256_set1_pd(f64::NEG_INFINITY), _mm256_set1_pd(f64::INFINITY)),
+        };
+        let out = dst.as_mut_ptr() as *mut f64;
+        for g in 0..groups {
+            let p: [*const f64; 4] = std::array::from_fn(|k| rows[4 * g + k].as_ptr().add(start));
+            let mut t = 0;
+            while t < n4 {
+                // x < hi ? x : hi, then x > lo ? x : lo: f64::clamp for finite x.
+                let r = std::array::from_fn(|k| {
+                    let x = _mm256_loadu_pd(p[k].add(t));
+                    // Not (|x| <= MAX): NaN or ±inf.
+                    bad = _mm256_or_pd(bad, _mm256_cmp_pd::<_CMP_NLE_UQ>(_mm256_and_pd(x, abs), max));
+                    if clamped {
+                        _mm256_max_pd(_mm256_min_pd(x, hi), lo)
+                    } else {
+                        x
+                    }
+                });
+                let c = t4(r);
+                for (j, v) in c.into_iter().enumerate() {
+                    _mm256_storeu_pd(out.add((t + j) * LANES + 4 * g), v);
+                }
+                t += 4;
+            }
+        }
+        _mm256_movemask_pd(bad) == 0
+    }
+
+    #[target_feature(enable = "avx2")]
+    pub(super) unsafe fn transpose_out(
+        src: &[[f64; LANES]],
+        groups: usize,
+        n4: usize,
+        rows: &mut [Vec<f64>],
+        offset: usize,
+    ) {
+        let inp = src.as_ptr() as *const f64;
+        for g in 0..groups {
+            let p: [*mut f64; 4] = std::array::from_fn(|k| rows[4 * g + k].as_mut_ptr().add(offset));
+            let mut t = 0;
+            while t < n4 {
+                let r = std::array::from_fn(|j| _mm256_loadu_pd(inp.add((t + j) * LANES + 4 * g)));
+                let c = t4(r);
+                for (k, v) in c.into_iter().enumerate() {
+                    _mm256_storeu_pd(p[k].add(t), v);
+                }
+                t += 4;
+            }
+        }
+    }
+}
+
+thread_local! {
+    static SCRATCH: std::cell::RefCell<Vec<[f64; LANES]>> = const { std::cell::RefCell::new(Vec::new()) };
+}
+
+/// Largest scratch buffer kept between calls (bytes): 64 MiB is 131 s of a
+/// 16-taxel trial at 4 kHz; a longer trial's buffer is freed after use.
+const SCRATCH_KEEP_BYTES: usize = 64 << 20;
+
+/// Runs `f` with this thread's sample-major scratch buffer (empty on entry).
+///
+/// Why: the lane kernels (filter, encoders) transpose each trial into a
+/// buffer as large as the trial (2.8 MB for a 21 s lab trial); allocating it
+/// afresh for every trial costs a page fault and a page clear per 4 kB,
+/// about as much as the arithmetic of a simple pass. One buffer per thread,
+/// reused trial after trial, keeps memory flat in the number of trials (it
+/// is as large as the longest trial seen, up to [`SCRATCH_KEEP_BYTES`]). A
+/// nested call gets a fresh buffer.
+pub fn with_scratch<R>(f: impl FnOnce(&mut Vec<[f64; LANES]>) -> R) -> R {
+    SCRATCH.with(|cell| match cell.try_borrow_mut() {
+        Ok(mut buf) => {
+            buf.clear();
+            let r = f(&mut buf);
+            if buf.capacity() * std::mem::size_of::<[f64; LANES]>() > SCRATCH_KEEP_BYTES {
+                *buf = Vec::new();
+            }
+            r
+        }
+        Err(_) => f(&mut Vec::new()),
+    })
 }

@@ -55,7 +55,9 @@
 //! Speed: taxels run in blocks of [`LANES`] neurons in lock step; the hot loop
 //! is branch-free except for the rare spike (see `benches/encode.rs`).
 
-use super::{block_input, check_input, fmax, fmin, interleave, sort_events, InputMode, StepInput, LANES};
+use super::{
+    block_input, check_input_shape, fmax, fmin, interleave, sort_events, InputMode, StepInput, LANES,
+};
 use palpate_core::{
     check_range, register_stage, BuildContext, ConfigChecks, ConfigError, InputSpec, Item, Map, Payload,
     PayloadKind, SpikeEvent, SpikeTrain, Stage, StageConfig, StageError, TrialContext,
@@ -282,37 +284,49 @@ impl Izhikevich {
 
     /// [`Izhikevich::encode`], also giving every neuron's final `(v, u)`.
     pub fn encode_with_state(&self, currents: &[Vec<f64>], fs: f64) -> (Vec<SpikeEvent>, Vec<(f64, f64)>) {
+        let (events, state, _) = self.encode_finite(currents, fs);
+        (events, state)
+    }
+
+    /// [`Izhikevich::encode_with_state`], also telling whether every
+    /// current was finite (noted while the input is transposed).
+    fn encode_finite(&self, currents: &[Vec<f64>], fs: f64) -> (Vec<SpikeEvent>, Vec<(f64, f64)>, bool) {
+        let mut finite = true;
         let mut state = Vec::with_capacity(currents.len());
         let n_samples = currents.first().map_or(0, Vec::len);
         let plan = StepInput::new(n_samples, fs, self.dt_ms, self.input);
         let mut events = Vec::new();
-        for (block, chunk) in currents.chunks(LANES).enumerate() {
-            let data = interleave(chunk, n_samples);
-            let first = (block * LANES) as u32;
-            let (p, live, ev) = (&self.params, chunk.len(), &mut events);
-            // The lanes' arithmetic in 256-bit vectors where the CPU has them
-            // (no FMA: the same bits either way, tested).
-            let (v, u) = crate::wide::with_avx2(
-                #[inline(always)]
-                || match (self.scheme, self.input) {
-                    (Scheme::Izhikevich, InputMode::Hold) => {
-                        run_block::<true, false>(p, &plan, &data, live, first, ev)
-                    }
-                    (Scheme::Izhikevich, InputMode::Linear) => {
-                        run_block::<true, true>(p, &plan, &data, live, first, ev)
-                    }
-                    (Scheme::Euler, InputMode::Hold) => {
-                        run_block::<false, false>(p, &plan, &data, live, first, ev)
-                    }
-                    (Scheme::Euler, InputMode::Linear) => {
-                        run_block::<false, true>(p, &plan, &data, live, first, ev)
-                    }
-                },
-            );
-            state.extend((0..chunk.len()).map(|l| (v[l], u[l])));
-        }
+        // One reused buffer per thread (see `with_scratch`).
+        crate::wide::with_scratch(|data| {
+            for (block, chunk) in currents.chunks(LANES).enumerate() {
+                finite &= interleave(chunk, n_samples, data);
+                let data = &data[..];
+                let first = (block * LANES) as u32;
+                let (p, live, ev) = (&self.params, chunk.len(), &mut events);
+                // The lanes' arithmetic in 256-bit vectors where the CPU has them
+                // (no FMA: the same bits either way, tested).
+                let (v, u) = crate::wide::with_avx2(
+                    #[inline(always)]
+                    || match (self.scheme, self.input) {
+                        (Scheme::Izhikevich, InputMode::Hold) => {
+                            run_block::<true, false>(p, &plan, data, live, first, ev)
+                        }
+                        (Scheme::Izhikevich, InputMode::Linear) => {
+                            run_block::<true, true>(p, &plan, data, live, first, ev)
+                        }
+                        (Scheme::Euler, InputMode::Hold) => {
+                            run_block::<false, false>(p, &plan, data, live, first, ev)
+                        }
+                        (Scheme::Euler, InputMode::Linear) => {
+                            run_block::<false, true>(p, &plan, data, live, first, ev)
+                        }
+                    },
+                );
+                state.extend((0..chunk.len()).map(|l| (v[l], u[l])));
+            }
+        });
         sort_events(&mut events);
-        (events, state)
+        (events, state, finite)
     }
 }
 
@@ -400,7 +414,7 @@ fn run_block<const HALF: bool, const LINEAR: bool>(
     let dt = plan.dt_ms;
     let h = if HALF { 0.5 * dt } else { dt };
     let adt = p.a * dt;
-    let (b, c, d, vp) = (p.b, p.c, p.d, p.v_peak);
+    let (b, c, vp) = (p.b, p.c, p.v_peak);
     let floor = c.min(v0) - 1000.0;
     let mut v = [v0; LANES];
     let mut u = [u0; LANES];
@@ -430,38 +444,64 @@ fn run_block<const HALF: bool, const LINEAR: bool>(
             un[l] = y;
         }
         if any {
-            for l in 0..LANES {
-                if vn[l] < vp {
-                    continue;
-                }
-                // Crossing time, linear within the (half-)step that crossed,
-                // from the unclamped membrane recomputed from the step's start.
-                let (vl, ul, il) = (v[l], u[l], cur[l]);
-                let a1 = fmax(vl + h * ((0.04 * vl + 5.0) * vl + 140.0 - ul + il), floor);
-                let frac = if !HALF {
-                    crossing(vl, a1, vp)
-                } else if a1 >= vp {
-                    0.5 * crossing(vl, a1, vp)
-                } else {
-                    let a2 = fmax(a1 + h * ((0.04 * a1 + 5.0) * a1 + 140.0 - ul + il), floor);
-                    0.5 + 0.5 * crossing(a1, a2, vp)
-                };
-                // Reset, then record (padding lanes never count).
-                vn[l] = c;
-                un[l] += d;
-                let t = (n as f64 + frac) * dt;
-                if l < live && t < plan.duration_ms {
-                    events.push(SpikeEvent {
-                        taxel: first_taxel + l as u32,
-                        t_ms: t,
-                    });
-                }
-            }
+            // The rare path works on copies: indexing the hot arrays by a
+            // run-time lane would pin them to memory, and every step would
+            // then carry `v` and `u` through a store and a load.
+            (vn, un) = spikes::<HALF>(p, plan, [v, u, cur], [vn, un], n, (live, first_taxel), events);
         }
         v = vn;
         u = un;
     }
     (v, u)
+}
+
+/// The spike bookkeeping of one step of [`run_block`] (some lane reached
+/// the peak): spike times, resets, events. Kept out of line.
+/// (Arrays pass by value: a reference would let them escape, and the hot
+/// loop would keep them in memory.)
+#[inline(never)]
+fn spikes<const HALF: bool>(
+    p: &IzhParams,
+    plan: &StepInput,
+    [v, u, cur]: [[f64; LANES]; 3],
+    [mut vn, mut un]: [[f64; LANES]; 2],
+    n: usize,
+    (live, first_taxel): (usize, u32),
+    events: &mut Vec<SpikeEvent>,
+) -> ([f64; LANES], [f64; LANES]) {
+    let (v0, _) = p.rest();
+    let dt = plan.dt_ms;
+    let h = if HALF { 0.5 * dt } else { dt };
+    let (c, d, vp) = (p.c, p.d, p.v_peak);
+    let floor = c.min(v0) - 1000.0;
+    for l in 0..LANES {
+        if vn[l] < vp {
+            continue;
+        }
+        // Crossing time, linear within the (half-)step that crossed,
+        // from the unclamped membrane recomputed from the step's start.
+        let (vl, ul, il) = (v[l], u[l], cur[l]);
+        let a1 = fmax(vl + h * ((0.04 * vl + 5.0) * vl + 140.0 - ul + il), floor);
+        let frac = if !HALF {
+            crossing(vl, a1, vp)
+        } else if a1 >= vp {
+            0.5 * crossing(vl, a1, vp)
+        } else {
+            let a2 = fmax(a1 + h * ((0.04 * a1 + 5.0) * a1 + 140.0 - ul + il), floor);
+            0.5 + 0.5 * crossing(a1, a2, vp)
+        };
+        // Reset, then record (padding lanes never count).
+        vn[l] = c;
+        un[l] += d;
+        let t = (n as f64 + frac) * dt;
+        if l < live && t < plan.duration_ms {
+            events.push(SpikeEvent {
+                taxel: first_taxel + l as u32,
+                t_ms: t,
+            });
+        }
+    }
+    (vn, un)
 }
 
 /// Fraction of a step at which a line from `v0` (below `vp`) to `v1` (at or
@@ -479,8 +519,11 @@ fn crossing(v0: f64, v1: f64, vp: f64) -> f64 {
 impl Map for Izhikevich {
     fn process(&self, inputs: &[&Item], _ctx: &TrialContext<'_>) -> Result<Payload, StageError> {
         let s = inputs[0].payload.signals()?;
-        check_input("izhikevich", s)?;
-        let events = self.encode(&s.data, s.sample_rate_hz);
+        check_input_shape("izhikevich", s)?;
+        let (events, _, finite) = self.encode_finite(&s.data, s.sample_rate_hz);
+        if !finite {
+            return Err(crate::signal::non_finite_error("izhikevich", s));
+        }
         Ok(SpikeTrain {
             layout: s.layout.clone(),
             duration_ms: s.duration_ms(),

@@ -23,7 +23,7 @@
 //! = 7.6 ms, about 130 Hz (Izhikevich FA-I at 20: ~120 Hz); at 10, ~70 Hz
 //! (Izhikevich: ~50 Hz). Tested below.
 
-use super::{block_input, check_input, fmax, interleave, sort_events, InputMode, StepInput, LANES};
+use super::{block_input, check_input_shape, fmax, interleave, sort_events, InputMode, StepInput, LANES};
 use palpate_core::{
     check_positive, check_range, register_stage, BuildContext, ConfigChecks, ConfigError, InputSpec, Item,
     Map, Payload, PayloadKind, SpikeEvent, SpikeTrain, Stage, StageConfig, StageError, TrialContext,
@@ -160,22 +160,39 @@ impl Lif {
     /// Encodes currents `currents[taxel][sample]` at `fs` Hz into time-sorted
     /// spike events. `currents` must be finite (callers check).
     pub fn encode(&self, currents: &[Vec<f64>], fs: f64) -> Vec<SpikeEvent> {
+        self.encode_finite(currents, fs).0
+    }
+
+    /// [`Lif::encode`], also telling whether every current was finite
+    /// (noted while the input is transposed).
+    fn encode_finite(&self, currents: &[Vec<f64>], fs: f64) -> (Vec<SpikeEvent>, bool) {
+        let mut finite = true;
         let n_samples = currents.first().map_or(0, Vec::len);
         let plan = StepInput::new(n_samples, fs, self.dt_ms, self.input);
         let mut events = Vec::new();
-        for (block, chunk) in currents.chunks(LANES).enumerate() {
-            let data = interleave(chunk, n_samples);
-            let first = (block * LANES) as u32;
-            match self.input {
-                InputMode::Hold => self.run_block::<false>(&plan, &data, chunk.len(), first, &mut events),
-                InputMode::Linear => self.run_block::<true>(&plan, &data, chunk.len(), first, &mut events),
+        // One reused buffer per thread (see `with_scratch`); the lanes in
+        // 256-bit vectors where the CPU has them (no FMA: the same bits).
+        crate::wide::with_scratch(|data| {
+            for (block, chunk) in currents.chunks(LANES).enumerate() {
+                finite &= interleave(chunk, n_samples, data);
+                let first = (block * LANES) as u32;
+                let ev = &mut events;
+                crate::wide::with_avx2(
+                    #[inline(always)]
+                    || match self.input {
+                        InputMode::Hold => self.run_block::<false>(&plan, data, chunk.len(), first, ev),
+                        InputMode::Linear => self.run_block::<true>(&plan, data, chunk.len(), first, ev),
+                    },
+                );
             }
-        }
+        });
         sort_events(&mut events);
-        events
+        (events, finite)
     }
 
-    /// Integrates one block of lanes over the whole trial.
+    /// Integrates one block of lanes over the whole trial (inlined into
+    /// the wide function).
+    #[inline(always)]
     fn run_block<const LINEAR: bool>(
         &self,
         plan: &StepInput,
@@ -228,8 +245,11 @@ impl Lif {
 impl Map for Lif {
     fn process(&self, inputs: &[&Item], _ctx: &TrialContext<'_>) -> Result<Payload, StageError> {
         let s = inputs[0].payload.signals()?;
-        check_input("lif", s)?;
-        let events = self.encode(&s.data, s.sample_rate_hz);
+        check_input_shape("lif", s)?;
+        let (events, finite) = self.encode_finite(&s.data, s.sample_rate_hz);
+        if !finite {
+            return Err(crate::signal::non_finite_error("lif", s));
+        }
         Ok(SpikeTrain {
             layout: s.layout.clone(),
             duration_ms: s.duration_ms(),

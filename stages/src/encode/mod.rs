@@ -46,7 +46,7 @@ use serde::{Deserialize, Serialize};
 /// lanes the kernel waited on latency; 16 independent chains keep the vector
 /// units busy (Izhikevich 16 x 40 s: 4.7 -> 3.0 ms, `cargo bench --bench
 /// encode`). Smaller arrays pay for padding lanes, which are cheap.
-pub const LANES: usize = 16;
+pub const LANES: usize = crate::wide::LANES;
 
 /// Largest input current magnitude an encoder uses; larger values are clamped.
 pub const MAX_CURRENT: f64 = 1e12;
@@ -130,18 +130,31 @@ impl StepInput {
     }
 }
 
-/// One block of up to [`LANES`] taxels' currents, interleaved sample-major
+/// Fills `data` with one block of up to [`LANES`] taxels' currents, interleaved sample-major
 /// (`data[sample][lane]`) and clamped to [`MAX_CURRENT`], so a step reads one
 /// contiguous `[f64; LANES]` (one bounds check, one cache line pair) instead of
 /// `LANES` scattered slices. Missing lanes of the last block hold 0.
-pub fn interleave(chunk: &[Vec<f64>], n_samples: usize) -> Vec<[f64; LANES]> {
-    let mut data = vec![[0.0; LANES]; n_samples];
-    for (l, xs) in chunk.iter().take(LANES).enumerate() {
-        for (row, &x) in data.iter_mut().zip(xs) {
-            row[l] = x.clamp(-MAX_CURRENT, MAX_CURRENT);
+///
+/// Returns whether every current read was finite (noted during the
+/// transpose, so an encoder stage reads its input once).
+pub fn interleave(chunk: &[Vec<f64>], n_samples: usize, data: &mut Vec<[f64; LANES]>) -> bool {
+    data.clear();
+    data.reserve(n_samples);
+    if chunk.iter().all(|xs| xs.len() >= n_samples) {
+        crate::wide::gather_lanes(chunk, 0..n_samples, data, Some(MAX_CURRENT))
+    } else {
+        let finite = chunk
+            .iter()
+            .all(|xs| crate::signal::first_non_finite(xs).is_none());
+        // Ragged rows (callers check lengths; kept safe): short rows read 0.
+        data.resize(n_samples, [0.0; LANES]);
+        for (l, xs) in chunk.iter().take(LANES).enumerate() {
+            for (row, &x) in data.iter_mut().zip(xs) {
+                row[l] = x.clamp(-MAX_CURRENT, MAX_CURRENT);
+            }
         }
+        finite
     }
-    data
 }
 
 /// The currents of a block at step `n` whose sample index is `i`: held, or
@@ -194,6 +207,13 @@ pub(crate) fn fmin(a: f64, b: f64) -> f64 {
 /// Checks an encoder's input: finite samples, one vector per taxel.
 pub fn check_input(what: &str, s: &Signals) -> Result<(), StageError> {
     crate::signal::check_signals(what, s)?;
+    check_input_shape(what, s)
+}
+
+/// [`check_input`] without the scan for non-finite samples, which the
+/// encoders make while transposing their input ([`interleave`]).
+pub fn check_input_shape(what: &str, s: &Signals) -> Result<(), StageError> {
+    crate::signal::check_shape(what, s)?;
     if s.layout.len() > u32::MAX as usize {
         return Err(StageError::new(format!("{what}: too many taxels")));
     }

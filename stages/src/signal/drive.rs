@@ -66,7 +66,7 @@
 //! stages.scene.motion.speed_mm_s=S --set stages.wss.speed_mm_s=S`). Palpating
 //! slower than about 1 mm/s needs a larger `G`, measured as above.
 
-use super::{check_signals, derivative::differentiate, derivative::DiffScheme};
+use super::{check_shape, derivative::differentiate, derivative::DiffScheme, non_finite_error};
 use palpate_core::{
     check_positive, register_stage, BuildContext, ConfigError, InputSpec, Item, Map, Payload, PayloadKind,
     Stage, StageConfig, StageError, TrialContext,
@@ -195,19 +195,44 @@ pub struct Drive {
 
 impl Drive {
     /// Computes the current of every taxel of one trial.
+    ///
+    /// Same operations, in the same order, as `differentiate` (central), then
+    /// `|.|`, then the gain with its overflow guard; fused into one pass per
+    /// taxel for a fixed gain (two for a per-trial gain, which needs the
+    /// peak first) so the trial is read once and written once.
+    #[cfg(test)]
     fn currents(&self, data: &[Vec<f64>], fs: f64) -> Vec<Vec<f64>> {
-        let mut raw: Vec<Vec<f64>> = match self.kind {
-            DriveKind::Direct => return data.to_vec(),
-            DriveKind::FaI => data
+        self.currents_finite(data, fs).0
+    }
+
+    /// [`Drive::currents`], also telling whether every input sample was
+    /// finite (noted by the slope pass for `fa_i`, so the stage reads its
+    /// input once; the other kinds scan it).
+    fn currents_finite(&self, data: &[Vec<f64>], fs: f64) -> (Vec<Vec<f64>>, bool) {
+        if self.kind != DriveKind::FaI {
+            let finite = data.iter().all(|xs| super::first_non_finite(xs).is_none());
+            if self.kind == DriveKind::Direct {
+                return (data.to_vec(), finite);
+            }
+            return (self.scale(data.to_vec()), finite);
+        }
+        let mut finite = true;
+        if let Gain::Fixed(g) = self.gain {
+            let out = data
                 .iter()
-                .map(|xs| {
-                    let mut d = differentiate(xs, fs, DiffScheme::Central);
-                    d.iter_mut().for_each(|v| *v = v.abs());
-                    d
-                })
-                .collect(),
-            DriveKind::SaI => data.to_vec(),
-        };
+                .map(|xs| abs_slope(xs, fs, &mut finite, |v| scaled(v, g)))
+                .collect();
+            return (out, finite);
+        }
+        let raw = data
+            .iter()
+            .map(|xs| abs_slope(xs, fs, &mut finite, |v| v))
+            .collect();
+        (self.scale(raw), finite)
+    }
+
+    /// Applies the gain (fixed, or set from the trial's peak) in place.
+    fn scale(&self, mut raw: Vec<Vec<f64>>) -> Vec<Vec<f64>> {
         let g = match self.gain {
             Gain::Fixed(g) => g,
             Gain::TargetPeak(target, of) => {
@@ -222,21 +247,71 @@ impl Drive {
             Gain::None => 1.0,
         };
         for v in raw.iter_mut().flatten() {
-            // 0 * anything finite is 0; the product of finite values may still
-            // overflow for an absurd fixed gain, so guard it.
-            let x = *v * g;
-            *v = if x.is_finite() { x } else { f64::MAX.copysign(x) };
+            *v = scaled(*v, g);
         }
         raw
     }
 }
 
+/// `v · g`, guarded: 0 times anything finite is 0, but the product of finite
+/// values may still overflow for an absurd fixed gain.
+#[inline(always)]
+fn scaled(v: f64, g: f64) -> f64 {
+    let x = v * g;
+    if x.is_finite() {
+        x
+    } else {
+        f64::MAX.copysign(x)
+    }
+}
+
+/// `f(|dx/dt|)` of one taxel by central differences (one-sided at the ends):
+/// the arithmetic of [`differentiate`] with [`DiffScheme::Central`]. Clears
+/// `finite` when a sample is NaN or infinite (noted in the same pass).
+#[inline]
+fn abs_slope(xs: &[f64], fs: f64, finite: &mut bool, f: impl Fn(f64) -> f64) -> Vec<f64> {
+    let n = xs.len();
+    if n < 3 {
+        *finite &= xs.iter().all(|&x| super::finite(x));
+        return differentiate(xs, fs, DiffScheme::Central)
+            .into_iter()
+            .map(|v| f(v.abs()))
+            .collect();
+    }
+    let half = 0.5 * fs;
+    let mut ok = super::finite(xs[0]) & super::finite(xs[1]);
+    let mut d = Vec::with_capacity(n);
+    d.push(f(((xs[1] - xs[0]) * fs).abs()));
+    // Every sample after the second is some window's last.
+    d.extend(xs.windows(3).map(|w| {
+        ok &= super::finite(w[2]);
+        f(((w[2] - w[0]) * half).abs())
+    }));
+    d.push(f(((xs[n - 1] - xs[n - 2]) * fs).abs()));
+    *finite &= ok;
+    d
+}
+
+/// Largest `|x|` of a taxel (0 when empty). Inputs are finite or infinite
+/// (an overflowing slope), never NaN: compare-and-select over eight running
+/// maxima vectorizes where `f64::max`'s NaN rule would not.
+fn max_abs(xs: &[f64]) -> f64 {
+    let mut m = [0.0_f64; 8];
+    let chunks = xs.chunks_exact(8);
+    let rest = chunks.remainder();
+    for c in chunks {
+        for j in 0..8 {
+            let a = c[j].abs();
+            m[j] = if a > m[j] { a } else { m[j] };
+        }
+    }
+    m.iter().chain(rest).fold(0.0_f64, |a, &x| a.max(x.abs()))
+}
+
 /// The peak a per-trial gain maps to its target: see [`PeakOf`]. 0 when no
 /// taxel has any drive.
 pub fn reference_peak(raw: &[Vec<f64>], of: PeakOf) -> f64 {
-    let peaks = raw
-        .iter()
-        .map(|xs| xs.iter().fold(0.0_f64, |m, &v| m.max(v.abs())));
+    let peaks = raw.iter().map(|xs| max_abs(xs));
     match of {
         PeakOf::Max => peaks.fold(0.0, f64::max),
         PeakOf::MedianTaxel => {
@@ -258,12 +333,16 @@ pub fn reference_peak(raw: &[Vec<f64>], of: PeakOf) -> f64 {
 impl Map for Drive {
     fn process(&self, inputs: &[&Item], _ctx: &TrialContext<'_>) -> Result<Payload, StageError> {
         let s = inputs[0].payload.signals()?;
-        check_signals("drive", s)?;
+        check_shape("drive", s)?;
         let unit = match self.kind {
             DriveKind::Direct => s.unit.clone(),
             _ => "current".to_string(),
         };
-        Ok(s.with_data(unit, self.currents(&s.data, s.sample_rate_hz)).into())
+        let (data, finite) = self.currents_finite(&s.data, s.sample_rate_hz);
+        if !finite {
+            return Err(non_finite_error("drive", s));
+        }
+        Ok(s.with_data(unit, data).into())
     }
 }
 

@@ -54,7 +54,7 @@
 //! above it; otherwise the rate is known only from the data, and the run
 //! stops with the same error naming the key.
 
-use super::check_signals;
+use super::{check_shape, check_signals, non_finite_error};
 use palpate_core::{
     check_positive, check_range, fmt_num, register_stage, BuildContext, ConfigChecks, ConfigError, InputSpec,
     Inspection, Item, Map, OutputFacts, Payload, PayloadKind, Stage, StageConfig, StageError, TrialContext,
@@ -405,7 +405,7 @@ pub fn filtfilt(sos: &[Biquad], xs: &[f64], pad: usize, fit: usize) -> Vec<f64> 
 /// Taxels filtered in lock step by [`filtfilt_taxels`]: 16 lanes (four AVX2
 /// vectors), as many as a 4x4 array has, so each time step of the recursion
 /// runs four independent vector chains instead of one scalar chain.
-pub const LANES: usize = 16;
+pub const LANES: usize = crate::wide::LANES;
 
 /// Zero-phase filtering of every taxel, [`LANES`] at a time in lock step:
 /// the same arithmetic as [`filtfilt`] per taxel, in the same order (every
@@ -414,21 +414,43 @@ pub const LANES: usize = 16;
 /// Why it is faster: a biquad is a recursion whose each step waits for the
 /// last (~10 cycles of add-multiply-add latency per sample and section in
 /// one taxel), so one taxel at a time is latency-bound; 16 independent taxels
-/// fill the pipeline. Every section of the cascade runs per time step (one
-/// read and one write of the sample for the whole cascade), the forward pass
-/// gathers the taxels' inputs (and extensions) into one sample-major buffer,
-/// and the backward pass writes straight into the per-taxel outputs.
+/// fill the pipeline. The block's samples are gathered once into one
+/// sample-major buffer (tiled, [`crate::wide::gather_lanes`]), both passes run
+/// in place over it with every section's state in registers (the section
+/// count is a compile-time constant up to 8, order 16), and the result is
+/// scattered back tile by tile: three sequential sweeps of memory in all.
 pub fn filtfilt_taxels(sos: &[Biquad], data: &[Vec<f64>], pad: usize, fit: usize) -> Vec<Vec<f64>> {
+    filtfilt_taxels_finite(sos, data, pad, fit).0
+}
+
+/// [`filtfilt_taxels`], also telling whether every input sample was finite
+/// (noted while the input is transposed, so the stage reads it once).
+pub fn filtfilt_taxels_finite(
+    sos: &[Biquad],
+    data: &[Vec<f64>],
+    pad: usize,
+    fit: usize,
+) -> (Vec<Vec<f64>>, bool) {
     let n = data.first().map_or(0, Vec::len);
     if n < 2 || sos.is_empty() || data.iter().any(|xs| xs.len() != n) {
-        return data.iter().map(|xs| filtfilt(sos, xs, pad, fit)).collect();
+        let finite = data.iter().all(|xs| super::first_non_finite(xs).is_none());
+        return (
+            data.iter().map(|xs| filtfilt(sos, xs, pad, fit)).collect(),
+            finite,
+        );
     }
     let mut out: Vec<Vec<f64>> = data.iter().map(|_| vec![0.0; n]).collect();
-    let mut buf: Vec<[f64; LANES]> = Vec::new();
-    for (chunk, outs) in data.chunks(LANES).zip(out.chunks_mut(LANES)) {
-        crate::wide::with_avx2(|| filtfilt_block(sos, chunk, outs, pad, fit, &mut buf));
-    }
-    out
+    let mut finite = true;
+    crate::wide::with_scratch(|buf| {
+        for (chunk, outs) in data.chunks(LANES).zip(out.chunks_mut(LANES)) {
+            // Both inlined into the wide function, or the loops stay SSE2.
+            finite &= crate::wide::with_avx2(
+                #[inline(always)]
+                || filtfilt_block(sos, chunk, outs, pad, fit, buf),
+            );
+        }
+    });
+    (out, finite)
 }
 
 /// The cascade's state: `z1`, `z2` of each section, per lane.
@@ -447,27 +469,80 @@ fn steady(sos: &[Biquad], v: &[f64; LANES], s: &[f64; LANES]) -> State {
     st
 }
 
-/// One time step of the cascade (transposed direct form II, per lane).
+/// One time step of one section for every lane (transposed direct form II).
 #[inline(always)]
-fn cascade(sos: &[Biquad], st: &mut State, x: [f64; LANES]) -> [f64; LANES] {
-    let mut v = x;
-    for (s, (z1, z2)) in sos.iter().zip(st.iter_mut()) {
-        let [b0, b1, b2] = s.b;
-        let [a1, a2] = s.a;
-        for l in 0..LANES {
-            let xi = v[l];
-            let y = b0 * xi + z1[l];
-            z1[l] = b1 * xi - a1 * y + z2[l];
-            z2[l] = b2 * xi - a2 * y;
-            v[l] = y;
+fn section(q: &Biquad, z1: &mut [f64; LANES], z2: &mut [f64; LANES], v: &mut [f64; LANES]) {
+    let [b0, b1, b2] = q.b;
+    let [a1, a2] = q.a;
+    for l in 0..LANES {
+        let xi = v[l];
+        let y = b0 * xi + z1[l];
+        z1[l] = b1 * xi - a1 * y + z2[l];
+        z2[l] = b2 * xi - a2 * y;
+        v[l] = y;
+    }
+}
+
+/// Runs the cascade of `S` sections in place over `buf` (forwards, or
+/// backwards in time), from state `st`. The state lives in local arrays so
+/// that it stays in registers across time steps.
+#[inline(always)]
+fn sweep<const S: usize>(sos: &[Biquad], st: &State, buf: &mut [[f64; LANES]], backward: bool) {
+    let mut q = [Biquad {
+        b: [0.0; 3],
+        a: [0.0; 2],
+    }; S];
+    q.copy_from_slice(&sos[..S]);
+    let mut z1 = [[0.0; LANES]; S];
+    let mut z2 = [[0.0; LANES]; S];
+    for k in 0..S {
+        (z1[k], z2[k]) = st[k];
+    }
+    let mut step = |v: &mut [f64; LANES]| {
+        for k in 0..S {
+            section(&q[k], &mut z1[k], &mut z2[k], v);
+        }
+    };
+    if backward {
+        buf.iter_mut().rev().for_each(&mut step);
+    } else {
+        buf.iter_mut().for_each(&mut step);
+    }
+}
+
+/// [`sweep`] for any number of sections (1 to 8 compiled each; more, which
+/// the stage's order cap excludes, run section by section over the buffer).
+#[inline(always)]
+fn sweep_any(sos: &[Biquad], st: &State, buf: &mut [[f64; LANES]], backward: bool) {
+    match sos.len() {
+        1 => sweep::<1>(sos, st, buf, backward),
+        2 => sweep::<2>(sos, st, buf, backward),
+        3 => sweep::<3>(sos, st, buf, backward),
+        4 => sweep::<4>(sos, st, buf, backward),
+        5 => sweep::<5>(sos, st, buf, backward),
+        6 => sweep::<6>(sos, st, buf, backward),
+        7 => sweep::<7>(sos, st, buf, backward),
+        8 => sweep::<8>(sos, st, buf, backward),
+        _ => {
+            // Section after section over the whole buffer: the same
+            // operations on each sample in the same order.
+            for (q, (a, b)) in sos.iter().zip(st) {
+                let (mut z1, mut z2) = (*a, *b);
+                let mut step = |v: &mut [f64; LANES]| section(q, &mut z1, &mut z2, v);
+                if backward {
+                    buf.iter_mut().rev().for_each(&mut step);
+                } else {
+                    buf.iter_mut().for_each(&mut step);
+                }
+            }
         }
     }
-    v
 }
 
 /// [`filtfilt_taxels`] for one block of up to [`LANES`] taxels of `n >= 2`
-/// samples each; missing lanes compute zeros and are dropped.
-#[inline]
+/// samples each; missing lanes compute zeros and are dropped. Returns
+/// whether the block's samples were finite.
+#[inline(always)]
 #[allow(clippy::needless_range_loop)] // lanes x samples: indexing both reads clearer than zipped iterators
 fn filtfilt_block(
     sos: &[Biquad],
@@ -476,7 +551,7 @@ fn filtfilt_block(
     pad: usize,
     fit: usize,
     buf: &mut Vec<[f64; LANES]>,
-) {
+) -> bool {
     let n = chunk[0].len();
     let pad = pad.min(n - 1);
     let fit = fit.clamp(1, n);
@@ -493,56 +568,52 @@ fn filtfilt_block(
     let len = n + 2 * pad;
     buf.clear();
     buf.reserve(len);
-    let mut st = steady(sos, &x0, &s0);
-    // Forward pass over the extension `2 l0 - x[pad..1]`, `x`, `2 l1 - x[n-2..n-1-pad]`.
+    // The extended input `2 l0 - x[pad..1]`, `x`, `2 l1 - x[n-2..n-1-pad]`.
     let mut x = [0.0; LANES];
     for i in (1..=pad).rev() {
         for l in 0..w {
             x[l] = 2.0 * l0[l] - chunk[l][i];
         }
-        buf.push(cascade(sos, &mut st, x));
+        buf.push(x);
     }
-    for i in 0..n {
-        for l in 0..w {
-            x[l] = chunk[l][i];
-        }
-        buf.push(cascade(sos, &mut st, x));
-    }
+    let finite = crate::wide::gather_lanes(chunk, 0..n, buf, None);
     for i in 1..=pad {
         for l in 0..w {
             x[l] = 2.0 * l1[l] - chunk[l][n - 1 - i];
         }
-        buf.push(cascade(sos, &mut st, x));
+        buf.push(x);
     }
     debug_assert_eq!(buf.len(), len);
+    sweep_any(sos, &steady(sos, &x0, &s0), buf, false);
     // Backward pass from the steady state of the forward output's last sample.
-    let mut st = steady(sos, &buf[len - 1], &s1);
-    for t in (pad + n..len).rev() {
-        cascade(sos, &mut st, buf[t]);
-    }
-    for t in (pad..pad + n).rev() {
-        let y = cascade(sos, &mut st, buf[t]);
-        for l in 0..w {
-            outs[l][t - pad] = y[l];
-        }
-    }
+    let st = steady(sos, &buf[len - 1], &s1);
+    sweep_any(sos, &st, buf, true);
+    crate::wide::scatter_lanes(&buf[pad..pad + n], outs, 0);
+    finite
 }
 
 impl Map for Lowpass {
     fn process(&self, inputs: &[&Item], _ctx: &TrialContext<'_>) -> Result<Payload, StageError> {
         let s = inputs[0].payload.signals()?;
-        check_signals("lowpass", s)?;
+        check_shape("lowpass", s)?;
         let sos = self.design(s.sample_rate_hz)?;
         let data = match self.mode {
             FilterMode::ZeroPhase => {
+                // Finiteness is noted while the input is transposed.
                 let (pad, fit) = self.edges(sos.len(), s.sample_rate_hz, s.n_samples());
-                filtfilt_taxels(&sos, &s.data, pad, fit)
+                let (data, finite) = filtfilt_taxels_finite(&sos, &s.data, pad, fit);
+                if !finite {
+                    return Err(non_finite_error("lowpass", s));
+                }
+                data
             }
-            FilterMode::Causal => s
-                .data
-                .iter()
-                .map(|xs| self.filter(&sos, xs, s.sample_rate_hz))
-                .collect(),
+            FilterMode::Causal => {
+                check_signals("lowpass", s)?;
+                s.data
+                    .iter()
+                    .map(|xs| self.filter(&sos, xs, s.sample_rate_hz))
+                    .collect()
+            }
         };
         Ok(s.with_data(s.unit.clone(), data).into())
     }

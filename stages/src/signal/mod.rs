@@ -25,6 +25,28 @@ use palpate_core::{Signals, StageError};
 ///
 /// `what` names the stage (type name) in the message.
 pub fn check_signals(what: &str, s: &Signals) -> Result<(), StageError> {
+    check_shape(what, s)?;
+    for (taxel, xs) in s.data.iter().enumerate() {
+        if let Some(i) = first_non_finite(xs) {
+            return Err(StageError::new(format!(
+                "{what}: taxel {taxel}, sample {i} (t = {:.3} ms) is {} (not finite)",
+                i as f64 * 1000.0 / s.sample_rate_hz,
+                xs[i]
+            )));
+        }
+    }
+    Ok(())
+}
+
+/// [`check_signals`] without the scan for non-finite samples: the sample
+/// rate, one row per taxel, rows of equal length.
+///
+/// Why apart: the scan reads the whole trial (2.8 MB for a 21 s lab trial,
+/// ~0.1 ms), and a stage that reads every sample anyway (the filter's and
+/// encoders' transposes, the normalizer's range, the drive's slopes) notes
+/// non-finite values in that same pass and calls [`check_signals`] only to
+/// name the first one.
+pub fn check_shape(what: &str, s: &Signals) -> Result<(), StageError> {
     if !(s.sample_rate_hz.is_finite() && s.sample_rate_hz > 0.0) {
         return Err(StageError::new(format!(
             "{what}: sample rate must be a positive number of Hz, got {}",
@@ -46,15 +68,38 @@ pub fn check_signals(what: &str, s: &Signals) -> Result<(), StageError> {
                 xs.len()
             )));
         }
-        if let Some(i) = xs.iter().position(|x| !x.is_finite()) {
-            return Err(StageError::new(format!(
-                "{what}: taxel {taxel}, sample {i} (t = {:.3} ms) is {} (not finite)",
-                i as f64 * 1000.0 / s.sample_rate_hz,
-                xs[i]
-            )));
-        }
     }
     Ok(())
+}
+
+/// The error of [`check_signals`] for signals a pass found a non-finite
+/// sample in (an internal error if the scan finds none).
+pub fn non_finite_error(what: &str, s: &Signals) -> StageError {
+    match check_signals(what, s) {
+        Err(e) => e,
+        Ok(()) => StageError::new(format!("{what}: a non-finite value appeared (internal error)")),
+    }
+}
+
+/// True when `x` is neither NaN nor infinite, as one compare that
+/// vectorizes (`!(|x| <= MAX)` holds exactly for NaN and ±inf).
+#[inline(always)]
+pub fn finite(x: f64) -> bool {
+    x.abs() <= f64::MAX
+}
+
+/// Index of the first NaN or infinite sample. Scans 64 samples at a time
+/// without a branch per sample (`!(|x| <= MAX)` is true exactly for NaN and
+/// ±inf), so the check every signal stage makes of its input vectorizes:
+/// ~0.1 ns a sample instead of ~1.
+pub fn first_non_finite(xs: &[f64]) -> Option<usize> {
+    for (c, chunk) in xs.chunks(64).enumerate() {
+        let bad = chunk.iter().fold(false, |b, &x| b | !finite(x));
+        if bad {
+            return chunk.iter().position(|x| !x.is_finite()).map(|i| c * 64 + i);
+        }
+    }
+    None
 }
 
 #[cfg(test)]
@@ -99,6 +144,17 @@ mod tests {
         let e = check_signals("normalize", &s).unwrap_err().message;
         assert!(e.contains("taxel 3") && e.contains("sample 42"), "{e}");
         s.data[3][42] = 0.0;
+        for (i, bad) in [
+            (0, f64::INFINITY),
+            (63, f64::NEG_INFINITY),
+            (64, f64::NAN),
+            (199, f64::NAN),
+        ] {
+            let mut xs = vec![f64::MAX; 200];
+            xs[i] = bad;
+            assert_eq!(first_non_finite(&xs), Some(i));
+        }
+        assert_eq!(first_non_finite(&[f64::MAX, f64::MIN, 0.0, -0.0, 1e-320]), None);
         s.data[5].pop();
         assert!(check_signals("t", &s).unwrap_err().message.contains("taxel 5"));
     }

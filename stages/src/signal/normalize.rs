@@ -32,7 +32,7 @@
 //! threshold has to match the sensor. Taxels with no real change at all
 //! (flat, by the rule above) are left out of the median.
 
-use super::check_signals;
+use super::{check_shape, check_signals, non_finite_error};
 use palpate_core::{
     check_positive, check_range, register_stage, BuildContext, ConfigChecks, ConfigError, InputSpec, Item,
     Map, Payload, PayloadKind, Stage, StageConfig, StageError, TrialContext,
@@ -153,12 +153,41 @@ fn is_flat(lo: f64, hi: f64, min_span: f64) -> bool {
     !(d > min_span && d > 1e-12 * lo.abs().max(hi.abs()))
 }
 
-/// `(min, max)` of a taxel (`(inf, -inf)` when empty).
+/// `(min, max)` of a taxel (`(inf, -inf)` when empty). Inputs are finite
+/// (the stage checks), so the min and max are exact in any order: eight
+/// running minima and maxima by compare-and-select vectorize where
+/// `f64::min`'s NaN rule would not.
 pub fn range(xs: &[f64]) -> (f64, f64) {
-    xs.iter()
-        .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &x| {
-            (lo.min(x), hi.max(x))
-        })
+    let (lo, hi, _) = range_finite(xs);
+    (lo, hi)
+}
+
+/// [`range`], also telling whether every sample is finite (the same pass;
+/// with a NaN or an infinity the range is not meaningful).
+pub fn range_finite(xs: &[f64]) -> (f64, f64, bool) {
+    let mut lo = [f64::INFINITY; 8];
+    let mut hi = [f64::NEG_INFINITY; 8];
+    let mut ok = true;
+    let chunks = xs.chunks_exact(8);
+    let rest = chunks.remainder();
+    for c in chunks {
+        for j in 0..8 {
+            ok &= super::finite(c[j]);
+            lo[j] = if c[j] < lo[j] { c[j] } else { lo[j] };
+            hi[j] = if c[j] > hi[j] { c[j] } else { hi[j] };
+        }
+    }
+    let (mut l, mut h) = (f64::INFINITY, f64::NEG_INFINITY);
+    for j in 0..8 {
+        l = l.min(lo[j]);
+        h = h.max(hi[j]);
+    }
+    for &x in rest {
+        ok &= super::finite(x);
+        l = l.min(x);
+        h = h.max(x);
+    }
+    (l, h, ok)
 }
 
 /// Normalizes one taxel over the whole trial: min -> 0, max -> 1; flat -> 0.
@@ -218,8 +247,35 @@ pub fn live_taxels(ranges: &[(f64, f64)], min_span: f64, dead_fraction: f64) -> 
 /// Normalizes every taxel of a trial (`trial` mode): live taxels (see
 /// [`live_taxels`]) map min -> 0 and max -> 1, the others to 0.
 pub fn normalize_trial_taxels(data: &[Vec<f64>], min_span: f64, dead_fraction: f64) -> Vec<Vec<f64>> {
-    let ranges: Vec<(f64, f64)> = data.iter().map(|xs| range(xs)).collect();
-    let live = live_taxels(&ranges, min_span, dead_fraction);
+    normalize_trial_taxels_finite(data, min_span, dead_fraction).unwrap_or_else(|| {
+        // Non-finite samples (callers check): the range of the finite ones.
+        let ranges: Vec<(f64, f64)> = data.iter().map(|xs| range(xs)).collect();
+        map_taxels(data, &ranges, min_span, dead_fraction)
+    })
+}
+
+/// [`normalize_trial_taxels`], or `None` when a sample is not finite (found
+/// by the pass that takes the ranges, so the stage reads its input once
+/// before writing).
+pub fn normalize_trial_taxels_finite(
+    data: &[Vec<f64>],
+    min_span: f64,
+    dead_fraction: f64,
+) -> Option<Vec<Vec<f64>>> {
+    let mut ranges = Vec::with_capacity(data.len());
+    for xs in data {
+        let (lo, hi, finite) = range_finite(xs);
+        if !finite {
+            return None;
+        }
+        ranges.push((lo, hi));
+    }
+    Some(map_taxels(data, &ranges, min_span, dead_fraction))
+}
+
+/// Maps every taxel by its range (live taxels) or to 0.
+fn map_taxels(data: &[Vec<f64>], ranges: &[(f64, f64)], min_span: f64, dead_fraction: f64) -> Vec<Vec<f64>> {
+    let live = live_taxels(ranges, min_span, dead_fraction);
     data.iter()
         .zip(ranges.iter().zip(&live))
         .map(|(xs, (&(lo, hi), &l))| {
@@ -253,10 +309,13 @@ pub fn normalize_causal(xs: &[f64], n_baseline: usize, span: f64, min_span: f64)
 impl Map for Normalizer {
     fn process(&self, inputs: &[&Item], _ctx: &TrialContext<'_>) -> Result<Payload, StageError> {
         let s = inputs[0].payload.signals()?;
-        check_signals("normalize", s)?;
+        check_shape("normalize", s)?;
         let data = match self.mode {
-            NormalizeMode::Trial => normalize_trial_taxels(&s.data, self.min_span, self.dead_fraction),
+            // Finiteness is noted by the pass that takes the ranges.
+            NormalizeMode::Trial => normalize_trial_taxels_finite(&s.data, self.min_span, self.dead_fraction)
+                .ok_or_else(|| non_finite_error("normalize", s))?,
             NormalizeMode::Causal => {
+                check_signals("normalize", s)?;
                 let nb = (self.baseline_ms * s.sample_rate_hz / 1000.0).round() as usize;
                 if nb >= s.n_samples() && s.n_samples() > 0 {
                     return Err(StageError::new(format!(

@@ -246,6 +246,9 @@ pub(crate) fn nice_len(n: usize) -> usize {
         .unwrap_or(p)
 }
 
+/// Template cuts are rounded up to this many frames (see `Fft::conv`).
+const H_QUANTUM: usize = 256;
+
 /// Longest single-block FFT; longer trials use overlap-save blocks.
 const SINGLE_BLOCK_MAX: usize = 1 << 14;
 
@@ -348,7 +351,13 @@ impl Fft<'_> {
     fn conv(&mut self, c: usize, s: usize) -> Vec<f64> {
         let (n, k) = (self.n, self.k);
         let tpl = self.tpl;
-        let h = tpl.classes()[c].len.min(k);
+        // Templates past the trial's last alignment never reach an output
+        // `< k`, so a template longer than the trial is cut. It is cut at `k`
+        // rounded up to a multiple of `H_QUANTUM`, not at `k`: the cut
+        // templates' spectra are cached by length, and trials of nearly the
+        // same length then share them (cut at exactly `k`, every trial of a
+        // new length missed the cache and refilled it).
+        let h = tpl.classes()[c].len.min(k.next_multiple_of(H_QUANTUM));
         let plan = Plan::new(k, h);
         let Plan { len, block, .. } = plan;
         let bins = len / 2 + 1;
