@@ -131,7 +131,10 @@ fn the_largest_finite_values_pass() {
                 // (A filter of f64::MAX may overflow; the next stage then
                 // refuses its output by name. The others stay finite.)
                 if let (Ok(out), false) = (p.signals(), name == "lowpass") {
-                    assert!(out.data.iter().flatten().all(|x| x.is_finite()), "{name}: non-finite output");
+                    assert!(
+                        out.data.iter().flatten().all(|x| x.is_finite()),
+                        "{name}: non-finite output"
+                    );
                 }
             }
             Err(e) => panic!("{name}: finite extremes refused: {e}"),

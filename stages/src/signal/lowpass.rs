@@ -484,10 +484,12 @@ fn section(q: &Biquad, z1: &mut [f64; LANES], z2: &mut [f64; LANES], v: &mut [f6
 }
 
 /// Runs the cascade of `S` sections in place over `buf` (forwards, or
-/// backwards in time), from state `st`. The state lives in local arrays so
-/// that it stays in registers across time steps.
+/// backwards in time), from state `st`, leaving in `st` the state after the
+/// last sample, so that a long signal can be swept a tile at a time. The
+/// state lives in local arrays across the tile so that it stays in
+/// registers.
 #[inline(always)]
-fn sweep<const S: usize>(sos: &[Biquad], st: &State, buf: &mut [[f64; LANES]], backward: bool) {
+fn sweep<const S: usize>(sos: &[Biquad], st: &mut State, buf: &mut [[f64; LANES]], backward: bool) {
     let mut q = [Biquad {
         b: [0.0; 3],
         a: [0.0; 2],
@@ -508,12 +510,15 @@ fn sweep<const S: usize>(sos: &[Biquad], st: &State, buf: &mut [[f64; LANES]], b
     } else {
         buf.iter_mut().for_each(&mut step);
     }
+    for k in 0..S {
+        st[k] = (z1[k], z2[k]);
+    }
 }
 
 /// [`sweep`] for any number of sections (1 to 8 compiled each; more, which
-/// the stage's order cap excludes, run section by section over the buffer).
+/// the stage's order cap excludes, run section by section over the tile).
 #[inline(always)]
-fn sweep_any(sos: &[Biquad], st: &State, buf: &mut [[f64; LANES]], backward: bool) {
+fn sweep_any(sos: &[Biquad], st: &mut State, buf: &mut [[f64; LANES]], backward: bool) {
     match sos.len() {
         1 => sweep::<1>(sos, st, buf, backward),
         2 => sweep::<2>(sos, st, buf, backward),
@@ -524,11 +529,10 @@ fn sweep_any(sos: &[Biquad], st: &State, buf: &mut [[f64; LANES]], backward: boo
         7 => sweep::<7>(sos, st, buf, backward),
         8 => sweep::<8>(sos, st, buf, backward),
         _ => {
-            // Section after section over the whole buffer: the same
+            // Section after section over the whole tile: the same
             // operations on each sample in the same order.
-            for (q, (a, b)) in sos.iter().zip(st) {
-                let (mut z1, mut z2) = (*a, *b);
-                let mut step = |v: &mut [f64; LANES]| section(q, &mut z1, &mut z2, v);
+            for (q, (z1, z2)) in sos.iter().zip(st.iter_mut()) {
+                let mut step = |v: &mut [f64; LANES]| section(q, z1, z2, v);
                 if backward {
                     buf.iter_mut().rev().for_each(&mut step);
                 } else {
@@ -539,9 +543,20 @@ fn sweep_any(sos: &[Biquad], st: &State, buf: &mut [[f64; LANES]], backward: boo
     }
 }
 
+/// Samples per tile of the fused passes: 128 x 16 lanes is 16 kB, so a
+/// tile is swept while it is still in L1.
+const TILE: usize = 128;
+
 /// [`filtfilt_taxels`] for one block of up to [`LANES`] taxels of `n >= 2`
 /// samples each; missing lanes compute zeros and are dropped. Returns
 /// whether the block's samples were finite.
+///
+/// Passes over memory: the forward sweep runs over each tile as soon as it
+/// is transposed in, and the backward sweep over each tile just before it
+/// is transposed out, so the trial is read once, the sample-major buffer
+/// written once and read once, and the output written once. (The backward
+/// sweep stops at the first sample: the start extension's outputs are never
+/// used.)
 #[inline(always)]
 #[allow(clippy::needless_range_loop)] // lanes x samples: indexing both reads clearer than zipped iterators
 fn filtfilt_block(
@@ -568,7 +583,9 @@ fn filtfilt_block(
     let len = n + 2 * pad;
     buf.clear();
     buf.reserve(len);
-    // The extended input `2 l0 - x[pad..1]`, `x`, `2 l1 - x[n-2..n-1-pad]`.
+    let mut st = steady(sos, &x0, &s0);
+    // Forward over the extended input `2 l0 - x[pad..1]`, `x`,
+    // `2 l1 - x[n-2..n-1-pad]`.
     let mut x = [0.0; LANES];
     for i in (1..=pad).rev() {
         for l in 0..w {
@@ -576,19 +593,31 @@ fn filtfilt_block(
         }
         buf.push(x);
     }
-    let finite = crate::wide::gather_lanes(chunk, 0..n, buf, None);
+    sweep_any(sos, &mut st, &mut buf[..pad], false);
+    let mut finite = true;
+    for t0 in (0..n).step_by(TILE) {
+        let t1 = (t0 + TILE).min(n);
+        finite &= crate::wide::gather_lanes(chunk, t0..t1, buf, None);
+        sweep_any(sos, &mut st, &mut buf[pad + t0..pad + t1], false);
+    }
     for i in 1..=pad {
         for l in 0..w {
             x[l] = 2.0 * l1[l] - chunk[l][n - 1 - i];
         }
         buf.push(x);
     }
+    sweep_any(sos, &mut st, &mut buf[pad + n..], false);
     debug_assert_eq!(buf.len(), len);
-    sweep_any(sos, &steady(sos, &x0, &s0), buf, false);
-    // Backward pass from the steady state of the forward output's last sample.
-    let st = steady(sos, &buf[len - 1], &s1);
-    sweep_any(sos, &st, buf, true);
-    crate::wide::scatter_lanes(&buf[pad..pad + n], outs, 0);
+    // Backward from the steady state of the forward output's last sample.
+    let mut st = steady(sos, &buf[len - 1], &s1);
+    sweep_any(sos, &mut st, &mut buf[pad + n..], true);
+    let tiles = n.div_ceil(TILE);
+    for j in (0..tiles).rev() {
+        let (t0, t1) = (j * TILE, ((j + 1) * TILE).min(n));
+        let tile = &mut buf[pad + t0..pad + t1];
+        sweep_any(sos, &mut st, tile, true);
+        crate::wide::scatter_lanes(tile, outs, t0);
+    }
     finite
 }
 

@@ -246,6 +246,9 @@ pub(crate) fn nice_len(n: usize) -> usize {
         .unwrap_or(p)
 }
 
+/// Bins per span of the frequency-domain taxel sum (see `Fft::conv`).
+const CMAC_SPAN: usize = 1024;
+
 /// Template cuts are rounded up to this many frames (see `Fft::conv`).
 const H_QUANTUM: usize = 256;
 
@@ -290,10 +293,50 @@ struct Fft<'a> {
     k: usize,
     /// Taxel-major input sequences: 0 = weighted, 1 = unweighted.
     seqs: [Vec<f64>; 2],
+    /// The FFT length every single-block class uses (see [`Fft::plan`]).
+    shared_len: usize,
     inputs: HashMap<(usize, Plan), InputSpectra>,
 }
 
-impl Fft<'_> {
+impl<'a> Fft<'a> {
+    /// A trial's FFT workspace. Every class whose linear convolution fits
+    /// one block shares the longest such block's FFT length, so the input
+    /// spectra are made once (16 FFTs) rather than once per distinct length
+    /// (three or four on a lab trial): the shorter classes' products and
+    /// inverse FFTs grow a little, by less than the forward FFTs saved.
+    fn new(tpl: &'a Templates, n: usize, k: usize, seqs: [Vec<f64>; 2]) -> Self {
+        let shared_len = tpl
+            .classes()
+            .iter()
+            .map(|cls| Plan::new(k, cut(cls.len, k)))
+            .filter(|p| p.block >= k)
+            .map(|p| p.len)
+            .max()
+            .unwrap_or(0);
+        Fft {
+            tpl,
+            n,
+            k,
+            seqs,
+            shared_len,
+            inputs: HashMap::new(),
+        }
+    }
+
+    /// The block plan of a class with `h` templates: its own for
+    /// overlap-save, the shared length for a single block.
+    fn plan(&self, h: usize) -> Plan {
+        let own = Plan::new(self.k, h);
+        if own.block >= self.k {
+            Plan {
+                len: own.len.max(self.shared_len),
+                ..own
+            }
+        } else {
+            own
+        }
+    }
+
     /// Input spectra for `plan`: block `b`'s segment is
     /// `x[b·block − (h − 1) .. + len)` (zero outside the trial).
     fn input(&mut self, s: usize, plan: Plan) -> &InputSpectra {
@@ -351,14 +394,8 @@ impl Fft<'_> {
     fn conv(&mut self, c: usize, s: usize) -> Vec<f64> {
         let (n, k) = (self.n, self.k);
         let tpl = self.tpl;
-        // Templates past the trial's last alignment never reach an output
-        // `< k`, so a template longer than the trial is cut. It is cut at `k`
-        // rounded up to a multiple of `H_QUANTUM`, not at `k`: the cut
-        // templates' spectra are cached by length, and trials of nearly the
-        // same length then share them (cut at exactly `k`, every trial of a
-        // new length missed the cache and refilled it).
-        let h = tpl.classes()[c].len.min(k.next_multiple_of(H_QUANTUM));
-        let plan = Plan::new(k, h);
+        let h = cut(tpl.classes()[c].len, k);
+        let plan = self.plan(h);
         let Plan { len, block, .. } = plan;
         let bins = len / 2 + 1;
         let spec = tpl.batch_spectra(c, len, h);
@@ -382,15 +419,26 @@ impl Fft<'_> {
             }
             acc.re.iter_mut().for_each(|a| *a = 0.0);
             acc.im.iter_mut().for_each(|a| *a = 0.0);
-            for t in 0..n {
-                let o = (b * n + t) * bins;
-                let r = t * bins..(t + 1) * bins;
-                cmac(
-                    fast,
-                    &mut acc,
-                    (&x.re[o..o + bins], &x.im[o..o + bins]),
-                    (&spec.re[r.clone()], &spec.im[r]),
-                );
+            // A span of bins at a time, every taxel over it: the span's
+            // accumulator (16 kB) stays in L1 instead of being read and
+            // written from L2 once per taxel. Each bin still sums the taxels
+            // in order, so the same bits.
+            for f0 in (0..bins).step_by(CMAC_SPAN) {
+                let f1 = (f0 + CMAC_SPAN).min(bins);
+                let (are, aim) = (&mut acc.re[f0..f1], &mut acc.im[f0..f1]);
+                for t in 0..n {
+                    let o = (b * n + t) * bins;
+                    let h = t * bins;
+                    super::simd::cmac(
+                        fast,
+                        are,
+                        aim,
+                        &x.re[o + f0..o + f1],
+                        &x.im[o + f0..o + f1],
+                        &spec.re[h + f0..h + f1],
+                        &spec.im[h + f0..h + f1],
+                    );
+                }
             }
             for (f, v) in z.iter_mut().enumerate() {
                 *v = Complex::new(acc.re[f], acc.im[f]);
@@ -409,6 +457,17 @@ impl Fft<'_> {
         }
         y
     }
+}
+
+/// The templates of a class of `len` used against a trial of `k` frames.
+///
+/// Templates past the trial's last alignment never reach an output `< k`,
+/// so a template longer than the trial is cut. It is cut at `k` rounded up
+/// to a multiple of [`H_QUANTUM`], not at `k`: the cut templates' spectra
+/// are cached by length, and trials of nearly the same length then share
+/// them (cut at exactly `k`, every trial of a new length missed the cache).
+fn cut(len: usize, k: usize) -> usize {
+    len.min(k.next_multiple_of(H_QUANTUM))
 }
 
 /// `acc += x ⊙ h` over complex bins stored as separate parts.
@@ -445,13 +504,7 @@ pub(crate) fn fast_series(prep: &Prepared, tpl: &Templates, params: &WssParams) 
             }
         }
     }
-    let mut fft = Fft {
-        tpl,
-        n,
-        k,
-        seqs,
-        inputs: HashMap::new(),
-    };
+    let mut fft = Fft::new(tpl, n, k, seqs);
     let before = params.before_start;
     let mut all = Vec::with_capacity(tpl.classes().len());
     for (c, cls) in tpl.classes().iter().enumerate() {
