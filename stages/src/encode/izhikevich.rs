@@ -384,14 +384,7 @@ impl Izhikevich {
             s.u = y;
             return None;
         }
-        let frac = if !half {
-            crossing(vl, a1, vp)
-        } else if a1 >= vp {
-            0.5 * crossing(vl, a1, vp)
-        } else {
-            let a2 = fmax(a1 + h * ((0.04 * a1 + 5.0) * a1 + 140.0 - ul + il), floor);
-            0.5 + 0.5 * crossing(a1, a2, vp)
-        };
+        let frac = spike_frac(half, (vl, ul, il), a1, (h, floor, vp));
         s.v = c;
         s.u = y + d;
         Some(frac)
@@ -482,14 +475,7 @@ fn spikes<const HALF: bool>(
         // from the unclamped membrane recomputed from the step's start.
         let (vl, ul, il) = (v[l], u[l], cur[l]);
         let a1 = fmax(vl + h * ((0.04 * vl + 5.0) * vl + 140.0 - ul + il), floor);
-        let frac = if !HALF {
-            crossing(vl, a1, vp)
-        } else if a1 >= vp {
-            0.5 * crossing(vl, a1, vp)
-        } else {
-            let a2 = fmax(a1 + h * ((0.04 * a1 + 5.0) * a1 + 140.0 - ul + il), floor);
-            0.5 + 0.5 * crossing(a1, a2, vp)
-        };
+        let frac = spike_frac(HALF, (vl, ul, il), a1, (h, floor, vp));
         // Reset, then record (padding lanes never count).
         vn[l] = c;
         un[l] += d;
@@ -502,6 +488,23 @@ fn spikes<const HALF: bool>(
         }
     }
     (vn, un)
+}
+
+/// Where within a step that spiked the membrane crossed the peak, as a
+/// fraction of the step: linear within the (half-)step that crossed, from
+/// the unclamped membrane `a1` after the first (half-)step, recomputing the
+/// second half-step from the step's start `(v, u, I)`. Shared by the batch
+/// kernel and [`Izhikevich::step`], so both give the same bits.
+#[inline(always)]
+fn spike_frac(half: bool, (vl, ul, il): (f64, f64, f64), a1: f64, (h, floor, vp): (f64, f64, f64)) -> f64 {
+    if !half {
+        crossing(vl, a1, vp)
+    } else if a1 >= vp {
+        0.5 * crossing(vl, a1, vp)
+    } else {
+        let a2 = fmax(a1 + h * ((0.04 * a1 + 5.0) * a1 + 140.0 - ul + il), floor);
+        0.5 + 0.5 * crossing(a1, a2, vp)
+    }
 }
 
 /// Fraction of a step at which a line from `v0` (below `vp`) to `v1` (at or
