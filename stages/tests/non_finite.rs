@@ -5,15 +5,14 @@
 //! the tail the vector kernels leave to scalar code (lengths not a multiple
 //! of 4, taxel counts not a multiple of 4) and the middle.
 
-use palpate_core::{
-    BuildContext, Item, Payload, Signals, Stage, StageConfig, TaxelLayout, TrialContext, TrialMeta,
-};
+mod common;
+
+use palpate_core::{Payload, Signals, StageConfig, TaxelLayout};
 use palpate_stages::encode::izhikevich::IzhikevichConfig;
 use palpate_stages::encode::lif::LifConfig;
 use palpate_stages::signal::drive::{DriveConfig, DriveKind};
 use palpate_stages::signal::lowpass::{FilterMode, LowpassConfig};
 use palpate_stages::signal::normalize::NormalizeConfig;
-use std::sync::Arc;
 
 fn signals(taxels: usize, n: usize) -> Signals {
     Signals {
@@ -69,29 +68,7 @@ fn stages() -> Vec<(&'static str, Box<dyn StageConfig>)> {
 }
 
 fn run(cfg: &dyn StageConfig, s: &Signals) -> Result<Payload, String> {
-    let ctx = BuildContext {
-        stage_id: "s".into(),
-        seed: 1,
-        out_dir: ".".into(),
-        base_dir: ".".into(),
-    };
-    let Ok(Stage::Map(map)) = cfg.build(&ctx) else {
-        panic!("{cfg:?} builds a map")
-    };
-    let meta = TrialMeta {
-        trial_id: "t".into(),
-        ..TrialMeta::default()
-    };
-    let tctx = TrialContext {
-        stage_id: "s",
-        meta: &meta,
-        seed: 1,
-    };
-    let item = Item {
-        meta: Arc::new(meta.clone()),
-        payload: s.clone().into(),
-    };
-    map.process(&[&item], &tctx).map_err(|e| e.message)
+    common::process_one(cfg, s.clone().into())
 }
 
 #[test]

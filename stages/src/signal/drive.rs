@@ -66,7 +66,7 @@
 //! stages.scene.motion.speed_mm_s=S --set stages.wss.speed_mm_s=S`). Palpating
 //! slower than about 1 mm/s needs a larger `G`, measured as above.
 
-use super::{check_shape, derivative::differentiate, derivative::DiffScheme, non_finite_error};
+use super::{check_signals, derivative::differentiate, derivative::DiffScheme};
 use palpate_core::{
     check_positive, register_stage, BuildContext, ConfigError, InputSpec, Item, Map, Payload, PayloadKind,
     Stage, StageConfig, StageError, TrialContext,
@@ -194,33 +194,17 @@ pub struct Drive {
 }
 
 impl Drive {
-    /// Computes the current of every taxel of one trial.
-    ///
-    /// Same operations, in the same order, as `differentiate` (central), then
-    /// `|.|`, then the gain with its overflow guard.
-    #[cfg(test)]
+    /// Computes the current of every taxel of one trial: the slopes
+    /// (`fa_i`), then the gain in place: two simple loops, which vectorize
+    /// (a single loop fusing the guarded product into the slope did not).
+    /// Same operations, in the same order, as `differentiate` (central),
+    /// then `|.|`, then the guarded gain.
     fn currents(&self, data: &[Vec<f64>], fs: f64) -> Vec<Vec<f64>> {
-        self.currents_finite(data, fs).0
-    }
-
-    /// [`Drive::currents`], also telling whether every input sample was
-    /// finite.
-    fn currents_finite(&self, data: &[Vec<f64>], fs: f64) -> (Vec<Vec<f64>>, bool) {
-        if self.kind != DriveKind::FaI {
-            let finite = data.iter().all(|xs| super::first_non_finite(xs).is_none());
-            if self.kind == DriveKind::Direct {
-                return (data.to_vec(), finite);
-            }
-            return (self.scale(data.to_vec()), finite);
+        match self.kind {
+            DriveKind::Direct => data.to_vec(),
+            DriveKind::SaI => self.scale(data.to_vec()),
+            DriveKind::FaI => self.scale(data.iter().map(|xs| abs_slope(xs, fs)).collect()),
         }
-        // A scan, the slopes, then the gain in place: simple loops that
-        // vectorize, where one fusing the check and the guarded product into
-        // the slope pass did not (0.55 against 0.33 ms on a lab trial,
-        // `palpate run graphs/quickstart.toml --threads 1 --set
-        // stages.drive.gain=30`).
-        let finite = data.iter().all(|xs| super::first_non_finite(xs).is_none());
-        let raw = data.iter().map(|xs| abs_slope(xs, fs)).collect();
-        (self.scale(raw), finite)
     }
 
     /// Applies the gain (fixed, or set from the trial's peak) in place.
@@ -323,16 +307,12 @@ pub fn reference_peak(raw: &[Vec<f64>], of: PeakOf) -> f64 {
 impl Map for Drive {
     fn process(&self, inputs: &[&Item], _ctx: &TrialContext<'_>) -> Result<Payload, StageError> {
         let s = inputs[0].payload.signals()?;
-        check_shape("drive", s)?;
+        check_signals("drive", s)?;
         let unit = match self.kind {
             DriveKind::Direct => s.unit.clone(),
             _ => "current".to_string(),
         };
-        let (data, finite) = self.currents_finite(&s.data, s.sample_rate_hz);
-        if !finite {
-            return Err(non_finite_error("drive", s));
-        }
-        Ok(s.with_data(unit, data).into())
+        Ok(s.with_data(unit, self.currents(&s.data, s.sample_rate_hz)).into())
     }
 }
 

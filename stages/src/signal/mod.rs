@@ -43,9 +43,8 @@ pub fn check_signals(what: &str, s: &Signals) -> Result<(), StageError> {
 ///
 /// Why apart: the scan reads the whole trial (2.8 MB for a 21 s lab trial,
 /// ~0.1 ms), and a stage that reads every sample anyway (the filter's and
-/// encoders' transposes, the normalizer's range, the drive's slopes) notes
-/// non-finite values in that same pass and calls [`check_signals`] only to
-/// name the first one.
+/// encoders' transposes, the normalizer's range) notes non-finite values in
+/// that same pass and calls [`check_signals`] only to name the first one.
 pub fn check_shape(what: &str, s: &Signals) -> Result<(), StageError> {
     if !(s.sample_rate_hz.is_finite() && s.sample_rate_hz > 0.0) {
         return Err(StageError::new(format!(

@@ -247,11 +247,8 @@ pub fn live_taxels(ranges: &[(f64, f64)], min_span: f64, dead_fraction: f64) -> 
 /// Normalizes every taxel of a trial (`trial` mode): live taxels (see
 /// [`live_taxels`]) map min -> 0 and max -> 1, the others to 0.
 pub fn normalize_trial_taxels(data: &[Vec<f64>], min_span: f64, dead_fraction: f64) -> Vec<Vec<f64>> {
-    normalize_trial_taxels_finite(data, min_span, dead_fraction).unwrap_or_else(|| {
-        // Non-finite samples (callers check): the range of the finite ones.
-        let ranges: Vec<(f64, f64)> = data.iter().map(|xs| range(xs)).collect();
-        map_taxels(data, &ranges, min_span, dead_fraction)
-    })
+    let ranges: Vec<(f64, f64)> = data.iter().map(|xs| range(xs)).collect();
+    map_taxels(data, &ranges, min_span, dead_fraction)
 }
 
 /// [`normalize_trial_taxels`], or `None` when a sample is not finite (found

@@ -51,3 +51,36 @@ gain = 30.0
 "#
     )
 }
+
+/// Builds `cfg` (a map stage) and runs it on one trial holding `payload`:
+/// its output, or its error's message.
+#[allow(dead_code)] // not every test binary that includes this module uses it
+pub fn process_one(
+    cfg: &dyn palpate_core::StageConfig,
+    payload: palpate_core::Payload,
+) -> Result<palpate_core::Payload, String> {
+    use palpate_core::{BuildContext, Item, Stage, TrialContext, TrialMeta};
+    let ctx = BuildContext {
+        stage_id: "s".into(),
+        seed: 1,
+        out_dir: ".".into(),
+        base_dir: ".".into(),
+    };
+    let Ok(Stage::Map(map)) = cfg.build(&ctx) else {
+        panic!("{cfg:?} builds a map")
+    };
+    let meta = TrialMeta {
+        trial_id: "t".into(),
+        ..TrialMeta::default()
+    };
+    let tctx = TrialContext {
+        stage_id: "s",
+        meta: &meta,
+        seed: 1,
+    };
+    let item = Item {
+        meta: std::sync::Arc::new(meta.clone()),
+        payload,
+    };
+    map.process(&[&item], &tctx).map_err(|e| e.message)
+}

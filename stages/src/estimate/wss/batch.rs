@@ -246,9 +246,6 @@ pub(crate) fn nice_len(n: usize) -> usize {
         .unwrap_or(p)
 }
 
-/// Bins per span of the frequency-domain taxel sum (see `Fft::conv`).
-const CMAC_SPAN: usize = 1024;
-
 /// Template cuts are rounded up to this many frames (see `Fft::conv`).
 const H_QUANTUM: usize = 256;
 
@@ -419,26 +416,15 @@ impl<'a> Fft<'a> {
             }
             acc.re.iter_mut().for_each(|a| *a = 0.0);
             acc.im.iter_mut().for_each(|a| *a = 0.0);
-            // A span of bins at a time, every taxel over it: the span's
-            // accumulator (16 kB) stays in L1 instead of being read and
-            // written from L2 once per taxel. Each bin still sums the taxels
-            // in order, so the same bits.
-            for f0 in (0..bins).step_by(CMAC_SPAN) {
-                let f1 = (f0 + CMAC_SPAN).min(bins);
-                let (are, aim) = (&mut acc.re[f0..f1], &mut acc.im[f0..f1]);
-                for t in 0..n {
-                    let o = (b * n + t) * bins;
-                    let h = t * bins;
-                    super::simd::cmac(
-                        fast,
-                        are,
-                        aim,
-                        &x.re[o + f0..o + f1],
-                        &x.im[o + f0..o + f1],
-                        &spec.re[h + f0..h + f1],
-                        &spec.im[h + f0..h + f1],
-                    );
-                }
+            for t in 0..n {
+                let o = (b * n + t) * bins;
+                let r = t * bins..(t + 1) * bins;
+                cmac(
+                    fast,
+                    &mut acc,
+                    (&x.re[o..o + bins], &x.im[o..o + bins]),
+                    (&spec.re[r.clone()], &spec.im[r]),
+                );
             }
             for (f, v) in z.iter_mut().enumerate() {
                 *v = Complex::new(acc.re[f], acc.im[f]);
