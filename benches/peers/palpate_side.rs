@@ -64,12 +64,22 @@ struct Args {
     out: PathBuf,
     seed: u64,
     repeats: usize,
+    /// `--only a,b`: run just these workloads (`encoder` or a baseline id);
+    /// empty = all. For profiling one estimator; run.py needs a full export.
+    only: Vec<String>,
+}
+
+impl Args {
+    fn wants(&self, id: &str) -> bool {
+        self.only.is_empty() || self.only.iter().any(|o| o == id)
+    }
 }
 
 fn parse_args() -> Res<Args> {
     let mut out = None;
     let mut seed = 1;
     let mut repeats = 15;
+    let mut only = Vec::new();
     let mut it = std::env::args().skip(1);
     while let Some(a) = it.next() {
         let mut val = |name: &str| it.next().ok_or(format!("{name} needs a value"));
@@ -77,8 +87,9 @@ fn parse_args() -> Res<Args> {
             "--out" => out = Some(PathBuf::from(val("--out")?)),
             "--seed" => seed = val("--seed")?.parse().map_err(|e| format!("--seed: {e}"))?,
             "--repeats" => repeats = val("--repeats")?.parse().map_err(|e| format!("--repeats: {e}"))?,
+            "--only" => only = val("--only")?.split(',').map(str::to_string).collect(),
             "-h" | "--help" => {
-                println!("cargo run --release --example peers -- --out <dir> [--seed N] [--repeats N]");
+                println!("cargo run --release --example peers -- --out <dir> [--seed N] [--repeats N] [--only encoder,ann_s,...]");
                 std::process::exit(0);
             }
             other => return Err(format!("unknown argument `{other}` (try --help)")),
@@ -88,6 +99,7 @@ fn parse_args() -> Res<Args> {
         out: out.ok_or("--out <dir> is required")?,
         seed,
         repeats: repeats.max(1),
+        only,
     })
 }
 
@@ -425,7 +437,7 @@ fn baselines(args: &Args) -> Res<Value> {
         ("logistic", Baseline::Logistic(LogisticConfig::default())),
     ];
     let mut out = serde_json::Map::new();
-    for (id, b) in &models {
+    for (id, b) in models.iter().filter(|(id, _)| args.wants(id)) {
         let set = TrainSet::build(&train, &b.keys()).map_err(|e| e.message)?;
         // The runtime's fold 0 of a stage with this id (as in table2.toml).
         let fold_seed = derive_seed(args.seed, &[id, "fold0"]);
@@ -567,7 +579,12 @@ fn main() {
             std::process::exit(2);
         }
     };
-    let res = encoder(&args).and_then(|_| baselines(&args));
+    let res = if args.wants("encoder") {
+        encoder(&args).map(drop)
+    } else {
+        Ok(())
+    }
+    .and_then(|_| baselines(&args));
     if let Err(e) = res {
         eprintln!("peers: {e}");
         std::process::exit(1);
