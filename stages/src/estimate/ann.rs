@@ -38,11 +38,11 @@
 //! stage given one with `model_in` predicts with it instead of fitting, and
 //! streams under `palpate run --live` (see [`super::saved`]).
 
-use super::dense;
 use super::features::{
     check_scaler, want, FeatureKeys, FittedModel, FrameClassifier, Standardizer, TrainSet, TrainingLog, Vote,
     MODEL_FORMAT,
 };
+use super::{dense, vmath};
 use crate::estimate::features::{FitBaseline, TrainedEstimator};
 use crate::estimate::saved;
 use palpate_core::{
@@ -360,7 +360,7 @@ impl Mlp {
         let out = &mut out[..n * k];
         dense::gemm_nt(&a, &p[w2..b2], self.hidden, out);
         dense::add_bias_map(out, &p[b2..], |v| v);
-        out.chunks_exact_mut(k).for_each(softmax);
+        vmath::softmax_rows(out, k);
     }
 
     /// Mean cross-entropy of standardised rows `x` (row-major) with labels `y`,
@@ -508,28 +508,11 @@ impl Mlp {
 
 pub(crate) use super::dense::dot;
 
-/// `tanh x = sign(x) (1 − e) / (1 + e)` with `e = exp(−2|x|)`: one
-/// exponential, about half the time of the C library's `tanh` (which goes
-/// through `expm1`), within a few ulps of it in absolute terms (relative
-/// accuracy degrades only where `|x|` is tiny and the value is too). Used
-/// in training and prediction alike, so the network is trained with the
+/// The activations, shared with the other baselines and vectorisable
+/// ([`super::vmath`]): `tanh` with one exponential, and the softmax. Used in
+/// training and prediction alike, so the network is trained with the
 /// function it predicts with.
-#[inline]
-pub(crate) fn tanh(x: f64) -> f64 {
-    let e = (-2.0 * x.abs()).exp();
-    ((1.0 - e) / (1.0 + e)).copysign(x)
-}
-
-/// In-place softmax, shifted by the maximum so it never overflows.
-pub(crate) fn softmax(z: &mut [f64]) {
-    let m = z.iter().copied().fold(f64::NEG_INFINITY, f64::max);
-    let mut sum = 0.0;
-    for v in z.iter_mut() {
-        *v = (*v - m).exp();
-        sum += *v;
-    }
-    z.iter_mut().for_each(|v| *v /= sum);
-}
+pub(crate) use super::vmath::{softmax, tanh};
 
 #[typetag::serde(name = "ann")]
 impl FrameClassifier for Mlp {

@@ -237,10 +237,18 @@ pub fn transpose(src: &[f64], rows: usize, cols: usize, dst: &mut [f64]) {
 }
 
 /// Adds `bias[j]` to every row of `out` (`bias.len()` wide) and applies `f` to each entry.
+/// Vectorised ([`crate::wide::with_avx2`]) when `f` is (e.g. the
+/// activations of [`super::vmath`]).
 pub fn add_bias_map(out: &mut [f64], bias: &[f64], f: impl Fn(f64) -> f64) {
-    for row in out.chunks_exact_mut(bias.len().max(1)) {
-        row.iter_mut().zip(bias).for_each(|(o, b)| *o = f(*o + b));
-    }
+    // The closure inlined into the wide function, or the loop stays SSE2.
+    crate::wide::with_avx2(
+        #[inline(always)]
+        || {
+            for row in out.chunks_exact_mut(bias.len().max(1)) {
+                row.iter_mut().zip(bias).for_each(|(o, b)| *o = f(*o + b));
+            }
+        },
+    );
 }
 
 #[cfg(test)]

@@ -33,6 +33,7 @@ pub mod forest;
 pub mod lbfgs;
 pub mod saved;
 pub mod smo;
+pub mod vmath;
 pub mod wss;
 
 use palpate_core::SpikeImages;

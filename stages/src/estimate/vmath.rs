@@ -1,0 +1,293 @@
+//! The exponential the trained baselines use ([`exp`]), written so that a
+//! loop over a slice vectorises and gives the same bits as the scalar call,
+//! and the activations built on it ([`tanh`], [`sigmoid`], [`softmax`]).
+//!
+//! Why not `f64::exp`: it is a call into the C library per value (glibc's
+//! `exp`, ~15-20 ns through its wrapper on this machine's shared cores),
+//! which no loop can vectorise; the baselines evaluate hundreds of
+//! thousands of them per prediction (an RBF kernel value per support
+//! vector, a `tanh` per hidden unit, a softmax per class), and they were
+//! the largest single cost of several predictions. glibc also picks an FMA
+//! or a non-FMA variant at run time, so its bits depended on the CPU; this
+//! one does not.
+//!
+//! The method (Cody and Waite's reduction, as in fdlibm):
+//!
+//! ```text
+//! k = round(x / ln 2)                  (x·log2 e + 1.5·2^52 − 1.5·2^52)
+//! r = (x − k·ln2_hi) − k·ln2_lo        |r| ≤ ln2/2 + ε, ln2_hi·k exact
+//! e^r ≈ 1 + r + r²·(1/2! + r/3! + … + r^11/13!)   (Taylor to degree 13:
+//!                                       truncation < 5e-18 on |r| ≤ 0.35)
+//! e^x = e^r · 2^k1 · 2^k2,             k1 = round(k/2), k2 = k − k1
+//! ```
+//!
+//! Splitting the scale into two powers of two keeps both normal for every
+//! `k` in range, so results that overflow give `+inf` and results in the
+//! subnormal range round once more, gradually, to the subnormal or zero.
+//! Inputs are clamped to `[−745.2, 709.8]` first (beyond them the result is
+//! `0` or `+inf` anyway), and NaN passes through. The error is within about
+//! 1 ulp of the correctly rounded value (tested against `f64::exp` over the
+//! whole range).
+//!
+//! Bits: only IEEE additions, multiplications, comparisons and integer
+//! shifts of the bit pattern, no FMA (Rust never contracts `a * b + c`), so
+//! every path -- scalar, SSE2, AVX2, AVX-512 -- rounds identically: a frame
+//! scored alone and a batch give the same bits on every x86-64 machine.
+
+/// `1.5·2^52`: adding it rounds a double below `2^51` in magnitude to an
+/// integer (round half to even), which subtracting it recovers exactly.
+const SHIFT: f64 = 6_755_399_441_055_744.0;
+/// `ln 2`'s leading 32 bits (fdlibm's `ln2_hi`): `k·LN2_HI` is exact for `|k| < 2^21`.
+const LN2_HI: f64 = 6.931_471_803_691_238_164_90e-1;
+/// `ln 2 − LN2_HI` (fdlibm's `ln2_lo`).
+const LN2_LO: f64 = 1.908_214_929_270_587_700_02e-10;
+/// Below this `e^x` rounds to 0 (the smallest subnormal is `e^−744.44`).
+const X_MIN: f64 = -745.2;
+/// Above this `e^x` overflows (`ln f64::MAX ≈ 709.78`).
+const X_MAX: f64 = 709.8;
+
+/// `2^n` for an integer-valued `n` in `[−1022, 1023]`, from its bit pattern:
+/// `n + 1023 + 1.5·2^52` holds `n + 1023` in its low 11 bits, which the
+/// shift moves into the exponent field (the rest shifts out).
+#[inline(always)]
+fn pow2(n: f64) -> f64 {
+    f64::from_bits((n + (SHIFT + 1023.0)).to_bits() << 52)
+}
+
+/// `e^x`, within about 1 ulp, with the same bits in every vector width (see
+/// the module docs). `exp(NaN)` is NaN, `exp(−inf) = 0`, `exp(+inf) = +inf`.
+#[inline(always)]
+pub fn exp(x: f64) -> f64 {
+    // NaN fails both comparisons and passes through (returned at the end).
+    let xc = if x > X_MAX {
+        X_MAX
+    } else if x < X_MIN {
+        X_MIN
+    } else {
+        x
+    };
+    let k = (xc * std::f64::consts::LOG2_E + SHIFT) - SHIFT;
+    let r = (xc - k * LN2_HI) - k * LN2_LO;
+    // Horner from 1/13! down to 1/2!.
+    let mut q = 1.0 / 6_227_020_800.0;
+    q = q * r + 1.0 / 479_001_600.0;
+    q = q * r + 1.0 / 39_916_800.0;
+    q = q * r + 1.0 / 3_628_800.0;
+    q = q * r + 1.0 / 362_880.0;
+    q = q * r + 1.0 / 40_320.0;
+    q = q * r + 1.0 / 5_040.0;
+    q = q * r + 1.0 / 720.0;
+    q = q * r + 1.0 / 120.0;
+    q = q * r + 1.0 / 24.0;
+    q = q * r + 1.0 / 6.0;
+    q = q * r + 0.5;
+    let p = 1.0 + (r + (r * r) * q);
+    let k1 = (k * 0.5 + SHIFT) - SHIFT;
+    let y = p * pow2(k1) * pow2(k - k1);
+    if x.is_nan() {
+        x
+    } else {
+        y
+    }
+}
+
+/// `tanh x = sign(x)·(1 − e)/(1 + e)` with `e = exp(−2|x|)`: one
+/// exponential. Within a few ulps of the C library's `tanh` in absolute
+/// terms (relative accuracy degrades only where `|x|` is tiny and the value
+/// is too).
+#[inline(always)]
+pub fn tanh(x: f64) -> f64 {
+    let e = exp(-2.0 * x.abs());
+    ((1.0 - e) / (1.0 + e)).copysign(x)
+}
+
+/// The logistic function `1/(1 + e^−z)`, never overflowing: for `z < 0` it
+/// is computed as `e^z/(1 + e^z)`. Finite for every finite `z`; in `[0, 1]`.
+#[inline(always)]
+pub fn sigmoid(z: f64) -> f64 {
+    let e = exp(-z.abs());
+    if z >= 0.0 {
+        1.0 / (1.0 + e)
+    } else {
+        e / (1.0 + e)
+    }
+}
+
+/// In-place softmax, shifted by the maximum so it never overflows.
+#[inline]
+pub fn softmax(z: &mut [f64]) {
+    let m = z.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+    let mut sum = 0.0;
+    for v in z.iter_mut() {
+        *v = exp(*v - m);
+        sum += *v;
+    }
+    z.iter_mut().for_each(|v| *v /= sum);
+}
+
+/// [`softmax`] of every `k`-wide row of `z`, with the same bits, the
+/// exponentials of all rows in one vectorised pass.
+pub fn softmax_rows(z: &mut [f64], k: usize) {
+    let k = k.max(1);
+    for row in z.chunks_exact_mut(k) {
+        let m = row.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+        row.iter_mut().for_each(|v| *v -= m);
+    }
+    let whole = z.len() / k * k;
+    exp_in_place(&mut z[..whole]);
+    for row in z.chunks_exact_mut(k) {
+        let mut sum = 0.0;
+        row.iter().for_each(|v| sum += v);
+        row.iter_mut().for_each(|v| *v /= sum);
+    }
+}
+
+/// `v ← exp(v)` for every entry, vectorised ([`crate::wide::with_avx2`]).
+pub fn exp_in_place(v: &mut [f64]) {
+    crate::wide::with_avx2(
+        #[inline(always)]
+        || v.iter_mut().for_each(|x| *x = exp(*x)),
+    );
+}
+
+/// `v ← exp(−γ·v)` for every entry (RBF kernel values from squared
+/// distances), vectorised.
+pub fn rbf_in_place(v: &mut [f64], gamma: f64) {
+    crate::wide::with_avx2(
+        #[inline(always)]
+        || v.iter_mut().for_each(|x| *x = exp(-gamma * *x)),
+    );
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    /// Distance in units in the last place (both finite, same sign).
+    fn ulps(a: f64, b: f64) -> u64 {
+        (a.to_bits() as i64 - b.to_bits() as i64).unsigned_abs()
+    }
+
+    #[test]
+    fn matches_the_library_exp_within_an_ulp_over_the_range() {
+        let mut worst = 0;
+        let n = 200_000;
+        for i in 0..=n {
+            let x = -708.0 + 1417.0 * i as f64 / n as f64;
+            let (a, b) = (exp(x), x.exp());
+            if b.is_finite() && b > f64::MIN_POSITIVE {
+                worst = worst.max(ulps(a, b));
+            }
+        }
+        // Near 0, where the reduction does nothing, finely.
+        for i in -10_000..=10_000 {
+            let x = i as f64 * 1e-4;
+            worst = worst.max(ulps(exp(x), x.exp()));
+        }
+        assert!(worst <= 1, "worst error {worst} ulp");
+    }
+
+    #[test]
+    fn edges_overflow_underflow_and_specials() {
+        assert_eq!(exp(0.0), 1.0);
+        assert_eq!(exp(-0.0), 1.0);
+        assert_eq!(exp(f64::INFINITY), f64::INFINITY);
+        assert_eq!(exp(f64::NEG_INFINITY), 0.0);
+        assert!(exp(f64::NAN).is_nan());
+        assert_eq!(exp(709.79), f64::INFINITY);
+        assert_eq!(exp(1e300), f64::INFINITY);
+        assert_eq!(exp(-1e300), 0.0);
+        assert_eq!(exp(-746.0), 0.0);
+        // The largest finite result and the subnormal range are reached.
+        let big = exp(709.78);
+        assert!(big.is_finite() && big > 1.7e308, "{big}");
+        let tiny = exp(-740.0);
+        assert!(tiny > 0.0 && tiny < f64::MIN_POSITIVE);
+        let rel = (tiny - (-740.0f64).exp()).abs() / (-740.0f64).exp();
+        assert!(rel < 1e-10, "subnormal result off by {rel}");
+        // exp(1) is e within an ulp.
+        assert!(ulps(exp(1.0), std::f64::consts::E) <= 1);
+    }
+
+    #[test]
+    fn activations_are_finite_and_bounded_everywhere() {
+        for z in [
+            -1e308,
+            -800.0,
+            -40.0,
+            -1e-300,
+            0.0,
+            1e-300,
+            40.0,
+            800.0,
+            1e308,
+            f64::MAX,
+        ] {
+            let s = sigmoid(z);
+            assert!((0.0..=1.0).contains(&s), "sigmoid({z}) = {s}");
+            let t = tanh(z);
+            assert!((-1.0..=1.0).contains(&t), "tanh({z}) = {t}");
+            assert!((t - z.tanh()).abs() < 1e-15, "tanh({z})");
+        }
+        let mut z = [1e308, -1e308, 0.0, 700.0];
+        softmax(&mut z);
+        assert!(z.iter().all(|p| p.is_finite()));
+        assert!((z.iter().sum::<f64>() - 1.0).abs() < 1e-15);
+        // Rows at once: the bits of row by row (a ragged tail is left alone).
+        let rows: Vec<f64> = (0..3 * 17 + 2)
+            .map(|i| ((i * 37 % 101) as f64 - 50.0) * 0.7)
+            .collect();
+        let mut batch = rows.clone();
+        softmax_rows(&mut batch, 17);
+        for (b, r) in batch.chunks_exact(17).zip(rows.chunks_exact(17)) {
+            let mut one = r.to_vec();
+            softmax(&mut one);
+            assert_eq!(
+                b.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+                one.iter().map(|v| v.to_bits()).collect::<Vec<_>>()
+            );
+        }
+        assert_eq!(batch[51..], rows[51..]);
+    }
+
+    proptest! {
+        /// The vectorised slice call gives the scalar call's bits for any
+        /// input, NaN and infinities included, at every position (the
+        /// scalar tail after the vector body as well).
+        #[test]
+        fn slice_and_scalar_give_the_same_bits(
+            xs in prop::collection::vec(
+                prop_oneof![
+                    -800.0f64..800.0,
+                    -1.0f64..1.0,
+                    Just(f64::NAN),
+                    Just(f64::INFINITY),
+                    Just(f64::NEG_INFINITY),
+                    any::<f64>(),
+                ],
+                0..67,
+            ),
+            gamma in 0.0f64..3.0,
+        ) {
+            let mut v = xs.clone();
+            exp_in_place(&mut v);
+            let mut w = xs.clone();
+            rbf_in_place(&mut w, gamma);
+            let base = crate::wide::baseline_only(|| {
+                let mut b = xs.clone();
+                exp_in_place(&mut b);
+                b
+            });
+            for (i, &x) in xs.iter().enumerate() {
+                let e = exp(x);
+                prop_assert_eq!(v[i].to_bits(), e.to_bits(), "exp({}) at {}", x, i);
+                prop_assert_eq!(base[i].to_bits(), e.to_bits());
+                prop_assert_eq!(w[i].to_bits(), exp(-gamma * x).to_bits());
+                if x.is_finite() && e.is_finite() && e > f64::MIN_POSITIVE {
+                    prop_assert!(ulps(e, x.exp()) <= 1, "exp({}) = {} vs {}", x, e, x.exp());
+                }
+            }
+        }
+    }
+}
