@@ -71,13 +71,12 @@
 //! are gathered (and their support vectors pooled) in pair order, so 1 or N
 //! threads give the same bits.
 
-use super::ann::softmax;
 use super::dense::sq_dist;
 use super::features::{
     check_scaler, want, Classifier, FeatureKeys, FittedModel, FrameClassifier, Standardizer, TrainSet,
     TrainingLog, Vote, MODEL_FORMAT,
 };
-use super::{dense, forest, lbfgs, smo};
+use super::{dense, forest, lbfgs, smo, vmath};
 use crate::estimate::features::{FitBaseline, TrainedEstimator};
 use crate::estimate::saved;
 use palpate_core::{
@@ -1098,8 +1097,8 @@ impl Softmax {
         dense::gemm_nt(&z[..n * self.dim], &self.w, self.dim, out);
         for o in out.chunks_exact_mut(k) {
             o.iter_mut().zip(&self.b).for_each(|(o, b)| *o += b);
-            softmax(o);
         }
+        vmath::softmax_rows(out, k);
     }
 }
 
@@ -1132,21 +1131,25 @@ fn fit_softmax(
     }
     let mut z = vec![0.0; n * k];
     let mut rt = vec![0.0; k * n];
+    let mut mz = vec![(0.0, 0.0); n];
     let nw = k * dim;
     let fg = |theta: &[f64], g: &mut [f64]| -> f64 {
         let (w, b) = theta.split_at(nw);
         dense::gemm_nt(x, w, dim, &mut z);
-        let mut loss = 0.0;
-        for (i, zi) in z.chunks_exact_mut(k).enumerate() {
+        // Shifted logits z_c - m (m the row's largest, z_y - m kept), then
+        // one exponential per logit, all rows in one vectorised pass:
+        // e_c = exp(z_c - m), p_c = e_c / Σ e.
+        for ((zi, (m, zy)), &yi) in z.chunks_exact_mut(k).zip(mz.iter_mut()).zip(y) {
             zi.iter_mut().zip(b).for_each(|(z, b)| *z += b);
-            let m = zi.iter().copied().fold(f64::NEG_INFINITY, f64::max);
-            let zy = zi[y[i]];
-            // One exponential per logit: e_c = exp(z_c - m), p_c = e_c / Σ e.
+            *m = zi.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+            *zy = zi[yi];
+            zi.iter_mut().for_each(|v| *v -= *m);
+        }
+        vmath::exp_in_place(&mut z);
+        let mut loss = 0.0;
+        for (i, (zi, &(m, zy))) in z.chunks_exact(k).zip(mz.iter()).enumerate() {
             let mut sum = 0.0;
-            for v in zi.iter_mut() {
-                *v = (*v - m).exp();
-                sum += *v;
-            }
+            zi.iter().for_each(|v| sum += v);
             loss += m + sum.ln() - zy;
             let inv_sum = 1.0 / sum;
             for (c, &e) in zi.iter().enumerate() {
@@ -1489,7 +1492,7 @@ mod tests {
             let mut p: Vec<f64> = (0..k)
                 .map(|c| dense::dot(&w[c * dim..(c + 1) * dim], r) + b[c])
                 .collect();
-            softmax(&mut p);
+            vmath::softmax(&mut p);
             for c in 0..k {
                 let e = p[c] - f64::from(u8::from(c == y[i]));
                 gb[c] += e;

@@ -38,9 +38,9 @@
 /// integer (round half to even), which subtracting it recovers exactly.
 const SHIFT: f64 = 6_755_399_441_055_744.0;
 /// `ln 2`'s leading 32 bits (fdlibm's `ln2_hi`): `k·LN2_HI` is exact for `|k| < 2^21`.
-const LN2_HI: f64 = 6.931_471_803_691_238_164_90e-1;
+const LN2_HI: f64 = f64::from_bits(0x3fe6_2e42_fee0_0000);
 /// `ln 2 − LN2_HI` (fdlibm's `ln2_lo`).
-const LN2_LO: f64 = 1.908_214_929_270_587_700_02e-10;
+const LN2_LO: f64 = f64::from_bits(0x3dea_39ef_3579_3c76);
 /// Below this `e^x` rounds to 0 (the smallest subnormal is `e^−744.44`).
 const X_MIN: f64 = -745.2;
 /// Above this `e^x` overflows (`ln f64::MAX ≈ 709.78`).
@@ -58,14 +58,8 @@ fn pow2(n: f64) -> f64 {
 /// the module docs). `exp(NaN)` is NaN, `exp(−inf) = 0`, `exp(+inf) = +inf`.
 #[inline(always)]
 pub fn exp(x: f64) -> f64 {
-    // NaN fails both comparisons and passes through (returned at the end).
-    let xc = if x > X_MAX {
-        X_MAX
-    } else if x < X_MIN {
-        X_MIN
-    } else {
-        x
-    };
+    // NaN passes through the clamp (and is returned at the end).
+    let xc = x.clamp(X_MIN, X_MAX);
     let k = (xc * std::f64::consts::LOG2_E + SHIFT) - SHIFT;
     let r = (xc - k * LN2_HI) - k * LN2_LO;
     // Horner from 1/13! down to 1/2!.
