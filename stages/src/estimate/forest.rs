@@ -34,9 +34,11 @@
 //! bit patterns in one pass, then the few distinct values are sorted), and
 //! stores the ranks feature-major: the column a node reads is contiguous and
 //! small. At a node, the drawn feature's ranks are gathered for the node's
-//! rows and ordered by a counting sort over the node's rank range (or, when
-//! the node has few rows for that range, a comparison sort of
-//! `rank << 32 | row` keys), and the sweep runs over that order.
+//! rows and ordered by a counting sort over the feature's ranks (or, when the
+//! feature has more than four distinct values per row of the node, a
+//! comparison sort of `rank << 32 | row` keys), and the sweep runs over that
+//! order: `O(m · (n + R))` per node for `R` distinct values, where the value
+//! sort was `O(m · n log n)`.
 //!
 //! This gives the same trees, bit for bit, as sorting the values (the
 //! reference kept in the tests): every quantity the sweep compares depends
@@ -52,11 +54,19 @@
 //! are ranked too and grow a tree without panicking, but the first version's
 //! order among equal NaNs was arbitrary, so there is nothing to match.)
 //!
+//! The counting sort keeps four interleaved counts per rank (rows of one
+//! rank, e.g. the many zero spike counts, then increment four counters in
+//! turn rather than one, which would serialise on the store). The sweep
+//! keeps `S_L` and the cross term `X = Σ_c N_c L_c`, and takes
+//! `S_R = Σ_c N_c² − 2X + S_L` at the boundaries: the same integer as
+//! updating `S_R` row by row.
+//!
 //! Nodes are stored flat in depth-first order. Prediction walks a block of
 //! rows through one tree at a time ([`Tree::predict_rows`]): each step moves
-//! every row of the block one level down, branch-free
-//! (`next = left + (x[f] > threshold)`, a leaf keeps its row in place), so
-//! the load latencies of the block's rows overlap instead of adding up.
+//! every row of the block that is not yet on a leaf one level down,
+//! branch-free (`next = left + (x[f] > threshold)`), and the rows still
+//! walking are kept in a list compacted without a branch, so the load
+//! latencies of the block's rows overlap instead of adding up.
 //!
 //! Determinism: tree `t` draws only from its own generator, seeded from the
 //! forest's seed and `t`, so trees can grow in parallel and the forest has
@@ -123,18 +133,22 @@ impl Tree {
             let rows = out.len().min(have.saturating_sub(first));
             let zb = &z[first * dim..(first + rows) * dim];
             let mut at = [0u32; BLOCK];
-            let mut live = [0u8; BLOCK];
-            live.iter_mut().enumerate().for_each(|(r, l)| *l = r as u8);
+            // The rows still walking, read from one list and written to the
+            // other (so the compacting stores never alias the next loads).
+            let mut live = [[0u8; BLOCK]; 2];
+            live[0].iter_mut().enumerate().for_each(|(r, l)| *l = r as u8);
             let mut n_live = rows;
             // A walk from the root of a valid tree (children after their
             // parent) reaches a leaf in fewer steps than there are nodes.
-            for _ in 0..nodes.len() {
+            for step in 0..nodes.len() {
                 if n_live == 0 {
                     break;
                 }
+                let [a, b] = &mut live;
+                let (from, to) = if step % 2 == 0 { (a, b) } else { (b, a) };
                 let mut kept = 0;
-                for q in 0..n_live {
-                    let r = usize::from(live[q]);
+                for &r in &from[..n_live] {
+                    let r = usize::from(r);
                     let Some(n) = nodes.get(at[r] as usize) else {
                         continue; // off the tree: stops
                     };
@@ -143,7 +157,7 @@ impl Tree {
                     let v = zb[r * dim + f.min(dim - 1)];
                     let next = n.left_or_class.wrapping_add(u32::from(v > n.threshold));
                     at[r] = if split { next } else { at[r] };
-                    live[kept] = r as u8;
+                    to[kept] = r as u8;
                     kept += usize::from(split);
                 }
                 n_live = kept;
