@@ -127,7 +127,7 @@ impl Tree {
     /// `check_shape` rejects on load) get class `usize::MAX`.
     pub fn predict_rows(&self, z: &[f64], dim: usize, out: &mut [usize]) {
         let nodes = &self.nodes[..];
-        let have = if dim == 0 { 0 } else { z.len() / dim };
+        let have = z.len().checked_div(dim).unwrap_or(0);
         for (b, out) in out.chunks_mut(BLOCK).enumerate() {
             let first = b * BLOCK;
             let rows = out.len().min(have.saturating_sub(first));
@@ -230,11 +230,7 @@ impl Prepared {
     /// Prepares the rows of `x` (row-major, `dim` wide; the first
     /// `y.len()` rows, fewer if `x` is shorter) with classes `y` in `0..k`.
     pub fn new(x: &[f64], y: &[usize], dim: usize, k: usize) -> Prepared {
-        let n = if dim == 0 {
-            y.len()
-        } else {
-            y.len().min(x.len() / dim)
-        };
+        let n = x.len().checked_div(dim).map_or(y.len(), |rows| y.len().min(rows));
         let y = &y[..n];
         let k = y.iter().map(|&c| c.saturating_add(1)).max().unwrap_or(0).max(k);
         // Order keys, feature-major, read a block of rows at a time.
