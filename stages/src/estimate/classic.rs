@@ -602,26 +602,50 @@ impl Forest {
     }
 
     /// [`Self::frame_scores`] of every row of `x` into the rows of `out`.
+    ///
+    /// Rows go a block at a time: the block is standardised into a small
+    /// buffer (no copy of the whole batch), then walked down one tree after
+    /// the other ([`forest::Tree::predict_rows`], the rows of the block in
+    /// step), tallying the votes per row; the same votes, hence the same
+    /// scores, as one row through every tree.
     pub fn scores_batch(&self, x: &[f64], out: &mut [f64]) {
+        /// Rows standardised and voted together.
+        const ROWS: usize = 64;
         let k = self.classes.max(1);
-        let z = self.scaler.apply_rows(x);
-        let mut votes = vec![0u32; k];
-        for (zi, o) in z.chunks_exact(self.dim.max(1)).zip(out.chunks_exact_mut(k)) {
+        let dim = self.dim.max(1);
+        let rows = (x.len() / dim).min(out.len() / k);
+        let mut z = vec![0.0; ROWS * dim];
+        let mut votes = vec![0u32; ROWS * k];
+        let mut class = [0usize; ROWS];
+        for start in (0..rows).step_by(ROWS) {
+            let b = ROWS.min(rows - start);
+            let z = &mut z[..b * dim];
+            z.copy_from_slice(&x[start * dim..(start + b) * dim]);
+            z.chunks_exact_mut(dim).for_each(|r| self.scaler.apply(r));
+            let votes = &mut votes[..b * k];
             votes.iter_mut().for_each(|v| *v = 0);
             for t in &self.trees {
-                if let Some(v) = votes.get_mut(t.predict(zi)) {
-                    *v += 1;
+                t.predict_rows(z, dim, &mut class[..b]);
+                for (v, &c) in votes.chunks_exact_mut(k).zip(&class) {
+                    if let Some(v) = v.get_mut(c) {
+                        *v += 1;
+                    }
                 }
             }
-            let mut best = 0;
-            for (c, &v) in votes.iter().enumerate() {
-                if v > votes[best] {
-                    best = c;
+            for (v, o) in votes
+                .chunks_exact(k)
+                .zip(out[start * k..(start + b) * k].chunks_exact_mut(k))
+            {
+                let mut best = 0;
+                for (c, &n) in v.iter().enumerate() {
+                    if n > v[best] {
+                        best = c;
+                    }
                 }
-            }
-            o.iter_mut().for_each(|o| *o = 0.0);
-            if !self.trees.is_empty() {
-                o[best] = 1.0;
+                o.iter_mut().for_each(|o| *o = 0.0);
+                if !self.trees.is_empty() {
+                    o[best] = 1.0;
+                }
             }
         }
     }
@@ -678,10 +702,12 @@ impl RandomForestConfig {
                 min_samples_leaf: self.min_samples_leaf,
             };
             let k = set.classes.len();
+            // The rows as per-feature ranks, once for all trees.
+            let rows = forest::Prepared::new(&d.flat, &set.y, set.dim, k);
             // Each tree from its own generator: the same forest on any thread count.
             let trees = (0..usize::from(self.n_trees))
                 .into_par_iter()
-                .map(|t| forest::grow(&d.flat, &set.y, set.dim, k, &g, &mut forest::tree_rng(seed, t)))
+                .map(|t| forest::grow_prepared(&rows, &g, &mut forest::tree_rng(seed, t)))
                 .collect();
             Ok(Box::new(Forest {
                 classes: k,
