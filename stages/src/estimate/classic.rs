@@ -19,14 +19,19 @@
 //!   our own SMO solver, [`super::smo`] (libsvm's algorithm: second-order
 //!   working-set selection, a kernel cache, shrinking). The fold's whole Gram
 //!   matrix is computed once when it fits in `cache_mb` (every vector serves in
-//!   K - 1 machines), by blocks of rows through the tiled kernel
-//!   ([`super::dense::sq_dists`]), in parallel. A vector's class scores are its votes
+//!   K - 1 machines), [`rbf_gram`]: only its upper triangle, by blocks of rows
+//!   through the tiled kernel ([`super::dense::sq_dists`]) in parallel, the
+//!   exponentials vectorised ([`super::vmath::rbf_in_place`], ~1 ulp from
+//!   glibc's `exp`, which cost a call per entry), the lower triangle mirrored
+//!   (the distances are symmetric bit for bit); each machine gathers its Q rows
+//!   from it ([`super::smo::solve_rows`]). A vector's class scores are its votes
 //!   plus sklearn's tie-breaker, `votes_c + conf_c / (3 (max|conf| + 1))` with
 //!   `conf_c` the summed decision values in favour of `c`, so confidences only
 //!   order classes with equal votes; scores are divided by `K - 1`. The
 //!   machines' support vectors are pooled in [`OvoSvm`] so each one's kernel
 //!   value is computed once per frame (libsvm's scheme), for blocks of frames
-//!   by the tiled kernel. `γ = 0` (auto) is
+//!   by the tiled kernel and the vectorised exponential (the bits of
+//!   [`super::smo::rbf`], in fit and predict alike). `γ = 0` (auto) is
 //!   `1 / dim` (sklearn's "scale" for standardised features).
 //!   Why not smartcore's `SVC` (used before): it is LaSVM, an *approximate*
 //!   online solver run for a fixed number of passes, which recomputes and
@@ -253,9 +258,10 @@ impl OvoSvm {
         // same bits with or without AVX2 (crate::wide).
         crate::wide::with_avx2(|| {
             for (k, s) in out.iter_mut().zip(self.sv.chunks_exact(self.dim.max(1))) {
-                *k = (-gamma * sq_dist(s, x)).exp();
+                *k = sq_dist(s, x);
             }
         });
+        vmath::rbf_in_place(out, gamma);
     }
 
     /// Decision value of machine `m` given the kernel row of `x`.
@@ -293,7 +299,7 @@ impl OvoSvm {
             let qb = QB.min(n - q0);
             let kb = &mut kernels[..qb * n_sv];
             dense::sq_dists(&z[q0 * dim..(q0 + qb) * dim], &self.sv, dim, kb);
-            kb.iter_mut().for_each(|d| *d = (-gamma * *d).exp());
+            vmath::rbf_in_place(kb, gamma);
             for q in 0..qb {
                 let kernel = &kb[q * n_sv..(q + 1) * n_sv];
                 let o = &mut out[(q0 + q) * k..(q0 + q + 1) * k];
@@ -323,6 +329,50 @@ impl OvoSvm {
             o[c] = (s * norm).max(0.0);
         }
     }
+}
+
+/// The RBF Gram matrix `G_st = exp(-γ‖x_s − x_t‖²)` of the `n = x.len() / dim`
+/// rows of `x` (row-major), `n × n` row-major, with the bits of [`smo::rbf`]
+/// entry by entry. Only the upper triangle is computed, by blocks of rows
+/// against the columns from the block's first row on (the tiled kernel
+/// [`dense::sq_dists`], then the vectorised exponential
+/// [`vmath::rbf_in_place`]), blocks in parallel; the lower triangle is its
+/// mirror, copied by 32 × 32 tiles. `sq_dist(a, b) = sq_dist(b, a)` bit for
+/// bit (`(a − b)² = (b − a)²` exactly), so the result is the full matrix's
+/// (test `half_gram_equals_the_full_one_bit_for_bit`), at half the
+/// distances and exponentials.
+pub fn rbf_gram(x: &[f64], dim: usize, gamma: f64) -> Vec<f64> {
+    const RB: usize = 32;
+    let dim = dim.max(1);
+    let n = x.len() / dim;
+    let mut g = vec![0.0f64; n * n];
+    if n == 0 {
+        return g;
+    }
+    g.par_chunks_mut(RB * n).enumerate().for_each(|(b, block)| {
+        let r0 = b * RB;
+        let rb = block.len() / n;
+        let w = n - r0;
+        let mut upper = vec![0.0f64; rb * w];
+        dense::sq_dists(&x[r0 * dim..(r0 + rb) * dim], &x[r0 * dim..], dim, &mut upper);
+        vmath::rbf_in_place(&mut upper, gamma);
+        for (r, src) in upper.chunks_exact(w).enumerate() {
+            // Row r0 + r from column r0 + r on (the part of this block that
+            // lies on or above the diagonal).
+            block[r * n + r0 + r..(r + 1) * n].copy_from_slice(&src[r..]);
+        }
+    });
+    // Lower triangle: G_ts = G_st for s < t, tile by tile.
+    for i0 in (0..n).step_by(RB) {
+        for j0 in (0..=i0).step_by(RB) {
+            for i in i0..(i0 + RB).min(n) {
+                for j in j0..(j0 + RB).min(i) {
+                    g[i * n + j] = g[j * n + i];
+                }
+            }
+        }
+    }
+    g
 }
 
 impl SvmConfig {
@@ -399,23 +449,7 @@ impl SvmConfig {
             .checked_mul(n)
             .and_then(|nn| nn.checked_mul(std::mem::size_of::<f64>()))
             .filter(|&bytes| bytes <= budget)
-            .map(|_| {
-                // Blocks of rows by the tiled kernel (the bits of `smo::rbf`
-                // entry by entry; (a - b)² = (b - a)² exactly, so the matrix
-                // is symmetric bit for bit), blocks in parallel.
-                const RB: usize = 32;
-                let flat: Vec<f64> = rows.concat();
-                let mut g = vec![0.0f64; n * n];
-                g.par_chunks_mut((RB * n).max(1))
-                    .enumerate()
-                    .for_each(|(b, block)| {
-                        let r0 = b * RB;
-                        let rb = block.len() / n.max(1);
-                        dense::sq_dists(&flat[r0 * dim..(r0 + rb) * dim], &flat, dim, block);
-                        block.iter_mut().for_each(|v| *v = (-gamma * *v).exp());
-                    });
-                g
-            });
+            .map(|_| rbf_gram(&rows.concat(), dim, gamma));
         let pairs: Vec<(usize, usize)> = (0..k).flat_map(|a| (a + 1..k).map(move |b| (a, b))).collect();
         let params = smo::SmoParams {
             c: self.c,
@@ -434,7 +468,14 @@ impl SvmConfig {
                 // only the sign convention differs).
                 let lab: Vec<f64> = idx.iter().map(|&i| if y[i] == b { 1.0 } else { -1.0 }).collect();
                 let sol = match &gram {
-                    Some(g) => smo::solve(&lab, &|s, t| g[idx[s] * n + idx[t]], &params),
+                    Some(g) => {
+                        let diag: Vec<f64> = idx.iter().map(|&i| g[i * n + i]).collect();
+                        let fill = |s: usize, out: &mut [f64]| {
+                            let row = &g[idx[s] * n..(idx[s] + 1) * n];
+                            out.iter_mut().zip(&idx).for_each(|(o, &t)| *o = row[t]);
+                        };
+                        smo::solve_rows(&lab, &diag, &fill, &params)
+                    }
                     None => smo::solve(
                         &lab,
                         &|s, t| smo::rbf(&rows[idx[s]], &rows[idx[t]], gamma),
@@ -1577,6 +1618,77 @@ mod tests {
             })
             .count();
         assert!(acc > n * 9 / 10, "training accuracy {acc}/{n}");
+    }
+
+    #[test]
+    fn half_gram_equals_the_full_one_bit_for_bit() {
+        // Sizes around the 32-row blocks and tiles, a dimension that leaves a tail.
+        for (n, dim) in [(1, 3), (31, 5), (32, 4), (77, 9), (130, 6)] {
+            let x = random_rows(n, dim, n as u64);
+            let gamma = 0.37;
+            let g = rbf_gram(&x, dim, gamma);
+            assert_eq!(g.len(), n * n);
+            for s in 0..n {
+                for t in 0..n {
+                    let want = smo::rbf(&x[s * dim..(s + 1) * dim], &x[t * dim..(t + 1) * dim], gamma);
+                    assert_eq!(g[s * n + t].to_bits(), want.to_bits(), "n {n}, entry ({s}, {t})");
+                }
+            }
+        }
+        assert!(rbf_gram(&[], 4, 1.0).is_empty());
+    }
+
+    #[test]
+    fn svm_gram_and_row_cache_paths_and_thread_counts_give_the_same_model() {
+        // 3 classes, 420 vectors: the Gram matrix (1.4 MB) is over a 1 MiB
+        // budget, so `cache_mb = 1` trains from per-machine row caches.
+        let (n, dim) = (420, 6);
+        let x = random_rows(n, dim, 8);
+        let y: Vec<usize> = (0..n)
+            .map(|i| usize::from(x[i * dim] > 0.2) + usize::from(x[i * dim + 1] + 0.5 * x[i * dim + 2] > 0.3))
+            .collect();
+        let rows: Vec<Vec<f64>> = x.chunks_exact(dim).map(<[f64]>::to_vec).collect();
+        // The identity scaling: the fitted rows are the inputs as given.
+        let scaler = Standardizer {
+            mean: vec![0.0; dim],
+            inv_sd: vec![1.0; dim],
+        };
+        let fit = |cfg: &SvmConfig, threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .expect("pool");
+            let m = pool.install(|| cfg.fit_design(3, dim, &rows, &y, scaler.clone()));
+            m.expect("fit")
+                .as_any()
+                .downcast_ref::<OvoSvm>()
+                .expect("an SVM")
+                .clone()
+        };
+        let gram = fit(&SvmConfig::default(), 1);
+        let small = SvmConfig {
+            cache_mb: 1,
+            ..SvmConfig::default()
+        };
+        assert_eq!(gram, fit(&small, 1));
+        assert_eq!(gram, fit(&SvmConfig::default(), 2));
+        assert_eq!(gram.machines.len(), 3);
+        // The batch and one-frame kernels agree with the reference kernel.
+        let mut k = Vec::new();
+        gram.kernel_row(&rows[5], &mut k);
+        for (s, v) in gram.sv.chunks_exact(dim).zip(&k) {
+            assert_eq!(v.to_bits(), smo::rbf(s, &rows[5], gram.gamma).to_bits());
+        }
+        let mut batch = vec![0.0; n * 3];
+        gram.scores_batch(&x, &mut batch);
+        let mut right = 0;
+        for i in 0..n {
+            let mut o = [0.0; 3];
+            gram.frame_scores(&x[i * dim..(i + 1) * dim], &mut o);
+            assert_eq!(o, batch[i * 3..(i + 1) * 3]);
+            right += usize::from((0..3).all(|c| o[c] <= o[y[i]]));
+        }
+        assert!(right > n * 9 / 10, "training accuracy {right}/{n}");
     }
 
     /// Mean |error| of each SVM stage over Table 2's front end (lab scene,

@@ -29,7 +29,10 @@
 //! feasible interval when none is free), as libsvm's `calculate_rho`.
 //!
 //! * **Kernel cache.** Q rows are computed when first needed and kept in a
-//!   least-recently-used cache bounded in bytes (`cache_bytes`); SMO touches the
+//!   least-recently-used cache bounded in bytes (`cache_bytes`), stored by row
+//!   index (a hit is an index, no hashing). The kernel comes by entries
+//!   ([`solve`], `K(s, t)`) or by whole rows ([`solve_rows`], e.g. gathered
+//!   from a precomputed Gram matrix, one call per row); SMO touches the
 //!   rows of the few vectors that end up as support vectors again and again, so
 //!   most kernel values are computed once. When the whole matrix fits (the
 //!   `svm` stage's problems do: a pair of classes has ~10² vectors) nothing is
@@ -54,8 +57,6 @@
 //! scikit-learn's `SVC` on the same vectors, gave the same cliff. Its cause
 //! was which vectors a capped trial contributed (see the training caps in
 //! `features`).
-
-use std::collections::HashMap;
 
 /// Settings of [`solve`].
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -99,30 +100,31 @@ pub struct Solution {
     pub rows_computed: usize,
 }
 
-/// Least-recently-used cache of Q rows (full length `n`).
+/// Least-recently-used cache of Q rows (full length `n`), stored by row
+/// index (no hashing: a lookup is an index, a miss with a full cache scans
+/// the `n` stamps for the oldest row and reuses its buffer).
 struct RowCache<'a> {
     n: usize,
     y: &'a [f64],
-    kernel: &'a (dyn Fn(usize, usize) -> f64 + Sync),
-    rows: HashMap<usize, (Vec<f64>, u64)>,
+    fill: &'a (dyn Fn(usize, &mut [f64]) + Sync),
+    rows: Vec<Option<Vec<f64>>>,
+    stamp: Vec<u64>,
+    len: usize,
     capacity: usize,
     clock: u64,
     computed: usize,
 }
 
 impl<'a> RowCache<'a> {
-    fn new(
-        n: usize,
-        y: &'a [f64],
-        kernel: &'a (dyn Fn(usize, usize) -> f64 + Sync),
-        cache_bytes: usize,
-    ) -> Self {
+    fn new(n: usize, y: &'a [f64], fill: &'a (dyn Fn(usize, &mut [f64]) + Sync), cache_bytes: usize) -> Self {
         let per_row = n.max(1).saturating_mul(std::mem::size_of::<f64>());
         RowCache {
             n,
             y,
-            kernel,
-            rows: HashMap::new(),
+            fill,
+            rows: vec![None; n],
+            stamp: vec![0; n],
+            len: 0,
             capacity: (cache_bytes / per_row).max(2),
             clock: 0,
             computed: 0,
@@ -132,30 +134,31 @@ impl<'a> RowCache<'a> {
     /// Q row `i` (`Q_it = y_i y_t K(x_i, x_t)`).
     fn row(&mut self, i: usize) -> &[f64] {
         self.clock += 1;
-        let clock = self.clock;
-        if !self.rows.contains_key(&i) {
-            if self.rows.len() >= self.capacity {
-                // Evict the least recently used row (O(capacity), and only on a
-                // miss with a full cache).
-                if let Some(&old) = self.rows.iter().min_by_key(|(_, (_, t))| *t).map(|(k, _)| k) {
-                    self.rows.remove(&old);
+        self.stamp[i] = self.clock;
+        if self.rows[i].is_none() {
+            let mut buf = None;
+            if self.len >= self.capacity {
+                // Evict the least recently used row (O(n), and only on a miss
+                // with a full cache); its buffer is reused.
+                let old = (0..self.n)
+                    .filter(|&t| t != i && self.rows[t].is_some())
+                    .min_by_key(|&t| self.stamp[t]);
+                if let Some(old) = old {
+                    buf = self.rows[old].take();
+                    self.len -= 1;
                 }
             }
+            let mut row = buf.unwrap_or_else(|| vec![0.0; self.n]);
+            (self.fill)(i, &mut row);
             let yi = self.y[i];
-            let row = (0..self.n)
-                .map(|t| yi * self.y[t] * (self.kernel)(i, t))
-                .collect();
+            row.iter_mut().zip(self.y).for_each(|(q, &yt)| *q *= yi * yt);
             self.computed += 1;
-            self.rows.insert(i, (row, clock));
+            self.len += 1;
+            self.rows[i] = Some(row);
         }
-        // The entry exists: inserted above or already there.
-        let e = self.rows.get_mut(&i).map(|e| {
-            e.1 = clock;
-            &e.0
-        });
-        match e {
+        match &self.rows[i] {
             Some(r) => r,
-            None => unreachable!("row {i} was just inserted"),
+            None => unreachable!("row {i} was just computed"),
         }
     }
 }
@@ -167,13 +170,29 @@ impl<'a> RowCache<'a> {
 /// multipliers 0 and `ρ` from the gradient (`f` then has the sign of the one
 /// class).
 pub fn solve(y: &[f64], kernel: &(dyn Fn(usize, usize) -> f64 + Sync), p: &SmoParams) -> Solution {
+    let diag: Vec<f64> = (0..y.len()).map(|t| kernel(t, t)).collect();
+    let fill = |i: usize, out: &mut [f64]| out.iter_mut().enumerate().for_each(|(t, k)| *k = kernel(i, t));
+    solve_rows(y, &diag, &fill, p)
+}
+
+/// [`solve`] with the kernel given by rows: `fill(i, out)` writes
+/// `K(x_i, x_t)` into `out[t]` for every `t < n` (one call per cache miss
+/// instead of one per entry, e.g. a gather from a precomputed Gram matrix),
+/// and `diag[t] = K(x_t, x_t)`. The same iterations and bits as [`solve`]
+/// with the same kernel values.
+pub fn solve_rows(
+    y: &[f64],
+    diag: &[f64],
+    fill: &(dyn Fn(usize, &mut [f64]) + Sync),
+    p: &SmoParams,
+) -> Solution {
     const TAU: f64 = 1e-12;
     let n = y.len();
+    assert_eq!(diag.len(), n, "one diagonal kernel value per variable");
     let c = p.c;
     let mut alpha = vec![0.0f64; n];
     let mut grad = vec![-1.0f64; n];
-    let diag: Vec<f64> = (0..n).map(|t| kernel(t, t)).collect();
-    let mut cache = RowCache::new(n, y, kernel, p.cache_bytes);
+    let mut cache = RowCache::new(n, y, fill, p.cache_bytes);
     let mut active: Vec<usize> = (0..n).collect();
     let mut shrunk = false;
     let mut unshrunk = false;
@@ -412,10 +431,13 @@ fn rho(y: &[f64], alpha: &[f64], grad: &[f64], c: f64) -> f64 {
     }
 }
 
-/// `exp(-γ ‖a − b‖²)`, the RBF kernel, with four partial sums (vectorisable).
+/// `exp(-γ ‖a − b‖²)`, the RBF kernel: the distance with four partial sums
+/// ([`sq_dist`]), the exponential by [`super::vmath::exp`], so an entry has
+/// the bits of the vectorised Gram and prediction paths
+/// ([`super::vmath::rbf_in_place`] of [`super::dense::sq_dists`]).
 #[inline]
 pub fn rbf(a: &[f64], b: &[f64], gamma: f64) -> f64 {
-    (-gamma * sq_dist(a, b)).exp()
+    super::vmath::exp(-gamma * sq_dist(a, b))
 }
 
 pub use super::dense::sq_dist;
@@ -560,6 +582,43 @@ mod tests {
         for t in 0..y.len() {
             let f: f64 = (0..y.len()).map(|s| a.alpha[s] * y[s] * k(s, t)).sum::<f64>() - a.rho;
             assert!(f * y[t] > 0.0, "training vector {t} misclassified");
+        }
+    }
+
+    #[test]
+    fn row_kernel_and_cache_size_do_not_change_a_bit() {
+        // Rows are recomputed with the same bits after an eviction, so the
+        // iterations, and the answer, are the same whatever the cache size,
+        // and `solve_rows` is `solve` with the kernel given by rows.
+        for (seed, n, c) in [(1u64, 90usize, 10.0), (2, 151, 1.0), (3, 40, 100.0)] {
+            let (x, y) = problem(n, 4, 0.3, seed);
+            let k = |s: usize, t: usize| rbf(&x[s], &x[t], 0.4);
+            let p = SmoParams {
+                c,
+                ..SmoParams::default()
+            };
+            let a = solve(&y, &k, &p);
+            let diag: Vec<f64> = (0..n).map(|t| k(t, t)).collect();
+            let fill = |i: usize, out: &mut [f64]| {
+                for (t, o) in out.iter_mut().enumerate() {
+                    *o = rbf(&x[i], &x[t], 0.4);
+                }
+            };
+            let b = solve_rows(&y, &diag, &fill, &p);
+            let tiny = solve_rows(
+                &y,
+                &diag,
+                &fill,
+                &SmoParams {
+                    cache_bytes: 3 * n * 8,
+                    ..p
+                },
+            );
+            assert!(a.converged);
+            assert_eq!(a, b);
+            assert!(tiny.rows_computed > a.rows_computed);
+            assert_eq!((&a.alpha, a.rho.to_bits()), (&tiny.alpha, tiny.rho.to_bits()));
+            assert_eq!(a.iterations, tiny.iterations);
         }
     }
 
