@@ -35,7 +35,12 @@
 //! * `rate` (mean-field): `h_1 = σ(W_1 v + b_1)`, ... up to the layer under
 //!   the top; then the top RBM's label posterior, exactly (free energies):
 //!   `p(y | h) ∝ exp(c_y + Σ_j softplus(b_j + W_j·h + U_jy))`. The frame's class
-//!   scores are `p(y | h)`.
+//!   scores are `p(y | h)`. The softplus sum is evaluated as the product
+//!   `Π_j (1 + e^{base_j}·e^{U_jy})` kept as mantissa and binary exponent
+//!   (no logarithm; `n_hid + labels` exponentials per frame, from
+//!   [`super::vmath::exp`], vectorised), falling back to the softplus sum for
+//!   a frame whose net inputs exceed `±300`: see `Rbm::posterior_from_base`.
+//!   Sigmoids are [`super::vmath::sigmoid`] over whole slices, vectorised.
 //! * `spiking` (event-driven, as O'Connor et al. run their DBN): each input value
 //!   drives a Poisson spike train at `v_i · input_rate_hz` for `duration_ms`, in
 //!   steps of `dt_ms`; every layer is integrate-and-fire units (reset by
@@ -57,11 +62,11 @@
 //! stage given one with `model_in` predicts with it instead of fitting, and
 //! streams under `palpate run --live` (see [`super::saved`]).
 
-use super::ann::softmax;
 use super::dense;
 use super::features::{
     want, FeatureKeys, FittedModel, FrameClassifier, TrainSet, TrainingLog, Vote, MODEL_FORMAT,
 };
+use super::vmath::{self, softmax};
 use crate::estimate::features::{FitBaseline, TrainedEstimator};
 use crate::estimate::saved;
 use palpate_core::{
@@ -183,20 +188,26 @@ pub struct Rbm {
 /// Scratch of the label posterior, with `exp(U)` of the weights it was
 /// last [prepared](Disc::prepare) for.
 struct Disc {
-    /// Hidden net inputs `o_yj = base_j + U_jy`, label-major (`y·n_hid + j`).
-    o: Vec<f64>,
-    /// `e^{o_yj}` (clamped to `e^{±700}`), same layout: `σ(o) = t / (1 + t)`.
+    /// `e^{o_jy}` of the hidden net inputs `o_jy = base_j + U_jy` (x with
+    /// label y), hidden-major (`j·labels + y`), clamped to `e^{±700}` on the
+    /// exact path: `σ(o) = t / (1 + t)`.
     t: Vec<f64>,
     /// Label posterior.
     p: Vec<f64>,
     /// `base_j = b_j + W_j·x`.
     base: Vec<f64>,
-    /// `e^{base_j}`, or NaN where `|base_j| > EXP_SAFE` (that unit takes the exact path).
+    /// `e^{base_j}`.
     eb: Vec<f64>,
-    /// `e^{U_jy}`, label-major.
+    /// `e^{U_jy}`, hidden-major.
     eu: Vec<f64>,
-    /// Every `|U_jy| ≤ EXP_SAFE`, so `e^{base}·e^{U}` is finite for the fast units.
+    /// Per label: the running product's mantissa in `[1, 2)` ...
+    m: Vec<f64>,
+    /// ... and its binary exponent.
+    e: Vec<i64>,
+    /// Every `|U_jy| ≤ EXP_SAFE`, so `e^{base}·e^{U}` is finite for the fast path.
     u_ok: bool,
+    /// `max |U_jy|`.
+    u_max: f64,
 }
 
 /// Accumulates a batch's statistics `Σ_rows h vᵀ` (as the tiled product
@@ -245,45 +256,50 @@ const EXP_SAFE: f64 = 300.0;
 impl Disc {
     fn new(k: usize, nh: usize) -> Self {
         Disc {
-            o: vec![0.0; k * nh],
             t: vec![0.0; k * nh],
             p: vec![0.0; k],
             base: vec![0.0; nh],
             eb: vec![0.0; nh],
             eu: vec![0.0; k * nh],
+            m: vec![0.0; k],
+            e: vec![0; k],
             u_ok: false,
+            u_max: 0.0,
         }
     }
 
     /// Takes `e^{U}` of `rbm`'s label weights (after every weight update).
     fn prepare(&mut self, rbm: &Rbm) {
-        let (nb, nh) = (rbm.n_vis - rbm.labels, rbm.n_hid);
+        let (nb, k) = (rbm.n_vis - rbm.labels, rbm.labels);
+        self.u_max = 0.0;
         self.u_ok = true;
-        for y in 0..rbm.labels {
-            for j in 0..nh {
-                let u = rbm.w[j * rbm.n_vis + nb + y];
+        for (row, eu) in rbm
+            .w
+            .chunks_exact(rbm.n_vis.max(1))
+            .zip(self.eu.chunks_exact_mut(k.max(1)))
+        {
+            for (e, &u) in eu.iter_mut().zip(&row[nb..]) {
+                // NaN fails `<=` and clears `u_ok`.
                 self.u_ok &= u.abs() <= EXP_SAFE;
-                self.eu[y * nh + j] = u.clamp(-EXP_SAFE, EXP_SAFE).exp();
+                self.u_max = self.u_max.max(u.abs());
+                *e = u.clamp(-EXP_SAFE, EXP_SAFE);
             }
         }
+        vmath::exp_in_place(&mut self.eu);
     }
 }
 
+/// `ln(1 + e^z)` for every `z`, never overflowing.
 fn softplus(z: f64) -> f64 {
-    if z > 30.0 {
-        z
-    } else {
-        z.exp().ln_1p()
-    }
+    z.max(0.0) + vmath::exp(-z.abs()).ln_1p()
 }
 
-fn sigmoid(z: f64) -> f64 {
-    if z >= 0.0 {
-        1.0 / (1.0 + (-z).exp())
-    } else {
-        let e = z.exp();
-        e / (1.0 + e)
-    }
+/// `v ← σ(v)` over a slice, vectorised.
+fn sigmoid_in_place(v: &mut [f64]) {
+    crate::wide::with_avx2(
+        #[inline(always)]
+        || v.iter_mut().for_each(|z| *z = vmath::sigmoid(*z)),
+    );
 }
 
 impl Rbm {
@@ -325,7 +341,7 @@ impl Rbm {
     /// `p(h | v)`.
     fn hid_prob(&self, v: &[f64], out: &mut [f64]) {
         self.hid_input(v, out);
-        out.iter_mut().for_each(|z| *z = sigmoid(*z));
+        sigmoid_in_place(out);
     }
 
     /// Visible net inputs `a + Wᵀ h`.
@@ -349,14 +365,14 @@ impl Rbm {
     /// of `out`, as one tiled product.
     fn hid_prob_rows(&self, v: &[f64], out: &mut [f64]) {
         dense::gemm_nt(v, &self.w, self.n_vis, out);
-        dense::add_bias_map(out, &self.b, sigmoid);
+        dense::add_bias_map(out, &self.b, vmath::sigmoid);
     }
 
     /// Turns visible net inputs `out` (biases included) into probabilities:
     /// sigmoids, and a softmax over the label units.
     fn vis_activate(&self, out: &mut [f64]) {
         let nb = self.n_vis - self.labels;
-        out[..nb].iter_mut().for_each(|z| *z = sigmoid(*z));
+        sigmoid_in_place(&mut out[..nb]);
         if self.labels > 0 {
             softmax(&mut out[nb..]);
         }
@@ -388,9 +404,8 @@ impl Rbm {
 
     /// Label posterior `p(y | x)` of a label-augmented RBM, exactly (free
     /// energies): `p(y|x) ∝ exp(c_y + Σ_j softplus(b_j + W_j·x + U_jy))`. Fills
-    /// `d.o` with the hidden net inputs `o_yj` (x with label y), `d.t` with
-    /// `e^{o_yj}` and `d.p` with p. `d` must be [prepared](Disc::prepare) for
-    /// these weights.
+    /// `d.t` with `e^{o_jy}` and `d.p` with p. `d` must be
+    /// [prepared](Disc::prepare) for these weights.
     fn label_posterior(&self, x: &[f64], d: &mut Disc) {
         let nb = self.n_vis - self.labels;
         for j in 0..self.n_hid {
@@ -400,47 +415,93 @@ impl Rbm {
         self.posterior_from_base(d);
     }
 
-    /// [`Self::label_posterior`] from `d.base`. The `n_hid · labels`
-    /// softplus terms are summed as logarithms of products,
-    /// `Σ_j ln(1 + e^{base_j} e^{U_jy}) = ln Π_j (1 + e^{base_j} e^{U_jy})`
-    /// (the product flushed into the logarithm whenever it passes 1e30, so it
-    /// never overflows): `n_hid` exponentials and a few logarithms per frame
-    /// instead of `n_hid · labels` of each, the same value to a few ulps. A
-    /// unit with `|base_j| > 300` (or any `|U| > 300`) takes the exact
-    /// `softplus` instead.
+    /// [`Self::label_posterior`] from `d.base`, without a logarithm. With
+    /// `t_jy = e^{base_j}·e^{U_jy}`, the free energy's exponential is a
+    /// product, `exp(Σ_j softplus(o_jy)) = Π_j (1 + t_jy)`, held per label as
+    /// a mantissa `m_y ∈ [1, 2)` and a binary exponent `E_y` (the exponent
+    /// bits are moved into `E_y` every `g` factors, `g` small enough that the
+    /// mantissa cannot overflow in between: scaling by a power of two is
+    /// exact, so `g` does not change the bits). Then `p(y) ∝ m_y ·
+    /// exp(z_y − max z)` with `z_y = c_y + E_y·ln 2`: `n_hid` exponentials,
+    /// `n_hid · labels` products and `labels` exponentials per frame, each
+    /// loop over the labels (or hidden units) vectorised; the same value as
+    /// summing the softplus terms to a few ulps. A frame with a unit at
+    /// `|base_j| > 300` (or a model with `|U| > 300`) takes the exact
+    /// softplus sum instead, stable for any finite input.
     fn posterior_from_base(&self, d: &mut Disc) {
         let nb = self.n_vis - self.labels;
-        let nh = self.n_hid;
-        for (eb, &b) in d.eb.iter_mut().zip(&d.base) {
-            *eb = if d.u_ok && b.abs() <= EXP_SAFE {
-                b.exp()
-            } else {
-                f64::NAN
-            };
+        let (nh, k) = (self.n_hid, self.labels);
+        let mut top = f64::NEG_INFINITY;
+        let mut fast = d.u_ok;
+        for &b in &d.base {
+            fast &= b.abs() <= EXP_SAFE;
+            top = top.max(b);
         }
-        for y in 0..self.labels {
-            let (mut log, mut prod) = (0.0, 1.0);
-            for j in 0..nh {
-                let o = d.base[j] + self.w[j * self.n_vis + nb + y];
-                let at = y * nh + j;
-                d.o[at] = o;
-                let eb = d.eb[j];
-                d.t[at] = if eb.is_nan() {
-                    log += softplus(o);
-                    o.clamp(-700.0, 700.0).exp()
-                } else {
-                    let t = eb * d.eu[at];
-                    prod *= 1.0 + t;
-                    if prod > 1e30 {
-                        log += prod.ln();
-                        prod = 1.0;
-                    }
-                    t
-                };
+        if !fast {
+            for y in 0..k {
+                let mut f = 0.0;
+                for j in 0..nh {
+                    let o = d.base[j] + self.w[j * self.n_vis + nb + y];
+                    f += softplus(o);
+                    d.t[j * k + y] = o.clamp(-700.0, 700.0);
+                }
+                d.p[y] = self.a[nb + y] + f;
             }
-            d.p[y] = self.a[nb + y] + (log + prod.ln());
+            vmath::exp_in_place(&mut d.t[..nh * k]);
+            softmax(&mut d.p);
+            return;
         }
-        softmax(&mut d.p);
+        // Each factor is below 2^(bits + 1); after `g` of them the mantissa
+        // (below 2) stays below 2^1000.
+        let bits = (top + d.u_max).max(0.0) * std::f64::consts::LOG2_E + 1.0;
+        let g = ((999.0 / bits) as usize).clamp(1, nh.max(1));
+        const MANT: u64 = (1 << 52) - 1;
+        const ONE: u64 = 1023 << 52;
+        let Disc {
+            t,
+            p,
+            base,
+            eb,
+            eu,
+            m,
+            e,
+            ..
+        } = d;
+        crate::wide::with_avx2(
+            #[inline(always)]
+            || {
+                eb.iter_mut()
+                    .zip(base.iter())
+                    .for_each(|(e, &b)| *e = vmath::exp(b));
+                for ((tj, uj), &ebj) in t.chunks_exact_mut(k).zip(eu.chunks_exact(k)).zip(eb.iter()) {
+                    tj.iter_mut().zip(uj).for_each(|(t, u)| *t = ebj * u);
+                }
+                m.iter_mut().for_each(|m| *m = 1.0);
+                e.iter_mut().for_each(|e| *e = 0);
+                for block in t[..nh * k].chunks(g * k) {
+                    for tj in block.chunks_exact(k) {
+                        m.iter_mut().zip(tj).for_each(|(m, t)| *m *= 1.0 + t);
+                    }
+                    for (m, e) in m.iter_mut().zip(e.iter_mut()) {
+                        let b = m.to_bits();
+                        *e += (b >> 52) as i64 - 1023;
+                        *m = f64::from_bits((b & MANT) | ONE);
+                    }
+                }
+                let mut zmax = f64::NEG_INFINITY;
+                for ((p, &e), c) in p.iter_mut().zip(e.iter()).zip(&self.a[nb..]) {
+                    *p = c + e as f64 * std::f64::consts::LN_2;
+                    zmax = zmax.max(*p);
+                }
+                p.iter_mut().for_each(|p| *p = vmath::exp(*p - zmax));
+                let mut sum = 0.0;
+                for (p, m) in p.iter_mut().zip(m.iter()) {
+                    *p *= m;
+                    sum += *p;
+                }
+                p.iter_mut().for_each(|p| *p /= sum);
+            },
+        );
     }
 
     /// Adds `weight ·` the gradient of `log p(y | x)` (Larochelle & Bengio 2008)
@@ -466,12 +527,12 @@ impl Rbm {
         for j in 0..self.n_hid {
             let mut expect = 0.0;
             for c in 0..k {
-                let s = sig(c * self.n_hid + j);
+                let s = sig(j * k + c);
                 expect += d.p[c] * s;
                 let t = f64::from(u8::from(c == y));
                 gw[j * self.n_vis + nb + c] += weight * (t - d.p[c]) * s;
             }
-            let gj = sig(y * self.n_hid + j) - expect;
+            let gj = sig(j * k + y) - expect;
             gb[j] += weight * gj;
             let row = &mut gw[j * self.n_vis..j * self.n_vis + nb];
             let wg = weight * gj;
@@ -642,7 +703,7 @@ impl Dbn {
         for r in below {
             let mut h = vec![0.0; n * r.n_hid];
             dense::gemm_nt(&v, &r.w, r.n_vis, &mut h);
-            dense::add_bias_map(&mut h, &r.b, sigmoid);
+            dense::add_bias_map(&mut h, &r.b, vmath::sigmoid);
             v = h;
         }
         // The top layer's net inputs without labels, `b + W[:, ..nb] h`, from
@@ -960,11 +1021,150 @@ impl FrameClassifier for Dbn {
 mod tests {
     use super::*;
 
+    use rand::SeedableRng;
+
     #[test]
-    fn sigmoid_is_finite_everywhere() {
+    fn sigmoid_and_softplus_are_finite_everywhere() {
         for z in [-1e308, -800.0, -1.0, 0.0, 1.0, 800.0, 1e308] {
-            let s = sigmoid(z);
-            assert!((0.0..=1.0).contains(&s), "{z} -> {s}");
+            let mut s = [z; 5];
+            sigmoid_in_place(&mut s);
+            assert!(s.iter().all(|s| (0.0..=1.0).contains(s)), "{z} -> {s:?}");
+            let sp = softplus(z);
+            assert!(sp.is_finite() && sp >= 0.0, "softplus({z}) = {sp}");
+            if z.abs() > 50.0 {
+                assert_eq!(sp, z.max(0.0));
+            }
+        }
+        assert!((softplus(0.0) - std::f64::consts::LN_2).abs() < 1e-15);
+    }
+
+    /// A top RBM with `nb` data units, `nh` hidden and `k` labels, weights
+    /// scaled by `scale`.
+    fn top_rbm(nb: usize, nh: usize, k: usize, scale: f64, seed: u64) -> Rbm {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let mean = vec![0.3; nb + k];
+        let mut r = Rbm::new(nb + k, nh, k, &mean, &mut rng);
+        r.w.iter_mut().for_each(|w| *w *= scale);
+        r.b.iter_mut()
+            .for_each(|b| *b = rng.random_range(-1.0..1.0) * scale);
+        r
+    }
+
+    /// The posterior by its definition: softplus sums, then a softmax.
+    fn posterior_by_definition(r: &Rbm, base: &[f64]) -> Vec<f64> {
+        let nb = r.n_vis - r.labels;
+        let mut f: Vec<f64> = (0..r.labels)
+            .map(|y| {
+                let s: f64 = (0..r.n_hid)
+                    .map(|j| softplus(base[j] + r.w[j * r.n_vis + nb + y]))
+                    .sum();
+                r.a[nb + y] + s
+            })
+            .collect();
+        softmax(&mut f);
+        f
+    }
+
+    #[test]
+    fn product_posterior_matches_the_softplus_sum() {
+        // Small, moderate and large weights (the large ones push the
+        // products through many renormalisations).
+        for (scale, seed) in [(0.1, 1), (1.0, 2), (8.0, 3), (40.0, 4)] {
+            let r = top_rbm(23, 30, 17, scale, seed);
+            let mut d = Disc::new(17, 30);
+            d.prepare(&r);
+            let mut rng = ChaCha8Rng::seed_from_u64(seed + 10);
+            for _ in 0..20 {
+                let x: Vec<f64> = (0..23).map(|_| rng.random_range(0.0..1.0)).collect();
+                r.label_posterior(&x, &mut d);
+                let want = posterior_by_definition(&r, &d.base);
+                for (p, q) in d.p.iter().zip(&want) {
+                    assert!(
+                        (p - q).abs() <= 1e-12 * q.max(1e-300) + 1e-300,
+                        "{p} vs {q} (scale {scale})"
+                    );
+                }
+                assert!((d.p.iter().sum::<f64>() - 1.0).abs() < 1e-12);
+                // The e^o the discriminative gradient reads.
+                for j in 0..30 {
+                    for y in 0..17 {
+                        let o = d.base[j] + r.w[j * r.n_vis + 23 + y];
+                        let t = d.t[j * 17 + y];
+                        assert!((t - o.exp()).abs() <= 1e-12 * o.exp(), "t {t} vs e^{o}");
+                    }
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn posterior_is_finite_for_huge_and_tiny_inputs() {
+        let r = top_rbm(5, 7, 4, 1.0, 9);
+        let mut d = Disc::new(4, 7);
+        d.prepare(&r);
+        for v in [
+            1e300, -1e300, 1e4, -1e4, 400.0, -400.0, 299.0, -299.0, 1e-300, 0.0,
+        ] {
+            // One unit or every unit extreme.
+            for all in [false, true] {
+                d.base
+                    .iter_mut()
+                    .enumerate()
+                    .for_each(|(j, b)| *b = if all || j == 2 { v } else { 0.1 * j as f64 });
+                let base = d.base.clone();
+                r.posterior_from_base(&mut d);
+                assert!(d.p.iter().all(|p| p.is_finite() && *p >= 0.0), "{v}: {:?}", d.p);
+                assert!((d.p.iter().sum::<f64>() - 1.0).abs() < 1e-12, "{v}: {:?}", d.p);
+                let want = posterior_by_definition(&r, &base);
+                for (p, q) in d.p.iter().zip(&want) {
+                    assert!((p - q).abs() <= 1e-9, "{v}: {p} vs {q}");
+                }
+            }
+        }
+        // Label weights beyond e^±300 take the exact path.
+        let mut big = r.clone();
+        big.w.iter_mut().for_each(|w| *w *= 1e3);
+        d.prepare(&big);
+        assert!(!d.u_ok);
+        d.base.iter_mut().for_each(|b| *b = 0.5);
+        big.posterior_from_base(&mut d);
+        assert!(d.p.iter().all(|p| p.is_finite()) && (d.p.iter().sum::<f64>() - 1.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn batch_scores_are_the_bits_of_frame_by_frame() {
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let (dim, k) = (20, 6);
+        let below = Rbm::new(dim, 12, 0, &vec![0.2; dim], &mut rng);
+        let top = top_rbm(12, 9, k, 3.0, 6);
+        let dbn = Dbn {
+            rbms: vec![below, top],
+            classes: k,
+            inference: Inference::Rate,
+            input_rate_hz: 200.0,
+            duration_ms: 100.0,
+            dt_ms: 1.0,
+        };
+        let n = 37;
+        let x: Vec<f64> = (0..n * dim)
+            .map(|i| {
+                if i % 3 == 0 {
+                    0.0
+                } else {
+                    rng.random_range(0.0..1.0)
+                }
+            })
+            .collect();
+        let mut batch = vec![0.0; n * k];
+        dbn.scores_batch(&x, dim, &mut rng, &mut batch);
+        for (row, b) in x.chunks_exact(dim).zip(batch.chunks_exact(k)) {
+            let mut one = vec![0.0; k];
+            dbn.frame_scores(row, &mut rng, &mut one);
+            assert_eq!(
+                b.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+                one.iter().map(|v| v.to_bits()).collect::<Vec<_>>()
+            );
+            assert!((one.iter().sum::<f64>() - 1.0).abs() < 1e-12);
         }
     }
 
