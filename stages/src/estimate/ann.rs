@@ -330,8 +330,11 @@ impl Mlp {
         let p = &self.params;
         for j in 0..self.hidden {
             let row = &p[w1 + j * self.dim..w1 + (j + 1) * self.dim];
-            s.a[j] = tanh(dot(row, x) + p[b1 + j]);
+            s.a[j] = dot(row, x) + p[b1 + j];
         }
+        // A loop of its own: the units' exponentials are independent, so
+        // they overlap instead of waiting for each other's dot products.
+        s.a.iter_mut().for_each(|a| *a = tanh(*a));
         for c in 0..self.classes {
             let row = &p[w2 + c * self.hidden..w2 + (c + 1) * self.hidden];
             s.p[c] = dot(row, &s.a) + p[b2 + c];
