@@ -1623,54 +1623,6 @@ mod tests {
         }
     }
 
-    /// Times the indexed batch against the full scan on exported standardised
-    /// arrays (raw little-endian f64, 80 wide), best of 7 runs each (a shared
-    /// machine): `KNN_BIN=/tmp/knn_tr1.bin,/tmp/knn_te1.bin`.
-    #[test]
-    #[ignore = "measurement on exported data"]
-    fn knn_indexed_against_full_scan_timing() {
-        let Ok(paths) = std::env::var("KNN_BIN") else {
-            return;
-        };
-        let read = |p: &str| -> Vec<f64> {
-            std::fs::read(p)
-                .expect("readable")
-                .chunks_exact(8)
-                .map(|b| f64::from_le_bytes(b.try_into().expect("8 bytes")))
-                .collect()
-        };
-        let mut it = paths.split(',');
-        let (x, q) = (read(it.next().expect("train")), read(it.next().expect("test")));
-        let dim = 80;
-        let n = x.len() / dim;
-        let knn = Knn::new(
-            5,
-            dim,
-            10,
-            KnnWeight::Uniform,
-            Standardizer {
-                mean: vec![0.0; dim],
-                inv_sd: vec![1.0; dim],
-            },
-            x,
-            (0..n).map(|i| i % 5).collect(),
-        );
-        knn.index();
-        let rows = q.len() / dim;
-        let (mut a, mut b) = (vec![0.0; rows * 5], vec![0.0; rows * 5]);
-        let (mut ti, mut tf) = (f64::INFINITY, f64::INFINITY);
-        for _ in 0..7 {
-            let t0 = std::time::Instant::now();
-            knn.scores_batch(&q, &mut a);
-            ti = ti.min(t0.elapsed().as_secs_f64());
-            let t0 = std::time::Instant::now();
-            knn.scores_full(&q, &mut b);
-            tf = tf.min(t0.elapsed().as_secs_f64());
-        }
-        assert!(a.iter().zip(&b).all(|(u, v)| u.to_bits() == v.to_bits()));
-        eprintln!("indexed {:.2} ms, full scan {:.2} ms", ti * 1e3, tf * 1e3);
-    }
-
     #[test]
     fn logistic_fit_reaches_the_optimum_of_the_penalised_loss() {
         let (n, dim, k) = (120, 4, 3);

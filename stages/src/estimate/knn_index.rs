@@ -332,51 +332,12 @@ impl KnnIndex {
     ) -> bool {
         // Compiled with AVX-512 / AVX2 where the CPU has them: the block
         // sums are 16-lane loops. Only the bound's bits depend on it; the
-        // exact distances are the same at any width (no FMA).
-        #[cfg(target_arch = "x86_64")]
-        {
-            if crate::wide::avx512() {
-                // SAFETY: the CPU has these features (checked at run time).
-                return unsafe { self.search_avx512(x, z, v, yhat, k, best, scratch) };
-            }
-            if crate::wide::avx2() {
-                // SAFETY: the CPU has AVX2 (checked at run time).
-                return unsafe { self.search_avx2(x, z, v, yhat, k, best, scratch) };
-            }
-        }
-        self.search_body(x, z, v, yhat, k, best, scratch)
-    }
-
-    #[cfg(target_arch = "x86_64")]
-    #[allow(clippy::too_many_arguments)]
-    #[target_feature(enable = "avx2,avx512f,avx512vl,avx512dq")]
-    fn search_avx512(
-        &self,
-        x: &[f64],
-        z: &[f64],
-        v: &[f64],
-        yhat: &[f64],
-        k: usize,
-        best: &mut Vec<(f64, usize)>,
-        scratch: &mut Scratch,
-    ) -> bool {
-        self.search_body(x, z, v, yhat, k, best, scratch)
-    }
-
-    #[cfg(target_arch = "x86_64")]
-    #[allow(clippy::too_many_arguments)]
-    #[target_feature(enable = "avx2")]
-    fn search_avx2(
-        &self,
-        x: &[f64],
-        z: &[f64],
-        v: &[f64],
-        yhat: &[f64],
-        k: usize,
-        best: &mut Vec<(f64, usize)>,
-        scratch: &mut Scratch,
-    ) -> bool {
-        self.search_body(x, z, v, yhat, k, best, scratch)
+        // exact distances are the same at any width (no FMA). The closure
+        // is inlined into the wide function, or the loops stay SSE2.
+        crate::wide::with_avx2(
+            #[inline(always)]
+            || self.search_body(x, z, v, yhat, k, best, scratch),
+        )
     }
 
     #[allow(clippy::too_many_arguments)]
