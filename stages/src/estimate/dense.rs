@@ -248,10 +248,11 @@ pub fn gemm_nt(a: &[f64], b: &[f64], k: usize, out: &mut [f64]) {
 /// Most rows of `b` for [`narrow_avx`]: its transposed copy (`k x n`) is
 /// then at most `k · 64` doubles, in L1 for the widths used here.
 pub const NARROW: usize = 64;
-/// Widest rows for [`narrow_avx`]. Measured (thread CPU time, one core):
-/// 2848 x 30 x 16 took 0.15 ms against the tiles' 0.185, 2848 x 17 x 30
-/// 0.16 against 0.176, but 3154 x 30 x 80 0.66 against 0.55: with long
-/// rows the tiles' horizontal sums are amortised and their fewer loads win.
+/// Widest rows for [`narrow_avx`]. In a throwaway timing of both kernels
+/// (thread CPU time, one core, not kept) it was ahead at the ANN's shapes
+/// (2848 rows x 30 x 16, x 17 x 30) and behind at 3154 x 30 x 80: with
+/// long rows the tiles' horizontal sums are amortised and their fewer loads
+/// win. `benches/peers` times the layers in place (ANN and logistic predict).
 pub const NARROW_K: usize = 32;
 
 /// [`gemm_nt`] for a `b` of few rows, with the outputs across the lanes:
