@@ -123,15 +123,21 @@ pub fn run_points(
         .filter(|(p, ..)| selection.contains(*p, total))
         .collect();
     let cache = core::Cache::default();
-    let (mut ran, mut skipped) = (0usize, 0usize);
     let points = base.sweep.as_ref().map(|s| s.points()).unwrap_or_default();
-    for (i, (p, r, g)) in chosen.iter().enumerate() {
+    // Point runs already complete are skipped; the cache is told which of
+    // the others will run, so it keeps just what they share.
+    let todo: Vec<&&(usize, usize, Graph)> = chosen
+        .iter()
+        .filter(|(p, r, g)| fresh || PointRecord::read_matching(&g.out_dir, g, *p, *r).is_none())
+        .collect();
+    for (_, _, g) in &todo {
+        cache.expect(g);
+    }
+    let skipped = chosen.len() - todo.len();
+    let mut ran = 0usize;
+    for (i, (p, r, g)) in todo.iter().enumerate() {
         let label = points.get(*p).map(point_label).unwrap_or_default();
-        if !fresh && PointRecord::read_matching(&g.out_dir, g, *p, *r).is_some() {
-            skipped += 1;
-            continue;
-        }
-        on_point(i, chosen.len(), &format!("point {p} ({label}), repeat {r}"));
+        on_point(i, todo.len(), &format!("point {p} ({label}), repeat {r}"));
         let o = RunOptions {
             progress: opts.progress,
             cache: Some(&cache),

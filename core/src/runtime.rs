@@ -55,18 +55,39 @@ pub trait Progress: Sync {
 /// loaded from the same directory (relative paths in settings are not resolved
 /// into the key).
 ///
+/// A run under a cache is planned backwards from its sinks before anything
+/// runs: a stage is computed only when a stage that must be computed reads it,
+/// so once a downstream output is cached (an encoder's spikes), the stages
+/// upstream of it (the scene, the filters) are neither computed nor fetched.
+/// Sweeping a downstream key then simulates each seed's scene once, however
+/// little of the scene's output fits in the cache.
+///
 /// Each output is kept with the [`StageTiming`] of the run that computed it, so
 /// a run served from the cache still reports what the stage costs (marked
 /// `cached`): a sweep's compute-time figures then do not depend on which point
-/// happened to compute a shared stage first.
+/// happened to compute a shared stage first. Timings (a few kB per stage) are
+/// kept for the cache's whole life, so a stage skipped because its readers were
+/// cached still reports its cost.
 ///
 /// The cache holds at most [`Cache::budget_bytes`] of payload data (default
-/// [`DEFAULT_CACHE_BYTES`]): when a new output would pass it, the outputs used
-/// least recently are dropped first, and an output larger than the whole
-/// budget is not kept. A sweep whose points share nothing (each changes its
-/// scene, or draws new seeds) then runs in bounded memory instead of keeping
-/// every point's signals to the end (a 6-point x 5-seed sweep of 340-trial
-/// scenes reached 22 GB before this bound).
+/// [`DEFAULT_CACHE_BYTES`]), and an output larger than the whole budget is not
+/// kept. When a new output would pass the budget, outputs are dropped by
+/// GreedyDual-Size (Cao & Irani, 1997): each entry's priority is
+/// `H = L + cost / bytes`, where `cost` is the wall time of the stage and all
+/// its upstream stages (what dropping it may cost again) and `L` is the
+/// priority of the last entry dropped (so entries not used for a while age
+/// out); the lowest `H` goes first, ties to the least recently used.
+/// A sweep also tells the cache, before it starts, which runs will need
+/// which outputs ([`Cache::expect`]): an output no later run needs is not
+/// kept, and one whose last run has used it is dropped, so the budget goes
+/// to what will be read again (the 14 points of an array-area sweep need a
+/// seed's spike trains 14 times and each point's binned images once). Plain
+/// least-recently-used eviction thrashed: a scene and three filters of
+/// 600 MB each pushed out the 4 MB spike trains computed from them, so every
+/// point re-simulated its scene. A sweep whose points share nothing (each
+/// changes its scene, or draws new seeds) still runs in bounded memory
+/// instead of keeping every point's signals to the end (a 6-point x 5-seed
+/// sweep of 340-trial scenes reached 22 GB before this bound).
 pub struct Cache {
     map: std::sync::Mutex<CacheMap>,
     hits: std::sync::atomic::AtomicUsize,
@@ -77,11 +98,35 @@ pub struct Cache {
 /// Most payload bytes a [`Cache`] keeps by default: 2 GiB.
 pub const DEFAULT_CACHE_BYTES: usize = 2 << 30;
 
+/// One kept output.
+struct Entry {
+    items: Arc<Vec<Item>>,
+    bytes: usize,
+    /// Seconds to recompute it (its stage and everything upstream).
+    cost: f64,
+    /// GreedyDual-Size priority.
+    h: f64,
+    /// Last use, for ties.
+    used: u64,
+}
+
 #[derive(Default)]
 struct CacheMap {
-    entries: HashMap<u64, (Cached, usize, u64)>,
+    entries: HashMap<u64, Entry>,
+    timings: HashMap<u64, StageTiming>,
     bytes: usize,
     clock: u64,
+    /// GreedyDual-Size's inflation value `L`.
+    floor: f64,
+    /// Runs still to come that contain each key, for keys announced by
+    /// [`Cache::expect`].
+    future: HashMap<u64, usize>,
+}
+
+impl CacheMap {
+    fn priority(&self, cost: f64, bytes: usize) -> f64 {
+        self.floor + cost / bytes.max(1) as f64
+    }
 }
 
 impl Default for Cache {
@@ -115,7 +160,7 @@ impl Cache {
     pub fn hits(&self) -> usize {
         self.hits.load(std::sync::atomic::Ordering::Relaxed)
     }
-    /// Stage runs computed and stored.
+    /// Stage outputs looked up and not found (each was then computed).
     pub fn misses(&self) -> usize {
         self.misses.load(std::sync::atomic::Ordering::Relaxed)
     }
@@ -123,39 +168,92 @@ impl Cache {
         let hit = {
             let mut m = self.map.lock().ok()?;
             m.clock += 1;
-            let now = m.clock;
-            m.entries.get_mut(&key).map(|(c, _, used)| {
-                *used = now;
-                c.clone()
+            let (now, floor) = (m.clock, m.floor);
+            let timing = m.timings.get(&key).cloned();
+            m.entries.get_mut(&key).and_then(|e| {
+                e.used = now;
+                e.h = floor + e.cost / e.bytes.max(1) as f64;
+                Some((e.items.clone(), timing?))
             })
         };
         let counter = if hit.is_some() { &self.hits } else { &self.misses };
         counter.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         hit
     }
-    fn put(&self, key: u64, items: Arc<Vec<Item>>, timing: StageTiming) {
-        let size: usize = items.iter().map(|it| it.payload.approx_bytes()).sum();
-        if size > self.budget {
-            return;
-        }
+    /// Announces a run of `graph` to come: outputs it shares with earlier
+    /// runs are kept for it, and outputs no announced run still needs are
+    /// dropped. Without announcements every output may be reused and the
+    /// budget alone bounds the cache.
+    pub fn expect(&self, graph: &Graph) {
+        let keys = stage_keys(graph);
         if let Ok(mut m) = self.map.lock() {
-            if let Some((_, old, _)) = m.entries.remove(&key) {
-                m.bytes -= old;
-            }
-            // Least recently used first, until the new output fits.
-            while m.bytes + size > self.budget {
-                let Some((&victim, _)) = m.entries.iter().min_by_key(|(_, (_, _, used))| *used) else {
-                    break;
-                };
-                if let Some((_, freed, _)) = m.entries.remove(&victim) {
-                    m.bytes -= freed;
+            for (i, k) in keys.into_iter().enumerate() {
+                if !matches!(graph.nodes[i].stage, Stage::Sink(_)) {
+                    *m.future.entry(k).or_default() += 1;
                 }
             }
-            m.clock += 1;
-            let now = m.clock;
-            m.entries.insert(key, ((items, timing), size, now));
-            m.bytes += size;
         }
+    }
+    /// A run of these keys has started (its hits are already fetched): one
+    /// run fewer needs each, and an output no announced run needs any more is
+    /// dropped.
+    fn started(&self, keys: &[u64]) {
+        let Ok(mut m) = self.map.lock() else {
+            return;
+        };
+        for k in keys {
+            if let Some(left) = m.future.get_mut(k) {
+                *left = left.saturating_sub(1);
+                if *left == 0 {
+                    if let Some(e) = m.entries.remove(k) {
+                        m.bytes -= e.bytes;
+                    }
+                }
+            }
+        }
+    }
+    /// The timing of the run that computed `key`'s output, kept even after
+    /// the output itself was dropped.
+    fn timing(&self, key: u64) -> Option<StageTiming> {
+        self.map.lock().ok()?.timings.get(&key).cloned()
+    }
+    /// Keeps `items` under `key`; `cost` is what recomputing them would take.
+    fn put(&self, key: u64, items: Arc<Vec<Item>>, timing: StageTiming, cost: Duration) {
+        let size: usize = items.iter().map(|it| it.payload.approx_bytes()).sum();
+        let Ok(mut m) = self.map.lock() else {
+            return;
+        };
+        m.timings.insert(key, timing);
+        if size > self.budget || m.future.get(&key) == Some(&0) {
+            return;
+        }
+        if let Some(old) = m.entries.remove(&key) {
+            m.bytes -= old.bytes;
+        }
+        while m.bytes + size > self.budget {
+            let Some((&victim, _)) = m
+                .entries
+                .iter()
+                .min_by(|(_, a), (_, b)| a.h.total_cmp(&b.h).then(a.used.cmp(&b.used)))
+            else {
+                break;
+            };
+            if let Some(e) = m.entries.remove(&victim) {
+                m.bytes -= e.bytes;
+                m.floor = m.floor.max(e.h);
+            }
+        }
+        m.clock += 1;
+        let cost = cost.as_secs_f64();
+        let entry = Entry {
+            items,
+            bytes: size,
+            cost,
+            h: m.priority(cost, size),
+            used: m.clock,
+        };
+        m.entries.insert(key, entry);
+        m.bytes += size;
     }
 }
 
@@ -261,9 +359,40 @@ pub fn run(graph: &Graph, opts: &RunOptions<'_>) -> Result<RunResult, RunError> 
         }
     }
 
+    // Under a cache: every stage's key (its config and its inputs' keys, no
+    // data), then the plan, backwards from the sinks.
+    let mut hit: Vec<Option<Cached>> = vec![None; n];
+    let mut skipped: Vec<Option<StageTiming>> = vec![None; n];
+    if let Some(c) = opts.cache {
+        keys = stage_keys(graph);
+        plan(graph, c, &keys, opts.keep_outputs, &mut hit, &mut skipped);
+        let cacheable: Vec<u64> = (0..n)
+            .filter(|&i| !matches!(graph.nodes[i].stage, Stage::Sink(_)))
+            .map(|i| keys[i])
+            .collect();
+        c.started(&cacheable);
+    }
+    // Seconds to recompute each stage with everything upstream (the cache's
+    // eviction weighs it against the bytes kept).
+    let mut upstream_cost = vec![Duration::ZERO; n];
+
     for &i in &graph.order {
         let node = &graph.nodes[i];
         let id = node.id.as_str();
+        let inputs_cost: Duration = graph.input_index[i].iter().map(|&j| upstream_cost[j]).sum();
+        if let Some(timing) = skipped[i].take() {
+            // Every reader of this stage was served from the cache.
+            upstream_cost[i] = inputs_cost + timing.total;
+            result.timings.push(StageTiming {
+                id: node.id.clone(),
+                type_name: node.type_name.clone(),
+                role: node.stage.role(),
+                cached: true,
+                ..timing
+            });
+            release_inputs(graph, i, &mut readers, &mut outputs);
+            continue;
+        }
         if let Some(timing) = depth_first[i].take() {
             if let (true, Some(items)) = (opts.keep_outputs, &outputs[i]) {
                 result.outputs.insert(node.id.clone(), items.clone());
@@ -277,16 +406,8 @@ pub fn run(graph: &Graph, opts: &RunOptions<'_>) -> Result<RunResult, RunError> 
             type_name: node.type_name.clone(),
             settings: settings_json(node.config.as_ref()),
         };
-        let input_keys: Vec<String> = graph.input_index[i]
-            .iter()
-            .map(|&j| keys[j].to_string())
-            .collect();
-        let settings = prov.settings.to_string();
-        let mut labels: Vec<&str> = vec![&node.type_name, &settings];
-        labels.extend(input_keys.iter().map(String::as_str));
-        keys[i] = derive_seed(seed, &labels);
-        let cacheable = !matches!(node.stage, Stage::Sink(_));
-        if let (true, Some((items, computed))) = (cacheable, opts.cache.and_then(|c| c.get(keys[i]))) {
+        if let Some((items, computed)) = hit[i].take() {
+            upstream_cost[i] = inputs_cost + computed.total;
             result.timings.push(StageTiming {
                 id: node.id.clone(),
                 type_name: node.type_name.clone(),
@@ -491,8 +612,9 @@ pub fn run(graph: &Graph, opts: &RunOptions<'_>) -> Result<RunResult, RunError> 
             if opts.keep_outputs {
                 result.outputs.insert(node.id.clone(), items.clone());
             }
+            upstream_cost[i] = inputs_cost + timing.total;
             if let Some(c) = opts.cache {
-                c.put(keys[i], items.clone(), timing.clone());
+                c.put(keys[i], items.clone(), timing.clone(), upstream_cost[i]);
             }
             outputs[i] = Some(items);
         }
@@ -500,6 +622,65 @@ pub fn run(graph: &Graph, opts: &RunOptions<'_>) -> Result<RunResult, RunError> 
         release_inputs(graph, i, &mut readers, &mut outputs);
     }
     Ok(result)
+}
+
+/// Every stage's cache key, by node: a hash of its type, settings, the
+/// graph's seed and its inputs' keys (so it follows every change upstream
+/// without reading data).
+fn stage_keys(graph: &Graph) -> Vec<u64> {
+    let mut keys = vec![0u64; graph.nodes.len()];
+    for &i in &graph.order {
+        let node = &graph.nodes[i];
+        let settings = settings_json(node.config.as_ref()).to_string();
+        let input_keys: Vec<String> = graph.input_index[i]
+            .iter()
+            .map(|&j| keys[j].to_string())
+            .collect();
+        let mut labels: Vec<&str> = vec![&node.type_name, &settings];
+        labels.extend(input_keys.iter().map(String::as_str));
+        keys[i] = derive_seed(graph.run.seed, &labels);
+    }
+    keys
+}
+
+/// Plans a run under a cache, from the sinks back to the sources: a stage's
+/// output is wanted when a sink or a stage to be computed reads it (or when
+/// every output is to be kept). A wanted stage is fetched from the cache
+/// (`hit`) or computed, which wants its inputs in turn; a stage nobody wants
+/// is `skipped`, reporting the timing of the run that computed it. A stage
+/// the cache has never seen is computed even when nobody wants it (a stage
+/// without readers), so that every stage has a timing to report.
+///
+/// Fetching the hits here, before anything runs, pins them: the outputs this
+/// run computes cannot evict a hit the plan relies on.
+fn plan(
+    graph: &Graph,
+    cache: &Cache,
+    keys: &[u64],
+    keep_outputs: bool,
+    hit: &mut [Option<Cached>],
+    skipped: &mut [Option<StageTiming>],
+) {
+    let mut wanted = vec![false; graph.nodes.len()];
+    for &i in graph.order.iter().rev() {
+        let computed = if matches!(graph.nodes[i].stage, Stage::Sink(_)) {
+            true
+        } else if wanted[i] || keep_outputs {
+            hit[i] = cache.get(keys[i]);
+            hit[i].is_none()
+        } else if let Some(t) = cache.timing(keys[i]) {
+            skipped[i] = Some(t);
+            false
+        } else {
+            hit[i] = cache.get(keys[i]);
+            hit[i].is_none()
+        };
+        if computed {
+            for &j in &graph.input_index[i] {
+                wanted[j] = true;
+            }
+        }
+    }
 }
 
 /// Drops an input's output once its last reader is done.
@@ -633,21 +814,39 @@ mod tests {
         // Budget: 3 outputs of 1,600 counts (12,800 bytes each).
         let c = Cache::with_budget(3 * 12_800);
         for k in 0..3 {
-            c.put(k, images(1600), StageTiming::default());
+            c.put(k, images(1600), StageTiming::default(), Duration::ZERO);
         }
         assert_eq!(c.held_bytes(), 3 * 12_800);
         assert!(c.get(0).is_some()); // 0 is now the most recently used
-        c.put(3, images(1600), StageTiming::default());
+        c.put(3, images(1600), StageTiming::default(), Duration::ZERO);
         assert!(c.held_bytes() <= c.budget_bytes());
         assert!(c.get(1).is_none(), "the least recently used output is dropped");
         assert!(c.get(0).is_some() && c.get(2).is_some() && c.get(3).is_some());
         // An output larger than the whole budget is not kept and evicts nothing.
-        c.put(9, images(16_000), StageTiming::default());
+        c.put(9, images(16_000), StageTiming::default(), Duration::ZERO);
         assert!(c.get(9).is_none());
         assert_eq!(c.held_bytes(), 3 * 12_800);
         // Replacing a key does not count it twice.
-        c.put(3, images(1600), StageTiming::default());
+        c.put(3, images(1600), StageTiming::default(), Duration::ZERO);
         assert_eq!(c.held_bytes(), 3 * 12_800);
         assert_eq!((c.hits(), c.misses()), (4, 2));
+    }
+
+    #[test]
+    fn eviction_keeps_what_costs_most_to_recompute_per_byte() {
+        let c = Cache::with_budget(3 * 12_800);
+        let ms = Duration::from_millis;
+        c.put(0, images(1600), StageTiming::default(), ms(1000));
+        c.put(1, images(1600), StageTiming::default(), ms(1));
+        c.put(2, images(1600), StageTiming::default(), ms(2));
+        c.put(3, images(1600), StageTiming::default(), ms(1));
+        assert!(c.get(1).is_none(), "the cheapest output goes first");
+        assert!(c.get(0).is_some(), "not the oldest, costly one");
+        // Equal cost: the larger output goes first (it frees more per second lost).
+        let c = Cache::with_budget(3 * 12_800 + 6_400);
+        c.put(0, images(1600), StageTiming::default(), ms(10));
+        c.put(1, images(3200), StageTiming::default(), ms(10));
+        c.put(2, images(1600), StageTiming::default(), ms(10));
+        assert!(c.get(1).is_none() && c.get(0).is_some() && c.get(2).is_some());
     }
 }

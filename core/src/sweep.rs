@@ -213,6 +213,9 @@ pub fn run_text(
     let points = sweep.points();
     let own_cache = Cache::default();
     let cache = run_opts.cache.unwrap_or(&own_cache);
+    for (_, _, g) in &graphs {
+        cache.expect(g);
+    }
     let mut runs = Vec::with_capacity(graphs.len());
     for (p, r, g) in graphs {
         let point = &points[p];

@@ -88,8 +88,9 @@ values = [1.0, 2.0, 3.0]
     assert_eq!(runs.len(), 3);
     // `a` runs for the first point only (6 trials); `b` for every point (3 x 6).
     assert_eq!(SCALE_CALLS.load(Ordering::SeqCst), 6 + 18);
-    // src and a hit the cache at points 2 and 3.
-    assert_eq!(cache.hits(), 4);
+    // `a` hits the cache at points 2 and 3; `src`, read only by `a`, is
+    // neither recomputed nor fetched there.
+    assert_eq!(cache.hits(), 2);
     let cached: Vec<bool> = runs[1].result.timings.iter().map(|t| t.cached).collect();
     assert_eq!(cached, [true, true, false, false, false]);
     let rows = palpate_core::sweep::summarize(&runs, &[]);
@@ -162,4 +163,87 @@ repeats = 2
             .unwrap();
     let seeds: Vec<u64> = runs.iter().map(|r| r.seed).collect();
     assert_eq!(seeds, [5, 6, 9, 10]);
+}
+
+#[test]
+fn a_cached_downstream_output_spares_upstream_stages_that_no_longer_fit() {
+    // A budget that holds two of the chain's four signal outputs: plain
+    // least-recently-used eviction, with every stage run in order, re-ran the
+    // whole chain at every point (the source was gone, and recomputing it
+    // evicted the rest); the plan runs only what reads a missing output.
+    let text = r#"
+[stages.src]
+type = "t_source"
+classes = 2
+reps = 3
+samples = 400
+
+[stages.a]
+type = "t_scale"
+inputs = ["src"]
+
+[stages.b]
+type = "t_scale"
+inputs = ["a"]
+
+[stages.c]
+type = "t_scale"
+inputs = ["b"]
+
+[stages.est]
+type = "t_estimator"
+inputs = ["c"]
+
+[stages.sink]
+type = "t_sink"
+inputs = ["est"]
+
+[sweep]
+key = "stages.c.factor"
+values = [1.0, 2.0, 3.0]
+"#;
+    let g = load(text).unwrap();
+    let load_opts = palpate_core::LoadOptions {
+        out: Some(g.out_dir.clone()),
+        ..Default::default()
+    };
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let one = palpate_core::run(
+        &g,
+        &palpate_core::RunOptions {
+            keep_outputs: true,
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    let size: usize = one.outputs["src"]
+        .iter()
+        .map(|it| it.payload.approx_bytes())
+        .sum();
+    let run_with = |budget: usize| {
+        let cache = palpate_core::Cache::with_budget(budget);
+        let opts = palpate_core::RunOptions {
+            cache: Some(&cache),
+            ..Default::default()
+        };
+        SCALE_CALLS.store(0, Ordering::SeqCst);
+        let runs = palpate_core::sweep::run_text(text, "t.toml", "t", &load_opts, &g, &opts).unwrap();
+        (runs, SCALE_CALLS.load(Ordering::SeqCst), cache.held_bytes())
+    };
+    let (full, calls_full, _) = run_with(palpate_core::runtime::DEFAULT_CACHE_BYTES);
+    let budget = 2 * size + size / 2;
+    let (tight, calls_tight, held) = run_with(budget);
+    assert!(held <= budget);
+    // a and b once (6 trials each), c at every point (3 x 6).
+    assert_eq!(calls_full, 12 + 18);
+    assert_eq!(calls_tight, 12 + 18, "the chain re-ran though `b` was cached");
+    for (x, y) in full.iter().zip(&tight) {
+        assert_eq!(x.result.reports[0].1.metrics, y.result.reports[0].1.metrics);
+        let stages: Vec<&str> = y.result.timings.iter().map(|t| t.id.as_str()).collect();
+        assert_eq!(
+            stages,
+            ["src", "a", "b", "c", "est", "sink"],
+            "every stage reports a timing"
+        );
+    }
 }
