@@ -511,6 +511,86 @@ pub struct Item {
     pub payload: Payload,
 }
 
+impl Item {
+    /// A 64-bit hash of everything a trained estimator may read of this item:
+    /// the payload's data and the metadata other than provenance (which names
+    /// the settings of every stage upstream, and so differs between sweep
+    /// points that produce the same trial). Equal keys mean equal items (up
+    /// to hash collisions, ~1 in 2^64 per pair); a sweep's cache reuses a
+    /// fitted model when its training items' keys are unchanged.
+    pub fn content_key(&self) -> u64 {
+        use std::hash::Hasher;
+        let mut h = std::hash::DefaultHasher::new();
+        let m = &self.meta;
+        let mut json = |v: serde_json::Value| h.write(v.to_string().as_bytes());
+        json(serde_json::json!([
+            m.trial_id,
+            m.index,
+            m.label,
+            m.group,
+            m.crossing_ms,
+            m.conditions
+        ]));
+        // Destructured in full: a new field is a compile error here until it
+        // is hashed.
+        let words: &mut dyn Iterator<Item = u64> = match &self.payload {
+            Payload::Signals(s) => {
+                let Signals {
+                    sample_rate_hz,
+                    layout,
+                    unit,
+                    data,
+                } = &**s;
+                json(serde_json::json!([
+                    "signals",
+                    sample_rate_hz,
+                    layout,
+                    unit,
+                    data.len()
+                ]));
+                &mut data
+                    .iter()
+                    .flat_map(|row| std::iter::once(row.len() as u64).chain(row.iter().map(|v| v.to_bits())))
+            }
+            Payload::Spikes(t) => {
+                let SpikeTrain {
+                    layout,
+                    duration_ms,
+                    events,
+                } = &**t;
+                json(serde_json::json!(["spikes", layout, duration_ms, events.len()]));
+                &mut events.iter().flat_map(|e| [u64::from(e.taxel), e.t_ms.to_bits()])
+            }
+            Payload::Images(i) => {
+                let SpikeImages {
+                    layout,
+                    window_ms,
+                    hop_ms,
+                    n_frames,
+                    counts,
+                } = &**i;
+                json(serde_json::json!([
+                    "images",
+                    layout,
+                    window_ms,
+                    hop_ms,
+                    n_frames,
+                    counts.len()
+                ]));
+                &mut counts.iter().map(|v| v.to_bits())
+            }
+            Payload::Estimate(e) => {
+                json(serde_json::json!(["estimate", e]));
+                &mut std::iter::empty()
+            }
+        };
+        for w in words {
+            h.write_u64(w);
+        }
+        h.finish()
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -121,6 +121,12 @@ struct CacheMap {
     /// Runs still to come that contain each key, for keys announced by
     /// [`Cache::expect`].
     future: HashMap<u64, usize>,
+    /// Per trained estimator family (its type, settings, id and the graph's
+    /// seed): runs announced in all, and runs still to come.
+    families: HashMap<u64, (usize, usize)>,
+    /// Fitted models by fit key (family, fold seed, training items'
+    /// contents): the model, its fit time, its family.
+    models: HashMap<u64, (Arc<dyn crate::stage::Model>, Duration, u64)>,
 }
 
 impl CacheMap {
@@ -192,12 +198,17 @@ impl Cache {
                     *m.future.entry(k).or_default() += 1;
                 }
             }
+            for f in fit_families(graph).into_iter().flatten() {
+                let e = m.families.entry(f).or_default();
+                e.0 += 1;
+                e.1 += 1;
+            }
         }
     }
-    /// A run of these keys has started (its hits are already fetched): one
-    /// run fewer needs each, and an output no announced run needs any more is
-    /// dropped.
-    fn started(&self, keys: &[u64]) {
+    /// A run of these keys and estimator families has started (its hits are
+    /// already fetched): one run fewer needs each, and an output no announced
+    /// run needs any more is dropped.
+    fn started(&self, keys: &[u64], families: &[u64]) {
         let Ok(mut m) = self.map.lock() else {
             return;
         };
@@ -209,6 +220,42 @@ impl Cache {
                         m.bytes -= e.bytes;
                     }
                 }
+            }
+        }
+        for f in families {
+            if let Some((_, left)) = m.families.get_mut(f) {
+                *left = left.saturating_sub(1);
+            }
+        }
+    }
+    /// A run of these estimator families has ended: the models of a family
+    /// no announced run still has are dropped (not at the run's start: its
+    /// folds look them up as they go).
+    fn finished(&self, families: &[u64]) {
+        if let Ok(mut m) = self.map.lock() {
+            for f in families {
+                if m.families.get(f).is_some_and(|&(_, left)| left == 0) {
+                    m.models.retain(|_, (_, _, fam)| fam != f);
+                }
+            }
+        }
+    }
+    /// Whether runs announced to this cache share the estimator family `f`
+    /// (only then are its models looked up and kept).
+    fn shares_fits(&self, f: u64) -> bool {
+        self.map
+            .lock()
+            .is_ok_and(|m| m.families.get(&f).is_some_and(|&(all, _)| all > 1))
+    }
+    fn model(&self, key: u64) -> Option<(Arc<dyn crate::stage::Model>, Duration)> {
+        let m = self.map.lock().ok()?;
+        m.models.get(&key).map(|(model, t, _)| (model.clone(), *t))
+    }
+    /// Keeps a fitted model while a later announced run has its family.
+    fn put_model(&self, key: u64, family: u64, model: Arc<dyn crate::stage::Model>, fit: Duration) {
+        if let Ok(mut m) = self.map.lock() {
+            if m.families.get(&family).is_some_and(|&(_, left)| left > 0) {
+                m.models.insert(key, (model, fit, family));
             }
         }
     }
@@ -363,6 +410,7 @@ pub fn run(graph: &Graph, opts: &RunOptions<'_>) -> Result<RunResult, RunError> 
     // data), then the plan, backwards from the sinks.
     let mut hit: Vec<Option<Cached>> = vec![None; n];
     let mut skipped: Vec<Option<StageTiming>> = vec![None; n];
+    let mut families: Vec<Option<u64>> = vec![None; n];
     if let Some(c) = opts.cache {
         keys = stage_keys(graph);
         plan(graph, c, &keys, opts.keep_outputs, &mut hit, &mut skipped);
@@ -370,8 +418,13 @@ pub fn run(graph: &Graph, opts: &RunOptions<'_>) -> Result<RunResult, RunError> 
             .filter(|&i| !matches!(graph.nodes[i].stage, Stage::Sink(_)))
             .map(|i| keys[i])
             .collect();
-        c.started(&cacheable);
+        families = fit_families(graph);
+        let own: Vec<u64> = families.iter().flatten().copied().collect();
+        c.started(&cacheable, &own);
     }
+    // Content keys of an estimator input's items, computed once per run for
+    // every estimator that may reuse a model (by input node).
+    let mut content: HashMap<usize, Arc<Vec<u64>>> = HashMap::new();
     // Seconds to recompute each stage with everything upstream (the cache's
     // eviction weighs it against the bytes kept).
     let mut upstream_cost = vec![Duration::ZERO; n];
@@ -509,6 +562,21 @@ pub fn run(graph: &Graph, opts: &RunOptions<'_>) -> Result<RunResult, RunError> 
                 // fit dominates a fold's time, so counting trials (ticked
                 // only after each fit) made the first ETA many times too long.
                 start(opts, id, folds.len());
+                // Under a sweep whose runs share this estimator: a model
+                // fitted on the same training items (by content) with the
+                // same fold seed is reused, reporting the fit time of the run
+                // that fitted it.
+                let reuse = match (opts.cache, families[i]) {
+                    (Some(c), Some(f)) if c.shares_fits(f) => {
+                        let j = graph.input_index[i][0];
+                        let keys = content
+                            .entry(j)
+                            .or_insert_with(|| Arc::new(items.par_iter().map(Item::content_key).collect()))
+                            .clone();
+                        Some((c, f, keys))
+                    }
+                    _ => None,
+                };
                 let mut per_trial = vec![Duration::ZERO; items.len()];
                 let mut estimates: Vec<Option<Item>> = vec![None; items.len()];
                 let fold_results: Vec<FoldOutcome> = folds
@@ -521,11 +589,31 @@ pub fn run(graph: &Graph, opts: &RunOptions<'_>) -> Result<RunResult, RunError> 
                             fold: f,
                             seed: derive_seed(seed, &[id, &fold_name]),
                         };
-                        let train_items: Vec<&Item> = train.iter().map(|&t| &items[t]).collect();
-                        let (model, fit_time) = timed(|| est.fit(&train_items, &fctx));
-                        let model = model.map_err(|e| {
-                            RunError::new(id, None, format!("fitting fold {f}: {}", e.message))
-                        })?;
+                        let fit_key = reuse.as_ref().map(|(_, family, keys)| {
+                            use std::hash::Hasher;
+                            let mut h = std::hash::DefaultHasher::new();
+                            h.write_u64(*family);
+                            h.write_u64(fctx.seed);
+                            for &t in train.iter() {
+                                h.write_u64(keys[t]);
+                            }
+                            h.finish()
+                        });
+                        let reused = reuse.as_ref().zip(fit_key).and_then(|((c, ..), k)| c.model(k));
+                        let (model, fit_time) = match reused {
+                            Some(m) => m,
+                            None => {
+                                let train_items: Vec<&Item> = train.iter().map(|&t| &items[t]).collect();
+                                let (model, fit_time) = timed(|| est.fit(&train_items, &fctx));
+                                let model: Arc<dyn crate::stage::Model> = Arc::from(model.map_err(|e| {
+                                    RunError::new(id, None, format!("fitting fold {f}: {}", e.message))
+                                })?);
+                                if let (Some((c, family, _)), Some(k)) = (&reuse, fit_key) {
+                                    c.put_model(k, *family, model.clone(), fit_time);
+                                }
+                                (model, fit_time)
+                            }
+                        };
                         let preds: Vec<Result<(usize, Timed<Item>), RunError>> = test
                             .par_iter()
                             .map(|&t| {
@@ -621,6 +709,10 @@ pub fn run(graph: &Graph, opts: &RunOptions<'_>) -> Result<RunResult, RunError> 
         result.timings.push(timing);
         release_inputs(graph, i, &mut readers, &mut outputs);
     }
+    if let Some(c) = opts.cache {
+        let own: Vec<u64> = families.iter().flatten().copied().collect();
+        c.finished(&own);
+    }
     Ok(result)
 }
 
@@ -641,6 +733,27 @@ fn stage_keys(graph: &Graph) -> Vec<u64> {
         keys[i] = derive_seed(graph.run.seed, &labels);
     }
     keys
+}
+
+/// Each trained estimator's fit family, by node (`None` for other stages): a
+/// hash of its type, settings and id with the graph's seed, which with the
+/// fold fixes its fit's seed; runs of one sweep that share a family may share
+/// fitted models.
+fn fit_families(graph: &Graph) -> Vec<Option<u64>> {
+    graph
+        .nodes
+        .iter()
+        .map(|node| match &node.stage {
+            Stage::Estimator(e) if e.trained() => {
+                let settings = settings_json(node.config.as_ref()).to_string();
+                Some(derive_seed(
+                    graph.run.seed,
+                    &["fit", &node.type_name, &settings, &node.id],
+                ))
+            }
+            _ => None,
+        })
+        .collect()
 }
 
 /// Plans a run under a cache, from the sinks back to the sources: a stage's

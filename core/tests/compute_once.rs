@@ -247,3 +247,71 @@ values = [1.0, 2.0, 3.0]
         );
     }
 }
+
+#[test]
+fn a_sweep_reuses_a_model_fitted_on_unchanged_training_items() {
+    // `a`'s note changes its settings, not its output: the estimator's input
+    // key changes at every point, its training items do not.
+    let text = r#"
+[stages.src]
+type = "t_source"
+classes = 2
+reps = 3
+samples = 20
+
+[stages.a]
+type = "t_scale"
+inputs = ["src"]
+
+[stages.est]
+type = "t_estimator"
+inputs = ["a"]
+
+[stages.sink]
+type = "t_sink"
+inputs = ["est"]
+
+[sweep]
+key = "stages.a.note"
+values = ["x", "y", "z"]
+"#;
+    let g = load(text).unwrap();
+    let load_opts = palpate_core::LoadOptions {
+        out: Some(g.out_dir.clone()),
+        ..Default::default()
+    };
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let fits = |text: &str| {
+        let g = load(text).unwrap();
+        common::TRAINED_ON
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .clear();
+        let cache = palpate_core::Cache::default();
+        let opts = palpate_core::RunOptions {
+            cache: Some(&cache),
+            ..Default::default()
+        };
+        let runs = palpate_core::sweep::run_text(text, "t.toml", "t", &load_opts, &g, &opts).unwrap();
+        let n = common::TRAINED_ON.lock().unwrap_or_else(|e| e.into_inner()).len();
+        (runs, n)
+    };
+    let (runs, n) = fits(text);
+    // 3 folds (one per repetition), fitted at the first point only.
+    assert_eq!(n, 3);
+    let m0 = &runs[0].result.reports[0].1.metrics;
+    assert!(runs.iter().all(|r| &r.result.reports[0].1.metrics == m0));
+    assert!(runs[2]
+        .result
+        .timings
+        .iter()
+        .any(|t| t.id == "est" && t.fits.len() == 3));
+    // Changing the items (a factor) fits again at every point.
+    let scaled = text.replace(
+        r#"key = "stages.a.note"
+values = ["x", "y", "z"]"#,
+        "key = \"stages.a.factor\"\nvalues = [1.0, 2.0, 3.0]",
+    );
+    let (_, n) = fits(&scaled);
+    assert_eq!(n, 9);
+}

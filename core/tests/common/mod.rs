@@ -87,10 +87,16 @@ impl Source for TSource {
 pub struct TScale {
     /// Factor, dimensionless. Default 2.
     pub factor: f64,
+    /// Ignored: lets a test change the stage's settings (and so its cache
+    /// key) without changing its output. Default empty.
+    pub note: String,
 }
 impl Default for TScale {
     fn default() -> Self {
-        TScale { factor: 2.0 }
+        TScale {
+            factor: 2.0,
+            note: String::new(),
+        }
     }
 }
 /// Tests that read the counters take this lock: tests of one binary run in parallel.
@@ -330,6 +336,7 @@ impl StageConfig for TDynamic {
         }
         Ok(Stage::Map(Box::new(TScale {
             factor: self.config.get("factor").copied().unwrap_or(1.0),
+            note: String::new(),
         })))
     }
 }
