@@ -283,16 +283,38 @@ impl Plan {
     }
 }
 
-/// Per-trial FFT workspace: input spectra per (sequence, plan).
+/// A trial's input sequences and their spectra per (sequence, plan), kept
+/// across [`fast_series_in`] calls on the same trial: a refinement search
+/// scores one template set after another against the same trial, and
+/// without it every step re-ran the 16 forward FFTs of the trial (most of a
+/// step's work). Spectra depend only on the sequence and the plan, so reuse
+/// does not change a bit.
+#[derive(Default)]
+pub(crate) struct TrialSpectra {
+    /// Taxel-major input sequences: 0 = weighted, 1 = unweighted (empty
+    /// until a class needs it).
+    seqs: [Vec<f64>; 2],
+    inputs: HashMap<(usize, Plan), InputSpectra>,
+}
+
+impl TrialSpectra {
+    /// Sets the weighted sequence, dropping its spectra if it changed.
+    fn set_weighted(&mut self, seq: Vec<f64>) {
+        if self.seqs[0] != seq {
+            self.inputs.retain(|(s, _), _| *s != 0);
+            self.seqs[0] = seq;
+        }
+    }
+}
+
+/// Per-call FFT workspace over a trial's [`TrialSpectra`].
 struct Fft<'a> {
     tpl: &'a Templates,
     n: usize,
     k: usize,
-    /// Taxel-major input sequences: 0 = weighted, 1 = unweighted.
-    seqs: [Vec<f64>; 2],
     /// The FFT length every single-block class uses (see [`Fft::plan`]).
     shared_len: usize,
-    inputs: HashMap<(usize, Plan), InputSpectra>,
+    spectra: &'a mut TrialSpectra,
 }
 
 impl<'a> Fft<'a> {
@@ -301,7 +323,7 @@ impl<'a> Fft<'a> {
     /// spectra are made once (16 FFTs) rather than once per distinct length
     /// (three or four on a lab trial): the shorter classes' products and
     /// inverse FFTs grow a little, by less than the forward FFTs saved.
-    fn new(tpl: &'a Templates, n: usize, k: usize, seqs: [Vec<f64>; 2]) -> Self {
+    fn new(tpl: &'a Templates, n: usize, k: usize, spectra: &'a mut TrialSpectra) -> Self {
         let shared_len = tpl
             .classes()
             .iter()
@@ -314,9 +336,8 @@ impl<'a> Fft<'a> {
             tpl,
             n,
             k,
-            seqs,
             shared_len,
-            inputs: HashMap::new(),
+            spectra,
         }
     }
 
@@ -338,14 +359,14 @@ impl<'a> Fft<'a> {
     /// `x[b·block − (h − 1) .. + len)` (zero outside the trial).
     fn input(&mut self, s: usize, plan: Plan) -> &InputSpectra {
         let (n, k) = (self.n, self.k);
-        let (tpl, seqs) = (self.tpl, &self.seqs);
+        let (tpl, seqs) = (self.tpl, &self.spectra.seqs);
         // A single block needs no overlap: its segment starts at frame 0.
         let key = if plan.block >= k {
             Plan { h: 1, ..plan }
         } else {
             plan
         };
-        self.inputs.entry((s, key)).or_insert_with(|| {
+        self.spectra.inputs.entry((s, key)).or_insert_with(|| {
             let Plan { len, block, h } = key;
             let bins = len / 2 + 1;
             let blocks = k.div_ceil(block);
@@ -471,6 +492,17 @@ const FALLBACK_FFT_MIN: usize = 32;
 
 /// `WSS_θ(k)` for every class of `tpl` and every `k`, by the fast path.
 pub(crate) fn fast_series(prep: &Prepared, tpl: &Templates, params: &WssParams) -> Vec<Vec<f64>> {
+    fast_series_in(&mut TrialSpectra::default(), prep, tpl, params)
+}
+
+/// [`fast_series`], reusing (and adding to) the trial's `spectra`: every call
+/// with one `spectra` must be on the same `prep`.
+pub(crate) fn fast_series_in(
+    spectra: &mut TrialSpectra,
+    prep: &Prepared,
+    tpl: &Templates,
+    params: &WssParams,
+) -> Vec<Vec<f64>> {
     let (n, k) = (prep.n, prep.k);
     if k == 0 {
         return vec![Vec::new(); tpl.classes().len()];
@@ -482,15 +514,16 @@ pub(crate) fn fast_series(prep: &Prepared, tpl: &Templates, params: &WssParams) 
         wp[m + 1] = wp[m] + w[m];
         nzp[m + 1] = nzp[m] + usize::from(w[m] != 0.0);
     }
-    let mut seqs = [vec![0.0; n * k], Vec::new()];
+    let mut weighted = vec![0.0; n * k];
     for m in 0..k {
         if prep.active[m] {
             for t in 0..n {
-                seqs[0][t * k + m] = w[m] * prep.norm[m * n + t];
+                weighted[t * k + m] = w[m] * prep.norm[m * n + t];
             }
         }
     }
-    let mut fft = Fft::new(tpl, n, k, seqs);
+    spectra.set_weighted(weighted);
+    let mut fft = Fft::new(tpl, n, k, spectra);
     let before = params.before_start;
     let mut all = Vec::with_capacity(tpl.classes().len());
     for (c, cls) in tpl.classes().iter().enumerate() {
@@ -512,14 +545,14 @@ pub(crate) fn fast_series(prep: &Prepared, tpl: &Templates, params: &WssParams) 
             };
         }
         if fallback.len() >= FALLBACK_FFT_MIN {
-            if fft.seqs[1].is_empty() {
+            if fft.spectra.seqs[1].is_empty() {
                 let mut u = vec![0.0; n * k];
                 for m in 0..k {
                     for t in 0..n {
                         u[t * k + m] = prep.norm[m * n + t];
                     }
                 }
-                fft.seqs[1] = u;
+                fft.spectra.seqs[1] = u;
             }
             let p = fft.conv(c, 1);
             for kk in fallback {
@@ -801,6 +834,7 @@ pub fn wss_batch_speeds(
         return Err(StageError::new("wss: no templates"));
     };
     let prep = prepare(images, first)?;
+    let spectra = std::cell::RefCell::new(TrialSpectra::default());
     let angles = first.angles();
     let mut best = vec![(f64::NEG_INFINITY, 0usize); angles.len()];
     let mut best_f = vec![sets[0].0; angles.len()];
@@ -810,7 +844,7 @@ pub fn wss_batch_speeds(
                 "wss: the templates of every speed must share layout, hop and angles",
             ));
         }
-        let series = fast_series(&prep, tpl, params);
+        let series = fast_series_in(&mut spectra.borrow_mut(), &prep, tpl, params);
         for (c, s) in series.iter().enumerate() {
             let b = best_of(s);
             if b.0 > best[c].0 {
@@ -829,7 +863,7 @@ pub fn wss_batch_speeds(
     let score = |theta: f64, f: f64| -> f64 {
         let p = params.at_speed(f);
         match Templates::for_angles(layout, hop, &p, &[theta]) {
-            Ok(one) => best_of(&fast_series(&prep, &one, &p)[0]).0,
+            Ok(one) => best_of(&fast_series_in(&mut spectra.borrow_mut(), &prep, &one, &p)[0]).0,
             Err(_) => f64::NEG_INFINITY,
         }
     };

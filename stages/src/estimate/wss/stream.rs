@@ -64,7 +64,9 @@
 //! Rounding: scores differ from the batch's directly weighted sums by ~1e-13,
 //! so the two agree to well under 1e-9.
 
-use super::batch::{best_of, check_frame, direct_k, fast_series, finish, window, Prepared, GUARD};
+use super::batch::{
+    best_of, check_frame, direct_k, fast_series_in, finish, window, Prepared, TrialSpectra, GUARD,
+};
 use super::params::{Refine, Weighting, WssParams};
 use super::templates::{FftPair, Soa, Spectra, Templates};
 use palpate_core::{Estimate, StageError};
@@ -465,9 +467,10 @@ impl WssStream {
     pub fn estimate(&self) -> Estimate {
         if self.params.refine == Refine::Search {
             let (prep, params, tpl) = (&self.prep, &self.params, &self.tpl);
+            let mut spectra = TrialSpectra::default();
             let mut search = |theta: f64| -> f64 {
                 match Templates::for_angles(tpl.layout(), tpl.hop_ms(), params, &[theta]) {
-                    Ok(one) => best_of(&fast_series(prep, &one, params)[0]).0,
+                    Ok(one) => best_of(&fast_series_in(&mut spectra, prep, &one, params)[0]).0,
                     Err(_) => f64::NEG_INFINITY,
                 }
             };

@@ -968,3 +968,27 @@ fn timing_refinement_streams_as_batch() {
     assert_eq!(live.angle_deg, batch.angle_deg);
     assert_eq!(live.uncertain, batch.uncertain);
 }
+
+#[test]
+fn reused_trial_spectra_give_the_bits_of_fresh_ones() {
+    // One trial's spectra reused across template sets (one class, then all)
+    // and weightings, in an order that switches the weighted sequence back
+    // and forth: every series has the bits of a fresh computation.
+    let im = noisy(small_trial(50.0), 7, 3.0);
+    let all = Templates::new(&TaxelLayout::paper(), 10.0, &small_params()).unwrap();
+    let one = Templates::for_angles(&TaxelLayout::paper(), 10.0, &small_params(), &[52.5]).unwrap();
+    let prep = batch::prepare(&im, &all).unwrap();
+    let mut spectra = batch::TrialSpectra::default();
+    let bits = |s: &[Vec<f64>]| s.iter().flatten().map(|v| v.to_bits()).collect::<Vec<_>>();
+    for weighting in [Weighting::OneMinusSr, Weighting::Constant, Weighting::OneMinusSr] {
+        let params = WssParams {
+            weighting,
+            ..small_params()
+        };
+        for tpl in [&one, &all, &one] {
+            let reused = batch::fast_series_in(&mut spectra, &prep, tpl, &params);
+            let fresh = batch::fast_series(&prep, tpl, &params);
+            assert_eq!(bits(&reused), bits(&fresh), "{weighting:?}");
+        }
+    }
+}
