@@ -50,7 +50,7 @@ pub trait Progress: Sync {
 }
 
 /// Outputs kept across runs (the points of a sweep), keyed by a hash of each
-/// stage's type, settings, seed and its inputs' keys: a stage whose config and
+/// stage's id, type, settings, seed and its inputs' keys: a stage whose config and
 /// inputs did not change is not run again. Sinks always run. Valid for graphs
 /// loaded from the same directory (relative paths in settings are not resolved
 /// into the key).
@@ -65,9 +65,11 @@ pub trait Progress: Sync {
 /// Each output is kept with the [`StageTiming`] of the run that computed it, so
 /// a run served from the cache still reports what the stage costs (marked
 /// `cached`): a sweep's compute-time figures then do not depend on which point
-/// happened to compute a shared stage first. Timings (a few kB per stage) are
-/// kept for the cache's whole life, so a stage skipped because its readers were
-/// cached still reports its cost.
+/// happened to compute a shared stage first. A stage's timing (a few kB) is
+/// kept beyond its output, so a stage skipped because its readers were cached
+/// still reports its cost; under a sweep's announcements it is dropped with
+/// the last run that needs it, so a long sweep's timings do not pile up
+/// (without announcements they are kept for the cache's life).
 ///
 /// The cache holds at most [`Cache::budget_bytes`] of payload data (default
 /// [`DEFAULT_CACHE_BYTES`]), and an output larger than the whole budget is not
@@ -219,6 +221,7 @@ impl Cache {
                     if let Some(e) = m.entries.remove(k) {
                         m.bytes -= e.bytes;
                     }
+                    m.timings.remove(k);
                 }
             }
         }
@@ -270,8 +273,12 @@ impl Cache {
         let Ok(mut m) = self.map.lock() else {
             return;
         };
+        if m.future.get(&key) == Some(&0) {
+            // No announced run needs this output (or its timing) again.
+            return;
+        }
         m.timings.insert(key, timing);
-        if size > self.budget || m.future.get(&key) == Some(&0) {
+        if size > self.budget {
             return;
         }
         if let Some(old) = m.entries.remove(&key) {
@@ -716,9 +723,11 @@ pub fn run(graph: &Graph, opts: &RunOptions<'_>) -> Result<RunResult, RunError> 
     Ok(result)
 }
 
-/// Every stage's cache key, by node: a hash of its type, settings, the
+/// Every stage's cache key, by node: a hash of its id, type, settings, the
 /// graph's seed and its inputs' keys (so it follows every change upstream
-/// without reading data).
+/// without reading data). The id is in it because stages draw their random
+/// numbers from seeds derived from their ids: two stages alike but for
+/// their ids may differ.
 fn stage_keys(graph: &Graph) -> Vec<u64> {
     let mut keys = vec![0u64; graph.nodes.len()];
     for &i in &graph.order {
@@ -728,7 +737,7 @@ fn stage_keys(graph: &Graph) -> Vec<u64> {
             .iter()
             .map(|&j| keys[j].to_string())
             .collect();
-        let mut labels: Vec<&str> = vec![&node.type_name, &settings];
+        let mut labels: Vec<&str> = vec![&node.id, &node.type_name, &settings];
         labels.extend(input_keys.iter().map(String::as_str));
         keys[i] = derive_seed(graph.run.seed, &labels);
     }
