@@ -81,7 +81,38 @@ struct Caches {
     batch: HashMap<(usize, usize, usize), Spectra>,
     batch_bytes: usize,
     stream: HashMap<(usize, usize), Spectra>,
-    plans: HashMap<usize, FftPair>,
+}
+
+/// Most FFT lengths whose plans [`shared_plan`] keeps; past it the plans are
+/// dropped and planned again as needed (plans in use live on: they are
+/// shared). Trial lengths map to a few dozen FFT lengths in practice.
+const SHARED_PLANS: usize = 64;
+
+/// A process-wide plan of the forward and inverse real FFTs of length `len`.
+///
+/// Why process-wide and not per template set: a refinement search builds a
+/// new one-angle template set at every step, and planning (twiddle factors:
+/// a sine and cosine per point; buffers) then cost as much as the step's
+/// transforms (`sincos`, `exp` and the planner were ~12 % of a joint speed
+/// search's profile). A plan is a deterministic function of the length and
+/// the CPU, so sharing it does not change a bit.
+pub(crate) fn shared_plan(len: usize) -> FftPair {
+    static PLANS: Mutex<Option<HashMap<usize, FftPair>>> = Mutex::new(None);
+    let mut guard = PLANS.lock().unwrap_or_else(|e| e.into_inner());
+    let plans = guard.get_or_insert_with(HashMap::new);
+    if let Some(p) = plans.get(&len) {
+        return p.clone();
+    }
+    if plans.len() >= SHARED_PLANS {
+        plans.clear();
+    }
+    let mut planner = RealFftPlanner::<f64>::new();
+    let pair = FftPair {
+        fwd: planner.plan_fft_forward(len),
+        inv: planner.plan_fft_inverse(len),
+    };
+    plans.insert(len, pair.clone());
+    pair
 }
 
 /// A forward and an inverse real FFT of one length.
@@ -365,19 +396,10 @@ impl Templates {
         self.caches.lock().unwrap_or_else(|e| e.into_inner())
     }
 
-    /// Forward and inverse real FFTs of length `len`, planned once.
+    /// Forward and inverse real FFTs of length `len`, planned once per
+    /// process (see [`shared_plan`]).
     pub(crate) fn plan(&self, len: usize) -> FftPair {
-        let mut c = self.lock();
-        c.plans
-            .entry(len)
-            .or_insert_with(|| {
-                let mut p = RealFftPlanner::<f64>::new();
-                FftPair {
-                    fwd: p.plan_fft_forward(len),
-                    inv: p.plan_fft_inverse(len),
-                }
-            })
-            .clone()
+        shared_plan(len)
     }
 
     /// Spectra `[taxel][bin]` of class `c`'s first `h` templates, zero-padded to
