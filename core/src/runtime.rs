@@ -196,7 +196,7 @@ impl Cache {
         let keys = stage_keys(graph);
         if let Ok(mut m) = self.map.lock() {
             for (i, k) in keys.into_iter().enumerate() {
-                if !matches!(graph.nodes[i].stage, Stage::Sink(_)) {
+                if !always_runs(&graph.nodes[i].stage) {
                     *m.future.entry(k).or_default() += 1;
                 }
             }
@@ -422,7 +422,7 @@ pub fn run(graph: &Graph, opts: &RunOptions<'_>) -> Result<RunResult, RunError> 
         keys = stage_keys(graph);
         plan(graph, c, &keys, opts.keep_outputs, &mut hit, &mut skipped);
         let cacheable: Vec<u64> = (0..n)
-            .filter(|&i| !matches!(graph.nodes[i].stage, Stage::Sink(_)))
+            .filter(|&i| !always_runs(&graph.nodes[i].stage))
             .map(|i| keys[i])
             .collect();
         families = fit_families(graph);
@@ -708,7 +708,7 @@ pub fn run(graph: &Graph, opts: &RunOptions<'_>) -> Result<RunResult, RunError> 
                 result.outputs.insert(node.id.clone(), items.clone());
             }
             upstream_cost[i] = inputs_cost + timing.total;
-            if let Some(c) = opts.cache {
+            if let (Some(c), false) = (opts.cache, always_runs(&node.stage)) {
                 c.put(keys[i], items.clone(), timing.clone(), upstream_cost[i]);
             }
             outputs[i] = Some(items);
@@ -744,6 +744,16 @@ fn stage_keys(graph: &Graph) -> Vec<u64> {
     keys
 }
 
+/// Stages that run at every run, served from nothing a cache holds: sinks,
+/// and estimators whose fits have effects ([`crate::stage::Estimator::reusable`]).
+fn always_runs(stage: &Stage) -> bool {
+    match stage {
+        Stage::Sink(_) => true,
+        Stage::Estimator(e) => !e.reusable(),
+        _ => false,
+    }
+}
+
 /// Each trained estimator's fit family, by node (`None` for other stages): a
 /// hash of its type, settings and id with the graph's seed, which with the
 /// fold fixes its fit's seed; runs of one sweep that share a family may share
@@ -753,7 +763,7 @@ fn fit_families(graph: &Graph) -> Vec<Option<u64>> {
         .nodes
         .iter()
         .map(|node| match &node.stage {
-            Stage::Estimator(e) if e.trained() => {
+            Stage::Estimator(e) if e.trained() && e.reusable() => {
                 let settings = settings_json(node.config.as_ref()).to_string();
                 Some(derive_seed(
                     graph.run.seed,
@@ -785,7 +795,7 @@ fn plan(
 ) {
     let mut wanted = vec![false; graph.nodes.len()];
     for &i in graph.order.iter().rev() {
-        let computed = if matches!(graph.nodes[i].stage, Stage::Sink(_)) {
+        let computed = if always_runs(&graph.nodes[i].stage) {
             true
         } else if wanted[i] || keep_outputs {
             hit[i] = cache.get(keys[i]);

@@ -492,7 +492,19 @@ pub trait Estimator: Send + Sync {
     /// True when the estimator learns from training trials.
     fn trained(&self) -> bool;
     /// Fits a model. A model-based estimator gets no training items.
+    ///
+    /// A sweep may reuse a model fitted at an earlier point, for the same
+    /// stage (id, type, settings), seed and fold, when the training items'
+    /// payloads and metadata other than provenance are unchanged
+    /// ([`Item::content_key`]): a fit must depend on nothing else.
     fn fit(&self, train: &[&Item], ctx: &FitContext<'_>) -> Result<Box<dyn Model>, StageError>;
+    /// False when fitting has effects beyond the model it returns (writing
+    /// the model into the run's directory): a sweep then runs the stage at
+    /// every point, reusing neither its output nor its models, so every
+    /// point gets its files. Default true.
+    fn reusable(&self) -> bool {
+        true
+    }
 }
 
 /// A fitted model.

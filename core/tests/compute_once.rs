@@ -314,4 +314,15 @@ values = ["x", "y", "z"]"#,
     );
     let (_, n) = fits(&scaled);
     assert_eq!(n, 9);
+    // A fit with effects (a saved model file per point) runs at every point,
+    // and its stage is not served from the cache either.
+    let effects = text.replace("type = \"t_estimator\"", "type = \"t_estimator\"\neffects = true");
+    let (_, n) = fits(&effects);
+    assert_eq!(n, 9);
+    let unchanged = effects.replace(r#"values = ["x", "y", "z"]"#, r#"values = ["x", "x", "x"]"#);
+    let (_, n) = fits(&unchanged);
+    assert_eq!(
+        n, 9,
+        "an estimator with effects is fitted at every point, even an identical one"
+    );
 }

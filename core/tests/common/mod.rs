@@ -177,8 +177,11 @@ impl Map for TSpikes {
 /// Test estimator: nearest class mean of the signals' overall mean; records
 /// which trials it was trained on.
 #[derive(Clone, Debug, Default, Serialize, Deserialize, JsonSchema)]
-#[serde(deny_unknown_fields)]
-pub struct TEstimator {}
+#[serde(deny_unknown_fields, default)]
+pub struct TEstimator {
+    /// Pretend fitting has effects (as saving a model does). Default false.
+    pub effects: bool,
+}
 
 pub static TRAINED_ON: Mutex<Vec<(usize, Vec<String>)>> = Mutex::new(Vec::new());
 
@@ -208,6 +211,9 @@ struct TModel {
 impl Estimator for TEstimator {
     fn trained(&self) -> bool {
         true
+    }
+    fn reusable(&self) -> bool {
+        !self.effects
     }
     fn fit(&self, train: &[&Item], ctx: &FitContext<'_>) -> Result<Box<dyn Model>, StageError> {
         TRAINED_ON

@@ -829,6 +829,10 @@ impl<C: FitBaseline> palpate_core::Estimator for TrainedEstimator<C> {
         maybe_save(&m, self.config.saves_models(), &self.out_dir, ctx)?;
         Ok(Box::new(m))
     }
+    fn reusable(&self) -> bool {
+        // A saved model is a file per point: fit again at every point.
+        !self.config.saves_models()
+    }
 }
 
 /// The running vote of a trial.
