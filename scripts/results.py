@@ -1014,9 +1014,10 @@ def section_time(out, wall, docs, criterion):
             f"**{speedup:.0f}x** faster | {yes_no(speedup >= 1000)} | `cargo bench --bench wss -- wss_batch` |"
         )
     if wall:
-        total = wall["total_s"]
+        # The target excludes the release build (issue 17): the graphs' time.
+        total = wall["total_s"] - wall.get("build_s", 0)
         targets.append(
-            f"| the whole paper reproduction (now 5 seeds x 2 scenes) under 60 s on 2 cores | **{total:.0f} s** on "
+            f"| the whole paper reproduction (now 5 seeds x 2 scenes) under 60 s on 2 cores, release build excluded | **{total:.0f} s** on "
             f"{wall.get('cores', '?')} cores (load {wall.get('load_at_start', '?')} at start"
             + ("; the sum of per-graph runs, see the top of this page" if wall.get("pieced") else "") + ") | "
             f"{yes_no(total < 60)} | `scripts/reproduce.sh` |"
@@ -1182,9 +1183,9 @@ def main():
     elif wall:
         head += [
             f"Measured wall time of that command on the machine that generated this file: "
-            f"**{wall['total_s']:.0f} s** ({wall.get('cores', '?')} cores, load average "
-            f"{wall.get('load_at_start', '?')} when it started; release build step "
-            f"{wall.get('build_s', 0):.0f} s; per graph: "
+            f"**{wall['total_s'] - wall.get('build_s', 0):.0f} s** of graphs after a release build of "
+            f"{wall.get('build_s', 0):.0f} s ({wall.get('cores', '?')} cores, load average "
+            f"{wall.get('load_at_start', '?')} when it started; per graph: "
             + ", ".join(f"{k} {v:.0f} s" for k, v in wall.get("graphs", {}).items()) + ")"
             + (f"; {wall['note']}." if wall.get("note") else "."),
             "",
