@@ -964,6 +964,37 @@ mod tests {
         assert_eq!((c.hits(), c.misses()), (4, 2));
     }
 
+    proptest::proptest! {
+        /// Any sequence of puts, gets and announced runs keeps the byte
+        /// count exact and within the budget, and never panics.
+        #[test]
+        fn the_cache_accounting_holds_under_any_sequence(
+            ops in proptest::collection::vec((0u8..4, 0u64..12, 1usize..40, 0u64..50), 1..200),
+            budget_cells in 16usize..200,
+        ) {
+            let c = Cache::with_budget(budget_cells * 8);
+            for (op, key, cells, cost) in ops {
+                match op {
+                    0 | 1 => c.put(key, images(cells * 16), StageTiming::default(), Duration::from_millis(cost)),
+                    2 => {
+                        let _ = c.get(key);
+                    }
+                    _ => {
+                        // A run announced once, now started: its output goes.
+                        c.map.lock().unwrap_or_else(|e| e.into_inner()).future.insert(key, 1);
+                        c.started(&[key], &[key]);
+                        proptest::prop_assert!(c.get(key).is_none());
+                        c.map.lock().unwrap_or_else(|e| e.into_inner()).future.remove(&key);
+                    }
+                }
+                let m = c.map.lock().unwrap_or_else(|e| e.into_inner());
+                let sum: usize = m.entries.values().map(|e| e.bytes).sum();
+                proptest::prop_assert_eq!(sum, m.bytes);
+                proptest::prop_assert!(m.bytes <= c.budget_bytes());
+            }
+        }
+    }
+
     #[test]
     fn eviction_keeps_what_costs_most_to_recompute_per_byte() {
         let c = Cache::with_budget(3 * 12_800);
