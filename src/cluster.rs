@@ -126,8 +126,9 @@ pub fn run_points(
     let points = base.sweep.as_ref().map(|s| s.points()).unwrap_or_default();
     // Point runs already complete are skipped; the cache is told which of
     // the others will run, so it keeps just what they share.
-    let todo: Vec<&&(usize, usize, Graph)> = chosen
+    let todo: Vec<&(usize, usize, Graph)> = chosen
         .iter()
+        .copied()
         .filter(|(p, r, g)| fresh || PointRecord::read_matching(&g.out_dir, g, *p, *r).is_none())
         .collect();
     for (_, _, g) in &todo {

@@ -131,10 +131,9 @@ struct CacheMap {
     models: HashMap<u64, (Arc<dyn crate::stage::Model>, Duration, u64)>,
 }
 
-impl CacheMap {
-    fn priority(&self, cost: f64, bytes: usize) -> f64 {
-        self.floor + cost / bytes.max(1) as f64
-    }
+/// GreedyDual-Size priority `H = L + cost / bytes`.
+fn priority(floor: f64, cost: f64, bytes: usize) -> f64 {
+    floor + cost / bytes.max(1) as f64
 }
 
 impl Default for Cache {
@@ -180,7 +179,7 @@ impl Cache {
             let timing = m.timings.get(&key).cloned();
             m.entries.get_mut(&key).and_then(|e| {
                 e.used = now;
-                e.h = floor + e.cost / e.bytes.max(1) as f64;
+                e.h = priority(floor, e.cost, e.bytes);
                 Some((e.items.clone(), timing?))
             })
         };
@@ -303,7 +302,7 @@ impl Cache {
             items,
             bytes: size,
             cost,
-            h: m.priority(cost, size),
+            h: priority(m.floor, cost, size),
             used: m.clock,
         };
         m.entries.insert(key, entry);
@@ -440,19 +439,6 @@ pub fn run(graph: &Graph, opts: &RunOptions<'_>) -> Result<RunResult, RunError> 
         let node = &graph.nodes[i];
         let id = node.id.as_str();
         let inputs_cost: Duration = graph.input_index[i].iter().map(|&j| upstream_cost[j]).sum();
-        if let Some(timing) = skipped[i].take() {
-            // Every reader of this stage was served from the cache.
-            upstream_cost[i] = inputs_cost + timing.total;
-            result.timings.push(StageTiming {
-                id: node.id.clone(),
-                type_name: node.type_name.clone(),
-                role: node.stage.role(),
-                cached: true,
-                ..timing
-            });
-            release_inputs(graph, i, &mut readers, &mut outputs);
-            continue;
-        }
         if let Some(timing) = depth_first[i].take() {
             if let (true, Some(items)) = (opts.keep_outputs, &outputs[i]) {
                 result.outputs.insert(node.id.clone(), items.clone());
@@ -466,7 +452,13 @@ pub fn run(graph: &Graph, opts: &RunOptions<'_>) -> Result<RunResult, RunError> 
             type_name: node.type_name.clone(),
             settings: settings_json(node.config.as_ref()),
         };
-        if let Some((items, computed)) = hit[i].take() {
+        // Served from the cache: its output (a hit), or only its timing (a
+        // stage whose readers were all hits).
+        let served = hit[i]
+            .take()
+            .map(|(items, t)| (Some(items), t))
+            .or_else(|| skipped[i].take().map(|t| (None, t)));
+        if let Some((items, computed)) = served {
             upstream_cost[i] = inputs_cost + computed.total;
             result.timings.push(StageTiming {
                 id: node.id.clone(),
@@ -475,10 +467,10 @@ pub fn run(graph: &Graph, opts: &RunOptions<'_>) -> Result<RunResult, RunError> 
                 cached: true,
                 ..computed
             });
-            if opts.keep_outputs {
+            if let (true, Some(items)) = (opts.keep_outputs, &items) {
                 result.outputs.insert(node.id.clone(), items.clone());
             }
-            outputs[i] = Some(items);
+            outputs[i] = items;
             release_inputs(graph, i, &mut readers, &mut outputs);
             continue;
         }

@@ -4,6 +4,20 @@ mod common;
 use common::{load, SCALE_CALLS, SERIAL};
 use std::sync::atomic::Ordering;
 
+/// Runs the sweep of graph `text` under `cache`.
+fn sweep_runs(text: &str, cache: &palpate_core::Cache) -> Vec<palpate_core::sweep::SweepRun> {
+    let g = load(text).unwrap();
+    let load_opts = palpate_core::LoadOptions {
+        out: Some(g.out_dir.clone()),
+        ..Default::default()
+    };
+    let opts = palpate_core::RunOptions {
+        cache: Some(cache),
+        ..Default::default()
+    };
+    palpate_core::sweep::run_text(text, "t.toml", "t", &load_opts, &g, &opts).unwrap()
+}
+
 #[test]
 fn a_shared_output_is_computed_once() {
     let text = r#"
@@ -74,17 +88,9 @@ values = [1.0, 2.0, 3.0]
     let sweep = g.sweep.clone().unwrap();
     assert_eq!(sweep.values.len(), 3);
     let cache = palpate_core::Cache::default();
-    let opts = palpate_core::RunOptions {
-        cache: Some(&cache),
-        ..Default::default()
-    };
-    let load_opts = palpate_core::LoadOptions {
-        out: Some(g.out_dir.clone()),
-        ..Default::default()
-    };
     let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     SCALE_CALLS.store(0, Ordering::SeqCst);
-    let runs = palpate_core::sweep::run_text(text, "t.toml", "t", &load_opts, &g, &opts).unwrap();
+    let runs = sweep_runs(text, &cache);
     assert_eq!(runs.len(), 3);
     // `a` runs for the first point only (6 trials); `b` for every point (3 x 6).
     assert_eq!(SCALE_CALLS.load(Ordering::SeqCst), 6 + 18);
@@ -203,10 +209,6 @@ key = "stages.c.factor"
 values = [1.0, 2.0, 3.0]
 "#;
     let g = load(text).unwrap();
-    let load_opts = palpate_core::LoadOptions {
-        out: Some(g.out_dir.clone()),
-        ..Default::default()
-    };
     let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     let one = palpate_core::run(
         &g,
@@ -222,12 +224,8 @@ values = [1.0, 2.0, 3.0]
         .sum();
     let run_with = |budget: usize| {
         let cache = palpate_core::Cache::with_budget(budget);
-        let opts = palpate_core::RunOptions {
-            cache: Some(&cache),
-            ..Default::default()
-        };
         SCALE_CALLS.store(0, Ordering::SeqCst);
-        let runs = palpate_core::sweep::run_text(text, "t.toml", "t", &load_opts, &g, &opts).unwrap();
+        let runs = sweep_runs(text, &cache);
         (runs, SCALE_CALLS.load(Ordering::SeqCst), cache.held_bytes())
     };
     let (full, calls_full, _) = run_with(palpate_core::runtime::DEFAULT_CACHE_BYTES);
@@ -275,24 +273,13 @@ inputs = ["est"]
 key = "stages.a.note"
 values = ["x", "y", "z"]
 "#;
-    let g = load(text).unwrap();
-    let load_opts = palpate_core::LoadOptions {
-        out: Some(g.out_dir.clone()),
-        ..Default::default()
-    };
     let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     let fits = |text: &str| {
-        let g = load(text).unwrap();
         common::TRAINED_ON
             .lock()
             .unwrap_or_else(|e| e.into_inner())
             .clear();
-        let cache = palpate_core::Cache::default();
-        let opts = palpate_core::RunOptions {
-            cache: Some(&cache),
-            ..Default::default()
-        };
-        let runs = palpate_core::sweep::run_text(text, "t.toml", "t", &load_opts, &g, &opts).unwrap();
+        let runs = sweep_runs(text, &palpate_core::Cache::default());
         let n = common::TRAINED_ON.lock().unwrap_or_else(|e| e.into_inner()).len();
         (runs, n)
     };
