@@ -1329,6 +1329,7 @@ fn fit_softmax(
         max_line_search: 50,
     };
     let out = lbfgs::minimize(vec![0.0; nw + k], fg, &params);
+
     let mut theta = out.x;
     let b = theta.split_off(nw);
     (theta, b)

@@ -839,8 +839,10 @@ impl<C: FitBaseline> palpate_core::Estimator for TrainedEstimator<C> {
 #[derive(Clone, Debug)]
 pub struct Accumulator {
     totals: Vec<f64>,
-    /// Per class: (largest per-frame score, its frame).
-    peak: Vec<(f64, usize)>,
+    /// Per class: the largest per-frame score, and its frame in `peak_frame`
+    /// (two arrays, so the per-frame update is a vectorised select).
+    peak: Vec<f64>,
+    peak_frame: Vec<usize>,
     used: usize,
     last_frame: Option<usize>,
 }
@@ -850,7 +852,8 @@ impl Accumulator {
     pub fn new(n: usize) -> Self {
         Accumulator {
             totals: vec![0.0; n],
-            peak: vec![(f64::NEG_INFINITY, 0); n],
+            peak: vec![f64::NEG_INFINITY; n],
+            peak_frame: vec![0; n],
             used: 0,
             last_frame: None,
         }
@@ -867,10 +870,11 @@ impl Accumulator {
             Vote::Winner => self.totals[w] += scores[w],
             Vote::Sum => self.totals.iter_mut().zip(scores).for_each(|(t, s)| *t += s),
         }
-        for (p, &s) in self.peak.iter_mut().zip(scores) {
-            if s > p.0 {
-                *p = (s, k);
-            }
+        // Selects rather than branches: a class's peak moves at random frames.
+        for ((p, f), &s) in self.peak.iter_mut().zip(&mut self.peak_frame).zip(scores) {
+            let up = s > *p;
+            *f = if up { k } else { *f };
+            *p = if up { s } else { *p };
         }
         self.used += 1;
         self.last_frame = Some(k);
@@ -903,22 +907,48 @@ impl Accumulator {
             angle_deg: Some(classes[w]),
             class_deg: Some(classes[w]),
             scores,
-            best_frame: Some(self.peak[w].1),
+            best_frame: Some(self.peak_frame[w]),
             decision_time_ms: self.last_frame.map(|k| k as f64 * spec.hop_ms + spec.window_ms),
             uncertain: false,
         }
     }
 }
 
-/// Index of the largest value (first on ties).
+/// Index of the largest value (first on ties; a NaN is never largest, and
+/// a NaN first entry wins, as a scan that replaces on `>` gives).
+///
+/// Branch-free, in two passes, instead of that scan: its "new best" branch
+/// is taken at random places in a row of class scores and mispredicts, and
+/// with the vote it was a quarter of a logistic prediction (perf on
+/// `benches/peers`). The largest value does not depend on the order it is
+/// found in (four running maxima, each ignoring NaN as `>` does), and the
+/// scan's answer is the first index equal to it (`-0.0 == 0.0`, as `>`
+/// treats them).
 pub fn argmax(v: &[f64]) -> usize {
-    let mut best = 0;
-    for (i, x) in v.iter().enumerate() {
-        if *x > v[best] {
-            best = i;
+    let Some(&first) = v.first() else { return 0 };
+    if first.is_nan() {
+        return 0;
+    }
+    let mut m = [first; 4];
+    let chunks = v.chunks_exact(4);
+    for &x in chunks.remainder() {
+        m[0] = if x > m[0] { x } else { m[0] };
+    }
+    for c in chunks {
+        for l in 0..4 {
+            m[l] = if c[l] > m[l] { c[l] } else { m[l] };
         }
     }
-    best
+    let a = if m[1] > m[0] { m[1] } else { m[0] };
+    let b = if m[3] > m[2] { m[3] } else { m[2] };
+    let top = if b > a { b } else { a };
+    v.iter()
+        .enumerate()
+        .fold(
+            usize::MAX,
+            |best, (i, &x)| if x == top && i < best { i } else { best },
+        )
+        .min(v.len() - 1)
 }
 
 /// Frame-by-frame estimation with a fitted model (borrowed, `&FittedModel`,
@@ -1110,6 +1140,34 @@ pub fn synthetic_items(angles: &[f64], reps: usize, p: &SynthParams, seed: u64) 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use proptest::prelude::*;
+
+    /// The definition [`argmax`] must match: a scan replacing on `>`.
+    fn argmax_scan(v: &[f64]) -> usize {
+        let mut best = 0;
+        for (i, x) in v.iter().enumerate() {
+            if *x > v[best] {
+                best = i;
+            }
+        }
+        best
+    }
+
+    /// Scores drawn from a few values (so ties are common), with NaN, ±0 and ±inf.
+    fn score() -> impl Strategy<Value = f64> {
+        prop_oneof![
+            4 => prop::sample::select(vec![0.1, 0.25, 0.5, 1.0]),
+            4 => -1e3f64..1e3,
+            1 => prop::sample::select(vec![f64::NAN, 0.0, -0.0, f64::INFINITY, f64::NEG_INFINITY]),
+        ]
+    }
+
+    proptest! {
+        #[test]
+        fn argmax_is_the_first_largest_as_a_scan_finds_it(v in prop::collection::vec(score(), 0..40)) {
+            prop_assert_eq!(argmax(&v), argmax_scan(&v));
+        }
+    }
 
     /// A classifier no built-in stage names, as a plugin would add one:
     /// nearest centre, score `1 / (1 + squared distance)`.

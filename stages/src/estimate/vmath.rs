@@ -123,19 +123,30 @@ pub fn softmax(z: &mut [f64]) {
 
 /// [`softmax`] of every `k`-wide row of `z`, with the same bits, the
 /// exponentials of all rows in one vectorised pass.
+///
+/// All three passes run inside [`crate::wide::with_avx2`]: the divisions by
+/// each row's sum were the largest cost of a batch when compiled for the
+/// SSE2 baseline (two lanes per `divpd`; perf on the logistic predictions of
+/// `benches/peers`), and a division rounds the same at any width.
 pub fn softmax_rows(z: &mut [f64], k: usize) {
     let k = k.max(1);
-    for row in z.chunks_exact_mut(k) {
-        let m = row.iter().copied().fold(f64::NEG_INFINITY, f64::max);
-        row.iter_mut().for_each(|v| *v -= m);
-    }
     let whole = z.len() / k * k;
-    exp_in_place(&mut z[..whole]);
-    for row in z.chunks_exact_mut(k) {
-        let mut sum = 0.0;
-        row.iter().for_each(|v| sum += v);
-        row.iter_mut().for_each(|v| *v /= sum);
-    }
+    let z = &mut z[..whole];
+    crate::wide::with_avx2(
+        #[inline(always)]
+        || {
+            for row in z.chunks_exact_mut(k) {
+                let m = row.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+                row.iter_mut().for_each(|v| *v -= m);
+            }
+            z.iter_mut().for_each(|x| *x = exp(*x));
+            for row in z.chunks_exact_mut(k) {
+                let mut sum = 0.0;
+                row.iter().for_each(|v| sum += v);
+                row.iter_mut().for_each(|v| *v /= sum);
+            }
+        },
+    );
 }
 
 /// `v ← exp(v)` for every entry, vectorised ([`crate::wide::with_avx2`]).
