@@ -52,16 +52,19 @@
 //!   class scores = the neighbours' shares (optionally `1/d`-weighted), as
 //!   scikit-learn's `KNeighborsClassifier::predict_proba`. The search is exact
 //!   and pruned ([`super::knn_index`]): principal axes, blocks of 16 training
-//!   vectors with bounding balls, an `f32` partial-distance bound with a
-//!   rigorous rounding margin, and the exact [`sq_dist`] for the survivors,
+//!   vectors with bounding boxes, an `f32` partial-distance bound with a
+//!   rigorous rounding margin whose `k`-th smallest full sum also bounds the
+//!   `k`-th distance, and the exact [`sq_dist`] for the survivors only,
 //!   so the neighbours are those of a scan that keeps the `k` smallest
 //!   `(distance, index)` pairs (ties go to the earlier training vector),
-//!   bit for bit. On the peers k-NN workload (3154 x 3060 x 80, k = 10) it
-//!   visits ~48% of the blocks, accumulates ~18% of the coordinate terms in
-//!   `f32` and computes ~1.8% of the exact distances: ~2x faster than the
-//!   full scan (GEMM identity through the tiled kernel, then an exact
-//!   re-rank of the candidates), which stays for models without an index
-//!   (rows not finite or beyond 1e15). smartcore's search (cover tree or
+//!   bit for bit. On the peers k-NN workload (3154 x 3060 x 80, k = 10) a
+//!   query visits ~36 of 192 blocks, accumulates ~12% of the coordinate
+//!   terms in `f32` and computes ~10.5 exact distances; predict took 28.8 ms
+//!   on a loaded 2-core machine (scikit-learn 84.5 ms there; the previous
+//!   ball-bound index 47.7-49.6 ms against 56.7 ms on a quiet one). The full
+//!   scan (GEMM identity through the tiled kernel, then an exact re-rank of
+//!   the candidates) stays for models without an index (rows not finite or
+//!   beyond 1e15). smartcore's search (cover tree or
 //!   linear) went through boxed iterators per distance and took ~20 s per fold.
 //! * `logistic`: multinomial logistic regression, `alpha/2 ‖W‖²` (intercepts
 //!   not penalised) added to the summed log loss, i.e. scikit-learn's

@@ -1,6 +1,6 @@
 //! An exact k-nearest-neighbour search for [`super::classic::Knn`] that
 //! computes few distances: a principal-axes rotation, a partition of the
-//! training vectors into blocks of [`LANES`] neighbours with a bounding ball
+//! training vectors into blocks of [`LANES`] neighbours with a bounding box
 //! each, and a cheap `f32` lower bound that discards most of the remaining
 //! vectors after a few of their coordinates. Every vector that survives is
 //! compared with its exact distance, [`dense::sq_dist`] of the standardised
@@ -15,57 +15,80 @@
 //!   spread (on the 80-value spike windows, 13 axes hold 80% of it).
 //! * `ŵ_j = R (x_j − m)` in `f64`, kept as `w_j = f32(ŵ_j)`.
 //! * The vectors are ordered as the leaves of a k-d tree on `ŵ` (split at a
-//!   multiple of [`LANES`] near the median of the widest coordinate) and
-//!   stored in blocks of [`LANES`] (a leaf; the last block repeats its first
-//!   vector in its empty lanes), coordinate-major within a block so one
-//!   vector operation advances all its lanes by one coordinate. Each block
-//!   has a centre `μ_b` and a radius `r_b ≥ max_j ‖w_j − μ_b‖`.
+//!   multiple of [`LANES`] near the median of the coordinate of largest
+//!   variance) and stored in blocks of [`LANES`] (a leaf; the last block
+//!   repeats its first vector in its empty lanes), coordinate-major within a
+//!   block so one vector operation advances all its lanes by one coordinate.
+//! * Per block, a box: the range of each of the first `min(dim, BOX)`
+//!   coordinates of its `w_j`, and the range of the norms of the rest (the
+//!   *tail*), both in `f32` (the norms rounded outwards).
+//! * Memory: the `f32` vectors (`n · dim`, rounded up to whole blocks), an
+//!   index per vector, the boxes (`2 · BOX + 2` values per block), the tree
+//!   (one split per block) and `R` (`dim²`): linear in the training set.
 //!
 //! # The search ([`KnnIndex::search`]) and why it is exact
 //!
 //! Let `D = ‖z − x‖²` (real numbers) and `D̂` its computed value
 //! ([`dense::sq_dist`]). The answer is the `k` smallest `(D̂, index)` pairs,
 //! so a vector may be skipped only when `D̂ > τ`, with `τ` the `k`-th smallest
-//! `D̂` found so far (`+∞` until `k` are found); a vector with `D̂ = τ` may
-//! still win on its index and is never skipped. A *candidate* is a vector
-//! with `D̂ ≤ τ`. Bounds, with `u` the unit roundoff of `f64` and `n = dim`:
+//! `D̂` of all vectors; a vector with `D̂ = τ` may still win on its index and
+//! is never skipped. A *candidate* is a vector with `D̂ ≤ τ`. With `u` the
+//! unit roundoff of `f64`, `n = dim` and `y = f32(ŷ)` the query's rotation:
 //!
-//! 1. `D̂ ≥ D (1 − γ)` with `γ = 1.01 (n + 2) u` (a sum of `n` rounded
-//!    squares of rounded differences, any order), so a candidate has
-//!    `D ≤ τ (1 + 2γ)`.
-//! 2. `R` is a fixed matrix, not exactly orthonormal; `s ≥ ‖R‖₂` is
-//!    bounded at build time by the largest absolute row sum of `R Rᵀ`
-//!    (plus its rounding), so `‖R v‖ ≤ s ‖v‖`. The mean cancels:
-//!    `R (z − m) − R (x − m) = R (z − x)`, so `‖y − w*‖ ≤ s √D` where
-//!    `y`, `w*` are the exact rotations.
+//! 1. `D (1 − γ) ≤ D̂ ≤ D (1 + γ)` with `γ = 1.01 (n + 2) u` (a sum of `n`
+//!    rounded squares of rounded differences, any order).
+//! 2. `R` is a fixed matrix, not exactly orthonormal; Gershgorin's discs of
+//!    the computed `R Rᵀ` (widened by its rounding) give `s ≥ ‖R‖₂` and
+//!    `σ ≤ σ_min(R)` (the index is declined unless `σ² > 1/2`). The mean
+//!    cancels: `R (z − m) − R (x − m) = R (z − x)`, so `σ √D ≤ ‖ŷ* − ŵ*‖ ≤
+//!    s √D` for the exact rotations.
 //! 3. The stored and query rotations are off the exact ones by at most
 //!    `e = √n γ' max|R_ij| ‖v‖₁ + 2⁻²⁴ ‖ŵ‖` (the `f64` product, `γ' =
 //!    1.01 (n + 2) u`, then the rounding to `f32`), plus an absolute slack
 //!    for underflow; `E_q`, and `E_X` = the largest over the training set.
-//!    By the triangle inequality a candidate has
-//!    `‖y_f32 − w_j‖ ≤ B(τ) = s √(τ (1 + 2γ)) + E_q + E_X`.
-//! 4. **Blocks**: `‖y_f32 − w_j‖ ≥ ‖y_f32 − μ_b‖ − r_b` for every vector
-//!    of block `b` (triangle inequality; the computed centre distance is
-//!    shrunk by a relative `10⁻⁹` to a lower bound). Blocks are visited by
-//!    increasing lower bound, and the search stops at the first block whose
-//!    bound exceeds `B(τ)`: no later block holds a candidate.
-//! 5. **Coordinates**: within a block, the partial sums `p` of
-//!    `(y_i − w_ji)²` over the first coordinates, in `f32`, only grow, and
-//!    every partial sum of squares is at most the full one; with the `f32`
-//!    rounding (`γ₃₂ = 1.01 (2n + 4) 2⁻²⁴`) a candidate has
-//!    `p ≤ T(τ) = (1 + γ₃₂) B(τ)² (1 + 10⁻⁶) + 10⁻³⁰`. A block is left as
-//!    soon as every lane's partial sum exceeds `T` (checked every [`CHUNK`]
-//!    coordinates); the lanes still at or below `T` after the last
-//!    coordinate get their exact distance.
+//!    So, with `E = E_q + E_X` and `P = ‖y − w_j‖²` (real numbers):
+//!    a candidate has `√P ≤ B(τ) = s √(τ (1 + 2γ)) + E`, and any vector has
+//!    `D̂ ≤ U(P) = (1 + γ) ((√P + E) / σ)²`.
+//! 4. **`f32` sums**: a computed sum `p` of `(y_i − w_ji)²` over some
+//!    coordinates errs from the real one by a relative `γ₃₂ = 1.01 (2n + 4)
+//!    2⁻²⁴` at most, and partial sums only grow; so a candidate has `p ≤
+//!    T(τ) = (1 + γ₃₂) B(τ)² (1 + 10⁻⁶) + 10⁻³⁰` after any number of
+//!    coordinates, and a full sum gives `P ≤ p / (1 − γ₃₂) + 10⁻³⁰`.
+//! 5. **`τ` from the sums**: `k` distinct vectors with full sums `p` have
+//!    `D̂ ≤ U(p / (1 − γ₃₂) + 10⁻³⁰)`, so the `k`-th smallest full sum seen
+//!    bounds `τ` and sets `T` (`T ∘ U` is a square root and a few products;
+//!    `T ≈ p_k (1 + 10⁻⁵)` here). No exact distance is needed to prune.
+//! 6. **Boxes**: the squared distance from `y` to a block's box (leading
+//!    coordinates) plus the squared gap between the query's tail norm and
+//!    the block's range of tail norms is at most `P` for each of its
+//!    vectors (`|‖a‖ − ‖b‖| ≤ ‖a − b‖` on the tail), so a block whose
+//!    computed box sum exceeds `T` holds no candidate.
+//!
+//! The search: the block of the query's own k-d leaf first (all its lanes in
+//! full: a first `T`); then the box sums of all other blocks ([`LANES`] at a
+//! time, each group left once all its sums exceed `T`), the surviving blocks
+//! by increasing box sum, stopping at the first above `T`; within a block,
+//! the `f32` partial sums, left after a [`CHUNK`] once every lane exceeds `T`;
+//! a lane at or below `T` after the last coordinate is kept with its sum.
+//! Finally the exact `D̂` of every kept vector still at or below the final
+//! `T` is offered in turn to the `k`-list: every candidate is among them
+//! (it passed every test with the `T` of its time, and `T` only shrinks).
 //!
 //! Inputs that would overflow the `f32` bound (a rotated coordinate beyond
 //! `10¹⁵`) or that are not finite are not searched here: the index is not
 //! built, or the caller scans that query in full. Tiny magnitudes only make
 //! the bound looser (the absolute slack), never unsafe.
 //!
-//! Cost, measured on the k-NN workload of `benches/peers` (3060 training
-//! vectors of 80 values, 3154 queries, `k = 10`): see the numbers in the
-//! `knn` paragraph of [`super::classic`].
+//! # Cost
+//!
+//! On the k-NN workload of `benches/peers` (3060 training vectors of 80
+//! values, 3154 queries, `k = 10`; `RAYON_NUM_THREADS=1
+//! target/release/examples/peers --out /tmp/wk --seed 1 --only knn`, one
+//! core of a shared 2-core AMD EPYC (Zen 4), minimum of 15 samples) a query
+//! visits ~36 of the 192 blocks (the ball bound of the previous index: ~93),
+//! accumulates ~12% of the `f32` coordinate terms (18%), keeps ~30 vectors
+//! and computes ~10.5 exact distances (55). See the `knn` paragraph of
+//! [`super::classic`] for the times.
 
 use super::dense;
 use std::sync::OnceLock;
@@ -102,7 +125,10 @@ impl std::fmt::Debug for IndexCell {
 /// Vectors per block (one AVX-512 register of `f32`, two AVX2 ones).
 pub(crate) const LANES: usize = 16;
 /// Coordinates between two checks of a block's partial sums.
-const CHUNK: usize = 8;
+const CHUNK: usize = 16;
+/// Leading coordinates in the blocks' boxes; the rest enter through the
+/// range of the blocks' tail norms.
+const BOX: usize = 32;
 /// Largest rotated coordinate the `f32` bound takes: differences of two
 /// are below 2·10¹⁵, squares below 4·10³⁰, so no `f32` sum of fewer than
 /// ~10⁷ of them overflows.
@@ -116,26 +142,52 @@ const SWEEPS: usize = 8;
 #[derive(Clone, Debug)]
 pub struct KnnIndex {
     dim: usize,
+    /// Training vectors.
+    n: usize,
     /// Training mean `m`.
     mean: Vec<f64>,
     /// `R`, `dim x dim`, row-major, one axis per row.
     rot: Vec<f64>,
     /// `max |R_ij|`.
     rmax: f64,
-    /// `s ≥ ‖R‖₂`.
-    scale: f64,
+    /// `κ = s √((1 + γ)(1 + 2γ)) / σ`, rounded up: `B = κ (r + E) + E`.
+    kappa: f64,
     /// `E_X`: the largest error of a stored rotated vector.
     err_x: f64,
+    /// `(1 − γ₃₂)⁻¹` and `(1 + γ₃₂)(1 + 10⁻⁶)`, rounded up.
+    t_in: f64,
+    t_out: f64,
     /// Blocks.
     blocks: usize,
-    /// Block centres, coordinate-major: `centres[i * blocks + b]`.
-    centres: Vec<f64>,
-    /// Block radii.
-    radii: Vec<f64>,
     /// Rotated vectors, `f32`: `pts[(b * dim + i) * LANES + l]`.
     pts: Vec<f32>,
     /// Training index of each lane, `usize::MAX` for the padding lanes.
     ids: Vec<usize>,
+    /// Groups of [`LANES`] blocks for the box bounds.
+    groups: usize,
+    /// Coordinates in the boxes: `min(dim, BOX)`.
+    bdim: usize,
+    /// Per block, the smallest and the largest of its vectors' first
+    /// `bdim` coordinates, `lo[(g * bdim + i) * LANES + l]` for block
+    /// `g * LANES + l` (`+∞` / `−∞` for the padding blocks of the last group).
+    lo: Vec<f32>,
+    hi: Vec<f32>,
+    /// Per block, bounds of the smallest and largest norm of its vectors'
+    /// tail (coordinates from `bdim` on): `tlo ≤` every tail norm `≤ thi`,
+    /// at `g * LANES + l` (`+∞` / `−∞` for the padding blocks).
+    tlo: Vec<f32>,
+    thi: Vec<f32>,
+    /// The k-d tree's splits, preorder ([`kd_order`]).
+    nodes: Vec<KdNode>,
+}
+
+/// A split of the k-d tree: left when `ŷ[coord] < split`.
+#[derive(Clone, Copy, Debug)]
+struct KdNode {
+    coord: usize,
+    split: f64,
+    /// Index of the right child in the preorder.
+    right: usize,
 }
 
 /// Work done by the searches (for measuring the pruning).
@@ -145,6 +197,8 @@ pub struct SearchStats {
     pub queries: usize,
     /// Blocks whose lanes were scanned.
     pub blocks: usize,
+    /// Block-coordinates accumulated by the box bounds.
+    pub box_coords: usize,
     /// Lane-coordinates accumulated by the `f32` bound.
     pub lane_coords: usize,
     /// Exact distances computed.
@@ -155,14 +209,39 @@ pub struct SearchStats {
 #[derive(Default)]
 pub struct Scratch {
     y32: Vec<f32>,
-    keys: Vec<(f64, usize)>,
-    c2: Vec<f64>,
+    keys: Vec<u64>,
+    /// Candidates: `(full f32 sum, training index)`.
+    cands: Vec<(f32, usize)>,
+    /// The `k` smallest full `f32` sums so far, ascending.
+    small: Vec<f32>,
     /// Work counters, summed over the searches.
     pub stats: SearchStats,
 }
 
 fn gamma(terms: usize, unit: f64) -> f64 {
     1.01 * (terms as f64 + 2.0) * unit
+}
+
+/// `γ₃₂`: relative error of an `f32` sum of `terms` squared differences.
+fn gamma32(terms: usize) -> f64 {
+    gamma(2 * terms + 2, f64::from(f32::EPSILON) / 2.0)
+}
+
+/// `c` rounded to an `f32` at most `c` (`c ≥ 0` computed with a relative
+/// error far below 10⁻⁶).
+fn f32_below(c: f64) -> f32 {
+    ((c * (1.0 - 1e-6) - ABS).max(0.0)) as f32
+}
+
+/// `c` rounded to an `f32` at least `c` (as [`f32_below`]).
+fn f32_above(c: f64) -> f32 {
+    (c * (1.0 + 1e-6) + ABS) as f32
+}
+
+/// The Euclidean norm of `f32` values, in `f64` (squares exact, relative
+/// error of the sum and root below 10⁻¹⁰ for any `dim` the index takes).
+fn norm64(a: &[f32]) -> f64 {
+    a.iter().map(|&v| f64::from(v) * f64::from(v)).sum::<f64>().sqrt()
 }
 
 impl KnnIndex {
@@ -174,7 +253,7 @@ impl KnnIndex {
             return None;
         }
         let n = x.len() / dim;
-        if gamma(2 * dim + 2, f64::from(f32::EPSILON)) > 0.01 {
+        if gamma32(dim) > 0.01 {
             return None;
         }
         let mut mean = vec![0.0; dim];
@@ -211,16 +290,32 @@ impl KnnIndex {
             }
         }
         let rmax = rot.iter().fold(0.0f64, |m, a| m.max(a.abs()));
-        // ‖R‖₂² = λmax(R Rᵀ) ≤ the largest absolute row sum of R Rᵀ; each
+        // ‖R‖₂² = λmax(R Rᵀ) ≤ the largest absolute row sum of R Rᵀ, and
+        // σ_min(R)² = λmin(R Rᵀ) ≥ the smallest Gershgorin lower end; each
         // computed entry errs by at most γ · dim · rmax².
         let mut gram = vec![0.0; dim * dim];
         dense::gemm_nt(&rot, &rot, dim, &mut gram);
         let entry_err = gamma(dim, f64::EPSILON / 2.0) * dim as f64 * rmax * rmax;
-        let row_sum = gram
-            .chunks_exact(dim)
-            .map(|r| r.iter().map(|g| g.abs() + entry_err).sum::<f64>())
-            .fold(0.0f64, f64::max);
+        let (mut row_sum, mut lam_min) = (0.0f64, f64::INFINITY);
+        for (i, r) in gram.chunks_exact(dim).enumerate() {
+            let off: f64 = r
+                .iter()
+                .enumerate()
+                .filter(|&(j, _)| j != i)
+                .map(|(_, g)| g.abs() + entry_err)
+                .sum();
+            row_sum = row_sum.max(r[i].abs() + entry_err + off);
+            lam_min = lam_min.min(r[i] - entry_err - off);
+        }
+        // A rotation from Jacobi is orthogonal to rounding; anything far
+        // from it is declined (the full scan is exact anyway).
+        if !(lam_min > 0.5 && row_sum < 2.0) {
+            return None;
+        }
         let scale = (row_sum * (1.0 + 1e-9)).sqrt() * (1.0 + 1e-9);
+        let smin = (lam_min * (1.0 - 1e-9)).sqrt() * (1.0 - 1e-9);
+        let g = gamma(dim, f64::EPSILON / 2.0);
+        let kappa = scale * ((1.0 + g) * (1.0 + 2.0 * g)).sqrt() / smin * (1.0 + 1e-9);
         // Rotated training vectors and their error radius.
         let mut w = vec![0.0; n * dim];
         dense::gemm_nt(&v, &rot, dim, &mut w);
@@ -234,55 +329,68 @@ impl KnnIndex {
             .fold(0.0f64, f64::max);
         // Blocks: the leaves of a k-d tree.
         let mut order: Vec<usize> = (0..n).collect();
-        kd_order(&w, dim, &mut order);
+        let mut nodes = Vec::new();
+        kd_order(&w, dim, &mut order, &mut nodes);
         let blocks = n.div_ceil(LANES);
+        // The search packs a block number into 32 bits of a sort key.
+        if u32::try_from(blocks).is_err() {
+            return None;
+        }
+        let groups = blocks.div_ceil(LANES);
+        let bdim = dim.min(BOX);
         let mut pts = vec![0.0f32; blocks * dim * LANES];
         let mut ids = vec![usize::MAX; blocks * LANES];
-        let mut centres = vec![0.0; dim * blocks];
-        let mut radii = vec![0.0; blocks];
+        let mut lo = vec![f32::INFINITY; groups * bdim * LANES];
+        let mut hi = vec![f32::NEG_INFINITY; groups * bdim * LANES];
+        let mut tlo = vec![f32::INFINITY; groups * LANES];
+        let mut thi = vec![f32::NEG_INFINITY; groups * LANES];
+        let mut tail = vec![0.0f32; dim - bdim];
         for (b, leaf) in order.chunks(LANES).enumerate() {
+            let (mut tmin, mut tmax) = (f64::INFINITY, 0.0f64);
             for l in 0..LANES {
-                let (j, real) = match leaf.get(l) {
-                    Some(&j) => (j, true),
-                    None => (leaf[0], false),
-                };
-                if real {
+                // The last block repeats its first vector in its empty lanes.
+                let j = leaf.get(l).copied().unwrap_or(leaf[0]);
+                if l < leaf.len() {
                     ids[b * LANES + l] = j;
                 }
                 for i in 0..dim {
                     pts[(b * dim + i) * LANES + l] = w[j * dim + i] as f32;
                 }
+                for (i, t) in tail.iter_mut().enumerate() {
+                    *t = pts[(b * dim + bdim + i) * LANES + l];
+                }
+                let t = norm64(&tail);
+                (tmin, tmax) = (tmin.min(t), tmax.max(t));
             }
-            let lane = |l: usize, i: usize| f64::from(pts[(b * dim + i) * LANES + l]);
-            for i in 0..dim {
-                let s: f64 = (0..leaf.len()).map(|l| lane(l, i)).sum();
-                centres[i * blocks + b] = s / leaf.len() as f64;
+            let at = (b / LANES) * bdim * LANES + b % LANES;
+            for i in 0..bdim {
+                let lanes = &pts[(b * dim + i) * LANES..(b * dim + i + 1) * LANES];
+                lo[at + i * LANES] = lanes.iter().copied().fold(f32::INFINITY, f32::min);
+                hi[at + i * LANES] = lanes.iter().copied().fold(f32::NEG_INFINITY, f32::max);
             }
-            // The computed squared radius errs by a relative γ at most.
-            let r2 = (0..leaf.len())
-                .map(|l| {
-                    (0..dim)
-                        .map(|i| {
-                            let d = lane(l, i) - centres[i * blocks + b];
-                            d * d
-                        })
-                        .sum::<f64>()
-                })
-                .fold(0.0f64, f64::max);
-            radii[b] = (r2 * (1.0 + 1e-9)).sqrt() * (1.0 + 1e-9) + ABS;
+            tlo[b] = f32_below(tmin);
+            thi[b] = f32_above(tmax);
         }
         Some(KnnIndex {
             dim,
+            n,
             mean,
             rot,
             rmax,
-            scale,
+            kappa,
             err_x,
+            t_in: 1.0 / (1.0 - gamma32(dim)) * (1.0 + 1e-9),
+            t_out: (1.0 + gamma32(dim)) * (1.0 + 1e-6),
             blocks,
-            centres,
-            radii,
             pts,
             ids,
+            groups,
+            bdim,
+            lo,
+            hi,
+            tlo,
+            thi,
+            nodes,
         })
     }
 
@@ -296,21 +404,6 @@ impl KnnIndex {
         y.clear();
         y.resize(v.len(), 0.0);
         dense::gemm_nt(v, &self.rot, self.dim, y);
-    }
-
-    /// `B(τ)` squared, as the `f32` threshold `T(τ)` of the module docs,
-    /// and `B(τ)` itself; both `+∞` when `τ` is.
-    fn thresholds(&self, tau: f64, err: f64) -> (f64, f32) {
-        if !tau.is_finite() {
-            return (f64::INFINITY, f32::INFINITY);
-        }
-        let g = gamma(self.dim, f64::EPSILON / 2.0);
-        // The relative 1e-9 covers the rounding of this line and of the
-        // blocks' keys (each a few ulps).
-        let b = (self.scale * (tau * (1.0 + 2.0 * g)).sqrt() + err) * (1.0 + 1e-9);
-        let g32 = gamma(2 * self.dim + 2, f64::from(f32::EPSILON) / 2.0);
-        let t = (1.0 + g32) * b * b * (1.0 + 1e-6) + ABS;
-        (b, t as f32)
     }
 
     /// Offers to `best` (sorted, at most `k`) every training vector whose
@@ -352,71 +445,241 @@ impl KnnIndex {
         best: &mut Vec<(f64, usize)>,
         scratch: &mut Scratch,
     ) -> bool {
-        let dim = self.dim;
-        if !yhat.iter().all(|a| a.is_finite() && a.abs() <= LIMIT) || !v.iter().all(|a| a.is_finite()) {
+        let (dim, bdim) = (self.dim, self.bdim);
+        // `0 · a` is 0 for a finite `a` and NaN otherwise (a loop without
+        // early exits, which vectorises).
+        let finite = |s: &[f64]| s.iter().fold(0.0f64, |acc, a| acc + 0.0 * a) == 0.0;
+        let ymax = yhat.iter().fold(0.0f64, |m, a| m.max(a.abs()));
+        if !(finite(yhat) && finite(v) && ymax <= LIMIT) {
             return false;
         }
         best.clear();
         if k == 0 {
             return true;
         }
-        scratch.stats.queries += 1;
         let err = rotation_error(v, yhat, self.rmax) + self.err_x;
         scratch.y32.clear();
         scratch.y32.extend(yhat.iter().map(|&a| a as f32));
         let y32 = &scratch.y32;
-        // Lower bounds of the blocks.
-        let nb = self.blocks;
-        let c2 = &mut scratch.c2;
-        c2.clear();
-        c2.resize(nb, 0.0);
-        for (i, &q) in y32.iter().enumerate() {
-            let q = f64::from(q);
-            for (acc, &c) in c2.iter_mut().zip(&self.centres[i * nb..(i + 1) * nb]) {
-                let d = q - c;
-                *acc += d * d;
-            }
-        }
+        let tail = norm64(&y32[bdim..]);
+        let (qlo, qhi) = (f32_below(tail), f32_above(tail));
+        let mut st = ScanState {
+            k,
+            e1: (self.kappa + 1.0) * err * (1.0 + 1e-9),
+            t: f32::INFINITY,
+            cands: std::mem::take(&mut scratch.cands),
+            small: std::mem::take(&mut scratch.small),
+            stats: SearchStats {
+                queries: 1,
+                ..SearchStats::default()
+            },
+        };
+        st.cands.clear();
+        st.small.clear();
+        // The leaf of the query's own cell first: a first `τ`.
+        let first = self.leaf_of(yhat);
+        self.scan_block(y32, first, x, &mut st);
+        // Box bounds of every other block, kept where at or below `T`.
         let keys = &mut scratch.keys;
         keys.clear();
-        keys.extend(
-            c2.iter()
-                .zip(&self.radii)
-                .enumerate()
-                .map(|(b, (&c, &r))| ((c * (1.0 - 1e-9)).sqrt() * (1.0 - 1e-9) - r, b)),
-        );
-        keys.sort_unstable_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
-        let (mut bound, mut t) = self.thresholds(f64::INFINITY, err);
-        let mut visited = 0;
-        let mut lanes = 0;
-        let mut exact = 0;
-        for &(key, b) in keys.iter() {
-            if key > bound {
-                break;
-            }
-            visited += 1;
-            let block = &self.pts[b * dim * LANES..(b + 1) * dim * LANES];
-            let (acc, used) = block_partial_sums(y32, block, t);
-            lanes += used * LANES;
-            if used < dim {
+        for g in 0..self.groups {
+            let lo = &self.lo[g * bdim * LANES..(g + 1) * bdim * LANES];
+            let hi = &self.hi[g * bdim * LANES..(g + 1) * bdim * LANES];
+            let tl: &[f32; LANES] = self.tlo[g * LANES..(g + 1) * LANES]
+                .try_into()
+                .expect("LANES wide");
+            let th: &[f32; LANES] = self.thi[g * LANES..(g + 1) * LANES]
+                .try_into()
+                .expect("LANES wide");
+            let (acc, used) = box_sums(&y32[..bdim], lo, hi, (qlo, qhi, tl, th), st.t);
+            st.stats.box_coords += used * LANES;
+            if used <= bdim {
                 continue;
             }
             for (l, &a) in acc.iter().enumerate() {
-                let j = self.ids[b * LANES + l];
-                if a <= t && j != usize::MAX {
-                    exact += 1;
-                    let d2 = dense::sq_dist(&x[j * dim..(j + 1) * dim], z);
-                    if offer(best, k, d2, j) && best.len() == k {
-                        (bound, t) = self.thresholds(best[k - 1].0, err);
-                    }
+                let b = g * LANES + l;
+                if a <= st.t && b < self.blocks && b != first {
+                    keys.push((u64::from(a.to_bits()) << 32) | b as u64);
                 }
             }
         }
-        scratch.stats.blocks += visited;
-        scratch.stats.lane_coords += lanes;
-        scratch.stats.exact += exact;
+        // Nearest boxes first (the sums are not negative, so their bits
+        // sort as they do); the order only changes how fast `T` shrinks.
+        keys.sort_unstable();
+        let block_of = |key: u64| (key & u64::from(u32::MAX)) as usize;
+        for &key in keys.iter() {
+            if f32::from_bits((key >> 32) as u32) > st.t {
+                break;
+            }
+            self.scan_block(y32, block_of(key), x, &mut st);
+        }
+        // The exact distances of the candidates still at or below `T`.
+        for &(a, j) in &st.cands {
+            if a <= st.t {
+                st.stats.exact += 1;
+                let d2 = dense::sq_dist(&x[j * dim..(j + 1) * dim], z);
+                offer(best, k, d2, j);
+            }
+        }
+        let s = &mut scratch.stats;
+        s.queries += st.stats.queries;
+        s.blocks += st.stats.blocks;
+        s.box_coords += st.stats.box_coords;
+        s.lane_coords += st.stats.lane_coords;
+        s.exact += st.stats.exact;
+        scratch.cands = st.cands;
+        scratch.small = st.small;
         true
     }
+
+    /// The block of the k-d tree's leaf holding `y` (any block would do:
+    /// this one usually holds near neighbours).
+    #[inline(always)]
+    fn leaf_of(&self, y: &[f64]) -> usize {
+        let (mut node, mut off, mut len) = (0, 0, self.n);
+        while len > LANES {
+            let nd = self.nodes[node];
+            let left = (len.div_ceil(LANES).div_ceil(2) * LANES).min(len);
+            if y[nd.coord] < nd.split {
+                node += 1;
+                len = left;
+            } else {
+                node = nd.right;
+                off += left;
+                len -= left;
+            }
+        }
+        off / LANES
+    }
+
+    /// `T` for a vector whose full `f32` sum is `p`, which bounds `τ`
+    /// (module docs, the candidates' sums).
+    #[inline(always)]
+    fn threshold(&self, p: f32, e1: f64) -> f32 {
+        let r = (f64::from(p) * self.t_in + ABS).sqrt() * (1.0 + 1e-9);
+        let b = self.kappa * r + e1;
+        (self.t_out * b * b + ABS) as f32
+    }
+
+    /// Scans block `b`: its lanes' `f32` partial sums against `T`; a lane
+    /// still at or below `T` after the last coordinate is a candidate (its
+    /// row of `x` is fetched ahead), and the `k`-th smallest full sum so far
+    /// sets `T`.
+    #[inline(always)]
+    fn scan_block(&self, y32: &[f32], b: usize, x: &[f64], st: &mut ScanState) {
+        let dim = self.dim;
+        st.stats.blocks += 1;
+        let block = &self.pts[b * dim * LANES..(b + 1) * dim * LANES];
+        let (acc, used) = block_partial_sums(y32, block, st.t);
+        st.stats.lane_coords += used * LANES;
+        if used < dim {
+            return;
+        }
+        let k = st.k;
+        let mut changed = false;
+        for (l, &a) in acc.iter().enumerate() {
+            let j = self.ids[b * LANES + l];
+            if a > st.t || j == usize::MAX {
+                continue;
+            }
+            st.cands.push((a, j));
+            prefetch(&x[j * dim..(j + 1) * dim]);
+            let small = &mut st.small;
+            if small.len() == k {
+                if a >= small[k - 1] {
+                    continue;
+                }
+                small.pop();
+            }
+            // Insertion from the end: the list is short and mostly kept.
+            let mut pos = small.len();
+            while pos > 0 && small[pos - 1] > a {
+                pos -= 1;
+            }
+            small.insert(pos, a);
+            changed = true;
+        }
+        if changed && st.small.len() == k {
+            st.t = st.t.min(self.threshold(st.small[k - 1], st.e1));
+        }
+    }
+}
+
+/// Asks for the cache lines of `row` ahead of use.
+#[inline(always)]
+fn prefetch<T>(row: &[T]) {
+    #[cfg(target_arch = "x86_64")]
+    for c in row.chunks(64 / std::mem::size_of::<T>()) {
+        // SAFETY: a prefetch only hints the cache; the address is in `row`.
+        unsafe { std::arch::x86_64::_mm_prefetch::<{ std::arch::x86_64::_MM_HINT_T0 }>(c.as_ptr().cast()) };
+    }
+}
+
+/// The state of one query's scan.
+struct ScanState {
+    k: usize,
+    /// `(κ + 1) (E_q + E_X)`, rounded up.
+    e1: f64,
+    /// `T`.
+    t: f32,
+    cands: Vec<(f32, usize)>,
+    small: Vec<f32>,
+    stats: SearchStats,
+}
+
+/// The query's tail norm bounds `(lo, hi)` and the blocks' `(tlo, thi)`.
+type Tails<'a> = (f32, f32, &'a [f32; LANES], &'a [f32; LANES]);
+
+/// The lower bounds of [`LANES`] blocks: squared distances from `q` to
+/// their boxes `[lo, hi]` (coordinate-major), then the squared gap between
+/// the tail norms, stopping after a chunk once every block exceeds `t`.
+/// Returns the sums and the terms summed (`q.len() + 1` when complete). A
+/// block's box holds its vectors' leading coordinates and `|‖a‖ − ‖b‖| ≤
+/// ‖a − b‖` for the tails, so each sum is at most the distance to any of
+/// its vectors, up to the `f32` rounding that `T` covers.
+#[inline(always)]
+fn box_sums(q: &[f32], lo: &[f32], hi: &[f32], tails: Tails<'_>, t: f32) -> ([f32; LANES], usize) {
+    #[inline(always)]
+    fn gap(a: f32, c: f32) -> f32 {
+        let g = if a > c { a } else { c };
+        if g > 0.0 {
+            g
+        } else {
+            0.0
+        }
+    }
+    let (a0, a1) = (&mut [0.0f32; LANES], &mut [0.0f32; LANES]);
+    let bdim = q.len();
+    let mut i0 = 0;
+    while i0 < bdim {
+        let i1 = (i0 + CHUNK).min(bdim);
+        let mut i = i0;
+        while i < i1 {
+            let acc = if i % 2 == 0 { &mut *a0 } else { &mut *a1 };
+            let l0: &[f32; LANES] = lo[i * LANES..(i + 1) * LANES].try_into().expect("LANES wide");
+            let h0: &[f32; LANES] = hi[i * LANES..(i + 1) * LANES].try_into().expect("LANES wide");
+            for l in 0..LANES {
+                let g = gap(l0[l] - q[i], q[i] - h0[l]);
+                acc[l] += g * g;
+            }
+            i += 1;
+        }
+        let mut alive = 0u32;
+        for l in 0..LANES {
+            alive |= u32::from(a0[l] + a1[l] <= t);
+        }
+        if alive == 0 {
+            return ([0.0; LANES], i1);
+        }
+        i0 = i1;
+    }
+    let (qlo, qhi, tlo, thi) = tails;
+    let mut acc = [0.0f32; LANES];
+    for l in 0..LANES {
+        let g = gap(tlo[l] - qhi, qlo - thi[l]);
+        acc[l] = (a0[l] + a1[l]) + g * g;
+    }
+    (acc, bdim + 1)
 }
 
 /// The partial sums of `(q_i − p_il)²` over the coordinates `i` of one block
@@ -425,47 +688,54 @@ impl KnnIndex {
 /// when some lane is still at or below `t`).
 #[inline(always)]
 fn block_partial_sums(q: &[f32], p: &[f32], t: f32) -> ([f32; LANES], usize) {
-    let mut acc = [0.0f32; LANES];
+    // Four running sums per lane, so consecutive adds do not wait on each
+    // other; every partial sum still only grows.
+    let mut a0 = [0.0f32; LANES];
+    let mut a1 = [0.0f32; LANES];
+    let mut a2 = [0.0f32; LANES];
+    let mut a3 = [0.0f32; LANES];
     let dim = q.len();
     let mut i0 = 0;
     while i0 < dim {
         let i1 = (i0 + CHUNK).min(dim);
-        // Two interleaved sums per lane, so consecutive adds do not wait on
-        // each other; every partial sum still only grows.
-        let (mut a0, mut a1) = ([0.0f32; LANES], [0.0f32; LANES]);
         let mut i = i0;
-        while i + 2 <= i1 {
-            let (q0, q1) = (q[i], q[i + 1]);
-            let r0: &[f32; LANES] = p[i * LANES..(i + 1) * LANES].try_into().expect("LANES wide");
-            let r1: &[f32; LANES] = p[(i + 1) * LANES..(i + 2) * LANES]
-                .try_into()
-                .expect("LANES wide");
+        while i + 4 <= i1 {
+            let qc: &[f32; 4] = q[i..i + 4].try_into().expect("4 wide");
+            let r: &[f32; 4 * LANES] = p[i * LANES..(i + 4) * LANES].try_into().expect("4 rows");
             for l in 0..LANES {
-                let d0 = q0 - r0[l];
-                let d1 = q1 - r1[l];
+                let d0 = qc[0] - r[l];
+                let d1 = qc[1] - r[LANES + l];
+                let d2 = qc[2] - r[2 * LANES + l];
+                let d3 = qc[3] - r[3 * LANES + l];
                 a0[l] += d0 * d0;
                 a1[l] += d1 * d1;
+                a2[l] += d2 * d2;
+                a3[l] += d3 * d3;
             }
-            i += 2;
+            i += 4;
         }
-        if i < i1 {
-            let r0 = &p[i * LANES..(i + 1) * LANES];
+        while i < i1 {
+            let r: &[f32; LANES] = p[i * LANES..(i + 1) * LANES].try_into().expect("LANES wide");
             for l in 0..LANES {
-                let d0 = q[i] - r0[l];
+                let d0 = q[i] - r[l];
                 a0[l] += d0 * d0;
             }
+            i += 1;
         }
         let mut alive = 0u32;
         for l in 0..LANES {
-            acc[l] += a0[l] + a1[l];
-            alive |= u32::from(acc[l] <= t);
+            alive |= u32::from((a0[l] + a1[l]) + (a2[l] + a3[l]) <= t);
         }
-        if alive == 0 {
-            return (acc, i1);
+        if alive == 0 && i1 < dim {
+            return ([f32::INFINITY; LANES], i1);
         }
         i0 = i1;
     }
-    (acc, dim)
+    let mut out = [0.0f32; LANES];
+    for l in 0..LANES {
+        out[l] = (a0[l] + a1[l]) + (a2[l] + a3[l]);
+    }
+    (out, dim)
 }
 
 /// `‖ŵ − w‖` bound for a rotated vector `ŵ = R v` computed in `f64` and
@@ -500,30 +770,35 @@ pub fn offer(best: &mut Vec<(f64, usize)>, k: usize, d2: f64, j: usize) -> bool 
 
 /// Orders `idx` as the leaves of a k-d tree on the rows of `w` (`dim`
 /// wide): split at a multiple of [`LANES`] near the median of the
-/// coordinate of largest range, so all leaves but the last are full.
-fn kd_order(w: &[f64], dim: usize, idx: &mut [usize]) {
+/// coordinate of largest variance, so all leaves but the last are full;
+/// the splits go to `nodes` in preorder.
+fn kd_order(w: &[f64], dim: usize, idx: &mut [usize], nodes: &mut Vec<KdNode>) {
     if idx.len() <= LANES {
         return;
     }
     let mut widest = (0, f64::NEG_INFINITY);
     for i in 0..dim {
-        let (lo, hi) = idx
-            .iter()
-            .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &j| {
-                let a = w[j * dim + i];
-                (lo.min(a), hi.max(a))
-            });
-        if hi - lo > widest.1 {
-            widest = (i, hi - lo);
+        let mean = idx.iter().map(|&j| w[j * dim + i]).sum::<f64>() / idx.len() as f64;
+        let var: f64 = idx.iter().map(|&j| (w[j * dim + i] - mean).powi(2)).sum();
+        if var > widest.1 {
+            widest = (i, var);
         }
     }
     let c = widest.0;
     idx.sort_unstable_by(|&a, &b| w[a * dim + c].total_cmp(&w[b * dim + c]).then(a.cmp(&b)));
     let leaves = idx.len().div_ceil(LANES);
     let left = (leaves.div_ceil(2) * LANES).min(idx.len());
+    let split = 0.5 * (w[idx[left - 1] * dim + c] + w[idx[left] * dim + c]);
+    let at = nodes.len();
+    nodes.push(KdNode {
+        coord: c,
+        split,
+        right: 0,
+    });
     let (l, r) = idx.split_at_mut(left);
-    kd_order(w, dim, l);
-    kd_order(w, dim, r);
+    kd_order(w, dim, l, nodes);
+    nodes[at].right = nodes.len();
+    kd_order(w, dim, r, nodes);
 }
 
 /// Eigenvectors of the symmetric `a` (`d x d`, row-major) by cyclic Jacobi
@@ -666,6 +941,50 @@ mod tests {
                         }
                     }
                 }
+            }
+        }
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(48))]
+
+        /// Wide rows (a tail beyond the boxes' leading coordinates, a last
+        /// chunk shorter than `CHUNK`), several groups of blocks, a partial
+        /// last block, constant columns, duplicate rows and many ties
+        /// (values on a coarse grid), `k` from 1 to beyond the training set,
+        /// queries that are training rows: the same list as the full scan.
+        #[test]
+        fn wide_rows_with_ties_and_constant_columns_are_the_full_scan(
+            n in 1usize..700,
+            dim in prop::sample::select(vec![2usize, 31, 33, 41, 80]),
+            k in prop::sample::select(vec![1usize, 2, 10, 17, 40, 800]),
+            levels in 2i8..6,
+            seed in 0u64..1000,
+        ) {
+            let mut rng = ChaCha8Rng::seed_from_u64(seed);
+            let constant: Vec<bool> = (0..dim).map(|_| rng.random_range(0..4) == 0).collect();
+            let mut x: Vec<f64> = Vec::with_capacity(n * dim);
+            for r in 0..n {
+                if r > 0 && rng.random_range(0..5) == 0 {
+                    // A duplicate of an earlier row.
+                    let src = rng.random_range(0..r);
+                    let row: Vec<f64> = x[src * dim..(src + 1) * dim].to_vec();
+                    x.extend(row);
+                    continue;
+                }
+                for &c in &constant {
+                    x.push(if c { 1.5 } else { f64::from(rng.random_range(0..levels)) * 0.75 });
+                }
+            }
+            let mut q: Vec<f64> = (0..12 * dim)
+                .map(|i| if constant[i % dim] { 1.5 } else { f64::from(rng.random_range(-1..levels + 1)) * 0.75 })
+                .collect();
+            q.extend_from_slice(&x[..dim.min(x.len())]);
+            let ix = KnnIndex::build(&x, dim).expect("finite rows in range");
+            for (i, got) in indexed(&ix, &x, dim, &q, k).into_iter().enumerate() {
+                let z = &q[i * dim..(i + 1) * dim];
+                let got = got.expect("query in range");
+                prop_assert_eq!(bits(&got), bits(&full_scan(&x, dim, z, k)), "query {}", i);
             }
         }
     }
