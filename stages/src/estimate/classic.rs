@@ -20,11 +20,28 @@
 //!   working-set selection, a kernel cache, shrinking). The fold's whole Gram
 //!   matrix is computed once when it fits in `cache_mb` (every vector serves in
 //!   K - 1 machines), [`rbf_gram`]: only its upper triangle, by blocks of rows
-//!   through the tiled kernel ([`super::dense::sq_dists`]) in parallel, the
-//!   exponentials vectorised ([`super::vmath::rbf_in_place`], ~1 ulp from
-//!   glibc's `exp`, which cost a call per entry), the lower triangle mirrored
-//!   (the distances are symmetric bit for bit); each machine gathers its Q rows
-//!   from it ([`super::smo::solve_rows`]). A vector's class scores are its votes
+//!   through the tiled kernel ([`super::dense::sq_dists_strided`], written in
+//!   place) in parallel, the exponentials vectorised
+//!   ([`super::vmath::rbf_in_place`], ~1 ulp from glibc's `exp`, which cost a
+//!   call per entry), the lower triangle mirrored (the distances are
+//!   symmetric bit for bit). Its rows and columns are the vectors sorted by
+//!   class, so a machine's kernel rows are two slices of Gram rows, which
+//!   [`super::smo::solve_gram`] reads (copying each row it needs once, within
+//!   the same `cache_mb` budget) and solves with vectorised scans, taking the
+//!   steps of the per-machine solver ([`super::smo::solve`]) bit for bit (test
+//!   `svm_gram_solver_fits_the_model_of_the_per_machine_path_bit_for_bit`).
+//!   Memory: the Gram matrix (`8 n²` bytes) only when it fits in `cache_mb`
+//!   (default 256 MiB: up to 5792 training vectors), plus per thread the
+//!   rows of the machine it trains (`8 n_ab²` bytes, also only within
+//!   `cache_mb`); above that each machine computes its rows into its own
+//!   row cache of `cache_mb` (the previous path). Measured on the peers SVM
+//!   workload (1224 x 80, 17 classes, C = 10; one core, shared 2-core
+//!   machine, min of repeats; `RAYON_NUM_THREADS=1
+//!   target/release/examples/peers --out /tmp/ws --seed 1 --only svm`):
+//!   fit 32-34 ms before (Gram 9.3 ms, machines 22.9 ms), ~17 ms now (Gram
+//!   ~8.5 ms, at the adder throughput of its 0.77 M distances x 80 dims;
+//!   machines ~7 ms); scikit-learn's `SVC` on the same arrays: 43.7 ms
+//!   (`benches/peers`). A vector's class scores are its votes
 //!   plus sklearn's tie-breaker, `votes_c + conf_c / (3 (max|conf| + 1))` with
 //!   `conf_c` the summed decision values in favour of `c`, so confidences only
 //!   order classes with equal votes; scores are divided by `K - 1`. The
@@ -180,8 +197,9 @@ pub struct SvmConfig {
     /// same to within `tol`). Default true.
     pub shrinking: bool,
     /// Kernel cache budget, MiB: the fold's whole Gram matrix is computed once
-    /// when it fits, otherwise each machine keeps its own LRU row cache of this
-    /// size. Default 256.
+    /// when it fits (and each machine copies the rows it needs from it, when
+    /// they fit too), otherwise each machine keeps its own LRU row cache of
+    /// this size. Default 256.
     pub cache_mb: usize,
     /// `winner` (paper) or `sum`. Default `winner`.
     pub vote: Vote,
@@ -361,14 +379,17 @@ pub fn rbf_gram(x: &[f64], dim: usize, gamma: f64) -> Vec<f64> {
     g.par_chunks_mut(RB * n).enumerate().for_each(|(b, block)| {
         let r0 = b * RB;
         let rb = block.len() / n;
-        let w = n - r0;
-        let mut upper = vec![0.0f64; rb * w];
-        dense::sq_dists(&x[r0 * dim..(r0 + rb) * dim], &x[r0 * dim..], dim, &mut upper);
-        vmath::rbf_in_place(&mut upper, gamma);
-        for (r, src) in upper.chunks_exact(w).enumerate() {
-            // Row r0 + r from column r0 + r on (the part of this block that
-            // lies on or above the diagonal).
-            block[r * n + r0 + r..(r + 1) * n].copy_from_slice(&src[r..]);
+        // Rows r0.. of the block against the vectors from r0 on, written in
+        // place (columns r0.. of each row); the exponential from the diagonal on.
+        dense::sq_dists_strided(
+            &x[r0 * dim..(r0 + rb) * dim],
+            &x[r0 * dim..],
+            dim,
+            &mut block[r0..],
+            n,
+        );
+        for r in 0..rb {
+            vmath::rbf_in_place(&mut block[r * n + r0 + r..(r + 1) * n], gamma);
         }
     });
     // Lower triangle: G_ts = G_st for s < t, tile by tile.
@@ -453,12 +474,29 @@ impl SvmConfig {
         // vector takes part in K - 1 pairs, so each kernel value is then
         // computed once per fold instead of once per pair. It is built by rows
         // in parallel; each entry's bits do not depend on the thread count.
+        // Its rows and columns are the vectors sorted by class (stably), so a
+        // machine's kernel rows are two contiguous slices of a Gram row, which
+        // `smo::solve_gram` reads in place.
         let budget = self.cache_mb.saturating_mul(1 << 20);
+        let mut by_class: Vec<usize> = (0..n).collect();
+        by_class.sort_by_key(|&i| y[i]);
+        let mut class_start = vec![0usize; k + 1];
+        for &c in y {
+            if c < k {
+                class_start[c + 1] += 1;
+            }
+        }
+        for c in 0..k {
+            class_start[c + 1] += class_start[c];
+        }
         let gram: Option<Vec<f64>> = n
             .checked_mul(n)
             .and_then(|nn| nn.checked_mul(std::mem::size_of::<f64>()))
-            .filter(|&bytes| bytes <= budget)
-            .map(|_| rbf_gram(&rows.concat(), dim, gamma));
+            .filter(|&bytes| bytes <= budget && class_start[k] == n)
+            .map(|_| {
+                let sorted: Vec<f64> = by_class.iter().flat_map(|&i| rows[i].iter().copied()).collect();
+                rbf_gram(&sorted, dim, gamma)
+            });
         let pairs: Vec<(usize, usize)> = (0..k).flat_map(|a| (a + 1..k).map(move |b| (a, b))).collect();
         let params = smo::SmoParams {
             c: self.c,
@@ -472,18 +510,30 @@ impl SvmConfig {
         let machines: Vec<Raw> = pairs
             .par_iter()
             .map(|&(a, b)| {
+                // The machine's variables: its two classes' rows in row order.
                 let idx: Vec<usize> = (0..n).filter(|&i| y[i] == a || y[i] == b).collect();
                 // Class b is the positive side (libsvm puts the first class there;
                 // only the sign convention differs).
                 let lab: Vec<f64> = idx.iter().map(|&i| if y[i] == b { 1.0 } else { -1.0 }).collect();
                 let sol = match &gram {
                     Some(g) => {
-                        let diag: Vec<f64> = idx.iter().map(|&i| g[i * n + i]).collect();
-                        let fill = |s: usize, out: &mut [f64]| {
-                            let row = &g[idx[s] * n..(idx[s] + 1) * n];
-                            out.iter_mut().zip(&idx).for_each(|(o, &t)| *o = row[t]);
+                        // Positions: class a's block of the sorted Gram matrix,
+                        // then class b's; `var` numbers them as `idx` does.
+                        let ranges = [
+                            class_start[a]..class_start[a + 1],
+                            class_start[b]..class_start[b + 1],
+                        ];
+                        let var: Vec<usize> = ranges
+                            .iter()
+                            .flat_map(Clone::clone)
+                            .map(|s| idx.binary_search(&by_class[s]).unwrap_or(usize::MAX))
+                            .collect();
+                        let kern = smo::GramRanges {
+                            gram: g,
+                            stride: n,
+                            ranges: &ranges,
                         };
-                        smo::solve_rows(&lab, &diag, &fill, &params)
+                        smo::solve_gram(&kern, &lab, &var, &params)
                     }
                     None => smo::solve(
                         &lab,
@@ -1811,6 +1861,70 @@ mod tests {
             right += usize::from((0..3).all(|c| o[c] <= o[y[i]]));
         }
         assert!(right > n * 9 / 10, "training accuracy {right}/{n}");
+    }
+
+    /// Every number of a fitted SVM, as bits (`PartialEq` on `f64` takes
+    /// `-0.0 == 0.0`).
+    fn svm_bits(m: &OvoSvm) -> Vec<u64> {
+        let mut b: Vec<u64> = m.sv.iter().map(|v| v.to_bits()).collect();
+        for mc in &m.machines {
+            b.extend([mc.a as u64, mc.b as u64, mc.bias.to_bits()]);
+            b.extend(mc.sv_index.iter().map(|&i| u64::from(i)));
+            b.extend(mc.coef.iter().map(|c| c.to_bits()));
+        }
+        b
+    }
+
+    #[test]
+    fn svm_gram_solver_fits_the_model_of_the_per_machine_path_bit_for_bit() {
+        // 5 classes in no particular order, 400 vectors of 7 values (a
+        // dimension with a tail), coarse values (kernel ties): the Gram path
+        // (class-sorted Gram matrix, `smo::solve_gram`, AVX2 or not, 1 or 2
+        // threads) gives the bits of the per-machine path (`cache_mb = 1`:
+        // the 1.3 MB Gram matrix does not fit, each machine runs
+        // `smo::solve` with its own row cache and the scalar kernel).
+        let (n, dim) = (400, 7);
+        let x = random_rows(n, dim, 11);
+        let mut rng = ChaCha8Rng::seed_from_u64(12);
+        let y: Vec<usize> = (0..n)
+            .map(|i| {
+                (usize::from(x[i * dim] > 0.7) * 2
+                    + usize::from(x[i * dim + 1] > 0.7)
+                    + rng.random_range(0..2))
+                    % 5
+            })
+            .collect();
+        let rows: Vec<Vec<f64>> = x.chunks_exact(dim).map(<[f64]>::to_vec).collect();
+        let scaler = Standardizer {
+            mean: vec![0.0; dim],
+            inv_sd: vec![1.0; dim],
+        };
+        let fit = |cfg: &SvmConfig, threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .expect("pool");
+            let m = pool.install(|| cfg.fit_design(5, dim, &rows, &y, scaler.clone()));
+            m.expect("fit")
+                .as_any()
+                .downcast_ref::<OvoSvm>()
+                .expect("an SVM")
+                .clone()
+        };
+        let per_machine = svm_bits(&fit(
+            &SvmConfig {
+                cache_mb: 1,
+                ..SvmConfig::default()
+            },
+            1,
+        ));
+        let gram = fit(&SvmConfig::default(), 1);
+        assert_eq!(gram.machines.len(), 10);
+        assert!(gram.machines.iter().all(|m| !m.coef.is_empty()));
+        assert_eq!(svm_bits(&gram), per_machine);
+        assert_eq!(svm_bits(&fit(&SvmConfig::default(), 2)), per_machine);
+        let scalar = crate::wide::baseline_only(|| fit(&SvmConfig::default(), 1));
+        assert_eq!(svm_bits(&scalar), per_machine);
     }
 
     /// Mean |error| of each SVM stage over Table 2's front end (lab scene,

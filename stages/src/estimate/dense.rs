@@ -148,14 +148,14 @@ unsafe fn tile_avx<const SQ: bool>(a: [&[f64]; MR], b: [&[f64]; NR], k: usize) -
 }
 
 #[inline(always)]
-fn pairwise<const SQ: bool, const AVX: bool>(a: &[f64], b: &[f64], k: usize, out: &mut [f64]) {
+fn pairwise<const SQ: bool, const AVX: bool>(a: &[f64], b: &[f64], k: usize, out: &mut [f64], ldc: usize) {
     fn row(x: &[f64], i: usize, k: usize) -> &[f64] {
         &x[i * k..(i + 1) * k]
     }
     let k1 = k.max(1);
     let m = a.len() / k1;
     let n = b.len() / k1;
-    debug_assert_eq!(out.len(), m * n);
+    assert!(ldc >= n && (m == 0 || out.len() >= (m - 1) * ldc + n));
     // Blocks of `jb` rows of `b` (~32 KB) stay in cache while every row of
     // `a` passes over them (without blocking, a large `b` streamed from
     // memory once per pair of rows of `a`, at half the speed).
@@ -171,20 +171,20 @@ fn pairwise<const SQ: bool, const AVX: bool>(a: &[f64], b: &[f64], k: usize, out
                 let br: [&[f64]; NR] = std::array::from_fn(|c| row(b, j + c, k));
                 let t = tile::<SQ, AVX>(ar, br, k);
                 for (r, tr) in t.iter().enumerate() {
-                    out[(i + r) * n + j..(i + r) * n + j + NR].copy_from_slice(tr);
+                    out[(i + r) * ldc + j..(i + r) * ldc + j + NR].copy_from_slice(tr);
                 }
                 j += NR;
             }
             for j in j..j1 {
                 for (r, a_r) in ar.iter().enumerate() {
-                    out[(i + r) * n + j] = single::<SQ>(a_r, row(b, j, k));
+                    out[(i + r) * ldc + j] = single::<SQ>(a_r, row(b, j, k));
                 }
             }
             i += MR;
         }
         for i in i..m {
             for j in j0..j1 {
-                out[i * n + j] = single::<SQ>(row(a, i, k), row(b, j, k));
+                out[i * ldc + j] = single::<SQ>(row(a, i, k), row(b, j, k));
             }
         }
         j0 = j1;
@@ -193,18 +193,19 @@ fn pairwise<const SQ: bool, const AVX: bool>(a: &[f64], b: &[f64], k: usize, out
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-unsafe fn pairwise_avx<const SQ: bool>(a: &[f64], b: &[f64], k: usize, out: &mut [f64]) {
-    pairwise::<SQ, true>(a, b, k, out);
+unsafe fn pairwise_avx<const SQ: bool>(a: &[f64], b: &[f64], k: usize, out: &mut [f64], ldc: usize) {
+    pairwise::<SQ, true>(a, b, k, out, ldc);
 }
 
 /// [`pairwise`] with the AVX tiles where the CPU has them ([`crate::wide::avx2`]).
-fn pairwise_any<const SQ: bool>(a: &[f64], b: &[f64], k: usize, out: &mut [f64]) {
+/// `ldc`: the row stride of `out` (at least the number of rows of `b`).
+fn pairwise_any<const SQ: bool>(a: &[f64], b: &[f64], k: usize, out: &mut [f64], ldc: usize) {
     #[cfg(target_arch = "x86_64")]
     if crate::wide::avx2() {
         // SAFETY: the CPU supports AVX2 (checked at run time).
-        return unsafe { pairwise_avx::<SQ>(a, b, k, out) };
+        return unsafe { pairwise_avx::<SQ>(a, b, k, out, ldc) };
     }
-    pairwise::<SQ, false>(a, b, k, out);
+    pairwise::<SQ, false>(a, b, k, out, ldc);
 }
 
 #[inline(always)]
@@ -242,7 +243,7 @@ pub fn gemm_nt(a: &[f64], b: &[f64], k: usize, out: &mut [f64]) {
         unsafe { narrow_avx(&a[..m * k], &bt, k, n, np, &mut out[..m * n]) };
         return;
     }
-    pairwise_any::<false>(a, b, k, out);
+    pairwise_any::<false>(a, b, k, out, n);
 }
 
 /// Most rows of `b` for [`narrow_avx`]: its transposed copy (`k x n`) is
@@ -359,7 +360,15 @@ unsafe fn narrow_block<const H: usize>(a: &[f64], bt: &[f64], np: usize, j0: usi
 /// `out[i·n + j] = sq_dist(a_i, b_j)`, as [`gemm_nt`]: the same bits as
 /// [`sq_dist`] entry by entry.
 pub fn sq_dists(a: &[f64], b: &[f64], k: usize, out: &mut [f64]) {
-    pairwise_any::<true>(a, b, k, out);
+    let n = b.len() / k.max(1);
+    pairwise_any::<true>(a, b, k, out, n);
+}
+
+/// [`sq_dists`] into rows of `out` `ldc` apart (`ldc` at least the number
+/// of rows of `b`): entry `(i, j)` at `out[i·ldc + j]`, the rest of each row
+/// untouched. For writing a block of a larger matrix in place.
+pub fn sq_dists_strided(a: &[f64], b: &[f64], k: usize, out: &mut [f64], ldc: usize) {
+    pairwise_any::<true>(a, b, k, out, ldc);
 }
 
 /// Writes the transpose of `src` (`rows x cols`, row-major) into `dst` (`cols x rows`).
