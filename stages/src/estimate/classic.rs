@@ -692,6 +692,9 @@ pub struct Forest {
     pub scaler: Standardizer,
     /// The trees.
     pub trees: Vec<forest::Tree>,
+    /// The trees laid out for prediction (built on first use, not saved).
+    #[serde(skip)]
+    flat: forest::FlatCache,
 }
 
 impl Forest {
@@ -704,19 +707,18 @@ impl Forest {
     /// [`Self::frame_scores`] of every row of `x` into the rows of `out`.
     ///
     /// Rows go a block at a time: the block is standardised into a small
-    /// buffer (no copy of the whole batch), then walked down one tree after
-    /// the other ([`forest::Tree::predict_rows`], the rows of the block in
-    /// step), tallying the votes per row; the same votes, hence the same
-    /// scores, as one row through every tree.
+    /// buffer (no copy of the whole batch), then walked down all the trees
+    /// together ([`forest::Flat::vote`]), tallying the votes per row; the
+    /// same votes, hence the same scores, as one row through every tree.
     pub fn scores_batch(&self, x: &[f64], out: &mut [f64]) {
         /// Rows standardised and voted together.
         const ROWS: usize = 64;
         let k = self.classes.max(1);
         let dim = self.dim.max(1);
+        let flat = self.flat.get(&self.trees, dim);
         let rows = (x.len() / dim).min(out.len() / k);
         let mut z = vec![0.0; ROWS * dim];
         let mut votes = vec![0u32; ROWS * k];
-        let mut class = [0usize; ROWS];
         for start in (0..rows).step_by(ROWS) {
             let b = ROWS.min(rows - start);
             let z = &mut z[..b * dim];
@@ -724,14 +726,7 @@ impl Forest {
             z.chunks_exact_mut(dim).for_each(|r| self.scaler.apply(r));
             let votes = &mut votes[..b * k];
             votes.iter_mut().for_each(|v| *v = 0);
-            for t in &self.trees {
-                t.predict_rows(z, dim, &mut class[..b]);
-                for (v, &c) in votes.chunks_exact_mut(k).zip(&class) {
-                    if let Some(v) = v.get_mut(c) {
-                        *v += 1;
-                    }
-                }
-            }
+            flat.vote(z, k, votes);
             for (v, o) in votes
                 .chunks_exact(k)
                 .zip(out[start * k..(start + b) * k].chunks_exact_mut(k))
@@ -814,6 +809,7 @@ impl RandomForestConfig {
                 dim: set.dim,
                 scaler,
                 trees,
+                flat: Default::default(),
             }))
         })
     }
