@@ -509,7 +509,7 @@ def run_baselines(work, seed, repeats):
             classes_idx = np.arange(len(classes))
             cfg = m["config"]
             fit, pred, peer = PEERS[m["kind"]]
-            model, fit_t = timed(3, lambda: fit(cfg, data, classes_idx, seed))
+            model, fit_t = timed(7, lambda: fit(cfg, data, classes_idx, seed))
             n_trials = len(data["trial_angle"])
 
             def predict_all():
@@ -571,7 +571,7 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--work", type=Path, default=HERE / "work", help="palpate's export (--out of the example)")
     ap.add_argument("--targets", default="numpy,cython,cpp_standalone", help="Brian2 codegen targets")
-    ap.add_argument("--repeats", type=int, default=3, help="timed runs per Brian2 configuration (sklearn: fits 3, predictions max(this, 5) samples)")
+    ap.add_argument("--repeats", type=int, default=3, help="timed runs per Brian2 configuration (sklearn: fits 7, predictions max(this, 5) samples)")
     ap.add_argument("--modes", default="natural,exact", help="Brian2 code: natural and/or exact (see README)")
     ap.add_argument("--timeout", type=float, default=900, help="seconds per Brian2 configuration")
     ap.add_argument("--skip-encoder", action="store_true")
