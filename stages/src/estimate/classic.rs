@@ -1821,18 +1821,7 @@ mod tests {
             mean: vec![0.0; dim],
             inv_sd: vec![1.0; dim],
         };
-        let fit = |cfg: &SvmConfig, threads: usize| {
-            let pool = rayon::ThreadPoolBuilder::new()
-                .num_threads(threads)
-                .build()
-                .expect("pool");
-            let m = pool.install(|| cfg.fit_design(3, dim, &rows, &y, scaler.clone()));
-            m.expect("fit")
-                .as_any()
-                .downcast_ref::<OvoSvm>()
-                .expect("an SVM")
-                .clone()
-        };
+        let fit = |cfg: &SvmConfig, threads: usize| fit_svm_on(cfg, 3, dim, &rows, &y, &scaler, threads);
         let gram = fit(&SvmConfig::default(), 1);
         let small = SvmConfig {
             cache_mb: 1,
@@ -1895,18 +1884,7 @@ mod tests {
             mean: vec![0.0; dim],
             inv_sd: vec![1.0; dim],
         };
-        let fit = |cfg: &SvmConfig, threads: usize| {
-            let pool = rayon::ThreadPoolBuilder::new()
-                .num_threads(threads)
-                .build()
-                .expect("pool");
-            let m = pool.install(|| cfg.fit_design(5, dim, &rows, &y, scaler.clone()));
-            m.expect("fit")
-                .as_any()
-                .downcast_ref::<OvoSvm>()
-                .expect("an SVM")
-                .clone()
-        };
+        let fit = |cfg: &SvmConfig, threads: usize| fit_svm_on(cfg, 5, dim, &rows, &y, &scaler, threads);
         let per_machine = svm_bits(&fit(
             &SvmConfig {
                 cache_mb: 1,
@@ -2010,6 +1988,29 @@ mod tests {
             .expect("a well-formed matrix")
     }
 
+    /// `cfg`'s SVM fitted on `rows` (classes `y` in `0..classes`) on a pool of
+    /// `threads` threads.
+    fn fit_svm_on(
+        cfg: &SvmConfig,
+        classes: usize,
+        dim: usize,
+        rows: &[Vec<f64>],
+        y: &[usize],
+        scaler: &Standardizer,
+        threads: usize,
+    ) -> OvoSvm {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .expect("pool");
+        let m = pool.install(|| cfg.fit_design(classes, dim, rows, y, scaler.clone()));
+        m.expect("fit")
+            .as_any()
+            .downcast_ref::<OvoSvm>()
+            .expect("an SVM")
+            .clone()
+    }
+
     /// The definition [`fit_softmax`]'s interleaved evaluation must match
     /// bit for bit: one row at a time, the bias gradients summed afterwards
     /// (the code before rows were interleaved).
@@ -2072,7 +2073,12 @@ mod tests {
     fn logistic_fit_has_the_bits_of_the_row_by_row_evaluation() {
         // Row counts that do and do not fill the last block of rows; one class
         // absent from the labels; a constant column.
-        for (n, dim, k, seed) in [(203, 6, 5usize, 1u64), (64, 16, 17, 2), (3, 2, 4, 3), (1, 3, 2, 4)] {
+        for (n, dim, k, seed) in [
+            (203, 6, 5usize, 1u64),
+            (64, 16, 17, 2),
+            (3, 2, 4, 3),
+            (1, 3, 2, 4),
+        ] {
             let mut x = random_rows(n, dim, seed);
             x.iter_mut().step_by(dim).for_each(|v| *v = 0.5);
             let y: Vec<usize> = (0..n)

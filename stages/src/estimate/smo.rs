@@ -179,6 +179,82 @@ impl<'a> RowCache<'a> {
     }
 }
 
+/// libsvm's `TAU`: the curvature used where `Q_ii + Q_jj - 2 Q_ij` is not
+/// positive (a semi-definite kernel, or rounding).
+const TAU: f64 = 1e-12;
+
+/// The analytic two-variable step of SMO on the pair `(i, j)` with the box
+/// `[0, c]` (libsvm's `Solver::Solve`, Fan, Chen & Lin 2005): moves
+/// `alpha[i]` and `alpha[j]` along the constraint line to the minimum of the
+/// dual on it, then clips to the box. `qij` is `Q_ij`, `diag` and `grad` are
+/// `(Q_ii, Q_jj)` and `(G_i, G_j)`. One function for every solver, so the row
+/// and the Gram solvers take the same steps.
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn pair_step(
+    opposite: bool,
+    qij: f64,
+    [qii, qjj]: [f64; 2],
+    [gi, gj]: [f64; 2],
+    alpha: &mut [f64],
+    i: usize,
+    j: usize,
+    c: f64,
+) {
+    let (ci, cj) = (c, c);
+    if opposite {
+        let quad = qii + qjj + 2.0 * qij;
+        let quad = if quad > 0.0 { quad } else { TAU };
+        let delta = (-gi - gj) / quad;
+        let diff = alpha[i] - alpha[j];
+        alpha[i] += delta;
+        alpha[j] += delta;
+        if diff > 0.0 {
+            if alpha[j] < 0.0 {
+                alpha[j] = 0.0;
+                alpha[i] = diff;
+            }
+        } else if alpha[i] < 0.0 {
+            alpha[i] = 0.0;
+            alpha[j] = -diff;
+        }
+        if diff > ci - cj {
+            if alpha[i] > ci {
+                alpha[i] = ci;
+                alpha[j] = ci - diff;
+            }
+        } else if alpha[j] > cj {
+            alpha[j] = cj;
+            alpha[i] = cj + diff;
+        }
+    } else {
+        let quad = qii + qjj - 2.0 * qij;
+        let quad = if quad > 0.0 { quad } else { TAU };
+        let delta = (gi - gj) / quad;
+        let sum = alpha[i] + alpha[j];
+        alpha[i] -= delta;
+        alpha[j] += delta;
+        if sum > ci {
+            if alpha[i] > ci {
+                alpha[i] = ci;
+                alpha[j] = sum - ci;
+            }
+        } else if alpha[j] < 0.0 {
+            alpha[j] = 0.0;
+            alpha[i] = sum;
+        }
+        if sum > cj {
+            if alpha[j] > cj {
+                alpha[j] = cj;
+                alpha[i] = sum - cj;
+            }
+        } else if alpha[i] < 0.0 {
+            alpha[i] = 0.0;
+            alpha[j] = sum;
+        }
+    }
+}
+
 /// Solves the C-SVM dual for labels `y` (each ±1) with kernel values
 /// `kernel(s, t) = K(x_s, x_t)`, which must be symmetric with `K(t, t) > 0`
 /// for the usual convergence guarantee (an RBF kernel gives `K(t, t) = 1`).
@@ -202,7 +278,6 @@ pub fn solve_rows(
     fill: &(dyn Fn(usize, &mut [f64]) + Sync),
     p: &SmoParams,
 ) -> Solution {
-    const TAU: f64 = 1e-12;
     let n = y.len();
     assert_eq!(diag.len(), n, "one diagonal kernel value per variable");
     let c = p.c;
@@ -284,59 +359,17 @@ pub fn solve_rows(
         }
         iterations += 1;
         let qj = cache.row(j);
-        let (ci, cj) = (c, c);
         let (old_i, old_j) = (alpha[i], alpha[j]);
-        if y[i] != y[j] {
-            let quad = diag[i] + diag[j] + 2.0 * qi[j];
-            let quad = if quad > 0.0 { quad } else { TAU };
-            let delta = (-grad[i] - grad[j]) / quad;
-            let diff = alpha[i] - alpha[j];
-            alpha[i] += delta;
-            alpha[j] += delta;
-            if diff > 0.0 {
-                if alpha[j] < 0.0 {
-                    alpha[j] = 0.0;
-                    alpha[i] = diff;
-                }
-            } else if alpha[i] < 0.0 {
-                alpha[i] = 0.0;
-                alpha[j] = -diff;
-            }
-            if diff > ci - cj {
-                if alpha[i] > ci {
-                    alpha[i] = ci;
-                    alpha[j] = ci - diff;
-                }
-            } else if alpha[j] > cj {
-                alpha[j] = cj;
-                alpha[i] = cj + diff;
-            }
-        } else {
-            let quad = diag[i] + diag[j] - 2.0 * qi[j];
-            let quad = if quad > 0.0 { quad } else { TAU };
-            let delta = (grad[i] - grad[j]) / quad;
-            let sum = alpha[i] + alpha[j];
-            alpha[i] -= delta;
-            alpha[j] += delta;
-            if sum > ci {
-                if alpha[i] > ci {
-                    alpha[i] = ci;
-                    alpha[j] = sum - ci;
-                }
-            } else if alpha[j] < 0.0 {
-                alpha[j] = 0.0;
-                alpha[i] = sum;
-            }
-            if sum > cj {
-                if alpha[j] > cj {
-                    alpha[j] = cj;
-                    alpha[i] = sum - cj;
-                }
-            } else if alpha[i] < 0.0 {
-                alpha[i] = 0.0;
-                alpha[j] = sum;
-            }
-        }
+        pair_step(
+            y[i] != y[j],
+            qi[j],
+            [diag[i], diag[j]],
+            [grad[i], grad[j]],
+            &mut alpha,
+            i,
+            j,
+            c,
+        );
         let (di, dj) = (alpha[i] - old_i, alpha[j] - old_j);
         for &t in &active {
             grad[t] += qi[t] * di + qj[t] * dj;
@@ -398,7 +431,6 @@ const MAX_GRAM_N: usize = 1 << 52;
 /// before they count again. The update of `G` and the next selection of `i`
 /// share one pass.
 pub fn solve_gram(k: &GramRanges<'_>, y: &[f64], var: &[usize], p: &SmoParams) -> Solution {
-    const TAU: f64 = 1e-12;
     let gidx: Vec<usize> = k.ranges.iter().flat_map(Clone::clone).collect();
     let n = gidx.len();
     assert!(n <= MAX_GRAM_N, "solve_gram: too many variables");
@@ -468,59 +500,17 @@ pub fn solve_gram(k: &GramRanges<'_>, y: &[f64], var: &[usize], p: &SmoParams) -
         let (y, alpha, grad, diag) = (&st.y, &mut st.alpha, &st.grad, &st.diag);
         // Q_ij, as the row cache holds it.
         let qij = ki[j] * (y[i] * y[j]);
-        let (ci, cj) = (c, c);
         let (old_i, old_j) = (alpha[i], alpha[j]);
-        if y[i] != y[j] {
-            let quad = diag[i] + diag[j] + 2.0 * qij;
-            let quad = if quad > 0.0 { quad } else { TAU };
-            let delta = (-grad[i] - grad[j]) / quad;
-            let diff = alpha[i] - alpha[j];
-            alpha[i] += delta;
-            alpha[j] += delta;
-            if diff > 0.0 {
-                if alpha[j] < 0.0 {
-                    alpha[j] = 0.0;
-                    alpha[i] = diff;
-                }
-            } else if alpha[i] < 0.0 {
-                alpha[i] = 0.0;
-                alpha[j] = -diff;
-            }
-            if diff > ci - cj {
-                if alpha[i] > ci {
-                    alpha[i] = ci;
-                    alpha[j] = ci - diff;
-                }
-            } else if alpha[j] > cj {
-                alpha[j] = cj;
-                alpha[i] = cj + diff;
-            }
-        } else {
-            let quad = diag[i] + diag[j] - 2.0 * qij;
-            let quad = if quad > 0.0 { quad } else { TAU };
-            let delta = (grad[i] - grad[j]) / quad;
-            let sum = alpha[i] + alpha[j];
-            alpha[i] -= delta;
-            alpha[j] += delta;
-            if sum > ci {
-                if alpha[i] > ci {
-                    alpha[i] = ci;
-                    alpha[j] = sum - ci;
-                }
-            } else if alpha[j] < 0.0 {
-                alpha[j] = 0.0;
-                alpha[i] = sum;
-            }
-            if sum > cj {
-                if alpha[j] > cj {
-                    alpha[j] = cj;
-                    alpha[i] = sum - cj;
-                }
-            } else if alpha[i] < 0.0 {
-                alpha[i] = 0.0;
-                alpha[j] = sum;
-            }
-        }
+        pair_step(
+            y[i] != y[j],
+            qij,
+            [diag[i], diag[j]],
+            [grad[i], grad[j]],
+            alpha,
+            i,
+            j,
+            c,
+        );
         let (di, dj) = (alpha[i] - old_i, alpha[j] - old_j);
         st.set_masks(i);
         st.set_masks(j);
