@@ -307,8 +307,15 @@ fn lengths(layout: &TaxelLayout, hop_ms: f64, params: &WssParams, theta_deg: f64
 /// is negligible (below 1e-20 of its energy, i.e. rounding noise), so that a
 /// constant image correlates 0 with everything.
 pub(crate) fn normalize(v: &mut [f64]) -> bool {
+    let sum = v.iter().sum::<f64>();
+    normalize_with_sum(v, sum)
+}
+
+/// [`normalize`] given `v.iter().sum()` (a frame's spike count, which the
+/// caller has already summed in that order: the same bits).
+pub(crate) fn normalize_with_sum(v: &mut [f64], sum: f64) -> bool {
     let n = v.len() as f64;
-    let mean = v.iter().sum::<f64>() / n;
+    let mean = sum / n;
     let energy: f64 = v.iter().map(|x| x * x).sum();
     let ss: f64 = v.iter().map(|x| (x - mean) * (x - mean)).sum();
     if !ss.is_finite() || ss <= 1e-20 * energy {
