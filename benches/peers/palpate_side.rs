@@ -518,6 +518,9 @@ fn baselines(args: &Args) -> Res<Value> {
         });
         let model = model.ok_or_else(|| err.unwrap_or_default())?;
         let ((scores, answers), predict_time) = timed(args.repeats, || predict(&model, &t));
+        if std::env::var_os("PEERS_DUMP_SCORES").is_some() {
+            write_npy(&d.join("scores_test.npy"), &[scores.len()], &scores)?;
+        }
         // Each frame's class, for the frame accuracy: outside the timing, as
         // run.py computes scikit-learn's.
         let pred: Vec<usize> = scores
