@@ -75,10 +75,15 @@
 //!   so the neighbours are those of a scan that keeps the `k` smallest
 //!   `(distance, index)` pairs (ties go to the earlier training vector),
 //!   bit for bit. On the peers k-NN workload (3154 x 3060 x 80, k = 10) a
-//!   query visits ~36 of 192 blocks, accumulates ~12% of the coordinate
-//!   terms in `f32` and computes ~10.5 exact distances; predict took 28.8 ms
+//!   query visits ~34 of 192 blocks, accumulates ~12% of the coordinate
+//!   terms in `f32` and computes ~10.7 exact distances; predict took 28.8 ms
 //!   on a loaded 2-core machine (scikit-learn 84.5 ms there; the previous
-//!   ball-bound index 47.7-49.6 ms against 56.7 ms on a quiet one). The full
+//!   ball-bound index 47.7-49.6 ms against 56.7 ms on a quiet one), and
+//!   21.4-26.2 ms (thread CPU, minimum per run, 4 runs at load ~5, against
+//!   21.9-27.1 ms for the previous index build alternating with it). The
+//!   index is built at the first prediction, which the peers fit includes:
+//!   2.7-3.7 ms there (13.3-20.0 ms with the Jacobi build; scikit-learn's
+//!   fit 2.0 ms). The full
 //!   scan (GEMM identity through the tiled kernel, then an exact re-rank of
 //!   the candidates) stays for models without an index (rows not finite or
 //!   beyond 1e15). smartcore's search (cover tree or
@@ -1174,8 +1179,8 @@ impl KnnConfig {
             );
             // The search index is built at the first prediction (as for a
             // loaded model), so fitting stays a copy of the training set:
-            // building it (~13 ms on 3060 x 80) only pays for itself over
-            // many predictions.
+            // building it (~3 ms on 3060 x 80, [`knn_index`]'s Cost) only
+            // pays for itself over many predictions.
             Ok(Box::new(knn))
         })
     }
