@@ -141,12 +141,11 @@ unsafe fn tile_avx<const SQ: bool>(a: [&[f64]; MR], b: [&[f64]; NR], k: usize) -
         // `[c0: q0+q1, c1: q0+q1, c0: q2+q3, c1: q2+q3]` (and likewise for
         // columns 2 and 3), the lane swaps line the halves up. The same
         // additions as the scalar reduction, without storing and reloading
-        // each accumulator: 6-9% off the products at the peers shapes
-        // (3154 rows x 80 x 60, x 60 x 30, x 80 x 30; edbn's
-        // `time_edbn_predict_parts`, against the previous kernel in the same
-        // process). Padding the ragged edges into whole tiles was tried and
-        // was slower (the extra branches in the tile loop cost more than the
-        // scalar edge columns saved).
+        // each accumulator (6-9% off the products at the peers shapes in
+        // a same-process comparison while it was written; too small for the
+        // shared machine's peers runs to show). Padding the ragged edges into
+        // whole tiles was tried and was slower (the extra branches in the
+        // tile loop cost more than the scalar edge columns saved).
         let x = _mm256_hadd_pd(acc[r][0], acc[r][1]);
         let y = _mm256_hadd_pd(acc[r][2], acc[r][3]);
         let s = _mm256_add_pd(
