@@ -599,6 +599,21 @@ impl Rbm {
         );
     }
 
+    /// [`Self::posterior_from_base`] of each row of `base` (`n_hid` wide, at
+    /// least one) in turn into the first `labels` entries of the rows of `out`
+    /// (`stride` wide): the row-by-row path of [`Self::posterior_rows`].
+    fn posterior_each_row(&self, base: &[f64], d: &mut Disc, out: &mut [f64], stride: usize) {
+        let k = self.labels;
+        for (bi, o) in base
+            .chunks_exact(self.n_hid.max(1))
+            .zip(out.chunks_exact_mut(stride.max(1)))
+        {
+            d.base.copy_from_slice(bi);
+            self.posterior_from_base(d);
+            o[..k].copy_from_slice(&d.p);
+        }
+    }
+
     /// [`Self::posterior_from_base`] of every row of `base` (`n_hid` wide)
     /// into the rows of `out` (`stride` wide, the first `labels` entries),
     /// with its bits, [`POST_LANES`] frames at a time with the frames across
@@ -619,16 +634,12 @@ impl Rbm {
         let nb = self.n_vis - self.labels;
         let (nh, k) = (self.n_hid, self.labels);
         let n = (base.len() / nh.max(1)).min(out.len() / stride.max(1));
-        if nh == 0 || k == 0 || stride < k {
-            for (bi, o) in base
-                .chunks_exact(nh.max(1))
-                .zip(out.chunks_exact_mut(stride.max(1)))
-                .take(n)
-            {
-                d.base.copy_from_slice(bi);
-                self.posterior_from_base(d);
-                o[..k].copy_from_slice(&d.p);
-            }
+        assert!(
+            stride >= k,
+            "posterior_rows: rows of {stride} cannot hold {k} labels"
+        );
+        if nh == 0 || k == 0 {
+            self.posterior_each_row(&base[..n * nh], d, out, stride);
             return;
         }
         // Group scratch, label- or hidden-major with the frames innermost,
@@ -659,11 +670,7 @@ impl Rbm {
             }
             if !fast {
                 let rows = group.len() / nh;
-                for (r, bi) in group.chunks_exact(nh).enumerate() {
-                    d.base.copy_from_slice(bi);
-                    self.posterior_from_base(d);
-                    out[(i0 + r) * stride..(i0 + r) * stride + k].copy_from_slice(&d.p);
-                }
+                self.posterior_each_row(group, d, &mut out[i0 * stride..], stride);
                 i0 += rows;
                 continue;
             }

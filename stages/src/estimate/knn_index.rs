@@ -851,11 +851,7 @@ fn block_partial_sums(q: &[f32], p: &[f32], t: f32) -> ([f32; LANES], usize) {
 /// `‖ŵ − w‖` bound for a rotated vector `ŵ = R v` computed in `f64` and
 /// then rounded to `f32` (module docs, bound 3).
 fn rotation_error(v: &[f64], w: &[f64], rmax: f64) -> f64 {
-    rotation_error_l1(v.len(), sum8(v, v, |a, _| a.abs()), w, rmax)
-}
-
-/// [`rotation_error`] from `‖v‖₁` (`n` values).
-fn rotation_error_l1(n: usize, l1: f64, w: &[f64], rmax: f64) -> f64 {
+    let (n, l1) = (v.len(), sum8(v, v, |a, _| a.abs()));
     let l2 = sum8(w, w, |a, _| a * a).sqrt();
     let prod = (n as f64).sqrt() * gamma(n + 2, f64::EPSILON / 2.0) * rmax * l1;
     let round = f64::from(f32::EPSILON) / 2.0 * l2;
