@@ -80,7 +80,8 @@
 //!   on a loaded 2-core machine (scikit-learn 84.5 ms there; the previous
 //!   ball-bound index 47.7-49.6 ms against 56.7 ms on a quiet one), and
 //!   21.4-26.2 ms (thread CPU, minimum per run, 4 runs at load ~5, against
-//!   21.9-27.1 ms for the previous index build alternating with it). The
+//!   21.9-27.1 ms for the previous index build alternating with it; the
+//!   command is in [`super::knn_index`]'s "Cost"). The
 //!   index is built at the first prediction, which the peers fit includes:
 //!   2.7-3.7 ms there (13.3-20.0 ms with the Jacobi build; scikit-learn's
 //!   fit 2.0 ms). The full

@@ -529,35 +529,20 @@ pub(crate) fn fast_series_in(
     for (c, cls) in tpl.classes().iter().enumerate() {
         let num = fft.conv(c, 0);
         let mut out = vec![0.0; k];
-        // Eq. 5's quotient at every alignment first, in two loops without
-        // branches that vectorize (a scalar loop with the rules' branches
-        // and a division per alignment was a tenth of the stage); the rules
-        // below then overwrite the few alignments they take. Same operations
-        // as `window`'s: before the template's length is reached the window
-        // starts at frame 0 with `len − (kk + 1)` silent terms (none with
-        // `exclude`), after it the window is `len` frames and has none.
-        let len = cls.len;
-        let head = len.saturating_sub(1).min(k);
-        let silent = before == BeforeStart::Silent;
-        for (kk, o) in out[..head].iter_mut().enumerate() {
-            let extra = if silent { len - (kk + 1) } else { 0 };
-            *o = num[kk] / (wp[kk + 1] - wp[0] + extra as f64);
-        }
-        for (kk, o) in out.iter_mut().enumerate().skip(head) {
-            *o = num[kk] / (wp[kk + 1] - wp[kk + 1 - len] + 0.0);
-        }
         let mut fallback = Vec::new();
         for kk in 0..k {
-            let (lo, nw, extra) = window(kk, len, before);
+            let (lo, nw, extra) = window(kk, cls.len, before);
             let nz = nzp[kk + 1] - nzp[lo] + extra;
             if nz == 0 {
                 fallback.push(kk);
                 continue;
             }
             let den = wp[kk + 1] - wp[lo] + extra as f64;
-            if den < GUARD * (nw + extra) as f64 {
-                out[kk] = direct_value(prep, params, prep.max_count, cls, kk);
-            }
+            out[kk] = if den < GUARD * (nw + extra) as f64 {
+                direct_value(prep, params, prep.max_count, cls, kk)
+            } else {
+                num[kk] / den
+            };
         }
         if fallback.len() >= FALLBACK_FFT_MIN {
             if fft.spectra.seqs[1].is_empty() {
