@@ -21,6 +21,10 @@
 #
 #   scripts/reproduce.sh            # from anywhere inside the repository
 #
+# The graphs of steps 2 and 3 run REPRODUCE_JOBS at a time (default: the core count), so
+# each graph's recorded wall time is taken while another graph runs beside
+# it; `REPRODUCE_JOBS=1 scripts/reproduce.sh` runs them one by one.
+#
 # Honours CARGO_TARGET_DIR. Extra arguments are passed to every `palpate run`
 # (e.g. `--threads 1`; results do not depend on it).
 set -euo pipefail
@@ -37,39 +41,87 @@ bin="$target/release/palpate"
 build_end=$(date +%s.%N)
 
 mkdir -p "$OUT" out/paper_sensor
-timings=()
+# Graphs run REPRODUCE_JOBS at a time (default: one per core), longest first
+# by the previous run's timing.json (new graphs first: their cost is
+# unknown). Within a graph the stages already use every core, but not all the
+# time (fits one estimator at a time, sinks, a sweep point's serial tail):
+# two graphs side by side keep both cores busy. Each graph's wall time in
+# timing.json is then measured while another graph shares the machine.
+jobs_max="${REPRODUCE_JOBS:-$(nproc)}"
+[[ "$jobs_max" =~ ^[1-9][0-9]*$ ]] || { echo "REPRODUCE_JOBS must be a positive integer, not '$jobs_max'" >&2; exit 2; }
+times_dir="$OUT/.times"
+rm -rf "$times_dir" && mkdir -p "$times_dir"
+# Each job: "graph|outdir|key|set" (set: an optional `--set` override).
+queue=()
+for graph in graphs/paper/*.toml graphs/continuous.toml graphs/shift/*.toml; do
+    name=$(basename "$graph" .toml)
+    queue+=("$graph|$OUT/$name|$name|")
+done
+for graph in graphs/paper/*.toml; do
+    name=$(basename "$graph" .toml)
+    case "$name" in fig5*|seeds|speed_error) continue ;; esac
+    queue+=("$graph|out/paper_sensor/$name|paper_sensor/$name|stages.scene.file=../scenes/paper_sensor.toml")
+done
+keys=()
+for job in "${queue[@]}"; do IFS='|' read -r _ _ key _ <<< "$job"; keys+=("$key"); done
+# Indices of the queue, longest previous run first.
+mapfile -t order < <(python3 - "$OUT/timing.json" "${keys[@]}" <<'PY'
+import json, sys
+try:
+    prev = json.load(open(sys.argv[1])).get("graphs", {})
+except (OSError, ValueError):
+    prev = {}
+keys = sys.argv[2:]
+inf = float("inf")
+for i in sorted(range(len(keys)), key=lambda i: (-prev.get(keys[i], inf), i)):
+    print(i)
+PY
+)
 # run_graph GRAPH OUTDIR KEY SET [palpate run args...]: checks and runs one
-# graph (SET: an optional `--set` override, "" for none), logs to OUTDIR.log,
-# records its wall time under KEY.
+# graph, logs to OUTDIR.log, writes its wall time to $times_dir.
 run_graph() {
     local graph="$1" dir="$2" key="$3" set=()
     [[ -n "$4" ]] && set=(--set "$4")
     shift 4
-    echo "== $graph -> $dir ${set[*]}"
     "$bin" check "$graph" "${set[@]}" > /dev/null
     rm -rf "${dir:?}"
     local t0 t1 secs
     t0=$(date +%s.%N)
     if ! "$bin" run "$graph" --out "$dir" "${set[@]}" "$@" > "$dir.log" 2>&1; then
-        echo "FAILED: $graph (log: $dir.log)" >&2
+        echo "FAILED: $graph ${set[*]} (log: $dir.log)" >&2
         tail -20 "$dir.log" >&2
-        exit 1
+        return 1
     fi
     t1=$(date +%s.%N)
     secs=$(printf '%.2f' "$(echo "$t1 - $t0" | bc)")
-    printf '   %s s (log: %s)\n' "$secs" "$dir.log"
-    timings+=("\"$key\": $secs")
+    printf '== %s -> %s %s: %s s\n' "$graph" "$dir" "${set[*]}" "$secs"
+    echo "$secs" > "$times_dir/${key//\//_}"
 }
-for graph in graphs/paper/*.toml graphs/continuous.toml graphs/shift/*.toml; do
-    name=$(basename "$graph" .toml)
-    run_graph "$graph" "$OUT/$name" "$name" "" "$@"
+running=0
+for i in "${order[@]}"; do
+    if (( running >= jobs_max )); then
+        if ! wait -n; then
+            kill $(jobs -p) 2>/dev/null || true
+            exit 1
+        fi
+        running=$((running - 1))
+    fi
+    IFS='|' read -r graph dir key set <<< "${queue[$i]}"
+    run_graph "$graph" "$dir" "$key" "$set" "$@" &
+    running=$((running + 1))
 done
-for graph in graphs/paper/*.toml; do
-    name=$(basename "$graph" .toml)
-    case "$name" in fig5*|seeds|speed_error) continue ;; esac
-    run_graph "$graph" "out/paper_sensor/$name" "paper_sensor/$name" \
-        stages.scene.file=../scenes/paper_sensor.toml "$@"
+while (( running > 0 )); do
+    if ! wait -n; then
+        kill $(jobs -p) 2>/dev/null || true
+        exit 1
+    fi
+    running=$((running - 1))
 done
+timings=()
+for key in "${keys[@]}"; do
+    timings+=("\"$key\": $(cat "$times_dir/${key//\//_}")")
+done
+rm -rf "$times_dir"
 
 # The paper's reproduction ends here (its wall time is the one recorded);
 # the time study follows.
@@ -92,8 +144,8 @@ echo "== WSS batch bench (one estimate at 10, 45, 90 degrees) -> $target/criteri
 cargo bench --quiet --bench wss -- wss_batch > "$OUT/wss_bench.log" 2>&1
 build=$(printf '%.2f' "$(echo "$build_end - $start" | bc)")
 {
-    printf '{"total_s": %s, "build_s": %s, "cores": %s, "load_at_start": %s, "graphs": {' \
-        "$total" "$build" "$(nproc)" "$load"
+    printf '{"total_s": %s, "build_s": %s, "cores": %s, "jobs": %s, "load_at_start": %s, "graphs": {' \
+        "$total" "$build" "$(nproc)" "$jobs_max" "$load"
     (IFS=,; printf '%s' "${timings[*]}")
     printf '}, "time_study": {'
     (IFS=,; printf '%s' "${extra[*]}")
