@@ -88,6 +88,8 @@ run_graph() {
     local t0 t1 secs
     t0=$(date +%s.%N)
     if ! "$bin" run "$graph" --out "$dir" "${set[@]}" "$@" > "$dir.log" 2>&1; then
+        # Stopped because another graph failed: that one has reported.
+        [[ -e "$times_dir/.stopping" ]] && return 1
         echo "FAILED: $graph ${set[*]} (log: $dir.log)" >&2
         tail -20 "$dir.log" >&2
         return 1
@@ -97,11 +99,21 @@ run_graph() {
     printf '== %s -> %s %s: %s s\n' "$graph" "$dir" "${set[*]}" "$secs"
     echo "$secs" > "$times_dir/${key//\//_}"
 }
+# stop_jobs: on a failure, ends the graphs still running (each job's
+# `palpate run` first, then the job's subshell).
+stop_jobs() {
+    local p
+    touch "$times_dir/.stopping"
+    for p in $(jobs -p); do
+        pkill -TERM -P "$p" 2>/dev/null || true
+        kill "$p" 2>/dev/null || true
+    done
+}
 running=0
 for i in "${order[@]}"; do
     if (( running >= jobs_max )); then
         if ! wait -n; then
-            kill $(jobs -p) 2>/dev/null || true
+            stop_jobs
             exit 1
         fi
         running=$((running - 1))
@@ -112,7 +124,7 @@ for i in "${order[@]}"; do
 done
 while (( running > 0 )); do
     if ! wait -n; then
-        kill $(jobs -p) 2>/dev/null || true
+        stop_jobs
         exit 1
     fi
     running=$((running - 1))
