@@ -21,9 +21,10 @@
 #
 #   scripts/reproduce.sh            # from anywhere inside the repository
 #
-# The graphs of steps 2 and 3 run REPRODUCE_JOBS at a time (default: the core count), so
-# each graph's recorded wall time is taken while another graph runs beside
-# it; `REPRODUCE_JOBS=1 scripts/reproduce.sh` runs them one by one.
+# The graphs of steps 2 and 3 run REPRODUCE_JOBS at a time (default: the
+# core count), so each graph's recorded wall time is taken while another
+# graph runs beside it; `REPRODUCE_JOBS=1 scripts/reproduce.sh` runs them
+# one by one.
 #
 # Honours CARGO_TARGET_DIR. Extra arguments are passed to every `palpate run`
 # (e.g. `--threads 1`; results do not depend on it).
