@@ -90,12 +90,15 @@ pub struct TScale {
     /// Ignored: lets a test change the stage's settings (and so its cache
     /// key) without changing its output. Default empty.
     pub note: String,
+    /// A trial id on which the stage fails. Default none.
+    pub fail_on: Option<String>,
 }
 impl Default for TScale {
     fn default() -> Self {
         TScale {
             factor: 2.0,
             note: String::new(),
+            fail_on: None,
         }
     }
 }
@@ -121,6 +124,9 @@ register_stage!("t_scale", TScale);
 impl Map for TScale {
     fn process(&self, inputs: &[&Item], _ctx: &TrialContext<'_>) -> Result<Payload, StageError> {
         SCALE_CALLS.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+        if self.fail_on.as_deref() == Some(inputs[0].meta.trial_id.as_str()) {
+            return Err(StageError::new("t_scale fails here"));
+        }
         let s = inputs[0].payload.signals()?;
         let data = s
             .data
@@ -235,25 +241,7 @@ impl Estimator for TEstimator {
 
 impl Model for TModel {
     fn predict(&self, item: &Item, _ctx: &TrialContext<'_>) -> Result<Estimate, StageError> {
-        let m = mean(item.payload.signals()?);
-        let best = self
-            .classes
-            .iter()
-            .min_by(|a, b| (a.1 - m).abs().total_cmp(&(b.1 - m).abs()))
-            .map(|c| c.0);
-        Ok(Estimate {
-            angle_deg: best,
-            class_deg: best,
-            scores: self
-                .classes
-                .iter()
-                .map(|c| ClassScore {
-                    angle_deg: c.0,
-                    score: -(c.1 - m).abs(),
-                })
-                .collect(),
-            ..Estimate::default()
-        })
+        self.predict_value(mean(item.payload.signals()?))
     }
 }
 
@@ -342,8 +330,77 @@ impl StageConfig for TDynamic {
         }
         Ok(Stage::Map(Box::new(TScale {
             factor: self.config.get("factor").copied().unwrap_or(1.0),
-            note: String::new(),
+            ..TScale::default()
         })))
     }
 }
 register_stage!("t_dynamic", TDynamic);
+
+/// Test model-based estimator: fits on nothing; answers the class (10, 20,
+/// 30 or 40 degrees) nearest 50 x the signals' overall mean (random signals
+/// in [0, 1): 25 on average), scoring every class.
+#[derive(Clone, Debug, Default, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields, default)]
+pub struct TFixed {
+    /// A trial id on which predicting fails. Default none.
+    pub fail_on: Option<String>,
+}
+
+#[typetag::serde(name = "t_fixed")]
+impl StageConfig for TFixed {
+    fn inputs(&self) -> InputSpec {
+        InputSpec::one(PayloadKind::Signals)
+    }
+    fn output(&self) -> Option<PayloadKind> {
+        Some(PayloadKind::Estimates)
+    }
+    fn build(&self, _ctx: &BuildContext) -> Result<Stage, ConfigError> {
+        Ok(Stage::Estimator(Box::new(self.clone())))
+    }
+}
+register_stage!("t_fixed", TFixed);
+
+impl Estimator for TFixed {
+    fn trained(&self) -> bool {
+        false
+    }
+    fn fit(&self, _train: &[&Item], _ctx: &FitContext<'_>) -> Result<Box<dyn Model>, StageError> {
+        Ok(Box::new(self.clone()))
+    }
+}
+
+impl Model for TFixed {
+    fn predict(&self, item: &Item, _ctx: &TrialContext<'_>) -> Result<Estimate, StageError> {
+        if self.fail_on.as_deref() == Some(item.meta.trial_id.as_str()) {
+            return Err(StageError::new("t_fixed fails here"));
+        }
+        let m = 50.0 * mean(item.payload.signals()?);
+        TModel {
+            classes: (1..=4).map(|c| (10.0 * c as f64, 10.0 * c as f64)).collect(),
+        }
+        .predict_value(m)
+    }
+}
+
+impl TModel {
+    fn predict_value(&self, m: f64) -> Result<Estimate, StageError> {
+        let best = self
+            .classes
+            .iter()
+            .min_by(|a, b| (a.1 - m).abs().total_cmp(&(b.1 - m).abs()))
+            .map(|c| c.0);
+        Ok(Estimate {
+            angle_deg: best,
+            class_deg: best,
+            scores: self
+                .classes
+                .iter()
+                .map(|c| ClassScore {
+                    angle_deg: c.0,
+                    score: -(c.1 - m).abs(),
+                })
+                .collect(),
+            ..Estimate::default()
+        })
+    }
+}
