@@ -5,7 +5,7 @@
 //! with its first failing stage, as if trials ran one at a time.
 
 mod common;
-use common::load;
+use common::{answers_of, load, Answer};
 use palpate_core::{run, Cache, RunOptions};
 
 /// 4 x 5 = 20 trials (ids c0-r0 .. c3-r4 in trial order): more than two
@@ -33,7 +33,7 @@ type = "t_sink"
 inputs = ["est"]
 "#;
 
-fn answers(cache: Option<&Cache>, graph: &str) -> Vec<(String, Option<f64>, Vec<u64>)> {
+fn answers(cache: Option<&Cache>, graph: &str) -> Vec<Answer> {
     let g = load(graph).unwrap();
     let r = run(
         &g,
@@ -44,17 +44,7 @@ fn answers(cache: Option<&Cache>, graph: &str) -> Vec<(String, Option<f64>, Vec<
         },
     )
     .unwrap();
-    r.outputs["est"]
-        .iter()
-        .map(|i| {
-            let e = i.payload.estimate().unwrap();
-            (
-                i.meta.trial_id.clone(),
-                e.angle_deg,
-                e.scores.iter().map(|s| s.score.to_bits()).collect(),
-            )
-        })
-        .collect()
+    answers_of(&r.outputs["est"])
 }
 
 #[test]
@@ -83,19 +73,17 @@ fn failure(scale_fails: &str, est_fails: &str) -> (String, Option<String>) {
             &format!("inputs = [\"scale\"]\nfail_on = \"{est_fails}\"\n"),
         );
     let g = load(&graph).unwrap();
-    for threads in [1, 2] {
+    let on = |threads: usize| {
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(threads)
             .build()
             .unwrap();
         let e = pool.install(|| run(&g, &RunOptions::default())).unwrap_err();
-        if threads == 2 {
-            return (e.stage, e.trial);
-        }
-        let again = pool.install(|| run(&g, &RunOptions::default())).unwrap_err();
-        assert_eq!((e.stage.clone(), e.trial.clone()), (again.stage, again.trial));
-    }
-    unreachable!()
+        (e.stage, e.trial)
+    };
+    let one = on(1);
+    assert_eq!(one, on(2), "1 and 2 threads report the same failure");
+    one
 }
 
 #[test]

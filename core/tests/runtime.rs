@@ -2,7 +2,7 @@
 //! not depend on the number of threads, and failures name the stage and trial.
 
 mod common;
-use common::{load, outputs, SERIAL, TRAINED_ON};
+use common::{answers_of, load, outputs, Answer, SERIAL, TRAINED_ON};
 use std::collections::HashSet;
 
 const GRAPH: &str = r#"
@@ -48,7 +48,7 @@ fn leave_one_trial_out_never_sees_a_test_trial_and_tests_each_once() {
     assert_eq!(est[0].meta.provenance[0].settings["t_source"]["samples"], 200);
 }
 
-fn run_on(threads: usize) -> Vec<(String, Option<f64>, Vec<u64>)> {
+fn run_on(threads: usize) -> Vec<Answer> {
     let g = load(GRAPH).unwrap();
     let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     let pool = rayon::ThreadPoolBuilder::new()
@@ -56,16 +56,7 @@ fn run_on(threads: usize) -> Vec<(String, Option<f64>, Vec<u64>)> {
         .build()
         .unwrap();
     let est = pool.install(|| outputs(&g));
-    est.iter()
-        .map(|i| {
-            let e = i.payload.estimate().unwrap();
-            (
-                i.meta.trial_id.clone(),
-                e.angle_deg,
-                e.scores.iter().map(|s| s.score.to_bits()).collect(),
-            )
-        })
-        .collect()
+    answers_of(&est)
 }
 
 #[test]

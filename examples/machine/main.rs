@@ -7,13 +7,78 @@
 //! and the rate at which one core reads a 10 MB working set again and again
 //! (the floor of WSS, which reads its cached template spectra, 17 classes x
 //! 16 taxels x 2 305 complex bins, once per trial: too large for the 2 MB L2,
-//! so they come from L3 or memory every trial).
+//! so they come from L3 or memory every trial). Last, WSS's frequency-domain
+//! products themselves (17 classes x 16 taxels x 2 305 bins, `acc += x·h`)
+//! per trial in three settings: nothing between trials; 11 MB written
+//! between trials (what a lab trial's signal stages write between two
+//! estimates in a depth-first run); and those writes with four trials per
+//! pass over each class's spectra.
 //!
 //! `cargo run --release --example machine`. Each figure is the best of 5
 //! runs, so a shared machine's interruptions inflate it less.
 
 use std::hint::black_box;
 use std::time::Instant;
+
+/// `acc += x ⊙ h` over complex bins stored as separate parts.
+#[inline(always)]
+fn cmac_body(acc: &mut [Vec<f64>; 2], x: [&[f64]; 2], h: [&[f64]; 2]) {
+    let [ar, ai] = acc;
+    for f in 0..ar.len() {
+        ar[f] += x[0][f] * h[0][f] - x[1][f] * h[1][f];
+        ai[f] += x[0][f] * h[1][f] + x[1][f] * h[0][f];
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn cmac_avx2(acc: &mut [Vec<f64>; 2], x: [&[f64]; 2], h: [&[f64]; 2]) {
+    cmac_body(acc, x, h)
+}
+
+fn cmac(acc: &mut [Vec<f64>; 2], x: [&[f64]; 2], h: [&[f64]; 2]) {
+    #[cfg(target_arch = "x86_64")]
+    if is_x86_feature_detected!("avx2") && is_x86_feature_detected!("fma") {
+        // SAFETY: the CPU supports AVX2 and FMA (checked above).
+        return unsafe { cmac_avx2(acc, x, h) };
+    }
+    cmac_body(acc, x, h)
+}
+
+/// WSS's products for `trials` trials per pass over each class's spectra,
+/// ms per trial, after writing `junk` once per trial (best of 5).
+fn products_ms(h: &[Vec<f64>], x: &[Vec<f64>], trials: usize, per_pass: usize, junk: &mut [u8]) -> f64 {
+    let (classes, taxels, bins) = (17, 16, h[0].len());
+    let mut acc: Vec<[Vec<f64>; 2]> = (0..per_pass)
+        .map(|_| [vec![0.0; bins], vec![0.0; bins]])
+        .collect();
+    let mut round = 0u8;
+    best(|| {
+        let mut total = 0.0;
+        for group in 0..trials / per_pass {
+            for _ in 0..per_pass {
+                round = round.wrapping_add(1);
+                junk.iter_mut().for_each(|b| *b = b.wrapping_add(round));
+            }
+            let t = Instant::now();
+            for c in 0..classes {
+                acc.iter_mut()
+                    .flatten()
+                    .for_each(|a| a.iter_mut().for_each(|v| *v = 0.0));
+                for t in 0..taxels {
+                    let hc = (c * taxels + t) * 2;
+                    for (g, a) in acc.iter_mut().enumerate() {
+                        let xt = (((group * per_pass + g) % 4) * taxels + t) * 2;
+                        cmac(a, [&x[xt], &x[xt + 1]], [&h[hc], &h[hc + 1]]);
+                    }
+                }
+                black_box(&acc);
+            }
+            total += t.elapsed().as_secs_f64();
+        }
+        total * 1e3 / trials as f64
+    })
+}
 
 fn best(mut f: impl FnMut() -> f64) -> f64 {
     (0..5).map(|_| f()).fold(f64::INFINITY, f64::min)
@@ -64,10 +129,27 @@ fn main() {
         t.elapsed().as_secs_f64() * 1e3 / 20.0
     });
     let read_gb_s = (spectra * 8) as f64 / (read_ms * 1e-3) / 1e9;
+    // Template spectra (17 classes x 16 taxels, re and im) and four trials'
+    // input spectra, as WSS holds them.
+    let bins = 2_305;
+    let h: Vec<Vec<f64>> = (0..17 * 16 * 2)
+        .map(|i| (0..bins).map(|f| ((i * 7 + f) % 13) as f64 * 0.1).collect())
+        .collect();
+    let x: Vec<Vec<f64>> = (0..4 * 16 * 2)
+        .map(|i| (0..bins).map(|f| ((i * 3 + f) % 11) as f64 * 0.1).collect())
+        .collect();
+    let quiet = products_ms(&h, &x, 8, 1, &mut []);
+    let mut junk = vec![0u8; 11 << 20];
+    let evicted = products_ms(&h, &x, 8, 1, &mut junk);
+    let grouped = products_ms(&h, &x, 8, 4, &mut junk);
     println!("dependent f64 multiply or add: {ns_per_op:.2} ns");
     println!("copy of one lab trial's signals (2.76 MB): {copy_ms:.3} ms ({gb_s:.1} GB/s read + write)");
     println!(
         "read of the WSS template spectra (17 classes, {:.1} MB), again and again: {read_ms:.3} ms ({read_gb_s:.1} GB/s)",
         (spectra * 8) as f64 / 1e6
+    );
+    println!(
+        "WSS products per trial (17 classes): {quiet:.3} ms with nothing between trials, \
+         {evicted:.3} ms with 11 MB written between trials, {grouped:.3} ms with those writes and 4 trials per pass"
     );
 }

@@ -224,23 +224,18 @@ pub(super) fn run_chain(
         p.start(&label, n_trials);
     }
 
-    // The chain from its first estimator on (the "post" part) runs for a
-    // block of trials after the part before it (the "pre" part) has run for
-    // each trial of the block, depth-first as before. Why: between two
-    // trials' estimates, a lab trial's signal stages write ~11 MB, which
-    // evicts an estimator's shared working set (WSS's template spectra,
-    // 10-20 MB) from L3; back to back, the block's estimates find it warm.
-    // The post part is a suffix of the graph order, so a trial's first
-    // failing stage in graph order is still the one reported. What the post
-    // part reads waits for the block: spike images in the usual chain (a
-    // signal only if a signal stage follows the first estimator), so memory
-    // grows by at most a block of one trial's payloads per thread.
+    // Chain positions `..first_estimator` run trial by trial, then
+    // `first_estimator..` for the block's trials back to back (between two
+    // estimates a lab trial's signal stages write ~11 MB, which evicts WSS's
+    // template spectra from L3). The second part is a suffix of the graph order, so a
+    // trial's first failing stage in graph order is still the one reported.
+    // What it reads waits for the block: spike images in the usual chain (a
+    // signal only if a signal stage follows the first estimator).
     let first_estimator = chain
         .nodes
         .iter()
         .position(|&i| matches!(graph.nodes[i].stage, Stage::Estimator(_)))
         .unwrap_or(len);
-    let post: Vec<bool> = (0..len).map(|p| p >= first_estimator).collect();
     // One trial's state between the two parts.
     struct State {
         slots: Vec<Option<Item>>,
@@ -250,97 +245,95 @@ pub(super) fn run_chain(
     let step = |t: usize, p: usize, st: &mut State| -> Result<(), RunError> {
         let State { slots, left, times } = st;
         let i = chain.nodes[p];
-        {
-            let node = &graph.nodes[i];
-            let id = node.id.as_str();
-            let (item, dt) = match &node.stage {
-                Stage::Source(src) => {
-                    let meta = metas[p]
-                        .as_ref()
-                        .and_then(|m| m.get(t))
-                        .ok_or_else(|| RunError::new(id, None, "source without trials (internal error)"))?;
-                    let ctx = TrialContext {
-                        stage_id: id,
-                        meta,
-                        seed: derive_seed(seed, &[id, &meta.trial_id]),
-                    };
-                    let (payload, dt) = timed(|| src.produce(&ctx));
-                    let payload = payload.map_err(|e| RunError::new(id, Some(&meta.trial_id), e.message))?;
-                    (with_provenance(meta, &provs[p], payload), dt)
-                }
-                Stage::Map(map) => {
-                    let mut items: Vec<&Item> = Vec::with_capacity(graph.input_index[i].len());
-                    for &j in &graph.input_index[i] {
-                        let item = slots[at(j)?].as_ref().ok_or_else(|| {
-                            RunError::new(
-                                id,
-                                None,
-                                format!(
-                                    "input `{}` has no output (internal ordering error)",
-                                    graph.nodes[j].id
-                                ),
-                            )
-                        })?;
-                        items.push(item);
-                    }
-                    let meta = &items[0].meta;
-                    if let Some(k) = items.iter().position(|it| it.meta.trial_id != meta.trial_id) {
-                        return Err(super::mixed_trials(graph, id, i, k));
-                    }
-                    let ctx = TrialContext {
-                        stage_id: id,
-                        meta,
-                        seed: derive_seed(seed, &[id, &meta.trial_id]),
-                    };
-                    let (payload, dt) = timed(|| map.process(&items, &ctx));
-                    let payload = payload.map_err(|e| RunError::new(id, Some(&meta.trial_id), e.message))?;
-                    (with_provenance(meta, &provs[p], payload), dt)
-                }
-                Stage::Estimator(_) => {
-                    let input = graph.input_index[i].first().ok_or_else(|| {
-                        RunError::new(id, None, "an estimator without input (internal error)")
-                    })?;
-                    let item = slots[at(*input)?].as_ref().ok_or_else(|| {
-                        RunError::new(id, None, "input has no output (internal ordering error)")
-                    })?;
-                    let model = models[p]
-                        .as_ref()
-                        .ok_or_else(|| RunError::new(id, None, "estimator not fitted (internal error)"))?;
-                    let ctx = TrialContext {
-                        stage_id: id,
-                        meta: &item.meta,
-                        seed: derive_seed(seed, &[id, &item.meta.trial_id]),
-                    };
-                    let (est, dt) = timed(|| model.predict(item, &ctx));
-                    let est = est.map_err(|e| RunError::new(id, Some(&item.meta.trial_id), e.message))?;
-                    (with_provenance(&item.meta, &provs[p], Payload::from(est)), dt)
-                }
-                Stage::Sink(_) => {
-                    return Err(RunError::new(
-                        id,
-                        None,
-                        "a sink in a per-trial chain (internal error)",
-                    ))
-                }
-            };
-            times[p] = dt;
-            // Free what no later stage of this trial reads (unless kept).
-            for &j in &graph.input_index[i] {
-                let q = at(j)?;
-                left[q] -= 1;
-                if left[q] == 0 && !keep[j] {
-                    slots[q] = None;
-                }
+        let node = &graph.nodes[i];
+        let id = node.id.as_str();
+        let (item, dt) = match &node.stage {
+            Stage::Source(src) => {
+                let meta = metas[p]
+                    .as_ref()
+                    .and_then(|m| m.get(t))
+                    .ok_or_else(|| RunError::new(id, None, "source without trials (internal error)"))?;
+                let ctx = TrialContext {
+                    stage_id: id,
+                    meta,
+                    seed: derive_seed(seed, &[id, &meta.trial_id]),
+                };
+                let (payload, dt) = timed(|| src.produce(&ctx));
+                let payload = payload.map_err(|e| RunError::new(id, Some(&meta.trial_id), e.message))?;
+                (with_provenance(meta, &provs[p], payload), dt)
             }
-            if readers[p] > 0 || keep[i] {
-                slots[p] = Some(item);
+            Stage::Map(map) => {
+                let mut items: Vec<&Item> = Vec::with_capacity(graph.input_index[i].len());
+                for &j in &graph.input_index[i] {
+                    let item = slots[at(j)?].as_ref().ok_or_else(|| {
+                        RunError::new(
+                            id,
+                            None,
+                            format!(
+                                "input `{}` has no output (internal ordering error)",
+                                graph.nodes[j].id
+                            ),
+                        )
+                    })?;
+                    items.push(item);
+                }
+                let meta = &items[0].meta;
+                if let Some(k) = items.iter().position(|it| it.meta.trial_id != meta.trial_id) {
+                    return Err(super::mixed_trials(graph, id, i, k));
+                }
+                let ctx = TrialContext {
+                    stage_id: id,
+                    meta,
+                    seed: derive_seed(seed, &[id, &meta.trial_id]),
+                };
+                let (payload, dt) = timed(|| map.process(&items, &ctx));
+                let payload = payload.map_err(|e| RunError::new(id, Some(&meta.trial_id), e.message))?;
+                (with_provenance(meta, &provs[p], payload), dt)
             }
+            Stage::Estimator(_) => {
+                let input = graph.input_index[i]
+                    .first()
+                    .ok_or_else(|| RunError::new(id, None, "an estimator without input (internal error)"))?;
+                let item = slots[at(*input)?].as_ref().ok_or_else(|| {
+                    RunError::new(id, None, "input has no output (internal ordering error)")
+                })?;
+                let model = models[p]
+                    .as_ref()
+                    .ok_or_else(|| RunError::new(id, None, "estimator not fitted (internal error)"))?;
+                let ctx = TrialContext {
+                    stage_id: id,
+                    meta: &item.meta,
+                    seed: derive_seed(seed, &[id, &item.meta.trial_id]),
+                };
+                let (est, dt) = timed(|| model.predict(item, &ctx));
+                let est = est.map_err(|e| RunError::new(id, Some(&item.meta.trial_id), e.message))?;
+                (with_provenance(&item.meta, &provs[p], Payload::from(est)), dt)
+            }
+            Stage::Sink(_) => {
+                return Err(RunError::new(
+                    id,
+                    None,
+                    "a sink in a per-trial chain (internal error)",
+                ))
+            }
+        };
+        times[p] = dt;
+        // Free what no later stage of this trial reads (unless kept).
+        for &j in &graph.input_index[i] {
+            let q = at(j)?;
+            left[q] -= 1;
+            if left[q] == 0 && !keep[j] {
+                slots[q] = None;
+            }
+        }
+        if readers[p] > 0 || keep[i] {
+            slots[p] = Some(item);
         }
         Ok(())
     };
     let one_block = |b: usize| -> Vec<TrialOutcome> {
         let trials = b * TRIAL_BLOCK..((b + 1) * TRIAL_BLOCK).min(n_trials);
-        let mut states: Vec<Result<State, RunError>> = trials
+        let states: Vec<Result<State, RunError>> = trials
             .clone()
             .map(|t| {
                 let mut st = State {
@@ -348,30 +341,26 @@ pub(super) fn run_chain(
                     left: readers.clone(),
                     times: vec![Duration::ZERO; len],
                 };
-                for p in (0..len).filter(|&p| !post[p]) {
+                for p in 0..first_estimator {
                     step(t, p, &mut st)?;
                 }
                 Ok(st)
             })
             .collect();
         trials
-            .zip(states.iter_mut())
+            .zip(states)
             .map(|(t, st)| {
-                let st = match st {
-                    Ok(st) => st,
-                    Err(e) => return Err(e.clone()),
-                };
-                for p in (0..len).filter(|&p| post[p]) {
-                    step(t, p, st)?;
+                let mut st = st?;
+                for p in first_estimator..len {
+                    step(t, p, &mut st)?;
                 }
                 tick(opts);
-                let mut slots = std::mem::take(&mut st.slots);
-                for (p, &i) in chain.nodes.iter().enumerate() {
+                for (slot, &i) in st.slots.iter_mut().zip(&chain.nodes) {
                     if !keep[i] {
-                        slots[p] = None;
+                        *slot = None;
                     }
                 }
-                Ok((slots, std::mem::take(&mut st.times)))
+                Ok((st.slots, st.times))
             })
             .collect()
     };

@@ -288,6 +288,24 @@ pub fn load(text: &str) -> Result<Graph, LoadErrors> {
     load_str(text, "test.toml", "test", &opts)
 }
 
+/// A trial's answer: its id, angle and every class score's bits.
+pub type Answer = (String, Option<f64>, Vec<u64>);
+
+/// Each estimate's [`Answer`], in order.
+pub fn answers_of(items: &[Item]) -> Vec<Answer> {
+    items
+        .iter()
+        .map(|i| {
+            let e = i.payload.estimate().unwrap();
+            (
+                i.meta.trial_id.clone(),
+                e.angle_deg,
+                e.scores.iter().map(|s| s.score.to_bits()).collect(),
+            )
+        })
+        .collect()
+}
+
 pub fn outputs(graph: &Graph) -> Arc<Vec<Item>> {
     let r = run(
         graph,
