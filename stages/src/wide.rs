@@ -19,6 +19,16 @@ use std::cell::Cell;
 
 thread_local! {
     static BASELINE: Cell<bool> = const { Cell::new(false) };
+    static NO_512: Cell<bool> = const { Cell::new(false) };
+}
+
+/// Runs `f` with the AVX-512 paths switched off on this thread (AVX2 stays):
+/// for comparing the two on a machine that has both.
+pub fn without_avx512<R>(f: impl FnOnce() -> R) -> R {
+    let old = NO_512.with(|b| b.replace(true));
+    let r = f();
+    NO_512.with(|b| b.set(old));
+    r
 }
 
 /// Runs `f` with the AVX2 paths switched off on this thread (for comparing
@@ -38,9 +48,9 @@ pub fn avx2() -> bool {
 }
 
 /// True when the AVX-512 path may run (F, VL and DQ; `PALPATE_NO_AVX512`
-/// turns it off).
+/// turns it off, and [`without_avx512`] on this thread).
 pub fn avx512() -> bool {
-    avx2() && cpu_avx512()
+    avx2() && cpu_avx512() && !NO_512.with(Cell::get)
 }
 
 fn cpu_avx512() -> bool {

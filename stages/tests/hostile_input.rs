@@ -15,7 +15,7 @@ use std::io::Write;
 /// An NPY v1 file with this header dict (padded as NumPy pads) and data.
 fn npy(dict: &str, data: &[u8]) -> Vec<u8> {
     let mut h = dict.to_string();
-    while (10 + h.len() + 1) % 64 != 0 {
+    while !(10 + h.len() + 1).is_multiple_of(64) {
         h.push(' ');
     }
     h.push('\n');

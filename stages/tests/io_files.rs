@@ -258,7 +258,7 @@ fn npz_arrays_per_trial_and_stacks_with_labels_and_rate() {
 /// one miMATRIX element per variable: flags, dimensions, name, real part).
 fn mat_v5(vars: &[(&str, Vec<usize>, Vec<f64>)]) -> Vec<u8> {
     fn pad8(b: &mut Vec<u8>) {
-        while b.len() % 8 != 0 {
+        while !b.len().is_multiple_of(8) {
             b.push(0);
         }
     }
@@ -504,7 +504,7 @@ fn structured_npy(records: &[(i16, i16, i64, i8)]) -> Vec<u8> {
     let mut header =
         "{'descr': [('x', '<i2'), ('y', '<i2'), ('t', '<i8'), ('p', '|i1')], 'fortran_order': False, 'shape': (N,), }"
             .replace('N', &records.len().to_string());
-    while (10 + header.len() + 1) % 64 != 0 {
+    while !(10 + header.len() + 1).is_multiple_of(64) {
         header.push(' ');
     }
     header.push('\n');

@@ -131,17 +131,24 @@ struct Design {
     flat: Vec<f64>,
 }
 
-fn design(set: &TrainSet, scaler: &Standardizer) -> Design {
-    Design {
-        flat: scaler.apply_rows(&set.x),
-    }
+/// Standardises the training vectors in place and moves them out of `set`
+/// (`set.x` is left empty; the fits read only the design): the same bits
+/// as [`Standardizer::apply_rows`], without a second copy of the training
+/// set. That copy was a fresh allocation (2 MB for the k-NN's 3060 x 80)
+/// whose page faults cost up to 0.75 ms of a 2.5 ms k-NN fit.
+fn design(set: &mut TrainSet, scaler: &Standardizer) -> Design {
+    let d = set.dim.max(1);
+    let mut flat = std::mem::take(&mut set.x);
+    flat.truncate(flat.len() / d * d);
+    flat.chunks_exact_mut(d).for_each(|r| scaler.apply(r));
+    Design { flat }
 }
 
 /// Shared fit after the features are built: standardisation on every
 /// training vector, one seed drawn from `rng` (the fold's generator), the
 /// model-specific part, packaging.
 fn fit_classic_set(
-    set: TrainSet,
+    mut set: TrainSet,
     vote: Vote,
     stage_type: &str,
     rng: &mut ChaCha8Rng,
@@ -149,7 +156,7 @@ fn fit_classic_set(
 ) -> Result<FittedModel, StageError> {
     let all: Vec<usize> = (0..set.len()).collect();
     let scaler = Standardizer::fit(&set, &all);
-    let d = design(&set, &scaler);
+    let d = design(&mut set, &scaler);
     let seed = rng.random::<u64>();
     let classifier = fit(&set, d, scaler, seed)?;
     Ok(FittedModel {
@@ -1526,7 +1533,7 @@ impl FrameClassifier for OvoSvm {
         want("the SVM's input size", m.dim, dim)?;
         want("the SVM's classes", m.classes, classes)?;
         check_scaler(&m.scaler, dim)?;
-        if dim == 0 || m.sv.len() % dim != 0 {
+        if dim == 0 || !m.sv.len().is_multiple_of(dim) {
             return Err(format!(
                 "{} support-vector values are not rows of {dim}",
                 m.sv.len()

@@ -245,21 +245,200 @@ fn single<const SQ: bool>(x: &[f64], y: &[f64]) -> f64 {
 pub fn gemm_nt(a: &[f64], b: &[f64], k: usize, out: &mut [f64]) {
     let n = b.len() / k.max(1);
     #[cfg(target_arch = "x86_64")]
+    if (1..=NARROW).contains(&n)
+        && (1..=NARROW_K512).contains(&k)
+        && (a.len() / k).min(out.len() / n) >= ROWS512
+        && crate::wide::avx512()
+    {
+        let m = (a.len() / k).min(out.len() / n);
+        let panels = panels512(b, k, n);
+        // SAFETY: the CPU supports AVX-512 F/VL/DQ (checked above); the
+        // shapes are the ones `narrow512` asserts.
+        unsafe { narrow512(&a[..m * k], &panels, k, n, &mut out[..m * n]) };
+        return;
+    }
+    #[cfg(target_arch = "x86_64")]
     if (1..=NARROW).contains(&n) && (1..=NARROW_K).contains(&k) && crate::wide::avx2() {
         let m = (a.len() / k).min(out.len() / n.max(1));
         let np = n.div_ceil(4) * 4;
-        let mut bt = vec![0.0; k * np];
-        for (j, row) in b.chunks_exact(k).enumerate() {
-            for (t, &v) in row.iter().enumerate() {
-                bt[t * np + j] = v;
-            }
-        }
+        let bt = transposed(b, k, np);
         // SAFETY: the CPU supports AVX2 (checked above); the shapes are
         // the ones `narrow_avx` asserts.
         unsafe { narrow_avx(&a[..m * k], &bt, k, n, np, &mut out[..m * n]) };
         return;
     }
     pairwise_any::<false>(a, b, k, out, n);
+}
+
+/// `b`'s `k`-wide rows as columns: `bt[t·np + j] = b_j[t]`, zero past the
+/// last row (`np` at least the number of rows).
+fn transposed(b: &[f64], k: usize, np: usize) -> Vec<f64> {
+    let mut bt = vec![0.0; k * np];
+    for (j, row) in b.chunks_exact(k.max(1)).enumerate() {
+        for (t, &v) in row.iter().enumerate() {
+            bt[t * np + j] = v;
+        }
+    }
+    bt
+}
+
+/// Widest rows for [`narrow512`]: the EDBN's input layer (80 values) and
+/// the ANN (ST)'s. Its transposed `b` (`k x 64` at most, 40 KB at 80) is
+/// read one 16-column block at a time, which fits in L1.
+pub const NARROW_K512: usize = 128;
+
+/// Rows of `a` per pass of [`narrow512`] over the panels: 64 rows of 80
+/// values (40 KB) stay in L2 while each panel passes. Also the fewest rows
+/// for which [`gemm_nt`] takes [`narrow512`]: below it the packed copy of
+/// `b` costs as much as the products (an RBM's training batches of 20 rows
+/// were 8% slower through it).
+const ROWS512: usize = 64;
+
+/// Width of the column panel starting at `j0` of `n` columns: 16 (two
+/// 512-bit vectors), or 8 for a last panel of at most 8 columns.
+fn panel_width(j0: usize, n: usize) -> usize {
+    if n - j0 > 8 {
+        16
+    } else {
+        8
+    }
+}
+
+/// `b`'s `n` rows (each `k` wide) as column panels for [`narrow512`]: the
+/// panel of columns `j0..j0 + w` ([`panel_width`]) is a contiguous `k x w`
+/// block at offset `j0 · k`, entry `(t, jj) = b_{j0 + jj}[t]` (0 past `n`).
+/// Contiguous panels, not a `k x n` transpose: with 64 columns the rows of
+/// a 16-column slice of the transpose lie 512 bytes apart and map to a
+/// sixteenth of L1's sets, which evicted them (15 against 18 G products/s).
+fn panels512(b: &[f64], k: usize, n: usize) -> Vec<f64> {
+    let mut p = vec![0.0; n.div_ceil(8) * 8 * k];
+    let mut j0 = 0;
+    while j0 < n {
+        let w = panel_width(j0, n);
+        for jj in 0..w.min(n - j0) {
+            for (t, &v) in b[(j0 + jj) * k..(j0 + jj + 1) * k].iter().enumerate() {
+                p[j0 * k + t * w + jj] = v;
+            }
+        }
+        j0 += w;
+    }
+    p
+}
+
+/// [`narrow_avx`] with 512-bit vectors (8 outputs each) and two rows of
+/// `a` at a time, so each load of `b` serves two rows: 16 accumulators of
+/// the 32 registers AVX-512 gives. Lane `j` of accumulator `l` is partial
+/// sum `l` of [`dot`] for output `j`, so the bits are [`dot`]'s, as in
+/// [`narrow_avx`]. Outputs are stored with a lane mask, never past a row's
+/// `n`-th. `panels`: [`panels512`]. Loop order: blocks of [`ROWS512`]
+/// rows; within one, each panel (`k · 128` bytes, in L1) passes over all
+/// its rows.
+///
+/// Why: at the ANN (ST)'s layer shapes (3154 rows x 30 x 80) this runs
+/// ~18 G products a second against the AVX2 tiles' ~14.5 (one core,
+/// same process, best of 30), ~16.5 against ~11 at the ANN (S)'s input
+/// layer (2848 x 30 x 16): the tiles spend their time on horizontal sums
+/// and edge columns, and [`narrow_avx`] (one row at a time, 16 registers)
+/// loads a weight vector per product.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,avx512f,avx512vl,avx512dq")]
+unsafe fn narrow512(a: &[f64], panels: &[f64], k: usize, n: usize, out: &mut [f64]) {
+    let m = a.len() / k;
+    assert!(n > 0 && panels.len() >= n.div_ceil(8) * 8 * k && out.len() >= m * n);
+    for r0 in (0..m).step_by(ROWS512) {
+        let r1 = (r0 + ROWS512).min(m);
+        let mut j0 = 0;
+        while j0 < n {
+            let w = panel_width(j0, n);
+            let panel = &panels[j0 * k..(j0 + w) * k];
+            let mut i = r0;
+            // SAFETY (every call): rows i..i + R < m of `a`, a panel of
+            // k x 8·H values, outputs masked to row i's n.
+            while i + 2 <= r1 {
+                unsafe {
+                    if w == 16 {
+                        block512::<2, 2>(a, k, i, panel, j0, n, out);
+                    } else {
+                        block512::<2, 1>(a, k, i, panel, j0, n, out);
+                    }
+                }
+                i += 2;
+            }
+            if i < r1 {
+                unsafe {
+                    if w == 16 {
+                        block512::<1, 2>(a, k, i, panel, j0, n, out);
+                    } else {
+                        block512::<1, 1>(a, k, i, panel, j0, n, out);
+                    }
+                }
+            }
+            j0 += w;
+        }
+    }
+}
+
+/// Rows `i..i + R` of `a` against the panel of columns `j0..j0 + 8·H`
+/// (`k x 8·H`, row-major), stored (masked at `n`) into `out` (`n` per
+/// row). See [`narrow512`].
+#[cfg(target_arch = "x86_64")]
+#[inline]
+#[target_feature(enable = "avx2,avx512f,avx512vl,avx512dq")]
+unsafe fn block512<const R: usize, const H: usize>(
+    a: &[f64],
+    k: usize,
+    i: usize,
+    panel: &[f64],
+    j0: usize,
+    n: usize,
+    out: &mut [f64],
+) {
+    use std::arch::x86_64::*;
+    const { assert!(H == 1 || H == 2) };
+    let w = 8 * H;
+    assert!((i + R) * k <= a.len() && panel.len() >= k * w && (i + R) * n <= out.len());
+    let full = k / 4 * 4;
+    let pb = panel.as_ptr();
+    let pa: [*const f64; R] = std::array::from_fn(|r| a[(i + r) * k..].as_ptr());
+    let mut acc = [[[_mm512_setzero_pd(); H]; 4]; R];
+    let mut c = 0;
+    while c < full {
+        for l in 0..4 {
+            // SAFETY: c + l < k; row c + l of the panel holds w values;
+            // row i + r of `a` holds k values.
+            unsafe {
+                let wv: [__m512d; H] = std::array::from_fn(|h| _mm512_loadu_pd(pb.add((c + l) * w + 8 * h)));
+                for (acc_r, &p) in acc.iter_mut().zip(&pa) {
+                    let x = _mm512_set1_pd(*p.add(c + l));
+                    for (v, &wh) in acc_r[l].iter_mut().zip(&wv) {
+                        *v = _mm512_add_pd(*v, _mm512_mul_pd(x, wh));
+                    }
+                }
+            }
+        }
+        c += 4;
+    }
+    for (r, acc_r) in acc.iter().enumerate() {
+        for h in 0..H {
+            let [a0, a1, a2, a3] = acc_r.map(|l| l[h]);
+            let mut s = _mm512_add_pd(_mm512_add_pd(a0, a1), _mm512_add_pd(a2, a3));
+            for t in full..k {
+                // SAFETY: t < k, as above.
+                unsafe {
+                    let wv = _mm512_loadu_pd(pb.add(t * w + 8 * h));
+                    s = _mm512_add_pd(s, _mm512_mul_pd(_mm512_set1_pd(*pa[r].add(t)), wv));
+                }
+            }
+            let j = j0 + 8 * h;
+            if j < n {
+                let lanes = (n - j).min(8);
+                let mask = ((1u16 << lanes) - 1) as __mmask8;
+                // SAFETY: the masked lanes are outputs j..j + lanes <= n of
+                // row i + r, inside `out` (asserted above).
+                unsafe { _mm512_mask_storeu_pd(out.as_mut_ptr().add((i + r) * n + j), mask, s) };
+            }
+        }
+    }
 }
 
 /// Most rows of `b` for [`narrow_avx`]: its transposed copy (`k x n`) is
@@ -285,7 +464,7 @@ pub const NARROW_K: usize = 32;
 #[target_feature(enable = "avx2")]
 unsafe fn narrow_avx(a: &[f64], bt: &[f64], k: usize, n: usize, np: usize, out: &mut [f64]) {
     let m = a.len() / k;
-    assert!(np % 4 == 0 && np >= n && bt.len() >= k * np && out.len() >= m * n);
+    assert!(np.is_multiple_of(4) && np >= n && bt.len() >= k * np && out.len() >= m * n);
     // Each block's 4 or 8 outputs are stored whole, as a fixed-size copy
     // (inlined): a copy of a run-time length is a call into libc's memcpy,
     // which cost a tenth of an ANN prediction (perf). A row's last block
@@ -401,12 +580,20 @@ pub fn transpose(src: &[f64], rows: usize, cols: usize, dst: &mut [f64]) {
 /// activations of [`super::vmath`]).
 pub fn add_bias_map(out: &mut [f64], bias: &[f64], f: impl Fn(f64) -> f64) {
     // The closure inlined into the wide function, or the loop stays SSE2.
+    // `f` runs over the whole matrix in one pass, not row by row: rows are
+    // short (a layer's 17-30 units), and per row the vector loop left a
+    // scalar tail of up to 7 entries, each a scalar `f` (an exponential)
+    // several times the cost of a lane. Same bits: `f` of the same sums.
     crate::wide::with_avx2(
         #[inline(always)]
         || {
-            for row in out.chunks_exact_mut(bias.len().max(1)) {
-                row.iter_mut().zip(bias).for_each(|(o, b)| *o = f(*o + b));
+            let w = bias.len();
+            let whole = out.len().checked_div(w).map_or(0, |rows| rows * w);
+            let out = &mut out[..whole];
+            for row in out.chunks_exact_mut(w.max(1)) {
+                row.iter_mut().zip(bias).for_each(|(o, b)| *o += b);
             }
+            out.iter_mut().for_each(|o| *o = f(*o));
         },
     )
 }
@@ -440,6 +627,12 @@ mod tests {
             (5, 61, 80),
             (1, 7, 81),
             (3, 2, 4),
+            (130, 60, 80),
+            (65, 17, 30),
+            (64, 64, 128),
+            (70, 9, 7),
+            (129, 8, 16),
+            (96, 1, 129),
         ] {
             let a: Vec<f64> = (0..m * k).map(|_| rng.random_range(-3.0..3.0)).collect();
             let b: Vec<f64> = (0..n * k).map(|_| rng.random_range(-3.0..3.0)).collect();
@@ -452,6 +645,16 @@ mod tests {
                 gemm_nt(&a, &b, k, &mut g2);
                 g2
             });
+            // The AVX2 kernels where the CPU also has AVX-512.
+            let avx2 = crate::wide::without_avx512(|| {
+                let mut g2 = vec![0.0; m * n];
+                gemm_nt(&a, &b, k, &mut g2);
+                g2
+            });
+            assert_eq!(
+                avx2.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+                g.iter().map(|v| v.to_bits()).collect::<Vec<_>>()
+            );
             for i in 0..m {
                 for j in 0..n {
                     let (x, y) = (&a[i * k..(i + 1) * k], &b[j * k..(j + 1) * k]);

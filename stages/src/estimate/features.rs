@@ -300,7 +300,7 @@ impl FrameStream {
             self.ring.push_back(frame.to_vec());
         }
         self.next += 1;
-        if k % self.spec.stride != 0 {
+        if !k.is_multiple_of(self.spec.stride) {
             return Ok(None);
         }
         let n = self.spec.n_taxels;

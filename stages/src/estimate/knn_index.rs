@@ -330,7 +330,7 @@ impl KnnIndex {
 
     #[inline(always)]
     fn build_body(x: &[f64], dim: usize) -> Option<KnnIndex> {
-        if dim == 0 || x.is_empty() || x.len() % dim != 0 {
+        if dim == 0 || x.is_empty() || !x.len().is_multiple_of(dim) {
             return None;
         }
         let n = x.len() / dim;

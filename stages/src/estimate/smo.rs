@@ -974,7 +974,7 @@ mod x86 {
     #[target_feature(enable = "avx2")]
     pub(super) unsafe fn best_up(up: &[f64], ny: &[f64], grad: &[f64], rank: &[f64]) -> (f64, f64) {
         let n = up.len();
-        assert!(n % 8 == 0 && ny.len() == n && grad.len() == n && rank.len() == n);
+        assert!(n.is_multiple_of(8) && ny.len() == n && grad.len() == n && rank.len() == n);
         let mut best = Best::new(f64::NEG_INFINITY);
         for t0 in (0..n).step_by(8) {
             for h in 0..2 {
@@ -992,7 +992,7 @@ mod x86 {
     #[target_feature(enable = "avx2")]
     pub(super) unsafe fn update_best_up(grad: &mut [f64], u: Up<'_>, s: [f64; 4]) -> (f64, f64) {
         let n = grad.len();
-        assert!(n % 8 == 0);
+        assert!(n.is_multiple_of(8));
         for a in [u.up, u.y, u.ny, u.rank, u.ki, u.kj] {
             assert!(a.len() == n);
         }
@@ -1028,7 +1028,7 @@ mod x86 {
     #[target_feature(enable = "avx2")]
     pub(super) unsafe fn best_low(l: Low<'_>, gmax: f64, di: f64, tau: f64) -> (f64, f64) {
         let n = l.low.len();
-        assert!(n % 8 == 0);
+        assert!(n.is_multiple_of(8));
         for a in [l.y, l.grad, l.diag, l.rank, l.ki] {
             assert!(a.len() == n);
         }
