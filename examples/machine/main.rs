@@ -12,11 +12,16 @@
 //! per trial in three settings: nothing between trials; 11 MB written
 //! between trials (what a lab trial's signal stages write between two
 //! estimates in a depth-first run); and those writes with four trials per
-//! pass over each class's spectra.
+//! pass over each class's spectra. And the trained baselines' layer
+//! products (`estimate::dense::gemm_nt`, the bits of a fixed-order dot
+//! product, no FMA) at their prediction shapes, in billions of products a
+//! second, with the kernel the CPU picks and with AVX-512 switched off (the
+//! AVX2 kernels).
 //!
 //! `cargo run --release --example machine`. Each figure is the best of 5
 //! runs, so a shared machine's interruptions inflate it less.
 
+use palpate_stages::estimate::dense;
 use std::hint::black_box;
 use std::time::Instant;
 
@@ -142,6 +147,38 @@ fn main() {
     let mut junk = vec![0u8; 11 << 20];
     let evicted = products_ms(&h, &x, 8, 1, &mut junk);
     let grouped = products_ms(&h, &x, 8, 4, &mut junk);
+    // Rows x outputs x inputs: ANN (S) input and output layers, ANN (ST)
+    // input layer, EDBN's two layers (3154 test frames each).
+    let layers = [
+        (2848, 30, 16),
+        (2848, 17, 30),
+        (3154, 30, 80),
+        (3154, 60, 80),
+        (3154, 30, 60),
+    ];
+    let mut products = Vec::new();
+    for (m, n, k) in layers {
+        let a: Vec<f64> = (0..m * k)
+            .map(|i| ((i * 7919) % 1000) as f64 / 500.0 - 1.0)
+            .collect();
+        let b: Vec<f64> = (0..n * k)
+            .map(|i| ((i * 104_729) % 1000) as f64 / 500.0 - 1.0)
+            .collect();
+        let mut out = vec![0.0; m * n];
+        let mut rate = |f: &dyn Fn(&mut [f64])| {
+            let ms = best(|| {
+                let t = Instant::now();
+                for _ in 0..10 {
+                    f(black_box(&mut out));
+                }
+                t.elapsed().as_secs_f64() * 1e3 / 10.0
+            });
+            (m * n * k) as f64 / (ms * 1e-3) / 1e9
+        };
+        let picked = rate(&|o| dense::gemm_nt(&a, &b, k, o));
+        let avx2 = rate(&|o| palpate_stages::wide::without_avx512(|| dense::gemm_nt(&a, &b, k, o)));
+        products.push(format!("{m}x{n}x{k} {picked:.1} / {avx2:.1}"));
+    }
     println!("dependent f64 multiply or add: {ns_per_op:.2} ns");
     println!("copy of one lab trial's signals (2.76 MB): {copy_ms:.3} ms ({gb_s:.1} GB/s read + write)");
     println!(
@@ -151,5 +188,9 @@ fn main() {
     println!(
         "WSS products per trial (17 classes): {quiet:.3} ms with nothing between trials, \
          {evicted:.3} ms with 11 MB written between trials, {grouped:.3} ms with those writes and 4 trials per pass"
+    );
+    println!(
+        "baseline layer products, G products/s, kernel picked / AVX2 only (rows x outputs x inputs): {}",
+        products.join(", ")
     );
 }

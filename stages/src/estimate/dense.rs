@@ -22,7 +22,11 @@
 //! lane swap, the same additions), 17-20 GFLOP/s at the EDBN's layer shapes
 //! on a loaded 2-core host.
 //! A layer's weights (few rows, short) take a second kernel with the same
-//! bits, the outputs across the lanes instead of `k` ([`gemm_nt`]).
+//! bits, the outputs across the lanes instead of `k` ([`gemm_nt`]); where
+//! the CPU has AVX-512 (F, VL, DQ), a third, that kernel with 512-bit
+//! vectors and two rows at a time (`narrow512`). Each is tested against
+//! the scalar [`dot`] bit for bit, the AVX2 ones also on an AVX-512 CPU
+//! ([`crate::wide::without_avx512`]).
 
 /// Rows of `A` per tile.
 const MR: usize = 2;
@@ -238,10 +242,12 @@ fn single<const SQ: bool>(x: &[f64], y: &[f64]) -> f64 {
 /// [`dot`] entry by entry.
 ///
 ///
-/// Two kernels, the same bits: when `b` has few rows (a layer's weights:
-/// at most [`NARROW`]) of at most [`NARROW_K`] values and the CPU has
-/// AVX2, the outputs go across the vector lanes ([`narrow_avx`]);
-/// otherwise the register tiles across `k`.
+/// Three kernels, the same bits: when `b` has few rows (a layer's weights:
+/// at most [`NARROW`]), the outputs go across the vector lanes: with
+/// AVX-512, rows of at most [`NARROW_K512`] values and at least
+/// `ROWS512` (64) rows of `a`, [`narrow512`]; with AVX2 and rows of at
+/// most [`NARROW_K`] values, [`narrow_avx`]; otherwise the register tiles
+/// across `k`.
 pub fn gemm_nt(a: &[f64], b: &[f64], k: usize, out: &mut [f64]) {
     let n = b.len() / k.max(1);
     #[cfg(target_arch = "x86_64")]
@@ -283,15 +289,16 @@ fn transposed(b: &[f64], k: usize, np: usize) -> Vec<f64> {
 }
 
 /// Widest rows for [`narrow512`]: the EDBN's input layer (80 values) and
-/// the ANN (ST)'s. Its transposed `b` (`k x 64` at most, 40 KB at 80) is
-/// read one 16-column block at a time, which fits in L1.
+/// the ANN (ST)'s. Its packed `b` ([`panels512`], `k x 64` at most, 40 KB
+/// at 80) is read one 16-column panel at a time (10 KB at 80), in L1.
 pub const NARROW_K512: usize = 128;
 
 /// Rows of `a` per pass of [`narrow512`] over the panels: 64 rows of 80
 /// values (40 KB) stay in L2 while each panel passes. Also the fewest rows
-/// for which [`gemm_nt`] takes [`narrow512`]: below it the packed copy of
-/// `b` costs as much as the products (an RBM's training batches of 20 rows
-/// were 8% slower through it).
+/// for which [`gemm_nt`] takes [`narrow512`]: below it packing `b` costs
+/// too much against the products (the RBMs' training batches of 20 rows
+/// made the EDBN's fit 3-5% slower through it: 0.616-0.623 s against
+/// 0.591-0.603 s, `benches/peers` alternated, 2026-11-26).
 const ROWS512: usize = 64;
 
 /// Width of the column panel starting at `j0` of `n` columns: 16 (two
@@ -334,12 +341,19 @@ fn panels512(b: &[f64], k: usize, n: usize) -> Vec<f64> {
 /// rows; within one, each panel (`k · 128` bytes, in L1) passes over all
 /// its rows.
 ///
-/// Why: at the ANN (ST)'s layer shapes (3154 rows x 30 x 80) this runs
-/// ~18 G products a second against the AVX2 tiles' ~14.5 (one core,
-/// same process, best of 30), ~16.5 against ~11 at the ANN (S)'s input
-/// layer (2848 x 30 x 16): the tiles spend their time on horizontal sums
-/// and edge columns, and [`narrow_avx`] (one row at a time, 16 registers)
-/// loads a weight vector per product.
+/// Why: the AVX2 kernels spend their time on loads (one weight vector per
+/// product in [`narrow_avx`], which holds one row in its 16 registers) and
+/// on the tiles' horizontal sums and edge columns. `cargo run --release
+/// --example machine` (its last line; 2026-11-26 08:20, one core, best of
+/// 5) gave, in billions of products a second, this kernel / the AVX2 ones:
+/// 16.8 / 13.9 at the ANN (S)'s input layer (2848 rows x 30 x 16), 14.4 /
+/// 12.2 at its output layer (x 17 x 30), 17.7 / 14.6 at the ANN (ST)'s
+/// input layer (3154 x 30 x 80), 17.7 / 15.6 and 17.5 / 13.8 at the EDBN's
+/// layers (x 60 x 80, x 30 x 60). The limit without FMA is two multiplies
+/// and two adds of four lanes a cycle, 8 products a cycle: ~29 G a second
+/// at the ~3.6 GHz the same program's dependent-operation latency implies
+/// (0.82 ns for 3 cycles), so this runs at ~60% of it. Three rows at a
+/// time (24 accumulators) was no faster.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,avx512f,avx512vl,avx512dq")]
 unsafe fn narrow512(a: &[f64], panels: &[f64], k: usize, n: usize, out: &mut [f64]) {
