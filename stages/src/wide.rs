@@ -22,22 +22,24 @@ thread_local! {
     static NO_512: Cell<bool> = const { Cell::new(false) };
 }
 
+/// Runs `f` with this thread's `switch` set, then restores it.
+fn with_switch<R>(switch: &'static std::thread::LocalKey<Cell<bool>>, f: impl FnOnce() -> R) -> R {
+    let old = switch.with(|b| b.replace(true));
+    let r = f();
+    switch.with(|b| b.set(old));
+    r
+}
+
 /// Runs `f` with the AVX-512 paths switched off on this thread (AVX2 stays):
 /// for comparing the two on a machine that has both.
 pub fn without_avx512<R>(f: impl FnOnce() -> R) -> R {
-    let old = NO_512.with(|b| b.replace(true));
-    let r = f();
-    NO_512.with(|b| b.set(old));
-    r
+    with_switch(&NO_512, f)
 }
 
 /// Runs `f` with the AVX2 paths switched off on this thread (for comparing
 /// the two paths).
 pub fn baseline_only<R>(f: impl FnOnce() -> R) -> R {
-    let old = BASELINE.with(|b| b.replace(true));
-    let r = f();
-    BASELINE.with(|b| b.set(old));
-    r
+    with_switch(&BASELINE, f)
 }
 
 /// True when the AVX2 path may run on this thread: the CPU has AVX2 (checked
