@@ -28,6 +28,7 @@
 //! frames and raw templates) that tests compare the fast path with.
 
 use super::params::{BeforeStart, Refine, WssParams};
+use super::simd::TAXEL_GROUP;
 use super::templates::{normalize_with_sum, raw_templates, ClassTemplates, Soa, Templates};
 use palpate_core::{ClassScore, Estimate, SpikeImages, StageError};
 use realfft::num_complex::Complex;
@@ -295,15 +296,48 @@ pub(crate) struct TrialSpectra {
     /// until a class needs it).
     seqs: [Vec<f64>; 2],
     inputs: HashMap<(usize, Plan), InputSpectra>,
+    /// The weighting the weighted sequence and the prefix sums were made
+    /// for (`None`: not yet made).
+    weighting: Option<super::params::Weighting>,
+    /// Prefix sums of the frames' weights and of their non-zero weights.
+    wp: Vec<f64>,
+    nzp: Vec<usize>,
 }
 
 impl TrialSpectra {
-    /// Sets the weighted sequence, dropping its spectra if it changed.
-    fn set_weighted(&mut self, seq: Vec<f64>) {
-        if self.seqs[0] != seq {
-            self.inputs.retain(|(s, _), _| *s != 0);
-            self.seqs[0] = seq;
+    /// Makes the weighted sequence and the weights' prefix sums for
+    /// `params.weighting`, unless they were made for it already: a search
+    /// scores template after template against one trial with the same
+    /// weights, and rebuilding (and comparing) the `taxels x frames`
+    /// sequence each time was 6 % of a probe. A new weighting drops the
+    /// weighted sequence's spectra.
+    fn set_weights(&mut self, prep: &Prepared, params: &WssParams) {
+        if self.weighting == Some(params.weighting) {
+            return;
         }
+        let (n, k) = (prep.n, prep.k);
+        let w = prep.weights(params, prep.max_count);
+        let mut wp = vec![0.0; k + 1];
+        let mut nzp = vec![0usize; k + 1];
+        for m in 0..k {
+            wp[m + 1] = wp[m] + w[m];
+            nzp[m + 1] = nzp[m] + usize::from(w[m] != 0.0);
+        }
+        let mut weighted = vec![0.0; n * k];
+        for m in 0..k {
+            if prep.active[m] {
+                for t in 0..n {
+                    weighted[t * k + m] = w[m] * prep.norm[m * n + t];
+                }
+            }
+        }
+        if self.seqs[0] != weighted {
+            self.inputs.retain(|(s, _), _| *s != 0);
+            self.seqs[0] = weighted;
+        }
+        self.wp = wp;
+        self.nzp = nzp;
+        self.weighting = Some(params.weighting);
     }
 }
 
@@ -437,15 +471,28 @@ impl<'a> Fft<'a> {
             }
             acc.re.iter_mut().for_each(|a| *a = 0.0);
             acc.im.iter_mut().for_each(|a| *a = 0.0);
-            for t in 0..n {
+            // Taxels in groups (the same bits as one by one, see
+            // `simd::cmac_group`), the rest one by one.
+            let xs = |t: usize| {
                 let o = (b * n + t) * bins;
+                (&x.re[o..o + bins], &x.im[o..o + bins])
+            };
+            let hs = |t: usize| {
                 let r = t * bins..(t + 1) * bins;
-                cmac(
+                (&spec.re[r.clone()], &spec.im[r])
+            };
+            let grouped = n - n % TAXEL_GROUP;
+            for t0 in (0..grouped).step_by(TAXEL_GROUP) {
+                super::simd::cmac_group(
                     fast,
-                    &mut acc,
-                    (&x.re[o..o + bins], &x.im[o..o + bins]),
-                    (&spec.re[r.clone()], &spec.im[r]),
+                    &mut acc.re,
+                    &mut acc.im,
+                    std::array::from_fn(|j| xs(t0 + j)),
+                    std::array::from_fn(|j| hs(t0 + j)),
                 );
+            }
+            for t in grouped..n {
+                cmac(fast, &mut acc, xs(t), hs(t));
             }
             for (f, v) in z.iter_mut().enumerate() {
                 *v = Complex::new(acc.re[f], acc.im[f]);
@@ -507,22 +554,8 @@ pub(crate) fn fast_series_in(
     if k == 0 {
         return vec![Vec::new(); tpl.classes().len()];
     }
-    let w = prep.weights(params, prep.max_count);
-    let mut wp = vec![0.0; k + 1];
-    let mut nzp = vec![0usize; k + 1];
-    for m in 0..k {
-        wp[m + 1] = wp[m] + w[m];
-        nzp[m + 1] = nzp[m] + usize::from(w[m] != 0.0);
-    }
-    let mut weighted = vec![0.0; n * k];
-    for m in 0..k {
-        if prep.active[m] {
-            for t in 0..n {
-                weighted[t * k + m] = w[m] * prep.norm[m * n + t];
-            }
-        }
-    }
-    spectra.set_weighted(weighted);
+    spectra.set_weights(prep, params);
+    let (wp, nzp) = (spectra.wp.clone(), spectra.nzp.clone());
     let mut fft = Fft::new(tpl, n, k, spectra);
     let before = params.before_start;
     let mut all = Vec::with_capacity(tpl.classes().len());

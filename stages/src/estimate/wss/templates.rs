@@ -197,17 +197,24 @@ impl ClassShape {
 
     /// Template `i`: the line at offset `lo + i·Δs`.
     fn template(&self, i: usize) -> Vec<f64> {
+        let mut v = vec![0.0; self.offsets.len()];
+        self.template_into(i, &mut v);
+        v
+    }
+
+    /// [`Self::template`] into `out` (one value per taxel), without
+    /// allocating: a refining search builds a class's templates per probe.
+    fn template_into(&self, i: usize, out: &mut [f64]) {
         let s = self.lo + i as f64 * self.ds;
-        self.offsets
-            .iter()
-            .map(|&o| match &self.table {
+        for (v, &o) in out.iter_mut().zip(&self.offsets) {
+            *v = match &self.table {
                 Some(t) => t.value(o - s),
                 None => {
                     let d = ((o - s).abs() - self.half).max(0.0);
                     (-d * d * self.inv_s2).exp()
                 }
-            })
-            .collect()
+            };
+        }
     }
 }
 
@@ -350,12 +357,11 @@ impl Templates {
             .iter()
             .map(|&a| {
                 let (crossing_frames, len) = lengths(layout, hop_ms, params, a);
-                let mut data = Vec::with_capacity(len * n);
+                let mut data = vec![0.0; len * n];
                 let shape = ClassShape::new(layout, hop_ms, params, a);
-                for i in 0..len {
-                    let mut t = shape.template(i);
-                    normalize(&mut t);
-                    data.extend_from_slice(&t);
+                for (i, t) in data.chunks_exact_mut(n.max(1)).enumerate() {
+                    shape.template_into(i, t);
+                    normalize(t);
                 }
                 ClassTemplates {
                     angle_deg: a,
@@ -423,17 +429,29 @@ impl Templates {
         let bins = fft_len / 2 + 1;
         let h = h.min(cls.len).min(fft_len);
         let scale = 1.0 / fft_len as f64;
-        let mut out = vec![Complex::new(0.0, 0.0); n * bins];
+        // One taxel's spectrum at a time, written straight into the split
+        // parts (no interleaved copy of the whole set), with one scratch.
+        let mut soa = Soa {
+            re: vec![0.0; n * bins],
+            im: vec![0.0; n * bins],
+        };
+        let mut spec = vec![Complex::new(0.0, 0.0); bins];
         let mut buf = vec![0.0; fft_len];
+        let mut scratch = pair.fwd.make_scratch_vec();
         for t in 0..n {
             buf.iter_mut().for_each(|x| *x = 0.0);
             for (i, v) in buf.iter_mut().take(h).enumerate() {
                 *v = cls.data[i * n + t] * scale;
             }
             // Lengths match by construction, so the FFT cannot fail.
-            let _ = pair.fwd.process(&mut buf, &mut out[t * bins..(t + 1) * bins]);
+            let _ = pair.fwd.process_with_scratch(&mut buf, &mut spec, &mut scratch);
+            let r = t * bins..(t + 1) * bins;
+            for ((re, im), z) in soa.re[r.clone()].iter_mut().zip(&mut soa.im[r]).zip(&spec) {
+                *re = z.re;
+                *im = z.im;
+            }
         }
-        let s = Arc::new(Soa::from_complex(&out));
+        let s = Arc::new(soa);
         let mut cache = self.lock();
         let bytes = n * bins * 16;
         if cache.batch_bytes + bytes > BATCH_CACHE_BYTES {
