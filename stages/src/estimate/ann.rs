@@ -278,6 +278,45 @@ struct Scratch {
     da: Vec<f64>,
 }
 
+/// `g[j][d] += dz[i][j] · x[i][d]` for every row `i` in order (`g` is
+/// `h x dim`, `dz` is `n x h`, `x` is `n x dim`, all row-major): each entry
+/// sums its rows' products one after another, unfused, as the row-by-row
+/// update `g[j] += dz[i][j] · x[i]` did, so the bits are the same. Row by
+/// row, every row reloaded and stored the whole `h x dim` gradient; here
+/// a strip of [`STRIP`] entries of `g` stays in registers while the rows
+/// pass (a fifth of a fit before).
+fn add_outer_rows(g: &mut [f64], dz: &[f64], x: &[f64], h: usize, dim: usize) {
+    const STRIP: usize = 16;
+    let n = x.len() / dim.max(1);
+    crate::wide::with_avx2(
+        #[inline(always)]
+        || {
+            for (j, grow) in g.chunks_exact_mut(dim.max(1)).enumerate().take(h) {
+                let mut d0 = 0;
+                while d0 + STRIP <= dim {
+                    let mut acc: [f64; STRIP] = std::array::from_fn(|l| grow[d0 + l]);
+                    for i in 0..n {
+                        let z = dz[i * h + j];
+                        let xs = &x[i * dim + d0..i * dim + d0 + STRIP];
+                        for l in 0..STRIP {
+                            acc[l] += z * xs[l];
+                        }
+                    }
+                    grow[d0..d0 + STRIP].copy_from_slice(&acc);
+                    d0 += STRIP;
+                }
+                for d in d0..dim {
+                    let mut acc = grow[d];
+                    for i in 0..n {
+                        acc += dz[i * h + j] * x[i * dim + d];
+                    }
+                    grow[d] = acc;
+                }
+            }
+        },
+    )
+}
+
 impl Mlp {
     /// A network with Glorot-uniform weights and zero biases.
     pub fn new(
@@ -324,7 +363,9 @@ impl Mlp {
     }
 
     /// Forward pass of a standardised vector: hidden activations into `s.a`,
-    /// class probabilities into `s.p`.
+    /// class probabilities into `s.p`. The reference that the batched
+    /// passes (`scores_batch`, `loss_grad`) reproduce bit for bit.
+    #[cfg(test)]
     fn forward(&self, x: &[f64], s: &mut Scratch) {
         let (w1, b1, w2, b2) = self.offsets();
         let p = &self.params;
@@ -377,9 +418,28 @@ impl Mlp {
         let inv_n = 1.0 / n as f64;
         let mut s = self.scratch();
         let mut loss = 0.0;
+        // The forward pass of every row at once, as `scores_batch` does it
+        // (tiled products over the batch, the bits of `forward` row by row);
+        // row by row, its short dot products were three fifths of a fit.
+        let (h, k) = (self.hidden, self.classes);
+        let p = &self.params;
+        let mut act = vec![0.0; n * h];
+        dense::gemm_nt(&x[..n * self.dim], &p[w1..b1], self.dim, &mut act);
+        dense::add_bias_map(&mut act, &p[b1..w2], tanh);
+        let mut prob = vec![0.0; n * k];
+        dense::gemm_nt(&act, &p[w2..b2], h, &mut prob);
+        dense::add_bias_map(&mut prob, &p[b2..], |v| v);
+        vmath::softmax_rows(&mut prob, k);
+        // The first layer's pre-activation gradients, row-major, for the
+        // weight gradient after the row loop.
+        let mut dz1 = if grad.is_some() {
+            vec![0.0; n * h]
+        } else {
+            Vec::new()
+        };
         for (i, &yi) in y.iter().enumerate() {
-            let xi = &x[i * self.dim..(i + 1) * self.dim];
-            self.forward(xi, &mut s);
+            s.a.copy_from_slice(&act[i * h..(i + 1) * h]);
+            s.p.copy_from_slice(&prob[i * k..(i + 1) * k]);
             loss -= s.p[yi].max(1e-300).ln();
             let Some(g) = grad.as_deref_mut() else { continue };
             // dL/dz2 = p - onehot(y), scaled by 1/n for the mean.
@@ -399,9 +459,11 @@ impl Mlp {
             for j in 0..self.hidden {
                 let dz = s.da[j] * (1.0 - s.a[j] * s.a[j]);
                 g[b1 + j] += dz;
-                let grow = &mut g[w1 + j * self.dim..w1 + (j + 1) * self.dim];
-                grow.iter_mut().zip(xi).for_each(|(g, x)| *g += dz * x);
+                dz1[i * h + j] = dz;
             }
+        }
+        if let Some(g) = grad.as_deref_mut() {
+            add_outer_rows(&mut g[w1..b1], &dz1, &x[..n * self.dim], h, self.dim);
         }
         loss *= inv_n;
         if l2 > 0.0 {
@@ -512,10 +574,13 @@ impl Mlp {
 pub(crate) use super::dense::dot;
 
 /// The activations, shared with the other baselines and vectorisable
-/// ([`super::vmath`]): `tanh` with one exponential, and the softmax. Used in
-/// training and prediction alike, so the network is trained with the
-/// function it predicts with.
-pub(crate) use super::vmath::{softmax, tanh};
+/// ([`super::vmath`]): `tanh` with one exponential, and the softmax (of a
+/// batch's rows, `vmath::softmax_rows`; one row's in the tests' reference
+/// pass). Used in training and prediction alike, so the network is trained
+/// with the function it predicts with.
+#[cfg(test)]
+pub(crate) use super::vmath::softmax;
+pub(crate) use super::vmath::tanh;
 
 #[typetag::serde(name = "ann")]
 impl FrameClassifier for Mlp {
@@ -587,6 +652,85 @@ mod tests {
             let num = (lp - lm) / (2.0 * eps);
             let err = (num - gp).abs() / (num.abs() + gp.abs()).max(1e-8);
             assert!(err < 1e-5, "param {p}: analytic {gp} vs numeric {num}");
+        }
+    }
+
+    /// The batched passes (`scores_batch`, and `loss_grad`'s forward pass
+    /// and gradient) are the bits of the row-by-row passes, at batch sizes on
+    /// both sides of the product kernels' thresholds and at the paper's
+    /// input widths.
+    #[test]
+    fn batched_passes_are_the_bits_of_row_by_row() {
+        let mut rng = ChaCha8Rng::seed_from_u64(11);
+        for (d, h, k) in [(16, 30, 17), (80, 30, 17), (7, 5, 4)] {
+            let scaler = Standardizer {
+                mean: vec![0.0; d],
+                inv_sd: vec![1.0; d],
+            };
+            let mut m = Mlp::new(d, h, k, scaler, &mut rng);
+            let (_, b1, _, b2) = m.offsets();
+            for j in 0..h {
+                m.params[b1 + j] = rng.random_range(-0.5..0.5);
+            }
+            for c in 0..k {
+                m.params[b2 + c] = rng.random_range(-0.5..0.5);
+            }
+            for n in [1, 3, 31, 32, 64, 65, 200] {
+                let x: Vec<f64> = (0..n * d).map(|_| rng.random_range(-3.0..3.0)).collect();
+                let mut batch = vec![0.0; n * k];
+                m.scores_batch(&x, &mut batch);
+                let mut s = m.scratch();
+                for i in 0..n {
+                    m.forward(&x[i * d..(i + 1) * d], &mut s);
+                    let got: Vec<u64> = batch[i * k..(i + 1) * k].iter().map(|v| v.to_bits()).collect();
+                    let want: Vec<u64> = s.p.iter().map(|v| v.to_bits()).collect();
+                    assert_eq!(got, want, "d {d}, n {n}, row {i}");
+                }
+                // The loss is the same sum of the same probabilities.
+                let y: Vec<usize> = (0..n).map(|i| i % k).collect();
+                let mut want = 0.0;
+                for (i, &yi) in y.iter().enumerate() {
+                    m.forward(&x[i * d..(i + 1) * d], &mut s);
+                    want -= s.p[yi].max(1e-300).ln();
+                }
+                want *= 1.0 / n as f64;
+                assert_eq!(
+                    m.loss_grad(&x, &y, 0.0, None).to_bits(),
+                    want.to_bits(),
+                    "d {d}, n {n}"
+                );
+                // The gradient: the row-by-row backward pass, as it was
+                // written before the batched one.
+                let mut g = vec![0.0; m.params.len()];
+                m.loss_grad(&x, &y, 0.0, Some(&mut g));
+                let (w1, b1, w2, b2) = m.offsets();
+                let mut r = vec![0.0; m.params.len()];
+                let inv_n = 1.0 / n as f64;
+                for (i, &yi) in y.iter().enumerate() {
+                    let xi = &x[i * d..(i + 1) * d];
+                    m.forward(xi, &mut s);
+                    s.p[yi] -= 1.0;
+                    s.p.iter_mut().for_each(|v| *v *= inv_n);
+                    s.da.iter_mut().for_each(|v| *v = 0.0);
+                    for c in 0..k {
+                        let dz = s.p[c];
+                        r[b2 + c] += dz;
+                        for j in 0..h {
+                            r[w2 + c * h + j] += dz * s.a[j];
+                            s.da[j] += dz * m.params[w2 + c * h + j];
+                        }
+                    }
+                    for j in 0..h {
+                        let dz = s.da[j] * (1.0 - s.a[j] * s.a[j]);
+                        r[b1 + j] += dz;
+                        for (gd, xd) in r[w1 + j * d..w1 + (j + 1) * d].iter_mut().zip(xi) {
+                            *gd += dz * xd;
+                        }
+                    }
+                }
+                let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+                assert_eq!(bits(&g), bits(&r), "gradient, d {d}, n {n}");
+            }
         }
     }
 
