@@ -271,7 +271,8 @@ pub struct Mlp {
     pub scaler: Standardizer,
 }
 
-/// Working buffers of one forward/backward pass.
+/// Working buffers of the tests' row-by-row reference passes.
+#[cfg(test)]
 struct Scratch {
     a: Vec<f64>,
     p: Vec<f64>,
@@ -283,38 +284,50 @@ struct Scratch {
 /// sums its rows' products one after another, unfused, as the row-by-row
 /// update `g[j] += dz[i][j] · x[i]` did, so the bits are the same. Row by
 /// row, every row reloaded and stored the whole `h x dim` gradient; here
-/// a strip of [`STRIP`] entries of `g` stays in registers while the rows
+/// a strip of up to 16 entries of `g` stays in registers while the rows
 /// pass (a fifth of a fit before).
 fn add_outer_rows(g: &mut [f64], dz: &[f64], x: &[f64], h: usize, dim: usize) {
-    const STRIP: usize = 16;
     let n = x.len() / dim.max(1);
     crate::wide::with_avx2(
         #[inline(always)]
         || {
             for (j, grow) in g.chunks_exact_mut(dim.max(1)).enumerate().take(h) {
+                // Strips of 16, then 8, 4, 2 and 1 for the rest of the row.
                 let mut d0 = 0;
-                while d0 + STRIP <= dim {
-                    let mut acc: [f64; STRIP] = std::array::from_fn(|l| grow[d0 + l]);
-                    for i in 0..n {
-                        let z = dz[i * h + j];
-                        let xs = &x[i * dim + d0..i * dim + d0 + STRIP];
-                        for l in 0..STRIP {
-                            acc[l] += z * xs[l];
-                        }
-                    }
-                    grow[d0..d0 + STRIP].copy_from_slice(&acc);
-                    d0 += STRIP;
-                }
-                for d in d0..dim {
-                    let mut acc = grow[d];
-                    for i in 0..n {
-                        acc += dz[i * h + j] * x[i * dim + d];
-                    }
-                    grow[d] = acc;
-                }
+                d0 = outer_strips::<16>(grow, dz, x, (h, j), (dim, d0), n);
+                d0 = outer_strips::<8>(grow, dz, x, (h, j), (dim, d0), n);
+                d0 = outer_strips::<4>(grow, dz, x, (h, j), (dim, d0), n);
+                d0 = outer_strips::<2>(grow, dz, x, (h, j), (dim, d0), n);
+                outer_strips::<1>(grow, dz, x, (h, j), (dim, d0), n);
             }
         },
     )
+}
+
+/// [`add_outer_rows`] for entries `d0..` of row `j` of `g`, `S` at a time
+/// while `S` fit; returns the first entry left.
+#[inline(always)]
+fn outer_strips<const S: usize>(
+    grow: &mut [f64],
+    dz: &[f64],
+    x: &[f64],
+    (h, j): (usize, usize),
+    (dim, mut d0): (usize, usize),
+    n: usize,
+) -> usize {
+    while d0 + S <= dim {
+        let mut acc: [f64; S] = std::array::from_fn(|l| grow[d0 + l]);
+        for i in 0..n {
+            let z = dz[i * h + j];
+            let xs = &x[i * dim + d0..i * dim + d0 + S];
+            for l in 0..S {
+                acc[l] += z * xs[l];
+            }
+        }
+        grow[d0..d0 + S].copy_from_slice(&acc);
+        d0 += S;
+    }
+    d0
 }
 
 impl Mlp {
@@ -354,6 +367,7 @@ impl Mlp {
         (w1, b1, w2, b2)
     }
 
+    #[cfg(test)]
     fn scratch(&self) -> Scratch {
         Scratch {
             a: vec![0.0; self.hidden],
@@ -409,14 +423,13 @@ impl Mlp {
 
     /// Mean cross-entropy of standardised rows `x` (row-major) with labels `y`,
     /// plus the L2 term; adds the gradient of that loss to `grad` when given.
-    pub fn loss_grad(&self, x: &[f64], y: &[usize], l2: f64, mut grad: Option<&mut [f64]>) -> f64 {
+    pub fn loss_grad(&self, x: &[f64], y: &[usize], l2: f64, grad: Option<&mut [f64]>) -> f64 {
         let (w1, b1, w2, b2) = self.offsets();
         let n = y.len();
         if n == 0 {
             return 0.0;
         }
         let inv_n = 1.0 / n as f64;
-        let mut s = self.scratch();
         let mut loss = 0.0;
         // The forward pass of every row at once, as `scores_batch` does it
         // (tiled products over the batch, the bits of `forward` row by row);
@@ -430,42 +443,45 @@ impl Mlp {
         dense::gemm_nt(&act, &p[w2..b2], h, &mut prob);
         dense::add_bias_map(&mut prob, &p[b2..], |v| v);
         vmath::softmax_rows(&mut prob, k);
-        // The first layer's pre-activation gradients, row-major, for the
-        // weight gradient after the row loop.
-        let mut dz1 = if grad.is_some() {
-            vec![0.0; n * h]
-        } else {
-            Vec::new()
-        };
-        for (i, &yi) in y.iter().enumerate() {
-            s.a.copy_from_slice(&act[i * h..(i + 1) * h]);
-            s.p.copy_from_slice(&prob[i * k..(i + 1) * k]);
-            loss -= s.p[yi].max(1e-300).ln();
-            let Some(g) = grad.as_deref_mut() else { continue };
-            // dL/dz2 = p - onehot(y), scaled by 1/n for the mean.
-            s.p[yi] -= 1.0;
-            s.p.iter_mut().for_each(|d| *d *= inv_n);
-            s.da.iter_mut().for_each(|d| *d = 0.0);
-            for c in 0..self.classes {
-                let dz = s.p[c];
-                g[b2 + c] += dz;
-                let wrow = &self.params[w2 + c * self.hidden..w2 + (c + 1) * self.hidden];
-                let grow = &mut g[w2 + c * self.hidden..w2 + (c + 1) * self.hidden];
-                for j in 0..self.hidden {
-                    grow[j] += dz * s.a[j];
-                    s.da[j] += dz * wrow[j];
-                }
+        let Some(g) = grad else {
+            for (i, &yi) in y.iter().enumerate() {
+                loss -= prob[i * k + yi].max(1e-300).ln();
             }
-            for j in 0..self.hidden {
-                let dz = s.da[j] * (1.0 - s.a[j] * s.a[j]);
+            return self.with_l2(loss * inv_n, l2, None);
+        };
+        // Each row's output and first-layer pre-activation gradients; the
+        // weight gradients are summed over the rows after the loop (row
+        // after row per entry, the bits of the row-by-row updates).
+        let mut dz1 = vec![0.0; n * h];
+        let mut da = vec![0.0; h];
+        for (i, &yi) in y.iter().enumerate() {
+            let a = &act[i * h..(i + 1) * h];
+            let dz2 = &mut prob[i * k..(i + 1) * k];
+            loss -= dz2[yi].max(1e-300).ln();
+            // dL/dz2 = p - onehot(y), scaled by 1/n for the mean.
+            dz2[yi] -= 1.0;
+            dz2.iter_mut().for_each(|d| *d *= inv_n);
+            da.iter_mut().for_each(|d| *d = 0.0);
+            for (c, &dz) in dz2.iter().enumerate() {
+                g[b2 + c] += dz;
+                let wrow = &p[w2 + c * h..w2 + (c + 1) * h];
+                da.iter_mut().zip(wrow).for_each(|(d, w)| *d += dz * w);
+            }
+            for j in 0..h {
+                let dz = da[j] * (1.0 - a[j] * a[j]);
                 g[b1 + j] += dz;
                 dz1[i * h + j] = dz;
             }
         }
-        if let Some(g) = grad.as_deref_mut() {
-            add_outer_rows(&mut g[w1..b1], &dz1, &x[..n * self.dim], h, self.dim);
-        }
-        loss *= inv_n;
+        add_outer_rows(&mut g[w2..b2], &prob, &act, k, h);
+        add_outer_rows(&mut g[w1..b1], &dz1, &x[..n * self.dim], h, self.dim);
+        self.with_l2(loss * inv_n, l2, Some(g))
+    }
+
+    /// `loss + l2/2 · ‖W‖²` (both layers' weights, not the biases), adding
+    /// `l2 · W` to the gradient when given.
+    fn with_l2(&self, mut loss: f64, l2: f64, mut grad: Option<&mut [f64]>) -> f64 {
+        let (w1, b1, w2, b2) = self.offsets();
         if l2 > 0.0 {
             let mut sq = 0.0;
             for range in [w1..b1, w2..b2] {
@@ -526,11 +542,23 @@ impl Mlp {
                         let (b1, b2, eps) = (0.9f64, 0.999f64, 1e-8);
                         let c1 = 1.0 / (1.0 - b1.powi(t));
                         let c2 = 1.0 / (1.0 - b2.powi(t));
-                        for k in 0..n_params {
-                            m1[k] = b1 * m1[k] + (1.0 - b1) * grad[k];
-                            m2[k] = b2 * m2[k] + (1.0 - b2) * grad[k] * grad[k];
-                            self.params[k] -= cfg.learning_rate * (m1[k] * c1) / ((m2[k] * c2).sqrt() + eps);
-                        }
+                        let lr = cfg.learning_rate;
+                        // Vectorised (zipped slices, AVX2 or AVX-512 where
+                        // the CPU has them); each entry's operations are
+                        // unchanged, so are its bits (square root and
+                        // division are exact in every width).
+                        crate::wide::with_avx2(
+                            #[inline(always)]
+                            || {
+                                for (((p, m1), m2), &g) in
+                                    self.params.iter_mut().zip(&mut m1).zip(&mut m2).zip(&grad)
+                                {
+                                    *m1 = b1 * *m1 + (1.0 - b1) * g;
+                                    *m2 = b2 * *m2 + (1.0 - b2) * g * g;
+                                    *p -= lr * (*m1 * c1) / ((*m2 * c2).sqrt() + eps);
+                                }
+                            },
+                        );
                     }
                     Optimizer::Sgd => {
                         for k in 0..n_params {
