@@ -34,6 +34,12 @@
 //! fit is bit-identical for the same seed. Loops run in a fixed order on one
 //! thread (folds run in parallel in the runtime).
 //!
+//! A minibatch's forward pass is two tiled products over its rows
+//! ([`dense::gemm_nt`], as prediction does it), and each weight gradient
+//! `Σ_rows δ xᵀ` is summed row after row per entry with a strip of entries
+//! in registers: the bits of a row-by-row pass (the test
+//! `batched_passes_are_the_bits_of_row_by_row`), at half its time.
+//!
 //! Saved models: `save_model = true` writes each fold's fitted network; a
 //! stage given one with `model_in` predicts with it instead of fitting, and
 //! streams under `palpate run --live` (see [`super::saved`]).
@@ -405,7 +411,7 @@ impl Mlp {
     /// [`Self::frame_scores`] of every row of `x` (row-major, `dim` wide) into
     /// the rows of `out` (`classes` wide): both layers as one tiled product
     /// each over the whole batch ([`dense::gemm_nt`]), the same bits as
-    /// [`Self::forward`] row by row.
+    /// `forward` row by row (the tests' reference pass).
     pub fn scores_batch(&self, x: &[f64], out: &mut [f64]) {
         let (w1, b1, w2, b2) = self.offsets();
         let p = &self.params;

@@ -1,8 +1,11 @@
-//! The two inner kernels of WSS (a complex multiply-accumulate over frequency
-//! bins, and a real dot product over taxels), compiled twice: for the baseline
-//! target and, on x86-64 CPUs that have them (checked once at run time), with
-//! AVX2 and FMA enabled, which doubles the vector width and fuses each
-//! multiply-add. Results differ between the two by rounding only (~1e-16).
+//! The inner kernels of WSS (a complex multiply-accumulate over frequency
+//! bins, one taxel or a group of [`TAXEL_GROUP`] at a time, and a real dot
+//! product over taxels), compiled for the baseline target and, on x86-64
+//! CPUs that have them (checked once at run time), with AVX2 and FMA
+//! enabled (the taxel groups also with AVX-512), which widens the vectors
+//! and fuses each multiply-add. The fused and unfused results differ by
+//! rounding only (~1e-16); the vector widths of the fused kernels do not
+//! change a bit.
 
 /// True when the AVX2 + FMA versions may run.
 #[inline]
