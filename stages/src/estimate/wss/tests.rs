@@ -157,6 +157,32 @@ fn fast_equals_reference() {
     }
 }
 
+/// The fast path on arrays whose taxel count is not a multiple of the
+/// products' taxel group (9, 10 and 25 taxels: groups plus a remainder)
+/// still equals the direct sums.
+#[test]
+fn fast_equals_reference_on_other_arrays() {
+    for (rows, cols) in [(3, 3), (2, 5), (5, 5)] {
+        let layout = TaxelLayout::Grid {
+            rows,
+            cols,
+            pitch_mm: 3.0,
+            taxel_mm: 2.0,
+        };
+        let params = WssParams {
+            weighting: Weighting::OneMinusSr,
+            ..small_params()
+        };
+        let tpl = Templates::new(&layout, 10.0, &params).unwrap();
+        for (j, theta) in [27.0, 90.0, 151.0].into_iter().enumerate() {
+            let im = noisy(ideal(&layout, theta, 10.0, 500.0, 10.0, 100.0), j as u64, 3.0);
+            let fast = wss_series(&im, &tpl, &params).unwrap();
+            let slow = wss_reference_series(&im, &tpl, &params).unwrap();
+            assert_close(&fast, &slow, 1e-9, "fast vs reference, other array");
+        }
+    }
+}
+
 fn stream_all(im: &SpikeImages, tpl: &Arc<Templates>, params: &WssParams) -> (WssStream, Vec<Estimate>) {
     let mut s = WssStream::new(tpl.clone(), params.clone(), im.window_ms)
         .unwrap()
