@@ -656,20 +656,26 @@ mod tests {
     use super::*;
     use rand_chacha::rand_core::SeedableRng;
 
-    #[test]
-    fn gradient_matches_finite_differences() {
-        let mut rng = ChaCha8Rng::seed_from_u64(3);
-        let (d, h, k, n) = (7, 5, 4, 9);
+    /// A `d`-input, `h`-unit, `k`-class network with an identity scaler and
+    /// non-zero biases in both layers (so their gradients are exercised too).
+    fn random_net(d: usize, h: usize, k: usize, rng: &mut ChaCha8Rng) -> Mlp {
         let scaler = Standardizer {
             mean: vec![0.0; d],
             inv_sd: vec![1.0; d],
         };
-        let mut m = Mlp::new(d, h, k, scaler, &mut rng);
-        // Non-zero biases so their gradients are exercised too.
-        let (_, b1, _, _) = m.offsets();
-        for j in 0..h {
-            m.params[b1 + j] = rng.random_range(-0.5..0.5);
+        let mut m = Mlp::new(d, h, k, scaler, rng);
+        let (_, b1, w2, b2) = m.offsets();
+        for j in (b1..w2).chain(b2..b2 + k) {
+            m.params[j] = rng.random_range(-0.5..0.5);
         }
+        m
+    }
+
+    #[test]
+    fn gradient_matches_finite_differences() {
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let (d, h, k, n) = (7, 5, 4, 9);
+        let mut m = random_net(d, h, k, &mut rng);
         let x: Vec<f64> = (0..n * d).map(|_| rng.random_range(-2.0..2.0)).collect();
         let y: Vec<usize> = (0..n).map(|i| i % k).collect();
         let l2 = 0.01;
@@ -697,18 +703,7 @@ mod tests {
     fn batched_passes_are_the_bits_of_row_by_row() {
         let mut rng = ChaCha8Rng::seed_from_u64(11);
         for (d, h, k) in [(16, 30, 17), (80, 30, 17), (7, 5, 4)] {
-            let scaler = Standardizer {
-                mean: vec![0.0; d],
-                inv_sd: vec![1.0; d],
-            };
-            let mut m = Mlp::new(d, h, k, scaler, &mut rng);
-            let (_, b1, _, b2) = m.offsets();
-            for j in 0..h {
-                m.params[b1 + j] = rng.random_range(-0.5..0.5);
-            }
-            for c in 0..k {
-                m.params[b2 + c] = rng.random_range(-0.5..0.5);
-            }
+            let m = random_net(d, h, k, &mut rng);
             for n in [1, 3, 31, 32, 64, 65, 200] {
                 let x: Vec<f64> = (0..n * d).map(|_| rng.random_range(-3.0..3.0)).collect();
                 let mut batch = vec![0.0; n * k];
@@ -720,29 +715,17 @@ mod tests {
                     let want: Vec<u64> = s.p.iter().map(|v| v.to_bits()).collect();
                     assert_eq!(got, want, "d {d}, n {n}, row {i}");
                 }
-                // The loss is the same sum of the same probabilities.
-                let y: Vec<usize> = (0..n).map(|i| i % k).collect();
-                let mut want = 0.0;
-                for (i, &yi) in y.iter().enumerate() {
-                    m.forward(&x[i * d..(i + 1) * d], &mut s);
-                    want -= s.p[yi].max(1e-300).ln();
-                }
-                want *= 1.0 / n as f64;
-                assert_eq!(
-                    m.loss_grad(&x, &y, 0.0, None).to_bits(),
-                    want.to_bits(),
-                    "d {d}, n {n}"
-                );
-                // The gradient: the row-by-row backward pass, as it was
+                // Loss and gradient: the row-by-row pass, as it was
                 // written before the batched one.
-                let mut g = vec![0.0; m.params.len()];
-                m.loss_grad(&x, &y, 0.0, Some(&mut g));
+                let y: Vec<usize> = (0..n).map(|i| i % k).collect();
                 let (w1, b1, w2, b2) = m.offsets();
-                let mut r = vec![0.0; m.params.len()];
                 let inv_n = 1.0 / n as f64;
+                let mut want = 0.0;
+                let mut r = vec![0.0; m.params.len()];
                 for (i, &yi) in y.iter().enumerate() {
                     let xi = &x[i * d..(i + 1) * d];
                     m.forward(xi, &mut s);
+                    want -= s.p[yi].max(1e-300).ln();
                     s.p[yi] -= 1.0;
                     s.p.iter_mut().for_each(|v| *v *= inv_n);
                     s.da.iter_mut().for_each(|v| *v = 0.0);
@@ -762,6 +745,12 @@ mod tests {
                         }
                     }
                 }
+                want *= inv_n;
+                let loss = m.loss_grad(&x, &y, 0.0, None);
+                assert_eq!(loss.to_bits(), want.to_bits(), "loss, d {d}, n {n}");
+                let mut g = vec![0.0; m.params.len()];
+                let loss = m.loss_grad(&x, &y, 0.0, Some(&mut g));
+                assert_eq!(loss.to_bits(), want.to_bits(), "loss with gradient, d {d}, n {n}");
                 let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
                 assert_eq!(bits(&g), bits(&r), "gradient, d {d}, n {n}");
             }

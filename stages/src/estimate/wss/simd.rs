@@ -77,7 +77,7 @@ pub(crate) fn cmac(
     cmac_impl::<false>(ar, ai, xr, xi, hr, hi)
 }
 
-/// Taxels per pass of [`cmac_taxels`].
+/// Taxels per pass of [`cmac_group`].
 pub(crate) const TAXEL_GROUP: usize = 4;
 
 /// `acc += Σ_t x_t ⊙ h_t` over a group of [`TAXEL_GROUP`] taxels, each bin's
