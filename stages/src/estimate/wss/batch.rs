@@ -302,6 +302,20 @@ pub(crate) struct TrialSpectra {
     /// Prefix sums of the frames' weights and of their non-zero weights.
     wp: Vec<f64>,
     nzp: Vec<usize>,
+    /// [`Fft::conv`]'s buffers, kept across calls: a search's probes call it
+    /// hundreds of times per trial, and allocating (and zeroing) them each
+    /// time was 5 % of a joint angle-speed search. Every value read is
+    /// written first in each call, so reuse does not change a bit.
+    work: ConvWork,
+}
+
+/// [`Fft::conv`]'s buffers (see [`TrialSpectra`]).
+#[derive(Default)]
+struct ConvWork {
+    acc: Soa,
+    z: Vec<Complex<f64>>,
+    out: Vec<f64>,
+    scratch: Vec<Complex<f64>>,
 }
 
 impl TrialSpectra {
@@ -453,15 +467,17 @@ impl<'a> Fft<'a> {
         let spec = tpl.batch_spectra(c, len, h);
         let pair = tpl.plan(len);
         let single = block >= k;
+        let mut work = std::mem::take(&mut self.spectra.work);
+        let ConvWork { acc, z, out, scratch } = &mut work;
+        // Sizes only: `acc` is zeroed per block, `z` filled from it, `out`
+        // and `scratch` written by the inverse FFT before any read.
+        acc.re.resize(bins, 0.0);
+        acc.im.resize(bins, 0.0);
+        z.resize(bins, Complex::new(0.0, 0.0));
+        out.resize(len, 0.0);
+        scratch.resize(pair.inv.get_scratch_len(), Complex::new(0.0, 0.0));
         let (x, nonzero) = self.input(s, plan);
         let mut y = vec![0.0; k];
-        let mut acc = Soa {
-            re: vec![0.0; bins],
-            im: vec![0.0; bins],
-        };
-        let mut z = vec![Complex::new(0.0, 0.0); bins];
-        let mut out = vec![0.0; len];
-        let mut scratch = pair.inv.make_scratch_vec();
         let fast = super::simd::fast_cpu();
         // Output `b·block + r` sits at `r` (single block) or `h − 1 + r`.
         let offset = if single { 0 } else { h - 1 };
@@ -492,7 +508,7 @@ impl<'a> Fft<'a> {
                 );
             }
             for t in grouped..n {
-                cmac(fast, &mut acc, xs(t), hs(t));
+                cmac(fast, acc, xs(t), hs(t));
             }
             for (f, v) in z.iter_mut().enumerate() {
                 *v = Complex::new(acc.re[f], acc.im[f]);
@@ -500,7 +516,7 @@ impl<'a> Fft<'a> {
             // Real inputs: DC and Nyquist are real up to rounding.
             z[0].im = 0.0;
             z[bins - 1].im = 0.0;
-            let _ = pair.inv.process_with_scratch(&mut z, &mut out, &mut scratch);
+            let _ = pair.inv.process_with_scratch(z, out, scratch);
             for r in 0..block {
                 let kk = b * block + r;
                 if kk >= k {
@@ -509,6 +525,7 @@ impl<'a> Fft<'a> {
                 y[kk] = out[offset + r];
             }
         }
+        self.spectra.work = work;
         y
     }
 }

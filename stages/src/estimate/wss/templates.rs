@@ -432,24 +432,23 @@ impl Templates {
         // One taxel's spectrum at a time, written straight into the split
         // parts (no interleaved copy of the whole set), with one scratch.
         let mut soa = Soa {
-            re: vec![0.0; n * bins],
-            im: vec![0.0; n * bins],
+            re: Vec::with_capacity(n * bins),
+            im: Vec::with_capacity(n * bins),
         };
         let mut spec = vec![Complex::new(0.0, 0.0); bins];
         let mut buf = vec![0.0; fft_len];
         let mut scratch = pair.fwd.make_scratch_vec();
         for t in 0..n {
-            buf.iter_mut().for_each(|x| *x = 0.0);
             for (i, v) in buf.iter_mut().take(h).enumerate() {
                 *v = cls.data[i * n + t] * scale;
             }
+            // The FFT leaves its input as scratch: the padding is zeroed
+            // again for every taxel.
+            buf[h..].iter_mut().for_each(|x| *x = 0.0);
             // Lengths match by construction, so the FFT cannot fail.
             let _ = pair.fwd.process_with_scratch(&mut buf, &mut spec, &mut scratch);
-            let r = t * bins..(t + 1) * bins;
-            for ((re, im), z) in soa.re[r.clone()].iter_mut().zip(&mut soa.im[r]).zip(&spec) {
-                *re = z.re;
-                *im = z.im;
-            }
+            soa.re.extend(spec.iter().map(|z| z.re));
+            soa.im.extend(spec.iter().map(|z| z.im));
         }
         let s = Arc::new(soa);
         let mut cache = self.lock();
