@@ -21,13 +21,13 @@
 #
 #   scripts/reproduce.sh            # from anywhere inside the repository
 #
-# The graphs of steps 2 and 3 run REPRODUCE_JOBS at a time (default: the
-# core count), so each graph's recorded wall time is taken while another
-# graph runs beside it; `REPRODUCE_JOBS=1 scripts/reproduce.sh` runs them
-# one by one.
+# The graphs of steps 2 and 3 run in one `palpate batch`, REPRODUCE_JOBS at
+# a time (default: the core count), sharing the stages they have in common,
+# so each graph's recorded wall time is taken while another graph runs
+# beside it; `REPRODUCE_JOBS=1 scripts/reproduce.sh` runs them one by one.
 #
-# Honours CARGO_TARGET_DIR. Extra arguments are passed to every `palpate run`
-# (e.g. `--threads 1`; results do not depend on it).
+# Honours CARGO_TARGET_DIR. Extra arguments are passed to `palpate batch` and
+# `palpate run` (e.g. `--threads 1`; results do not depend on it).
 set -euo pipefail
 
 cd "$(dirname "$0")/.."
@@ -42,16 +42,19 @@ bin="$target/release/palpate"
 build_end=$(date +%s.%N)
 
 mkdir -p "$OUT" out/paper_sensor
-# Graphs run REPRODUCE_JOBS at a time (default: one per core), longest first
-# by the previous run's timing.json (new graphs first: their cost is
-# unknown). Within a graph the stages already use every core, but not all the
-# time (fits one estimator at a time, sinks, a sweep point's serial tail):
-# two graphs side by side keep both cores busy. Each graph's wall time in
-# timing.json is then measured while another graph shares the machine.
+# The graphs run in one `palpate batch` process, REPRODUCE_JOBS at a time
+# (default: one per core), longest first by the previous run's timing.json
+# (new graphs first: their cost is unknown), sharing one cache: the lab
+# graphs all simulate and encode the same trials per seed before their own
+# stages, and so do the paper_sensor ones, so each seed's front end runs
+# once per scene instead of once per graph (see `palpate batch --help`).
+# Within a graph the stages already use every core, but not all the time
+# (fits one estimator at a time, sinks, a sweep point's serial tail): two
+# graphs side by side keep both cores busy. Each graph's wall time in
+# timing.json is then measured while another graph shares the machine, and
+# without the stages another graph computed first.
 jobs_max="${REPRODUCE_JOBS:-$(nproc)}"
 [[ "$jobs_max" =~ ^[1-9][0-9]*$ ]] || { echo "REPRODUCE_JOBS must be a positive integer, not '$jobs_max'" >&2; exit 2; }
-times_dir="$OUT/.times"
-rm -rf "$times_dir" && mkdir -p "$times_dir"
 # Each job: "graph|outdir|key|set" (set: an optional `--set` override).
 queue=()
 for graph in graphs/paper/*.toml graphs/continuous.toml graphs/shift/*.toml; do
@@ -78,63 +81,28 @@ for i in sorted(range(len(keys)), key=lambda i: (-prev.get(keys[i], inf), i)):
     print(i)
 PY
 )
-# run_graph GRAPH OUTDIR KEY SET [palpate run args...]: checks and runs one
-# graph, logs to OUTDIR.log, writes its wall time to $times_dir.
-run_graph() {
-    local graph="$1" dir="$2" key="$3" set=()
-    [[ -n "$4" ]] && set=(--set "$4")
-    shift 4
-    "$bin" check "$graph" "${set[@]}" > /dev/null
-    rm -rf "${dir:?}"
-    local t0 t1 secs
-    t0=$(date +%s.%N)
-    if ! "$bin" run "$graph" --out "$dir" "${set[@]}" "$@" > "$dir.log" 2>&1; then
-        # Stopped because another graph failed: that one has reported.
-        [[ -e "$times_dir/.stopping" ]] && return 1
-        echo "FAILED: $graph ${set[*]} (log: $dir.log)" >&2
-        tail -20 "$dir.log" >&2
-        return 1
-    fi
-    t1=$(date +%s.%N)
-    secs=$(printf '%.2f' "$(echo "$t1 - $t0" | bc)")
-    printf '== %s -> %s %s: %s s\n' "$graph" "$dir" "${set[*]}" "$secs"
-    echo "$secs" > "$times_dir/${key//\//_}"
-}
-# stop_jobs: on a failure, ends the graphs still running (each job's
-# `palpate run` first, then the job's subshell).
-stop_jobs() {
-    local p
-    touch "$times_dir/.stopping"
-    for p in $(jobs -p); do
-        pkill -TERM -P "$p" 2>/dev/null || true
-        kill "$p" 2>/dev/null || true
-    done
-}
-running=0
+jobs_file="$OUT/.jobs.toml"
+times_file="$OUT/.times.json"
+: > "$jobs_file"
 for i in "${order[@]}"; do
-    if (( running >= jobs_max )); then
-        if ! wait -n; then
-            stop_jobs
-            exit 1
-        fi
-        running=$((running - 1))
-    fi
     IFS='|' read -r graph dir key set <<< "${queue[$i]}"
-    run_graph "$graph" "$dir" "$key" "$set" "$@" &
-    running=$((running + 1))
+    set_args=()
+    [[ -n "$set" ]] && set_args=(--set "$set")
+    "$bin" check "$graph" "${set_args[@]}" > /dev/null
+    rm -rf "${dir:?}"
+    {
+        printf '[[job]]\ngraph = "%s"\nout = "%s"\nname = "%s"\nlog = "%s.log"\n' "$graph" "$dir" "$key" "$dir"
+        [[ -n "$set" ]] && printf 'set = ["%s"]\n' "$set"
+        echo
+    } >> "$jobs_file"
 done
-while (( running > 0 )); do
-    if ! wait -n; then
-        stop_jobs
-        exit 1
-    fi
-    running=$((running - 1))
-done
+rm -f "$times_file"
+"$bin" batch "$jobs_file" --jobs "$jobs_max" --times "$times_file" "$@"
 timings=()
 for key in "${keys[@]}"; do
-    timings+=("\"$key\": $(cat "$times_dir/${key//\//_}")")
+    timings+=("\"$key\": $(python3 -c 'import json,sys; print(json.load(open(sys.argv[1]))[sys.argv[2]])' "$times_file" "$key")")
 done
-rm -rf "$times_dir"
+rm -f "$jobs_file" "$times_file"
 
 # The paper's reproduction ends here (its wall time is the one recorded);
 # the time study follows.
@@ -157,7 +125,7 @@ echo "== WSS batch bench (one estimate at 10, 45, 90 degrees) -> $target/criteri
 cargo bench --quiet --bench wss -- wss_batch > "$OUT/wss_bench.log" 2>&1
 build=$(printf '%.2f' "$(echo "$build_end - $start" | bc)")
 {
-    printf '{"total_s": %s, "build_s": %s, "cores": %s, "jobs": %s, "load_at_start": %s, "graphs": {' \
+    printf '{"total_s": %s, "build_s": %s, "cores": %s, "jobs": %s, "shared_cache": true, "load_at_start": %s, "graphs": {' \
         "$total" "$build" "$(nproc)" "$jobs_max" "$load"
     (IFS=,; printf '%s' "${timings[*]}")
     printf '}, "time_study": {'

@@ -998,7 +998,9 @@ def section_time(out, wall, docs, criterion):
             f"estimates/s over {row['trials']} trials, all threads"
             + (", another graph running beside it" if (wall or {}).get("jobs", 1) > 1 else "")
             + f"): **{speedup:.0f}x** | {yes_no(speedup >= 1000)} "
-            f"| {cmd('wss')} (the `wss` stage of the timing table) |"
+            f"| {cmd('wss')} (the `wss` stage of the timing table"
+            + ("; in the shared batch, as timed by the graph that computed it first" if (wall or {}).get("shared_cache") else "")
+            + ") |"
         )
     bench = []
     for path in sorted(glob.glob(os.path.join(criterion, "wss_batch_17cls_*", "new", "estimates.json"))):
@@ -1191,6 +1193,9 @@ def main():
             f"{wall.get('load_at_start', '?')} when it started"
             + (f"; graphs run {wall['jobs']} at a time, longest first, so each graph's time below was taken "
                "with another graph beside it" if wall.get("jobs", 1) > 1 else "")
+            + ("; one `palpate batch` ran them all, sharing one cache, so a graph's time leaves out the "
+               "stages an earlier graph had computed (each seed's scene and front end run once per scene)"
+               if wall.get("shared_cache") else "")
             + "; per graph: "
             + ", ".join(f"{k} {v:.0f} s" for k, v in wall.get("graphs", {}).items()) + ")"
             + (f"; {wall['note']}." if wall.get("note") else "."),

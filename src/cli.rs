@@ -64,6 +64,28 @@ enum Command {
         #[arg(long, default_value_t = 1, requires = "live")]
         block: usize,
     },
+    /// Run several graphs (a jobs file) in one process, a few at a time,
+    /// sharing one cache: stages alike in several graphs (a scene and front
+    /// end every graph of a study starts with) run once. Each job's reports
+    /// go to its log; see `palpate::batch` for the jobs file.
+    Batch {
+        /// The jobs file: `[[job]]` tables with `graph` and optional `out`,
+        /// `set`, `name`, `log`.
+        jobs: PathBuf,
+        /// Jobs at a time (default: the core count).
+        #[arg(long = "jobs", value_name = "N", default_value_t = 0)]
+        workers: usize,
+        /// Worker threads shared by the jobs (default: all cores). Results do
+        /// not depend on it.
+        #[arg(long, default_value_t = 0)]
+        threads: usize,
+        /// Run every sweep point again, even those with a completion marker.
+        #[arg(long)]
+        fresh: bool,
+        /// Write each job's wall time (seconds, JSON) to this file.
+        #[arg(long)]
+        times: Option<PathBuf>,
+    },
     /// Sweep points: list them (number, label, keys).
     Sweep {
         #[command(subcommand)]
@@ -341,6 +363,13 @@ pub fn main() -> ExitCode {
             Some(g) => crate::cluster::list(&graph, &g),
             None => ExitCode::FAILURE,
         },
+        Command::Batch {
+            jobs,
+            workers,
+            threads,
+            fresh,
+            times,
+        } => crate::batch::run_batch(&jobs, workers, threads, fresh, times.as_deref()),
         Command::Merge { out } => crate::cluster::merge(&out),
         Command::Slurm {
             graph,
@@ -607,27 +636,47 @@ fn cmd_run(
             return ExitCode::FAILURE;
         }
     };
+    match single_run_text(&graph, &result, t0.elapsed()) {
+        Ok(text) => {
+            print!("{text}");
+            ExitCode::SUCCESS
+        }
+        Err(e) => {
+            eprintln!("{e}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+/// A run's reports and timing table as `palpate run` prints them, after
+/// writing its report files (the error names the file that failed).
+pub(crate) fn single_run_text(
+    graph: &Graph,
+    result: &core::RunResult,
+    elapsed: std::time::Duration,
+) -> Result<String, String> {
+    let mut text = String::new();
     for (id, report) in &result.reports {
-        println!("== {id}");
+        text.push_str(&format!("== {id}\n"));
         // A report is text lines; one that forgot its last line end must not
         // run into the next report's header.
-        crate::report::print_lines(&report.text);
+        text.push_str(&report.text);
+        if !report.text.is_empty() && !report.text.ends_with('\n') {
+            text.push('\n');
+        }
     }
-    let rows = crate::report::timing_rows(&result);
-    println!(
-        "== timing (wall time; {:.2} s in all)",
-        t0.elapsed().as_secs_f64()
-    );
-    print!("{}", crate::report::timing_table(&rows));
-    if let Err(e) = crate::report::write_run_files(&graph, &result) {
-        eprintln!("{e}");
-        return ExitCode::FAILURE;
-    }
-    println!(
-        "reports in {} (timing in timing.md, timing.csv)",
+    let rows = crate::report::timing_rows(result);
+    text.push_str(&format!(
+        "== timing (wall time; {:.2} s in all)\n",
+        elapsed.as_secs_f64()
+    ));
+    text.push_str(&crate::report::timing_table(&rows));
+    crate::report::write_run_files(graph, result)?;
+    text.push_str(&format!(
+        "reports in {} (timing in timing.md, timing.csv)\n",
         graph.out_dir.display()
-    );
-    ExitCode::SUCCESS
+    ));
+    Ok(text)
 }
 
 /// `run --live`: every trial of the graph's source streamed through the

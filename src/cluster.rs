@@ -88,17 +88,33 @@ pub enum SweepOutcome {
     },
 }
 
-/// Runs the selected points of a sweep that are not yet complete (all of them
-/// with `fresh`), each writing its reports and completion marker; then gathers
-/// the whole sweep from the markers. `on_point(i, n, label)` is called before
-/// each point runs. Errors are messages naming the graph file and the point.
-pub fn run_points(
+/// A sweep checked and ready to run: every (point, repeat) graph loaded, its
+/// manifest written, and the runs still to do chosen ([`prepare_points`]).
+pub struct PreparedSweep {
+    base: Graph,
+    graphs: PointGraphs,
+    /// Indices into `graphs` of the runs to do.
+    todo: Vec<usize>,
+    /// Selected runs skipped as already complete.
+    skipped: usize,
+}
+
+impl PreparedSweep {
+    /// The graphs of the runs still to do, in order (what a shared cache is
+    /// told to expect, see [`core::Cache::expect`]).
+    pub fn todo_graphs(&self) -> impl Iterator<Item = &Graph> {
+        self.todo.iter().map(|&i| &self.graphs[i].2)
+    }
+}
+
+/// Loads and checks every point of a sweep, writes its manifest, and picks
+/// the selected runs that are not yet complete (all of them with `fresh`).
+/// Errors are messages naming the graph file (and the point).
+pub fn prepare_points(
     job: &SweepJob<'_>,
     selection: &Selection,
     fresh: bool,
-    opts: &RunOptions<'_>,
-    on_point: &dyn Fn(usize, usize, &str),
-) -> Result<(SweepOutcome, usize, usize), String> {
+) -> Result<PreparedSweep, String> {
     let manifest = job.manifest()?;
     let out = job.graph.out_dir.clone();
     let (base, graphs) = load_all(&manifest, &out)?;
@@ -118,30 +134,72 @@ pub fn run_points(
         ));
     }
     manifest.write(&out)?;
-    let chosen: Vec<&(usize, usize, Graph)> = graphs
-        .iter()
-        .filter(|(p, ..)| selection.contains(*p, total))
+    let chosen: Vec<usize> = (0..graphs.len())
+        .filter(|&i| selection.contains(graphs[i].0, total))
         .collect();
-    let cache = core::Cache::default();
-    let points = base.sweep.as_ref().map(|s| s.points()).unwrap_or_default();
-    // Point runs already complete are skipped; the cache is told which of
-    // the others will run, so it keeps just what they share.
-    let todo: Vec<&(usize, usize, Graph)> = chosen
+    let todo: Vec<usize> = chosen
         .iter()
         .copied()
-        .filter(|(p, r, g)| fresh || PointRecord::read_matching(&g.out_dir, g, *p, *r).is_none())
+        .filter(|&i| {
+            let (p, r, g) = &graphs[i];
+            fresh || PointRecord::read_matching(&g.out_dir, g, *p, *r).is_none()
+        })
         .collect();
-    for (_, _, g) in &todo {
+    Ok(PreparedSweep {
+        skipped: chosen.len() - todo.len(),
+        base,
+        graphs,
+        todo,
+    })
+}
+
+/// Runs the selected points of a sweep that are not yet complete (all of them
+/// with `fresh`), each writing its reports and completion marker; then gathers
+/// the whole sweep from the markers. `on_point(i, n, label)` is called before
+/// each point runs. Errors are messages naming the graph file and the point.
+pub fn run_points(
+    job: &SweepJob<'_>,
+    selection: &Selection,
+    fresh: bool,
+    opts: &RunOptions<'_>,
+    on_point: &dyn Fn(usize, usize, &str),
+) -> Result<(SweepOutcome, usize, usize), String> {
+    let prepared = prepare_points(job, selection, fresh)?;
+    // The cache is told which runs will happen, so it keeps just what they
+    // share.
+    let cache = core::Cache::default();
+    for g in prepared.todo_graphs() {
         cache.expect(g);
     }
-    let skipped = chosen.len() - todo.len();
+    run_prepared(job, prepared, opts, &cache, on_point)
+}
+
+/// Runs a [`PreparedSweep`]'s runs under `cache`, which the caller has told
+/// to expect them ([`core::Cache::expect`]; `palpate batch` shares one cache
+/// among several sweeps and announces all of their runs first), then
+/// gathers the sweep as [`run_points`] does.
+pub fn run_prepared(
+    job: &SweepJob<'_>,
+    prepared: PreparedSweep,
+    opts: &RunOptions<'_>,
+    cache: &core::Cache,
+    on_point: &dyn Fn(usize, usize, &str),
+) -> Result<(SweepOutcome, usize, usize), String> {
+    let PreparedSweep {
+        base,
+        graphs,
+        todo,
+        skipped,
+    } = prepared;
+    let points = base.sweep.as_ref().map(|s| s.points()).unwrap_or_default();
     let mut ran = 0usize;
-    for (i, (p, r, g)) in todo.iter().enumerate() {
+    for (i, &t) in todo.iter().enumerate() {
+        let (p, r, g) = &graphs[t];
         let label = points.get(*p).map(point_label).unwrap_or_default();
         on_point(i, todo.len(), &format!("point {p} ({label}), repeat {r}"));
         let o = RunOptions {
             progress: opts.progress,
-            cache: Some(&cache),
+            cache: Some(cache),
             keep_outputs: false,
         };
         let result = core::run(g, &o)
@@ -173,29 +231,45 @@ pub fn run_sweep(job: &SweepJob<'_>, selection: &Selection, fresh: bool, opts: &
             return ExitCode::FAILURE;
         }
     };
-    eprintln!(
+    eprintln!("{}", ran_line(ran, skipped, t0.elapsed()));
+    let (text, ok) = outcome_text(job, outcome, t0.elapsed());
+    print!("{text}");
+    if ok {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::FAILURE
+    }
+}
+
+/// How many point runs ran and were skipped, and the time.
+pub(crate) fn ran_line(ran: usize, skipped: usize, elapsed: std::time::Duration) -> String {
+    format!(
         "ran {ran} point run{}, skipped {skipped} already complete ({:.1} s)",
         if ran == 1 { "" } else { "s" },
-        t0.elapsed().as_secs_f64()
-    );
+        elapsed.as_secs_f64()
+    )
+}
+
+/// What `palpate run` prints at the end of a sweep (the sweep's report, or
+/// how to merge a partial one), and whether the report's checks passed.
+pub(crate) fn outcome_text(
+    job: &SweepJob<'_>,
+    outcome: SweepOutcome,
+    elapsed: std::time::Duration,
+) -> (String, bool) {
     match outcome {
         SweepOutcome::Complete(base, runs) => {
-            let (text, ok) = crate::report::sweep_report(&base, &runs);
-            print!("{text}");
-            println!("sweep wall time: {:.1} s", t0.elapsed().as_secs_f64());
-            if ok {
-                ExitCode::SUCCESS
-            } else {
-                ExitCode::FAILURE
-            }
+            let (mut text, ok) = crate::report::sweep_report(&base, &runs);
+            text.push_str(&format!("sweep wall time: {:.1} s\n", elapsed.as_secs_f64()));
+            (text, ok)
         }
-        SweepOutcome::Partial { complete, total } => {
-            println!(
-                "{complete} of {total} point runs complete; when every shard has finished, write the sweep's report with\n  palpate merge {}",
+        SweepOutcome::Partial { complete, total } => (
+            format!(
+                "{complete} of {total} point runs complete; when every shard has finished, write the sweep's report with\n  palpate merge {}\n",
                 job.graph.out_dir.display()
-            );
-            ExitCode::SUCCESS
-        }
+            ),
+            true,
+        ),
     }
 }
 

@@ -6,6 +6,7 @@
 //! record; [`frontier`] builds a sweep's accuracy-time frontier; [`cluster`] runs
 //! sweeps as shards, merges them and writes Slurm job arrays.
 
+pub mod batch;
 pub mod cli;
 pub mod cluster;
 pub mod frontier;

@@ -719,9 +719,15 @@ pub fn run(graph: &Graph, opts: &RunOptions<'_>) -> Result<RunResult, RunError> 
 /// graph's seed and its inputs' keys (so it follows every change upstream
 /// without reading data). The id is in it because stages draw their random
 /// numbers from seeds derived from their ids: two stages alike but for
-/// their ids may differ.
+/// their ids may differ. So are the folder relative paths in settings
+/// resolve against (a scene `file`) and the evaluation protocol (which
+/// splits a trained estimator's folds): a cache shared by several graphs
+/// (`palpate batch`) must not serve one graph's `../scenes/lab.toml` or
+/// folds to another whose differ.
 fn stage_keys(graph: &Graph) -> Vec<u64> {
     let mut keys = vec![0u64; graph.nodes.len()];
+    let base = std::path::absolute(&graph.base_dir).unwrap_or_else(|_| graph.base_dir.clone());
+    let context = serde_json::json!([base.to_string_lossy(), graph.run.protocol]).to_string();
     for &i in &graph.order {
         let node = &graph.nodes[i];
         let settings = settings_json(node.config.as_ref()).to_string();
@@ -729,7 +735,7 @@ fn stage_keys(graph: &Graph) -> Vec<u64> {
             .iter()
             .map(|&j| keys[j].to_string())
             .collect();
-        let mut labels: Vec<&str> = vec![&node.id, &node.type_name, &settings];
+        let mut labels: Vec<&str> = vec![&node.id, &node.type_name, &settings, &context];
         labels.extend(input_keys.iter().map(String::as_str));
         keys[i] = derive_seed(graph.run.seed, &labels);
     }
