@@ -227,24 +227,142 @@ impl FeatureSpec {
         Ok(())
     }
 
-    /// Every active, normalised vector of a trial, with its anchor frame.
+    /// Every active, normalised vector of a trial, with its anchor frame:
+    /// the vectors [`FrameStream`] returns when the trial's frames are pushed
+    /// in order (the same bits, tested), and its error for the first bad
+    /// frame.
     pub fn trial_vectors(
         &self,
         images: &SpikeImages,
         what: &str,
     ) -> Result<Vec<(usize, Vec<f64>)>, StageError> {
-        self.check_images(images, what)?;
-        let mut stream = FrameStream::new(self.clone());
         let mut out = Vec::new();
+        self.for_each_vector(images, what, |k, v| out.push((k, v.to_vec())))?;
+        Ok(out)
+    }
+
+    /// Calls `f(anchor, vector)` for every active, normalised vector of a
+    /// trial, in order, as [`Self::trial_vectors`] lists them, without
+    /// allocating one per frame: a fit builds its training set from every
+    /// training trial, for every fold, and one allocation and copy per frame
+    /// were most of that.
+    pub fn for_each_vector(
+        &self,
+        images: &SpikeImages,
+        what: &str,
+        mut f: impl FnMut(usize, &[f64]),
+    ) -> Result<(), StageError> {
+        let mut v = vec![0.0; self.dim()];
+        for k in self.active_anchors(images, what)? {
+            self.vector_at(images, k, &mut v);
+            f(k, &v);
+        }
+        Ok(())
+    }
+
+    /// The anchors of a trial's active vectors, in order: what
+    /// [`Self::for_each_vector`] would visit, without building them.
+    ///
+    /// A vector is active when its spike total, summed over the stack in
+    /// order as [`FrameStream::push`] sums it, is positive and at least
+    /// `min_spikes`. That sum is a chain of `dim` dependent additions per
+    /// anchor (most of a fit's feature building); instead, the total is
+    /// first taken from per-frame sums, `s`. The counts are `>= 0`, so
+    /// `s > 0` exactly when the in-order total is, and any two summation
+    /// orders of `N` such terms agree within a relative `2 (N − 1) u`
+    /// (`u = 2^-53`; Higham, *Accuracy and Stability of Numerical
+    /// Algorithms*, §4.2): with a margin of `8 (N + 2) u`, `s (1 − margin) >=
+    /// min_spikes` proves the in-order total is too, and `s (1 + margin) <
+    /// min_spikes` proves it is not. Only an anchor between the two (a total
+    /// within about `1e-13` of the threshold; on integer counts, one equal to
+    /// it), or with `s` non-finite or below `1e-300` (where relative bounds
+    /// fail), is summed in order. So the answer is the in-order one, always.
+    pub fn active_anchors(&self, images: &SpikeImages, what: &str) -> Result<Vec<usize>, StageError> {
+        self.check_images(images, what)?;
+        self.check_counts(images, what)?;
+        let sums: Vec<f64> = (0..images.n_frames)
+            .map(|m| images.frame(m).iter().sum())
+            .collect();
+        let margin = 4.0 * (self.dim() as f64 + 2.0) * f64::EPSILON;
+        let mut v = vec![0.0; self.dim()];
+        Ok(self
+            .anchors(images)
+            .filter(|&k| {
+                let mut s = 0.0;
+                for j in 0..self.frames {
+                    if let Some(m) = k.checked_sub((self.frames - 1 - j) * self.step) {
+                        s += sums[m];
+                    }
+                }
+                if s == 0.0 {
+                    // Every count of the stack is 0: the total is 0.
+                    return false;
+                }
+                if s.is_finite() && s >= 1e-300 {
+                    if s * (1.0 - margin) >= self.min_spikes {
+                        return true;
+                    }
+                    if s * (1.0 + margin) < self.min_spikes {
+                        return false;
+                    }
+                }
+                self.stack_at(images, k, &mut v).is_some()
+            })
+            .collect())
+    }
+
+    /// The frames a stream would anchor vectors at.
+    fn anchors(&self, images: &SpikeImages) -> impl Iterator<Item = usize> + use<'_> {
+        let stride = self.stride;
+        (0..images.n_frames).filter(move |k| k.is_multiple_of(stride))
+    }
+
+    /// [`FrameStream::push`]'s check of the counts, frame by frame: the
+    /// first count that is not finite and `>= 0` is the error.
+    fn check_counts(&self, images: &SpikeImages, what: &str) -> Result<(), StageError> {
         for k in 0..images.n_frames {
-            if let Some(v) = stream
-                .push(images.frame(k))
-                .map_err(|e| StageError::new(format!("{what}: {}", e.message)))?
-            {
-                out.push((k, v));
+            let frame = images.frame(k);
+            if let Some(t) = frame.iter().position(|c| !(c.is_finite() && *c >= 0.0)) {
+                return Err(StageError::new(format!(
+                    "{what}: frame {k}, taxel {t}: spike count {} is not a finite count >= 0",
+                    frame[t]
+                )));
             }
         }
-        Ok(out)
+        Ok(())
+    }
+
+    /// The raw stack anchored at frame `k` into `v` (`dim` values; images
+    /// before frame 0 are zero), and its largest count if the vector is
+    /// active: the values, sums and test of [`FrameStream::push`].
+    fn stack_at(&self, images: &SpikeImages, k: usize, v: &mut [f64]) -> Option<f64> {
+        let n = self.n_taxels;
+        for j in 0..self.frames {
+            // Image j of the stack is `(frames-1-j)*step` frames before the anchor.
+            let back = (self.frames - 1 - j) * self.step;
+            let dst = &mut v[j * n..(j + 1) * n];
+            match k.checked_sub(back) {
+                Some(m) => dst.copy_from_slice(images.frame(m)),
+                None => dst.fill(0.0),
+            }
+        }
+        let total: f64 = v.iter().sum();
+        let max = v.iter().copied().fold(0.0, f64::max);
+        if !(total > 0.0 && total >= self.min_spikes) || max <= 0.0 {
+            return None;
+        }
+        Some(max)
+    }
+
+    /// The normalised vector anchored at frame `k` into `v`; false (and `v`
+    /// unspecified) if it is not active.
+    fn vector_at(&self, images: &SpikeImages, k: usize, v: &mut [f64]) -> bool {
+        let Some(max) = self.stack_at(images, k, v) else {
+            return false;
+        };
+        let inv = 1.0 / max;
+        v.iter_mut().for_each(|x| *x *= inv);
+        true
     }
 }
 
@@ -409,14 +527,17 @@ impl TrainSet {
             let c = class_index(&set.classes, angle).unwrap_or_default();
             set.trial_class.push(c);
             let what = format!("training trial `{}`", item.meta.trial_id);
-            let vecs = set.spec.trial_vectors(images, &what)?;
-            let n = vecs.len();
+            // Only the vectors taken are built and normalised.
+            let anchors = set.spec.active_anchors(images, &what)?;
+            let n = anchors.len();
             let take = n.min(keys.max_train_frames);
+            let mut v = vec![0.0; set.dim];
             for i in 0..take {
                 // The centre of segment i of `take` equal segments (see the
                 // module docs: the onset and offset ends are left out).
                 let j = (2 * i + 1) * n / (2 * take);
-                set.x.extend_from_slice(&vecs[j].1);
+                set.spec.vector_at(images, anchors[j], &mut v);
+                set.x.extend_from_slice(&v);
                 set.y.push(c);
                 set.trial.push(t);
             }
@@ -705,21 +826,14 @@ impl FittedModel {
         seed: u64,
         what: &str,
     ) -> Result<Estimate, StageError> {
-        self.features.check_images(images, what)?;
         // The frames a stream would use, in its order, scored in one batch and
         // then voted in that order: the same answer as streaming (tested).
-        let mut frames = FrameStream::new(self.features.clone());
         let mut anchors = Vec::new();
         let mut x = Vec::new();
-        for k in 0..images.n_frames {
-            if let Some(v) = frames
-                .push(images.frame(k))
-                .map_err(|e| StageError::new(format!("{what}: {}", e.message)))?
-            {
-                anchors.push(k);
-                x.extend_from_slice(&v);
-            }
-        }
+        self.features.for_each_vector(images, what, |k, v| {
+            anchors.push(k);
+            x.extend_from_slice(v);
+        })?;
         let classes = self.classes.len();
         let mut scores = vec![0.0; anchors.len() * classes];
         let mut rng: ChaCha8Rng = rand_chacha::rand_core::SeedableRng::seed_from_u64(seed);
@@ -1211,7 +1325,123 @@ mod tests {
         ]
     }
 
+    /// Counts of a 4x4 image sequence: mostly 0 (so vectors near the
+    /// activity threshold are common), small integers, now and then a bad
+    /// value (NaN, -1, inf) that both paths must reject at the same frame.
+    fn counts(bad: bool) -> impl Strategy<Value = Vec<f64>> {
+        let value = if bad {
+            prop_oneof![
+                20 => Just(0.0),
+                10 => (0u8..4).prop_map(f64::from),
+                1 => prop::sample::select(vec![f64::NAN, -1.0, f64::INFINITY]),
+            ]
+            .boxed()
+        } else {
+            // Integer counts (sums exact in any order, totals often equal to
+            // the threshold) and fractional ones (sums that round).
+            prop_oneof![
+                6 => Just(0.0),
+                2 => (0u8..4).prop_map(f64::from),
+                1 => (0u32..1000).prop_map(|x| f64::from(x) / 7.0),
+                1 => prop::sample::select(vec![0.1, 0.2, 0.7, 1e-310, 1e300]),
+            ]
+            .boxed()
+        };
+        (0usize..40).prop_flat_map(move |frames| prop::collection::vec(value.clone(), frames * 16))
+    }
+
+    /// A total whose in-order sum and per-frame sums round apart, with the
+    /// threshold between them: `1 + 1e-16 + 1e-16` is 1 summed in order but
+    /// `1 + 2e-16 = 1 + 2^-52` summed per frame. The in-order answer
+    /// (inactive) must win; a fast path trusting the per-frame sum says
+    /// active.
+    #[test]
+    fn a_total_on_the_threshold_is_decided_in_order() {
+        let spec = FeatureSpec {
+            frames: 2,
+            step: 1,
+            stride: 1,
+            min_spikes: 1.0 + f64::EPSILON,
+            n_taxels: 16,
+            window_ms: 100.0,
+            hop_ms: 10.0,
+        };
+        let mut counts = vec![0.0; 2 * 16];
+        counts[0] = 1.0;
+        counts[16] = 1e-16;
+        counts[17] = 1e-16;
+        let images = SpikeImages {
+            layout: TaxelLayout::paper(),
+            window_ms: 100.0,
+            hop_ms: 10.0,
+            n_frames: 2,
+            counts,
+        };
+        let mut stream = FrameStream::new(spec.clone());
+        assert_eq!(stream.push(images.frame(0)).ok(), Some(None));
+        assert_eq!(stream.push(images.frame(1)).ok(), Some(None));
+        assert_eq!(spec.active_anchors(&images, "t").ok(), Some(vec![]));
+        // Just below: both agree it is active.
+        let spec = FeatureSpec {
+            min_spikes: 1.0,
+            ..spec
+        };
+        assert_eq!(spec.active_anchors(&images, "t").ok(), Some(vec![0, 1]));
+    }
+
     proptest! {
+        /// The batch paths (`trial_vectors`, `active_anchors`) give the
+        /// vectors, anchors and first error that streaming the frames one by
+        /// one gives, bit for bit, for any stack, step, stride and threshold.
+        #[test]
+        fn batch_vectors_are_the_streams_bits(
+            counts in prop_oneof![counts(false), counts(true)],
+            frames in 1usize..4,
+            step in 1usize..4,
+            stride in 1usize..4,
+            min_spikes in prop::sample::select(vec![0.0, 1.0, 2.5, 6.0, 0.3, 1.0 / 3.0, 1e-310, 0.1 + 0.2]),
+        ) {
+            let spec = FeatureSpec {
+                frames,
+                step,
+                stride,
+                min_spikes,
+                n_taxels: 16,
+                window_ms: 100.0,
+                hop_ms: 10.0,
+            };
+            let images = SpikeImages {
+                layout: TaxelLayout::paper(),
+                window_ms: 100.0,
+                hop_ms: 10.0,
+                n_frames: counts.len() / 16,
+                counts,
+            };
+            let mut stream = FrameStream::new(spec.clone());
+            let mut streamed = Ok(Vec::new());
+            for k in 0..images.n_frames {
+                match stream.push(images.frame(k)) {
+                    Ok(Some(v)) => {
+                        if let Ok(s) = &mut streamed {
+                            s.push((k, v.iter().map(|x| x.to_bits()).collect::<Vec<_>>()));
+                        }
+                    }
+                    Ok(None) => {}
+                    Err(e) => {
+                        streamed = Err(format!("t: {}", e.message));
+                        break;
+                    }
+                }
+            }
+            let batch = spec
+                .trial_vectors(&images, "t")
+                .map(|vs| vs.into_iter().map(|(k, v)| (k, v.iter().map(|x| x.to_bits()).collect())).collect())
+                .map_err(|e| e.message);
+            prop_assert_eq!(&batch, &streamed);
+            let anchors = spec.active_anchors(&images, "t").map_err(|e| e.message);
+            prop_assert_eq!(anchors, streamed.map(|s| s.into_iter().map(|(k, _)| k).collect::<Vec<_>>()));
+        }
+
         #[test]
         fn argmax_is_the_first_largest_as_a_scan_finds_it(v in prop::collection::vec(score(), 0..40)) {
             prop_assert_eq!(argmax(&v), argmax_scan(&v));
