@@ -278,3 +278,65 @@ fn bad_jobs_files_are_named_with_the_job_and_key() {
     assert!(!out.status.success(), "{msg}");
     assert!(msg.contains("FAILED: unlogged"), "{msg}");
 }
+
+#[test]
+fn a_sweep_over_the_protocol_does_not_reuse_another_protocols_answers() {
+    // Before stage keys held the protocol, every point of such a sweep after
+    // the first was served the first point's trained-estimator answers.
+    let tmp = tempfile::tempdir().expect("temp dir");
+    let t = tmp.path();
+    let text = std::fs::read_to_string(format!("{}/{GRAPH}", env!("CARGO_MANIFEST_DIR"))).expect("graph");
+    let base = text[..text.find("[sweep]").expect("a [sweep] table")].replace(
+        "../../graphs/scenes/ideal.toml",
+        &format!("{}/graphs/scenes/ideal.toml", env!("CARGO_MANIFEST_DIR")),
+    );
+    let hold_out = "{ hold_out = { test_share = 0.5, seed = 3 } }";
+    let sweep = |values: &str| {
+        format!("{base}[sweep]\nkey = \"run.protocol\"\nvalues = [{values}]\nrepeats = 2\nmetrics = [\"ann.mae_deg\"]\n")
+    };
+    std::fs::write(
+        t.join("both.toml"),
+        sweep(&format!("\"leave_one_trial_out\", {hold_out}")),
+    )
+    .expect("graph");
+    std::fs::write(t.join("one.toml"), sweep(hold_out)).expect("graph");
+    ok(&["run", s(&t.join("both.toml")), "--out", s(&t.join("both"))]);
+    ok(&["run", s(&t.join("one.toml")), "--out", s(&t.join("one"))]);
+    let points = |dir: &Path| {
+        let mut p: Vec<_> = walk(dir)
+            .into_iter()
+            .filter(|p| p.file_name().is_some_and(|n| n == "point.json"))
+            .collect();
+        p.sort();
+        p.into_iter()
+            .map(|p| {
+                let v: serde_json::Value =
+                    serde_json::from_str(&std::fs::read_to_string(&p).expect("point.json")).expect("parses");
+                let metrics: Vec<String> = v["reports"]
+                    .as_array()
+                    .expect("reports")
+                    .iter()
+                    .flat_map(|r| r["metrics"].as_array().cloned().unwrap_or_default())
+                    .map(|m| format!("{} {}", m["name"], m["bits"]))
+                    .collect();
+                (v["label"].as_str().unwrap_or_default().to_string(), metrics)
+            })
+            .collect::<Vec<_>>()
+    };
+    let both = points(&t.join("both"));
+    let one = points(&t.join("one"));
+    assert_eq!((both.len(), one.len()), (4, 2));
+    let held: Vec<_> = both.iter().filter(|(l, _)| l.contains("hold_out")).collect();
+    let loto: Vec<_> = both.iter().filter(|(l, _)| !l.contains("hold_out")).collect();
+    assert_eq!((held.len(), loto.len()), (2, 2), "{both:?}");
+    for (h, o) in held.iter().zip(&one) {
+        assert!(
+            h.1 == o.1,
+            "the hold-out point differs from the hold-out sweep alone"
+        );
+    }
+    assert!(
+        held.iter().zip(&loto).any(|(h, l)| h.1 != l.1),
+        "the protocols agree, so the check above could not fail"
+    );
+}
