@@ -18,7 +18,7 @@
 //! Repeat `r` of a point uses `[run] seed = seed + r` (and reports into
 //! `.../r<r>/`). Every point is loaded (and so checked) before any runs; an
 //! error names the point's series (or key) and value. All points share one
-//! [`Cache`]: a stage whose type, settings, seed and inputs did not change is not
+//! [`Cache`]: a stage whose type, settings, seed, protocol and inputs did not change is not
 //! run again, so sweeping a downstream key (a WSS weighting, a jitter width, a
 //! grid step) does not re-simulate, re-encode or retrain; the cache keeps each
 //! stage's timing from the run that computed it, so every point still reports
