@@ -125,7 +125,7 @@ fn load_jobs(path: &Path, fresh: bool) -> Result<Vec<Job>, String> {
     }
     let mut jobs = Vec::with_capacity(spec.job.len());
     for (i, j) in spec.job.into_iter().enumerate() {
-        let name = j.name.clone().unwrap_or_else(|| j.graph.display().to_string());
+        let name = j.name.unwrap_or_else(|| j.graph.display().to_string());
         let at = format!("{}: job {} ({name})", path.display(), i + 1);
         let set = j
             .set
@@ -176,7 +176,7 @@ fn run_job(job: &Job, cache: &core::Cache) -> Result<String, String> {
     let prepared = job
         .sweep
         .lock()
-        .map_err(|_| "a job's lock was poisoned".to_string())?
+        .map_err(|_| format!("{}: its sweep's lock was poisoned", job.name))?
         .take();
     let opts = RunOptions::default();
     match prepared {
@@ -218,7 +218,8 @@ fn run_job(job: &Job, cache: &core::Cache) -> Result<String, String> {
     }
 }
 
-/// One job's end: its name, wall time and whether it succeeded.
+/// One job's end: its index in the jobs file, wall time and whether it
+/// succeeded.
 struct Done {
     index: usize,
     secs: f64,
@@ -256,7 +257,6 @@ pub fn run_batch(path: &Path, workers: usize, threads: usize, fresh: bool, times
     let next = AtomicUsize::new(0);
     let stop = AtomicBool::new(false);
     let done = Mutex::new(Vec::with_capacity(jobs.len()));
-    let started = AtomicUsize::new(0);
     std::thread::scope(|s| {
         for _ in 0..workers {
             s.spawn(|| loop {
@@ -267,9 +267,9 @@ pub fn run_batch(path: &Path, workers: usize, threads: usize, fresh: bool, times
                 let Some(job) = jobs.get(i) else {
                     break;
                 };
-                let n = started.fetch_add(1, Ordering::SeqCst) + 1;
                 eprintln!(
-                    "[{n}/{}] {} -> {}",
+                    "[{}/{}] {} -> {}",
+                    i + 1,
                     jobs.len(),
                     job.name,
                     job.graph.out_dir.display()

@@ -44,28 +44,43 @@ fn results(dir: &Path) -> Vec<(String, String)> {
             std::fs::read_to_string(dir.join(f)).unwrap_or_else(|e| panic!("{}: {e}", dir.join(f).display()));
         out.push((f.to_string(), t));
     }
-    let mut points: Vec<_> = walk(dir)
+    let points = points(dir);
+    assert!(!points.is_empty(), "{}: no point.json", dir.display());
+    for (path, _, metrics) in points {
+        out.push((path, metrics.join("\n")));
+    }
+    out
+}
+
+/// Every point run under `dir` (sorted by path): its path relative to
+/// `dir`, its label and its metrics' names and bits, from its point.json.
+fn points(dir: &Path) -> Vec<(String, String, Vec<String>)> {
+    let mut paths: Vec<_> = walk(dir)
         .into_iter()
         .filter(|p| p.file_name().is_some_and(|n| n == "point.json"))
         .collect();
-    points.sort();
-    assert!(!points.is_empty(), "{}: no point.json", dir.display());
-    for p in points {
-        let v: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&p).expect("point.json"))
-            .expect("point.json parses");
-        let metrics: Vec<_> = v["reports"]
-            .as_array()
-            .expect("reports")
-            .iter()
-            .flat_map(|r| r["metrics"].as_array().cloned().unwrap_or_default())
-            .map(|m| format!("{} {}", m["name"], m["bits"]))
-            .collect();
-        out.push((
-            p.strip_prefix(dir).expect("under dir").display().to_string(),
-            metrics.join("\n"),
-        ));
-    }
-    out
+    paths.sort();
+    paths
+        .into_iter()
+        .map(|p| {
+            let v: serde_json::Value =
+                serde_json::from_str(&std::fs::read_to_string(&p).expect("point.json"))
+                    .expect("point.json parses");
+            let metrics = v["reports"]
+                .as_array()
+                .expect("reports")
+                .iter()
+                .flat_map(|r| r["metrics"].as_array().cloned().unwrap_or_default())
+                .map(|m| format!("{} {}", m["name"], m["bits"]))
+                .collect();
+            let label = v["label"].as_str().unwrap_or_default().to_string();
+            (
+                p.strip_prefix(dir).expect("under dir").display().to_string(),
+                label,
+                metrics,
+            )
+        })
+        .collect()
 }
 
 /// Asserts two sweeps' results are the same, naming the first file that
@@ -302,41 +317,20 @@ fn a_sweep_over_the_protocol_does_not_reuse_another_protocols_answers() {
     std::fs::write(t.join("one.toml"), sweep(hold_out)).expect("graph");
     ok(&["run", s(&t.join("both.toml")), "--out", s(&t.join("both"))]);
     ok(&["run", s(&t.join("one.toml")), "--out", s(&t.join("one"))]);
-    let points = |dir: &Path| {
-        let mut p: Vec<_> = walk(dir)
-            .into_iter()
-            .filter(|p| p.file_name().is_some_and(|n| n == "point.json"))
-            .collect();
-        p.sort();
-        p.into_iter()
-            .map(|p| {
-                let v: serde_json::Value =
-                    serde_json::from_str(&std::fs::read_to_string(&p).expect("point.json")).expect("parses");
-                let metrics: Vec<String> = v["reports"]
-                    .as_array()
-                    .expect("reports")
-                    .iter()
-                    .flat_map(|r| r["metrics"].as_array().cloned().unwrap_or_default())
-                    .map(|m| format!("{} {}", m["name"], m["bits"]))
-                    .collect();
-                (v["label"].as_str().unwrap_or_default().to_string(), metrics)
-            })
-            .collect::<Vec<_>>()
-    };
     let both = points(&t.join("both"));
     let one = points(&t.join("one"));
     assert_eq!((both.len(), one.len()), (4, 2));
-    let held: Vec<_> = both.iter().filter(|(l, _)| l.contains("hold_out")).collect();
-    let loto: Vec<_> = both.iter().filter(|(l, _)| !l.contains("hold_out")).collect();
+    let held: Vec<_> = both.iter().filter(|(_, l, _)| l.contains("hold_out")).collect();
+    let loto: Vec<_> = both.iter().filter(|(_, l, _)| !l.contains("hold_out")).collect();
     assert_eq!((held.len(), loto.len()), (2, 2), "{both:?}");
     for (h, o) in held.iter().zip(&one) {
         assert!(
-            h.1 == o.1,
+            h.2 == o.2,
             "the hold-out point differs from the hold-out sweep alone"
         );
     }
     assert!(
-        held.iter().zip(&loto).any(|(h, l)| h.1 != l.1),
+        held.iter().zip(&loto).any(|(h, l)| h.2 != l.2),
         "the protocols agree, so the check above could not fail"
     );
 }

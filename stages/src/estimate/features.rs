@@ -320,16 +320,9 @@ impl FeatureSpec {
     /// [`FrameStream::push`]'s check of the counts, frame by frame: the
     /// first count that is not finite and `>= 0` is the error.
     fn check_counts(&self, images: &SpikeImages, what: &str) -> Result<(), StageError> {
-        for k in 0..images.n_frames {
-            let frame = images.frame(k);
-            if let Some(t) = frame.iter().position(|c| !(c.is_finite() && *c >= 0.0)) {
-                return Err(StageError::new(format!(
-                    "{what}: frame {k}, taxel {t}: spike count {} is not a finite count >= 0",
-                    frame[t]
-                )));
-            }
-        }
-        Ok(())
+        (0..images.n_frames)
+            .try_for_each(|k| check_frame(k, images.frame(k)))
+            .map_err(|e| StageError::new(format!("{what}: {}", e.message)))
     }
 
     /// The raw stack anchored at frame `k` into `v` (`dim` values; images
@@ -363,6 +356,18 @@ impl FeatureSpec {
         let inv = 1.0 / max;
         v.iter_mut().for_each(|x| *x *= inv);
         true
+    }
+}
+
+/// Frame `k`'s counts: the first that is not finite and `>= 0` is an error
+/// naming the frame and taxel.
+fn check_frame(k: usize, frame: &[f64]) -> Result<(), StageError> {
+    match frame.iter().position(|c| !(c.is_finite() && *c >= 0.0)) {
+        Some(t) => Err(StageError::new(format!(
+            "frame {k}, taxel {t}: spike count {} is not a finite count >= 0",
+            frame[t]
+        ))),
+        None => Ok(()),
     }
 }
 
@@ -403,12 +408,7 @@ impl FrameStream {
                 self.spec.n_taxels
             )));
         }
-        if let Some(t) = frame.iter().position(|c| !(c.is_finite() && *c >= 0.0)) {
-            return Err(StageError::new(format!(
-                "frame {k}, taxel {t}: spike count {} is not a finite count >= 0",
-                frame[t]
-            )));
-        }
+        check_frame(k, frame)?;
         if self.ring.len() == self.spec.span() {
             let mut old = self.ring.pop_front().unwrap_or_default();
             old.clear();
