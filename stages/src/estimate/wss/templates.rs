@@ -49,11 +49,92 @@ impl Soa {
 /// `[partition][taxel][bin]` (streaming), flattened.
 pub(crate) type Spectra = Arc<Soa>;
 
-/// Bytes of batch spectra kept before the cache is emptied (a run over many
-/// trial lengths would otherwise keep one set per length class). 64 MiB: with
-/// the depth-first runtime this cache is the largest part of a run's peak
-/// (256 MiB of the quickstart's 345 MB before).
+/// Most bytes of batch spectra a template set keeps (see [`SpectraLru`]): a
+/// run over many trial lengths would otherwise keep one set per length
+/// class. 64 MiB: with the depth-first runtime this cache is the largest
+/// part of a run's peak (256 MiB of the quickstart's 345 MB before).
 const BATCH_CACHE_BYTES: usize = 64 << 20;
+
+/// The batch spectra of one template set, keyed by `(class, FFT length,
+/// templates used)`, within a byte budget.
+///
+/// Why this policy: a trial asks for every class's spectra at one FFT length
+/// (its classes share it, `batch::Fft::plan`), class after class, and the
+/// next trials (the same angle, mostly) ask again at the same length. The
+/// earlier policy emptied the whole cache when an insert overflowed it. At
+/// the longest lab trials one class set (33 classes x 16 taxels x 8193 bins
+/// x 16 bytes, 69 MB) exceeds 64 MiB, so every trial emptied it half-way
+/// and computed every class's 16 FFTs again; at the other lengths a change
+/// of length emptied the sets the next trials needed with the rest. The
+/// spectra FFTs were a quarter of a joint angle-speed search
+/// (`graphs/paper/speed_error.toml`, `joint` series; `perf`).
+///
+/// Now an insert that does not fit evicts the least recently used entries
+/// *of other FFT lengths* (the sets of earlier trial lengths); when only
+/// entries of the inserted one's length are left, it is not kept (returned
+/// uncached) rather than evicting a class the next trial will ask for: an
+/// over-budget set keeps most of its classes cached instead of none. A
+/// cache only: the spectra are the same bits either way.
+#[derive(Default)]
+pub(crate) struct SpectraLru {
+    entries: HashMap<(usize, usize, usize), (Spectra, u64)>,
+    bytes: usize,
+    /// Use counter: an entry's stamp is the count at its last use.
+    tick: u64,
+}
+
+impl SpectraLru {
+    /// The entry for `key`, marked as just used.
+    pub(crate) fn get(&mut self, key: (usize, usize, usize)) -> Option<Spectra> {
+        self.tick += 1;
+        let tick = self.tick;
+        self.entries.get_mut(&key).map(|(s, t)| {
+            *t = tick;
+            s.clone()
+        })
+    }
+
+    /// Keeps `s` (of `bytes`) under `key` if it fits within `budget` after
+    /// evicting least recently used entries of other FFT lengths (`key.1`);
+    /// returns whether it was kept.
+    pub(crate) fn insert(
+        &mut self,
+        key: (usize, usize, usize),
+        s: Spectra,
+        bytes: usize,
+        budget: usize,
+    ) -> bool {
+        if self.entries.contains_key(&key) {
+            return true;
+        }
+        if bytes > budget {
+            return false;
+        }
+        while self.bytes + bytes > budget {
+            let victim = self
+                .entries
+                .iter()
+                .filter(|((_, len, _), _)| *len != key.1)
+                .min_by_key(|(_, (_, t))| *t)
+                .map(|(k, (s, _))| (*k, s.re.len() * 16));
+            let Some((k, b)) = victim else {
+                return false;
+            };
+            self.entries.remove(&k);
+            self.bytes -= b;
+        }
+        self.tick += 1;
+        self.bytes += bytes;
+        self.entries.insert(key, (s, self.tick));
+        true
+    }
+
+    /// Entries kept.
+    #[cfg(test)]
+    pub(crate) fn len(&self) -> usize {
+        self.entries.len()
+    }
+}
 
 /// The templates of one class.
 #[derive(Clone, Debug)]
@@ -78,8 +159,7 @@ impl ClassTemplates {
 
 #[derive(Default)]
 struct Caches {
-    batch: HashMap<(usize, usize, usize), Spectra>,
-    batch_bytes: usize,
+    batch: SpectraLru,
     stream: HashMap<(usize, usize), Spectra>,
 }
 
@@ -420,8 +500,8 @@ impl Templates {
     /// `fft_len`, scaled by `1/fft_len` so that the inverse FFT of a product is
     /// the convolution.
     pub(crate) fn batch_spectra(&self, c: usize, fft_len: usize, h: usize) -> Spectra {
-        if let Some(s) = self.lock().batch.get(&(c, fft_len, h)) {
-            return s.clone();
+        if let Some(s) = self.lock().batch.get((c, fft_len, h)) {
+            return s;
         }
         let pair = self.plan(fft_len);
         let cls = &self.classes[c];
@@ -451,14 +531,10 @@ impl Templates {
             soa.im.extend(spec.iter().map(|z| z.im));
         }
         let s = Arc::new(soa);
-        let mut cache = self.lock();
         let bytes = n * bins * 16;
-        if cache.batch_bytes + bytes > BATCH_CACHE_BYTES {
-            cache.batch.clear();
-            cache.batch_bytes = 0;
-        }
-        cache.batch_bytes += bytes;
-        cache.batch.insert((c, fft_len, h), s.clone());
+        self.lock()
+            .batch
+            .insert((c, fft_len, h), s.clone(), bytes, BATCH_CACHE_BYTES);
         s
     }
 
@@ -551,5 +627,57 @@ mod tests {
         }
         assert!((last - total).abs() < 1e-12);
         assert!(flat_gauss_integral(-10.0, h, sigma) < 1e-40);
+    }
+
+    /// A spectrum set of `bins` bins (one taxel), `bins * 16` bytes.
+    fn set(bins: usize) -> (Spectra, usize) {
+        let s = Arc::new(Soa {
+            re: vec![0.0; bins],
+            im: vec![0.0; bins],
+        });
+        (s, bins * 16)
+    }
+
+    /// Misses of `rounds` passes over classes `0..classes` at FFT length `len`.
+    fn misses(c: &mut SpectraLru, classes: usize, len: usize, rounds: usize, budget: usize) -> usize {
+        let mut miss = 0;
+        for _ in 0..rounds {
+            for k in 0..classes {
+                if c.get((k, len, 7)).is_none() {
+                    miss += 1;
+                    let (s, b) = set(10);
+                    c.insert((k, len, 7), s, b, budget);
+                }
+            }
+        }
+        miss
+    }
+
+    #[test]
+    fn an_over_budget_class_set_stays_mostly_cached() {
+        // 33 classes of 160 bytes against room for 30: emptying the cache
+        // on overflow missed all 33 every pass; now 3 per pass after the first.
+        let mut c = SpectraLru::default();
+        assert_eq!(misses(&mut c, 33, 64, 1, 30 * 160), 33);
+        assert_eq!(misses(&mut c, 33, 64, 4, 30 * 160), 12);
+        assert_eq!(c.len(), 30);
+    }
+
+    #[test]
+    fn a_new_length_evicts_the_least_recently_used_other_length() {
+        let mut c = SpectraLru::default();
+        let budget = 20 * 160;
+        assert_eq!(misses(&mut c, 10, 64, 1, budget), 10);
+        assert_eq!(misses(&mut c, 10, 96, 1, budget), 10);
+        // Length 64 used last: a third length evicts 96's sets, not 64's.
+        assert_eq!(misses(&mut c, 10, 64, 1, budget), 0);
+        assert_eq!(misses(&mut c, 10, 128, 1, budget), 10);
+        assert_eq!(misses(&mut c, 10, 64, 1, budget), 0);
+        assert_eq!(misses(&mut c, 10, 96, 1, budget), 10);
+        // A set larger than the whole budget is returned, not kept, and
+        // nothing is evicted for it.
+        let (s, b) = set(1000);
+        assert!(!c.insert((0, 4096, 7), s, b, budget));
+        assert_eq!(c.len(), 20);
     }
 }
