@@ -16,12 +16,13 @@
 //! products (`estimate::dense::gemm_nt`, the bits of a fixed-order dot
 //! product, no FMA) at their prediction shapes, in billions of products a
 //! second, with the kernel the CPU picks and with AVX-512 switched off (the
-//! AVX2 kernels).
+//! AVX2 kernels). And the activations applied to those products' outputs
+//! (`tanh` with the bias, the row softmax), in ns per value.
 //!
 //! `cargo run --release --example machine`. Each figure is the best of 5
 //! runs, so a shared machine's interruptions inflate it less.
 
-use palpate_stages::estimate::dense;
+use palpate_stages::estimate::{dense, vmath};
 use std::hint::black_box;
 use std::time::Instant;
 
@@ -179,6 +180,29 @@ fn main() {
         let avx2 = rate(&|o| palpate_stages::wide::without_avx512(|| dense::gemm_nt(&a, &b, k, o)));
         products.push(format!("{m}x{n}x{k} {picked:.1} / {avx2:.1}"));
     }
+    // The activations a prediction applies to every layer output: `tanh`
+    // (the ANN's hidden layer, through `dense::add_bias_map` as the ANN
+    // runs it) and the row softmax (its output), over ANN (ST)'s shapes:
+    // ns per value, the floor those terms put under a prediction.
+    let act_ns = |rows: usize, width: usize, f: &dyn Fn(&mut [f64])| {
+        let base: Vec<f64> = (0..rows * width)
+            .map(|i| ((i * 7919) % 1000) as f64 / 250.0 - 2.0)
+            .collect();
+        let mut v = base.clone();
+        best(|| {
+            let mut ns = 0.0;
+            for _ in 0..10 {
+                v.copy_from_slice(&base);
+                let t = Instant::now();
+                f(black_box(&mut v));
+                ns += t.elapsed().as_secs_f64() * 1e9;
+            }
+            ns / 10.0 / (rows * width) as f64
+        })
+    };
+    let bias = vec![0.01; 30];
+    let tanh_ns = act_ns(3154, 30, &|v| dense::add_bias_map(v, &bias, vmath::tanh));
+    let softmax_ns = act_ns(3154, 17, &|v| vmath::softmax_rows(v, 17));
     println!("dependent f64 multiply or add: {ns_per_op:.2} ns");
     println!("copy of one lab trial's signals (2.76 MB): {copy_ms:.3} ms ({gb_s:.1} GB/s read + write)");
     println!(
@@ -192,5 +216,8 @@ fn main() {
     println!(
         "baseline layer products, G products/s, kernel picked / AVX2 only (rows x outputs x inputs): {}",
         products.join(", ")
+    );
+    println!(
+        "baseline activations, ns per value: tanh with bias {tanh_ns:.2} (3154 x 30), row softmax {softmax_ns:.2} (3154 x 17)"
     );
 }

@@ -740,7 +740,7 @@ impl Rbm {
             .for_each(|r| wx.extend_from_slice(&r[..nb]));
         dense::gemm_nt(xs, wx, nb, out);
         for row in out.chunks_exact_mut(self.n_hid.max(1)) {
-            row.iter_mut().zip(&self.b).for_each(|(o, b)| *o = b + *o);
+            row.iter_mut().zip(&self.b).for_each(|(o, b)| *o += b);
         }
     }
 
