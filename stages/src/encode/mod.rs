@@ -91,18 +91,29 @@ impl StepInput {
         let last = n_samples.saturating_sub(1);
         let mut idx = Vec::with_capacity(n_steps);
         let mut frac = Vec::with_capacity(if mode == InputMode::Linear { n_steps } else { 0 });
-        for n in 0..n_steps {
-            let pos = n as f64 * samples_per_step;
-            let i = ((pos + 1e-9).floor() as usize).min(last);
-            idx.push(i as u32);
-            if mode == InputMode::Linear {
-                frac.push(if i < last {
-                    (pos - i as f64).clamp(0.0, 1.0)
-                } else {
-                    0.0
-                });
-            }
-        }
+        // In the AVX2 function: there `floor` is one rounding instruction;
+        // in baseline x86-64 (no SSE4.1) it is a call into a software
+        // floor (`perf` on `palpate run graphs/quickstart.toml --threads
+        // 1`: this plan was 8 % of the encoder's samples, the floor calls
+        // about a third of it). `floor` is exact either way, so the same
+        // indices.
+        crate::wide::with_avx2(
+            #[inline(always)]
+            || {
+                for n in 0..n_steps {
+                    let pos = n as f64 * samples_per_step;
+                    let i = ((pos + 1e-9).floor() as usize).min(last);
+                    idx.push(i as u32);
+                    if mode == InputMode::Linear {
+                        frac.push(if i < last {
+                            (pos - i as f64).clamp(0.0, 1.0)
+                        } else {
+                            0.0
+                        });
+                    }
+                }
+            },
+        );
         StepInput {
             n_steps,
             dt_ms,
@@ -228,6 +239,40 @@ pub fn sort_events(events: &mut [SpikeEvent]) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_plan_is_the_baseline_floor_of_each_step() {
+        // The plan is computed inside the AVX2 function; the same
+        // expression here runs in baseline code (a software floor).
+        for (n_samples, fs, dt) in [
+            (21_580, 1000.0, 0.5),
+            (997, 333.3, 0.25),
+            (4_001, 2048.0, 1.0),
+            (7, 1e4, 0.05),
+        ] {
+            for mode in [InputMode::Hold, InputMode::Linear] {
+                let p = StepInput::new(n_samples, fs, dt, mode);
+                let sps = dt * fs / 1000.0;
+                let last = n_samples - 1;
+                for n in 0..p.n_steps {
+                    let pos = std::hint::black_box(n as f64 * sps);
+                    let i = ((pos + 1e-9).floor() as usize).min(last);
+                    assert_eq!(
+                        p.idx[n] as usize, i,
+                        "{n_samples} samples at {fs} Hz, dt {dt}, step {n}"
+                    );
+                    if mode == InputMode::Linear {
+                        let f = if i < last {
+                            (pos - i as f64).clamp(0.0, 1.0)
+                        } else {
+                            0.0
+                        };
+                        assert_eq!(p.frac[n].to_bits(), f.to_bits());
+                    }
+                }
+            }
+        }
+    }
 
     #[test]
     fn steps_cover_the_trial_and_hold_the_last_sample() {
