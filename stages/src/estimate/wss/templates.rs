@@ -65,9 +65,9 @@ const BATCH_CACHE_BYTES: usize = 64 << 20;
 /// the longest lab trials one class set (33 classes x 16 taxels x 8193 bins
 /// x 16 bytes, 69 MB) exceeds 64 MiB, so every trial emptied it half-way
 /// and computed every class's 16 FFTs again; at the other lengths a change
-/// of length emptied the sets the next trials needed with the rest. The
-/// spectra FFTs were a quarter of a joint angle-speed search
-/// (`graphs/paper/speed_error.toml`, `joint` series; `perf`).
+/// of length emptied the sets the next trials needed with the rest. Making
+/// spectra was 29 % of a joint angle-speed search's samples, the searches'
+/// probes included (`graphs/paper/speed_error.toml`, `joint` series; `perf`).
 ///
 /// Now an insert that does not fit evicts the least recently used entries
 /// *of other FFT lengths* (the sets of earlier trial lengths); when only
@@ -94,16 +94,16 @@ impl SpectraLru {
         })
     }
 
-    /// Keeps `s` (of `bytes`) under `key` if it fits within `budget` after
+    /// A set's payload bytes (both parts).
+    fn bytes(s: &Soa) -> usize {
+        (s.re.len() + s.im.len()) * 8
+    }
+
+    /// Keeps `s` under `key` if it fits within `budget` bytes after
     /// evicting least recently used entries of other FFT lengths (`key.1`);
     /// returns whether it was kept.
-    pub(crate) fn insert(
-        &mut self,
-        key: (usize, usize, usize),
-        s: Spectra,
-        bytes: usize,
-        budget: usize,
-    ) -> bool {
+    pub(crate) fn insert(&mut self, key: (usize, usize, usize), s: Spectra, budget: usize) -> bool {
+        let bytes = Self::bytes(&s);
         if self.entries.contains_key(&key) {
             return true;
         }
@@ -116,7 +116,7 @@ impl SpectraLru {
                 .iter()
                 .filter(|((_, len, _), _)| *len != key.1)
                 .min_by_key(|(_, (_, t))| *t)
-                .map(|(k, (s, _))| (*k, s.re.len() * 16));
+                .map(|(k, (s, _))| (*k, Self::bytes(s)));
             let Some((k, b)) = victim else {
                 return false;
             };
@@ -531,10 +531,9 @@ impl Templates {
             soa.im.extend(spec.iter().map(|z| z.im));
         }
         let s = Arc::new(soa);
-        let bytes = n * bins * 16;
         self.lock()
             .batch
-            .insert((c, fft_len, h), s.clone(), bytes, BATCH_CACHE_BYTES);
+            .insert((c, fft_len, h), s.clone(), BATCH_CACHE_BYTES);
         s
     }
 
@@ -630,12 +629,11 @@ mod tests {
     }
 
     /// A spectrum set of `bins` bins (one taxel), `bins * 16` bytes.
-    fn set(bins: usize) -> (Spectra, usize) {
-        let s = Arc::new(Soa {
+    fn set(bins: usize) -> Spectra {
+        Arc::new(Soa {
             re: vec![0.0; bins],
             im: vec![0.0; bins],
-        });
-        (s, bins * 16)
+        })
     }
 
     /// Misses of `rounds` passes over classes `0..classes` at FFT length `len`.
@@ -645,8 +643,7 @@ mod tests {
             for k in 0..classes {
                 if c.get((k, len, 7)).is_none() {
                     miss += 1;
-                    let (s, b) = set(10);
-                    c.insert((k, len, 7), s, b, budget);
+                    c.insert((k, len, 7), set(10), budget);
                 }
             }
         }
@@ -676,8 +673,7 @@ mod tests {
         assert_eq!(misses(&mut c, 10, 96, 1, budget), 10);
         // A set larger than the whole budget is returned, not kept, and
         // nothing is evicted for it.
-        let (s, b) = set(1000);
-        assert!(!c.insert((0, 4096, 7), s, b, budget));
+        assert!(!c.insert((0, 4096, 7), set(1000), budget));
         assert_eq!(c.len(), 20);
     }
 }
