@@ -55,9 +55,7 @@
 //! Speed: taxels run in blocks of [`LANES`] neurons in lock step; the hot loop
 //! is branch-free except for the rare spike (see `benches/encode.rs`).
 
-use super::{
-    block_input, check_input_shape, fmax, fmin, interleave, sort_events, InputMode, StepInput, LANES,
-};
+use super::{block_input, check_input_shape, fmax, fmin, sort_events, tiled, InputMode, StepInput, LANES};
 use palpate_core::{
     check_range, register_stage, BuildContext, ConfigChecks, ConfigError, InputSpec, Item, Map, Payload,
     PayloadKind, SpikeEvent, SpikeTrain, Stage, StageConfig, StageError, TrialContext,
@@ -299,29 +297,33 @@ impl Izhikevich {
         // One reused buffer per thread (see `with_scratch`).
         crate::wide::with_scratch(|data| {
             for (block, chunk) in currents.chunks(LANES).enumerate() {
-                finite &= interleave(chunk, n_samples, data);
-                let data = &data[..];
                 let first = (block * LANES) as u32;
                 let (p, live, ev) = (&self.params, chunk.len(), &mut events);
-                // The lanes' arithmetic in 256-bit vectors where the CPU has them
-                // (no FMA: the same bits either way, tested).
-                let (v, u) = crate::wide::with_avx2(
-                    #[inline(always)]
-                    || match (self.scheme, self.input) {
-                        (Scheme::Izhikevich, InputMode::Hold) => {
-                            run_block::<true, false>(p, &plan, data, live, first, ev)
-                        }
-                        (Scheme::Izhikevich, InputMode::Linear) => {
-                            run_block::<true, true>(p, &plan, data, live, first, ev)
-                        }
-                        (Scheme::Euler, InputMode::Hold) => {
-                            run_block::<false, false>(p, &plan, data, live, first, ev)
-                        }
-                        (Scheme::Euler, InputMode::Linear) => {
-                            run_block::<false, true>(p, &plan, data, live, first, ev)
-                        }
-                    },
-                );
+                let (v0, u0) = p.rest();
+                let mut vu = ([v0; LANES], [u0; LANES]);
+                finite &= tiled(chunk, n_samples, &plan, data, |data, steps, off| {
+                    let at = (steps, off, live, first);
+                    // The lanes' arithmetic in 256-bit vectors where the CPU has them
+                    // (no FMA: the same bits either way, tested).
+                    vu = crate::wide::with_avx2(
+                        #[inline(always)]
+                        || match (self.scheme, self.input) {
+                            (Scheme::Izhikevich, InputMode::Hold) => {
+                                run_block::<true, false>(p, &plan, data, vu, at, ev)
+                            }
+                            (Scheme::Izhikevich, InputMode::Linear) => {
+                                run_block::<true, true>(p, &plan, data, vu, at, ev)
+                            }
+                            (Scheme::Euler, InputMode::Hold) => {
+                                run_block::<false, false>(p, &plan, data, vu, at, ev)
+                            }
+                            (Scheme::Euler, InputMode::Linear) => {
+                                run_block::<false, true>(p, &plan, data, vu, at, ev)
+                            }
+                        },
+                    );
+                });
+                let (v, u) = vu;
                 state.extend((0..chunk.len()).map(|l| (v[l], u[l])));
             }
         });
@@ -391,28 +393,30 @@ impl Izhikevich {
     }
 }
 
-/// Integrates one block of lanes over the whole trial. `HALF`: Izhikevich's
-/// two half-steps; otherwise forward Euler. `LINEAR`: interpolated input.
-/// Inlined so that it is compiled inside [`crate::wide::with_avx2`].
+/// Integrates one block of lanes over the steps `steps` from the state
+/// `(v, u)`, `data[0]` holding sample `off` (one tile of
+/// [`super::tiled`]). `HALF`: Izhikevich's two half-steps; otherwise
+/// forward Euler. `LINEAR`: interpolated input. Inlined so that it is
+/// compiled inside [`crate::wide::with_avx2`].
 #[inline(always)]
 fn run_block<const HALF: bool, const LINEAR: bool>(
     p: &IzhParams,
     plan: &StepInput,
     data: &[[f64; LANES]],
-    live: usize,
-    first_taxel: u32,
+    (mut v, mut u): ([f64; LANES], [f64; LANES]),
+    (steps, off, live, first_taxel): (std::ops::Range<usize>, usize, usize, u32),
     events: &mut Vec<SpikeEvent>,
 ) -> ([f64; LANES], [f64; LANES]) {
-    let (v0, u0) = p.rest();
+    let (v0, _) = p.rest();
     let dt = plan.dt_ms;
     let h = if HALF { 0.5 * dt } else { dt };
     let adt = p.a * dt;
     let (b, c, vp) = (p.b, p.c, p.v_peak);
     let floor = c.min(v0) - 1000.0;
-    let mut v = [v0; LANES];
-    let mut u = [u0; LANES];
-    for (n, &i) in plan.idx.iter().enumerate() {
-        let cur = block_input::<LINEAR>(data, plan, n, i as usize);
+    let start = steps.start;
+    for (n, &i) in plan.idx[steps].iter().enumerate() {
+        let n = start + n;
+        let cur = block_input::<LINEAR>(data, plan, n, i as usize - off);
         let mut vn = [0.0; LANES];
         let mut un = [0.0; LANES];
         let mut any = false;
@@ -749,23 +753,29 @@ mod tests {
             (Scheme::Izhikevich, 1.0),
             (Scheme::Izhikevich, 0.3),
         ] {
-            let n = neuron(Preset::FaI, scheme, dt);
-            let (batch, st) = n.encode_with_state(std::slice::from_ref(&xs), 1000.0);
-            let plan = StepInput::new(xs.len(), 1000.0, dt, InputMode::Hold);
-            let mut s = n.initial_state();
-            let mut times = Vec::new();
-            for (k, &i) in plan.idx.iter().enumerate() {
-                if let Some(f) = n.step(&mut s, xs[i as usize]) {
-                    let t = (k as f64 + f) * dt;
-                    if t < plan.duration_ms {
-                        times.push(t);
+            // Both input modes: the batch encoder runs in tiles of
+            // `super::super::TILE` samples (3000 samples: 11 whole tiles and
+            // a partial one), and linear input looks across tile edges.
+            for input in [InputMode::Hold, InputMode::Linear] {
+                let mut n = neuron(Preset::FaI, scheme, dt);
+                n.input = input;
+                let (batch, st) = n.encode_with_state(std::slice::from_ref(&xs), 1000.0);
+                let plan = StepInput::new(xs.len(), 1000.0, dt, input);
+                let mut s = n.initial_state();
+                let mut times = Vec::new();
+                for k in 0..plan.n_steps {
+                    if let Some(f) = n.step(&mut s, plan.at(&xs, k)) {
+                        let t = (k as f64 + f) * dt;
+                        if t < plan.duration_ms {
+                            times.push(t);
+                        }
                     }
                 }
+                let bt: Vec<f64> = batch.iter().map(|e| e.t_ms).collect();
+                assert!(!bt.is_empty());
+                assert_eq!(times, bt, "{scheme:?} {dt} {input:?}");
+                assert_eq!((s.v, s.u), st[0], "{scheme:?} {dt} {input:?}");
             }
-            let bt: Vec<f64> = batch.iter().map(|e| e.t_ms).collect();
-            assert!(!bt.is_empty());
-            assert_eq!(times, bt, "{scheme:?} {dt}");
-            assert_eq!((s.v, s.u), st[0], "{scheme:?} {dt}");
         }
     }
 

@@ -23,7 +23,7 @@
 //! = 7.6 ms, about 130 Hz (Izhikevich FA-I at 20: ~120 Hz); at 10, ~70 Hz
 //! (Izhikevich: ~50 Hz). Tested below.
 
-use super::{block_input, check_input_shape, fmax, interleave, sort_events, InputMode, StepInput, LANES};
+use super::{block_input, check_input_shape, fmax, sort_events, tiled, InputMode, StepInput, LANES};
 use palpate_core::{
     check_positive, check_range, register_stage, BuildContext, ConfigChecks, ConfigError, InputSpec, Item,
     Map, Payload, PayloadKind, SpikeEvent, SpikeTrain, Stage, StageConfig, StageError, TrialContext,
@@ -174,41 +174,45 @@ impl Lif {
         // 256-bit vectors where the CPU has them (no FMA: the same bits).
         crate::wide::with_scratch(|data| {
             for (block, chunk) in currents.chunks(LANES).enumerate() {
-                finite &= interleave(chunk, n_samples, data);
                 let first = (block * LANES) as u32;
                 let ev = &mut events;
-                crate::wide::with_avx2(
-                    #[inline(always)]
-                    || match self.input {
-                        InputMode::Hold => self.run_block::<false>(&plan, data, chunk.len(), first, ev),
-                        InputMode::Linear => self.run_block::<true>(&plan, data, chunk.len(), first, ev),
-                    },
-                );
+                let mut state = ([self.v_rest; LANES], [0.0f64; LANES]);
+                finite &= tiled(chunk, n_samples, &plan, data, |data, steps, off| {
+                    let at = (steps, off, chunk.len(), first);
+                    state = crate::wide::with_avx2(
+                        #[inline(always)]
+                        || match self.input {
+                            InputMode::Hold => self.run_block::<false>(&plan, data, state, at, ev),
+                            InputMode::Linear => self.run_block::<true>(&plan, data, state, at, ev),
+                        },
+                    );
+                });
             }
         });
         sort_events(&mut events);
         (events, finite)
     }
 
-    /// Integrates one block of lanes over the whole trial (inlined into
-    /// the wide function).
+    /// Integrates one block of lanes over the steps `steps` from the state
+    /// `(v, refractory steps left)`, `data[0]` holding sample `off` (one
+    /// tile of [`super::tiled`]); inlined into the wide function.
     #[inline(always)]
     fn run_block<const LINEAR: bool>(
         &self,
         plan: &StepInput,
         data: &[[f64; LANES]],
-        live: usize,
-        first_taxel: u32,
+        (mut v, mut refr): ([f64; LANES], [f64; LANES]),
+        (steps, off, live, first_taxel): (std::ops::Range<usize>, usize, usize, u32),
         events: &mut Vec<SpikeEvent>,
-    ) {
+    ) -> ([f64; LANES], [f64; LANES]) {
         let decay = (-self.dt_ms / self.tau_ms).exp();
         let (th, reset, rest, r) = (self.threshold, self.reset, self.v_rest, self.resistance);
-        let mut v = [rest; LANES];
-        // Refractory steps left, as f64 so the lane loop stays one SIMD type.
-        let mut refr = [0.0f64; LANES];
+        // Refractory steps left are f64 so the lane loop stays one SIMD type.
         let refr_steps = self.refractory_steps as f64;
-        for (n, &i) in plan.idx.iter().enumerate() {
-            let cur = block_input::<LINEAR>(data, plan, n, i as usize);
+        let s0 = steps.start;
+        for (n, &i) in plan.idx[steps].iter().enumerate() {
+            let n = s0 + n;
+            let cur = block_input::<LINEAR>(data, plan, n, i as usize - off);
             let start = v;
             let mut any = false;
             for l in 0..LANES {
@@ -239,6 +243,7 @@ impl Lif {
                 }
             }
         }
+        (v, refr)
     }
 }
 

@@ -28,8 +28,9 @@
 //!   only when `dt` does not divide the duration) is dropped.
 //! * Encoders run the taxels in blocks of [`LANES`] neurons in lock step so that
 //!   the independent membranes fill the CPU's pipelines and SIMD lanes: the
-//!   block's currents are first interleaved sample-major ([`interleave`]) so a
-//!   step reads one contiguous `[f64; LANES]`, the per-step update is
+//!   block's currents are interleaved sample-major a tile of [`TILE`]
+//!   samples at a time ([`tiled`]) so a step reads one contiguous
+//!   `[f64; LANES]` from L1, the per-step update is
 //!   branch-free (min/max/select), and spike bookkeeping runs only on steps
 //!   where some lane crossed threshold. One trial runs on one core (trials run
 //!   in parallel at the graph level). `benches/encode.rs` measures it.
@@ -139,6 +140,64 @@ impl StepInput {
         };
         x.clamp(-MAX_CURRENT, MAX_CURRENT)
     }
+}
+
+/// Samples a tile of [`tiled`] interleaves at a time: 256 samples x 16
+/// lanes x 8 bytes = 32 KiB, so a tile is written, then read by the
+/// kernel, while it is still in the L1 data cache.
+pub const TILE: usize = 256;
+
+/// Runs an encoder's kernel over one block of up to [`LANES`] taxels tile
+/// by tile: each tile of [`TILE`] samples is interleaved ([`interleave`]'s
+/// layout and clamp) into `data`, then `run(data, steps, first)` integrates
+/// the steps whose sample (`plan.idx`) falls in the tile, `data[0]` being
+/// sample `first`. `data` also holds the sample after the tile, where one
+/// exists, for linear interpolation's look-ahead. Steps go to `run` in
+/// order and each exactly once, so a kernel that carries its state from
+/// call to call gives the bits of one pass over the whole trial.
+///
+/// Why tiles: interleaving the whole trial first wrote a sample-major copy
+/// as large as the trial (2.8 MB for a 21 s lab trial, more than L2), read
+/// back by the kernel from memory; the transpose and that round trip were
+/// about a third of the encoder (`perf` on `palpate run
+/// graphs/quickstart.toml --threads 1`). A tile stays in L1.
+///
+/// Returns whether every current read was finite (as [`interleave`]).
+/// Ragged rows (shorter than `n_samples`) take [`interleave`]'s safe path:
+/// one tile of the whole trial.
+pub fn tiled(
+    chunk: &[Vec<f64>],
+    n_samples: usize,
+    plan: &StepInput,
+    data: &mut Vec<[f64; LANES]>,
+    mut run: impl FnMut(&[[f64; LANES]], std::ops::Range<usize>, usize),
+) -> bool {
+    if !chunk.iter().all(|xs| xs.len() >= n_samples) {
+        let finite = interleave(chunk, n_samples, data);
+        run(data, 0..plan.n_steps, 0);
+        return finite;
+    }
+    let mut finite = true;
+    let mut n = 0;
+    let mut t0 = 0;
+    while t0 < n_samples {
+        let t1 = (t0 + TILE).min(n_samples);
+        data.clear();
+        finite &= crate::wide::gather_lanes(chunk, t0..(t1 + 1).min(n_samples), data, Some(MAX_CURRENT));
+        let start = n;
+        // `idx` never decreases, so a tile's steps are contiguous.
+        while n < plan.n_steps && (plan.idx[n] as usize) < t1 {
+            n += 1;
+        }
+        if n > start {
+            run(data, start..n, t0);
+        }
+        t0 = t1;
+    }
+    // Every step's sample is below `n_samples` (`StepInput::new`), so the
+    // tiles took them all.
+    debug_assert_eq!(n, plan.n_steps);
+    finite
 }
 
 /// Fills `data` with one block of up to [`LANES`] taxels' currents, interleaved sample-major
@@ -272,6 +331,53 @@ mod tests {
                 }
             }
         }
+    }
+
+    #[test]
+    fn tiles_give_each_step_once_in_order_with_its_samples() {
+        // Lengths around the tile size, and steps that take every sample,
+        // skip samples (dt 2 ms at 1 kHz) or fall between them (0.3 ms).
+        for n_samples in [0, 1, 5, TILE - 1, TILE, TILE + 1, 3 * TILE + 7] {
+            let rows: Vec<Vec<f64>> = (0..3)
+                .map(|l| (0..n_samples).map(|k| (k * 10 + l) as f64).collect())
+                .collect();
+            for (dt, mode) in [
+                (1.0, InputMode::Hold),
+                (2.0, InputMode::Linear),
+                (0.3, InputMode::Linear),
+            ] {
+                let plan = StepInput::new(n_samples, 1000.0, dt, mode);
+                let mut seen = Vec::new();
+                let finite = tiled(&rows, n_samples, &plan, &mut Vec::new(), |data, steps, off| {
+                    for n in steps {
+                        let i = plan.idx[n] as usize;
+                        assert_eq!(
+                            data[i - off][..4],
+                            [i as f64 * 10.0, i as f64 * 10.0 + 1.0, i as f64 * 10.0 + 2.0, 0.0]
+                        );
+                        if mode == InputMode::Linear && plan.frac[n] > 0.0 {
+                            assert_eq!(
+                                data[i + 1 - off][0],
+                                (i + 1) as f64 * 10.0,
+                                "look-ahead at step {n}"
+                            );
+                        }
+                        seen.push(n);
+                    }
+                });
+                assert!(finite);
+                assert_eq!(
+                    seen,
+                    (0..plan.n_steps).collect::<Vec<_>>(),
+                    "{n_samples} samples, dt {dt}"
+                );
+            }
+        }
+        // A non-finite sample in the last tile is still reported.
+        let mut rows = vec![vec![1.0; 2 * TILE + 3]; 2];
+        rows[1][2 * TILE + 2] = f64::NAN;
+        let plan = StepInput::new(2 * TILE + 3, 1000.0, 0.5, InputMode::Hold);
+        assert!(!tiled(&rows, 2 * TILE + 3, &plan, &mut Vec::new(), |_, _, _| {}));
     }
 
     #[test]
