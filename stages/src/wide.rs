@@ -144,21 +144,41 @@ pub fn gather_lanes(
         "gather_lanes: a row is shorter than the range"
     );
     let base = out.len();
-    out.resize(base + len, [0.0; LANES]);
-    let dst = &mut out[base..];
+    // Written in place of the new rows' storage, not zeroed first: the
+    // zeroing was a whole extra write of each tile (`perf` on the
+    // quickstart: 8 % of the low-pass).
+    out.reserve(len);
+    let dst = &mut out.spare_capacity_mut()[..len];
     let (done, mut finite) = transpose_in(rows, range.start, dst, clamp);
     let f = |x: f64| match clamp {
         Some(m) => x.clamp(-m, m),
         None => x,
     };
-    // Rows not taken by the vector path, and the last few samples.
-    for (l, row) in rows.iter().enumerate() {
+    // Lane `l` of sample `k`, written without reading (or referencing) the
+    // uninitialised row.
+    let put = |dst: &mut [std::mem::MaybeUninit<[f64; LANES]>], k: usize, l: usize, x: f64| {
+        // SAFETY: `k < dst.len()` (the loops below) and `l < LANES`, so the
+        // pointer is to lane `l` of the row `k` within `dst`.
+        unsafe { dst[k].as_mut_ptr().cast::<f64>().add(l).write(x) }
+    };
+    // Rows not taken by the vector path, the last few samples, and the
+    // missing lanes (0).
+    for l in 0..LANES {
         let from = if l < done.0 { done.1 } else { 0 };
-        for (d, &x) in dst[from..].iter_mut().zip(&row[range.start + from..range.end]) {
-            finite &= x.abs() <= f64::MAX;
-            d[l] = f(x);
+        match rows.get(l) {
+            Some(row) => {
+                for (k, &x) in (from..len).zip(&row[range.start + from..range.end]) {
+                    finite &= x.abs() <= f64::MAX;
+                    put(dst, k, l, f(x));
+                }
+            }
+            None => (from..len).for_each(|k| put(dst, k, l, 0.0)),
         }
     }
+    // SAFETY: every lane of rows `base .. base + len` is now written: lanes
+    // below `done.0` of samples below `done.1` by `transpose_in`, every
+    // other lane and sample by the loop above; the capacity was reserved.
+    unsafe { out.set_len(base + len) };
     finite
 }
 
@@ -184,6 +204,36 @@ pub fn scatter_lanes(src: &[[f64; LANES]], rows: &mut [Vec<f64>], offset: usize)
     }
 }
 
+/// [`scatter_lanes`] into rows that are allocated but not yet filled:
+/// every row must be empty (`len() == 0`) with capacity for `offset +
+/// src.len()` samples, and samples `offset .. offset + src.len()` of its
+/// storage are written. The caller sets each row's length once every
+/// sample below it has been written (by calls covering `0..n`).
+///
+/// Why: an output zeroed only to be overwritten costs a whole extra write
+/// of the trial (glibc's `calloc` clears reused memory: 18 % of the
+/// low-pass on the quickstart, `perf`).
+pub fn scatter_lanes_uninit(src: &[[f64; LANES]], rows: &mut [Vec<f64>], offset: usize) {
+    let w = rows.len().min(LANES);
+    let rows = &mut rows[..w];
+    assert!(
+        rows.iter()
+            .all(|r| r.is_empty() && r.capacity() >= offset + src.len()),
+        "scatter_lanes_uninit: a row is not empty or too small"
+    );
+    // Writes only through raw pointers within each row's capacity.
+    let done = transpose_out(src, rows, offset);
+    for (l, row) in rows.iter_mut().enumerate() {
+        let from = if l < done.0 { done.1 } else { 0 };
+        for (d, s) in row.spare_capacity_mut()[offset + from..offset + src.len()]
+            .iter_mut()
+            .zip(&src[from..])
+        {
+            d.write(s[l]);
+        }
+    }
+}
+
 /// The vector part of [`gather_lanes`]: `(rows, samples)` done (the first
 /// `rows` rows, a multiple of 4, over the first `samples` samples, a
 /// multiple of 4), or `(0, 0)` without AVX2; and whether what it read was
@@ -191,7 +241,7 @@ pub fn scatter_lanes(src: &[[f64; LANES]], rows: &mut [Vec<f64>], offset: usize)
 fn transpose_in(
     rows: &[Vec<f64>],
     start: usize,
-    dst: &mut [[f64; LANES]],
+    dst: &mut [std::mem::MaybeUninit<[f64; LANES]>],
     clamp: Option<f64>,
 ) -> ((usize, usize), bool) {
     #[cfg(target_arch = "x86_64")]
@@ -215,9 +265,10 @@ fn transpose_out(src: &[[f64; LANES]], rows: &mut [Vec<f64>], offset: usize) -> 
     if avx2() {
         let groups = rows.len() / 4;
         let n4 = src.len() / 4 * 4;
-        // SAFETY: AVX2 is present; rows hold `offset + src.len()` samples
-        // (asserted by the caller); reads `src[..n4]`, writes rows
-        // `< 4·groups` at `offset .. offset + n4`.
+        // SAFETY: AVX2 is present; rows hold `offset + src.len()` samples,
+        // or have the capacity for them (asserted by the callers); reads
+        // `src[..n4]`, writes rows `< 4·groups` at `offset .. offset + n4`
+        // through raw pointers (never reading the row).
         unsafe { x86::transpose_out(src, groups, n4, rows, offset) };
         return (4 * groups, n4);
     }
@@ -251,7 +302,7 @@ mod x86 {
         groups: usize,
         start: usize,
         n4: usize,
-        dst: &mut [[f64; LANES]],
+        dst: &mut [std::mem::MaybeUninit<[f64; LANES]>],
         clamp: Option<f64>,
     ) -> bool {
         let abs = _mm256_set1_pd(f64::from_bits(!(1u64 << 63)));
@@ -394,6 +445,25 @@ mod tests {
                                 };
                                 assert_eq!(x, expect, "scatter w {w} n {n} lane {l} sample {k}");
                             }
+                        }
+                        // Into unfilled rows, in two calls covering 0..n
+                        // (the second part first, as the low-pass does).
+                        let mut fresh: Vec<Vec<f64>> = (0..w).map(|_| Vec::with_capacity(n)).collect();
+                        let h = n / 2;
+                        let mut fill = || {
+                            scatter_lanes_uninit(&out[1 + h..], &mut fresh, h);
+                            scatter_lanes_uninit(&out[1..1 + h], &mut fresh, 0);
+                        };
+                        if base {
+                            baseline_only(fill)
+                        } else {
+                            fill()
+                        }
+                        for (l, row) in fresh.iter_mut().enumerate().take(LANES) {
+                            // SAFETY: the two calls wrote samples 0..n of the lanes below LANES.
+                            unsafe { row.set_len(n) };
+                            let want_l: Vec<f64> = want.iter().map(|s| s[l]).collect();
+                            assert_eq!(*row, want_l, "uninit scatter w {w} n {n} lane {l}");
                         }
                     }
                 }

@@ -439,7 +439,9 @@ pub fn filtfilt_taxels_finite(
             finite,
         );
     }
-    let mut out: Vec<Vec<f64>> = data.iter().map(|_| vec![0.0; n]).collect();
+    // Allocated, not zeroed: every sample is written by the backward
+    // sweep's scatter (see `crate::wide::scatter_lanes_uninit`).
+    let mut out: Vec<Vec<f64>> = data.iter().map(|_| Vec::with_capacity(n)).collect();
     let mut finite = true;
     crate::wide::with_scratch(|buf| {
         for (chunk, outs) in data.chunks(LANES).zip(out.chunks_mut(LANES)) {
@@ -448,6 +450,13 @@ pub fn filtfilt_taxels_finite(
                 #[inline(always)]
                 || filtfilt_block(sos, chunk, outs, pad, fit, buf),
             );
+            for row in outs.iter_mut() {
+                // SAFETY: `filtfilt_block` scattered its tiles, which cover
+                // samples `0..n`, into every row of `outs` (all of them
+                // lanes of this block), so all `n` samples are written; the
+                // capacity is `n`.
+                unsafe { row.set_len(n) };
+            }
         }
     });
     (out, finite)
@@ -616,7 +625,7 @@ fn filtfilt_block(
         let (t0, t1) = (j * TILE, ((j + 1) * TILE).min(n));
         let tile = &mut buf[pad + t0..pad + t1];
         sweep_any(sos, &mut st, tile, true);
-        crate::wide::scatter_lanes(tile, outs, t0);
+        crate::wide::scatter_lanes_uninit(tile, outs, t0);
     }
     finite
 }
