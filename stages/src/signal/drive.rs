@@ -260,8 +260,10 @@ impl Drive {
             }
             Gain::None => 1.0,
         };
-        for v in raw.iter_mut().flatten() {
-            *v = scaled(*v, g);
+        // Row by row: a flattened iterator checks for the end of the
+        // inner row at every element.
+        for row in raw.iter_mut() {
+            row.iter_mut().for_each(|v| *v = scaled(*v, g));
         }
         raw
     }
