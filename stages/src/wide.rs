@@ -1,7 +1,7 @@
 //! Running hot per-sample loops (the scene's effects, the filter, the
 //! encoders) with 256-bit vectors where the CPU has them, and the pieces the
 //! lock-step kernels share: the transposes between taxel-major trials and
-//! sample-major lanes ([`gather_lanes`], [`scatter_lanes`]) and one reused
+//! sample-major lanes ([`gather_lanes`], [`scatter_lanes_uninit`]) and one reused
 //! scratch buffer per thread ([`with_scratch`]).
 //!
 //! The release build targets baseline x86-64 (SSE2: two doubles per vector).
@@ -145,8 +145,8 @@ pub fn gather_lanes(
     );
     let base = out.len();
     // Written in place of the new rows' storage, not zeroed first: the
-    // zeroing was a whole extra write of each tile (`perf` on the
-    // quickstart: 8 % of the low-pass).
+    // zeroing was a whole extra write of each tile (the encoders' criterion
+    // bench: -8 % without it).
     out.reserve(len);
     let dst = &mut out.spare_capacity_mut()[..len];
     let (done, mut finite) = transpose_in(rows, range.start, dst, clamp);
@@ -182,32 +182,11 @@ pub fn gather_lanes(
     finite
 }
 
-/// Writes `src[..][l]` to `rows[l][offset..offset + src.len()]` for every
-/// row (up to [`LANES`]): the inverse of [`gather_lanes`], by the same
-/// in-register transposes. `rows` must hold `offset + src.len()` samples.
-pub fn scatter_lanes(src: &[[f64; LANES]], rows: &mut [Vec<f64>], offset: usize) {
-    let w = rows.len().min(LANES);
-    let rows = &mut rows[..w];
-    assert!(
-        rows.iter().all(|r| r.len() >= offset + src.len()),
-        "scatter_lanes: a row is too short"
-    );
-    let done = transpose_out(src, rows, offset);
-    for (l, row) in rows.iter_mut().enumerate() {
-        let from = if l < done.0 { done.1 } else { 0 };
-        for (d, s) in row[offset + from..offset + src.len()]
-            .iter_mut()
-            .zip(&src[from..])
-        {
-            *d = s[l];
-        }
-    }
-}
-
-/// [`scatter_lanes`] into rows that are allocated but not yet filled:
-/// every row must be empty (`len() == 0`) with capacity for `offset +
-/// src.len()` samples, and samples `offset .. offset + src.len()` of its
-/// storage are written. The caller sets each row's length once every
+/// Writes `src[..][l]` to samples `offset .. offset + src.len()` of row
+/// `l` (up to [`LANES`] rows), the inverse of [`gather_lanes`], by the same
+/// in-register transposes, into rows that are allocated but not yet
+/// filled: every row must be empty (`len() == 0`) with capacity for
+/// `offset + src.len()` samples. The caller sets each row's length once every
 /// sample below it has been written (by calls covering `0..n`).
 ///
 /// Why: an output zeroed only to be overwritten costs a whole extra write
@@ -259,16 +238,16 @@ fn transpose_in(
     ((0, 0), true)
 }
 
-/// The vector part of [`scatter_lanes`], as [`transpose_in`].
+/// The vector part of [`scatter_lanes_uninit`], as [`transpose_in`].
 fn transpose_out(src: &[[f64; LANES]], rows: &mut [Vec<f64>], offset: usize) -> (usize, usize) {
     #[cfg(target_arch = "x86_64")]
     if avx2() {
         let groups = rows.len() / 4;
         let n4 = src.len() / 4 * 4;
-        // SAFETY: AVX2 is present; rows hold `offset + src.len()` samples,
-        // or have the capacity for them (asserted by the callers); reads
-        // `src[..n4]`, writes rows `< 4·groups` at `offset .. offset + n4`
-        // through raw pointers (never reading the row).
+        // SAFETY: AVX2 is present; rows have the capacity for `offset +
+        // src.len()` samples (asserted by the caller); reads `src[..n4]`,
+        // writes rows `< 4·groups` at `offset .. offset + n4` through raw
+        // pointers (never reading the row).
         unsafe { x86::transpose_out(src, groups, n4, rows, offset) };
         return (4 * groups, n4);
     }
@@ -429,23 +408,6 @@ mod tests {
                         assert!(finite);
                         assert_eq!(out[0], [9.0; LANES], "existing rows are kept");
                         assert_eq!(&out[1..], &want[..], "w {w} n {n} start {start} base {base}");
-                        let mut back = vec![vec![-1.0; n + 3]; w];
-                        let mut scatter = || scatter_lanes(&out[1..], &mut back, 2);
-                        if base {
-                            baseline_only(scatter)
-                        } else {
-                            scatter()
-                        }
-                        for (l, row) in back.iter().enumerate() {
-                            for (k, &x) in row.iter().enumerate() {
-                                let expect = if l >= LANES || k < 2 || k >= n + 2 {
-                                    -1.0
-                                } else {
-                                    want[k - 2][l]
-                                };
-                                assert_eq!(x, expect, "scatter w {w} n {n} lane {l} sample {k}");
-                            }
-                        }
                         // Into unfilled rows, in two calls covering 0..n
                         // (the second part first, as the low-pass does).
                         let mut fresh: Vec<Vec<f64>> = (0..w).map(|_| Vec::with_capacity(n)).collect();
