@@ -32,7 +32,9 @@
 //! log = "out/paper/table2.log"            # default: <out>.log
 //! ```
 //!
-//! Jobs start in file order, `--jobs` at a time (default: the core count);
+//! Jobs start in file order, `--jobs` at a time (default: the core count),
+//! each on its own pool of `--threads / --jobs` threads (at least one; see
+//! [`threads_per_job`] for why not one pool for all);
 //! each writes what `palpate run` would print into its log, and the batch
 //! prints one line per job with its wall time (taken while other jobs run
 //! beside it) and, with `--times FILE`, writes them as JSON
@@ -226,8 +228,28 @@ struct Done {
     ok: bool,
 }
 
+/// Threads of each job's pool: `threads` (0: the core count) shared out
+/// among the `workers` jobs that run at once, at least one each.
+///
+/// Why a pool per job: with one pool shared by all jobs, a thread waiting
+/// inside one job's parallel stage (for the last trials of a scene, say)
+/// takes whatever work is queued, and a job the batch has just started is
+/// queued work: the thread ran that whole graph before returning to the
+/// stage. Measured on `scripts/reproduce.sh`'s 25 jobs (2 at a time, 2
+/// cores): one scene stage of 340 trials (median 3 ms a trial) recorded
+/// 149 s of wall time, the graph it belonged to stalled meanwhile, and the
+/// batch took 434 s wall and 842 s CPU; with a pool of one thread per job,
+/// 399 s and 782 s, every result file identical (docs/benches.md, "The
+/// paper's reproduction"). A job's recorded time is then its own stages'
+/// time, on its share of the cores.
+pub fn threads_per_job(threads: usize, workers: usize, cores: usize) -> usize {
+    let threads = if threads == 0 { cores } else { threads };
+    (threads / workers.max(1)).max(1)
+}
+
 /// `palpate batch`: see the module docs. `workers` jobs at a time (0: the
-/// core count) on a pool of `threads` (0: the core count).
+/// core count), each on a pool of its share of `threads` (0: the core
+/// count; see [`threads_per_job`]).
 pub fn run_batch(path: &Path, workers: usize, threads: usize, fresh: bool, times: Option<&Path>) -> ExitCode {
     let t0 = Instant::now();
     let jobs = match load_jobs(path, fresh) {
@@ -237,15 +259,20 @@ pub fn run_batch(path: &Path, workers: usize, threads: usize, fresh: bool, times
             return ExitCode::FAILURE;
         }
     };
-    let pool = match rayon::ThreadPoolBuilder::new().num_threads(threads).build() {
-        Ok(p) => p,
-        Err(e) => {
-            eprintln!("cannot start worker threads: {e}");
-            return ExitCode::FAILURE;
-        }
-    };
     let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
     let workers = if workers == 0 { cores } else { workers }.clamp(1, jobs.len());
+    // One pool per worker, not one pool for all: see `threads_per_job`.
+    let per = threads_per_job(threads, workers, cores);
+    let mut pools = Vec::with_capacity(workers);
+    for _ in 0..workers {
+        match rayon::ThreadPoolBuilder::new().num_threads(per).build() {
+            Ok(p) => pools.push(p),
+            Err(e) => {
+                eprintln!("cannot start worker threads: {e}");
+                return ExitCode::FAILURE;
+            }
+        }
+    }
     let cache = core::Cache::default();
     for job in &jobs {
         if let Ok(s) = job.sweep.lock() {
@@ -258,8 +285,9 @@ pub fn run_batch(path: &Path, workers: usize, threads: usize, fresh: bool, times
     let stop = AtomicBool::new(false);
     let done = Mutex::new(Vec::with_capacity(jobs.len()));
     std::thread::scope(|s| {
-        for _ in 0..workers {
-            s.spawn(|| loop {
+        for pool in &pools {
+            let (next, stop, done, jobs, cache) = (&next, &stop, &done, &jobs, &cache);
+            s.spawn(move || loop {
                 if stop.load(Ordering::SeqCst) {
                     break;
                 }
@@ -275,7 +303,7 @@ pub fn run_batch(path: &Path, workers: usize, threads: usize, fresh: bool, times
                     job.graph.out_dir.display()
                 );
                 let t = Instant::now();
-                let outcome = pool.install(|| run_job(job, &cache));
+                let outcome = pool.install(|| run_job(job, cache));
                 let secs = t.elapsed().as_secs_f64();
                 let (text, ok) = match outcome {
                     Ok(text) => (text, true),

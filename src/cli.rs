@@ -75,8 +75,9 @@ enum Command {
         /// Jobs at a time (default: the core count).
         #[arg(long = "jobs", value_name = "N", default_value_t = 0)]
         workers: usize,
-        /// Worker threads shared by the jobs (default: all cores). Results do
-        /// not depend on it.
+        /// Worker threads of the whole batch (default: all cores), shared out
+        /// among the jobs that run at once: each job gets its own pool of
+        /// threads/jobs, at least one. Results do not depend on it.
         #[arg(long, default_value_t = 0)]
         threads: usize,
         /// Run every sweep point again, even those with a completion marker.

@@ -334,3 +334,16 @@ fn a_sweep_over_the_protocol_does_not_reuse_another_protocols_answers() {
         "the protocols agree, so the check above could not fail"
     );
 }
+
+#[test]
+fn each_job_gets_its_share_of_the_threads() {
+    use palpate::batch::threads_per_job;
+    // 0 threads = the core count, shared out among the jobs at once.
+    assert_eq!(threads_per_job(0, 2, 2), 1);
+    assert_eq!(threads_per_job(0, 2, 8), 4);
+    assert_eq!(threads_per_job(6, 4, 2), 1);
+    // Never zero: more jobs than threads still run, one thread each.
+    assert_eq!(threads_per_job(2, 4, 2), 1);
+    assert_eq!(threads_per_job(0, 0, 4), 4);
+    assert_eq!(threads_per_job(8, 1, 2), 8);
+}
