@@ -48,11 +48,11 @@ mkdir -p "$OUT" out/paper_sensor
 # graphs all simulate and encode the same trials per seed before their own
 # stages, and so do the paper_sensor ones, so each seed's front end runs
 # once per scene instead of once per graph (see `palpate batch --help`).
-# Within a graph the stages already use every core, but not all the time
-# (fits one estimator at a time, sinks, a sweep point's serial tail): two
-# graphs side by side keep both cores busy. Each graph's wall time in
-# timing.json is then measured while another graph shares the machine, and
-# without the stages another graph computed first.
+# Each graph runs on its own pool of cores/REPRODUCE_JOBS threads (one on 2
+# cores), so two graphs side by side keep both cores busy and never run
+# inside each other's stages (see `palpate batch --help`, `--threads`).
+# Each graph's wall time in timing.json is then measured on its share of
+# the machine, and without the stages another graph computed first.
 jobs_max="${REPRODUCE_JOBS:-$(nproc)}"
 [[ "$jobs_max" =~ ^[1-9][0-9]*$ ]] || { echo "REPRODUCE_JOBS must be a positive integer, not '$jobs_max'" >&2; exit 2; }
 # Each job: "graph|outdir|key|set" (set: an optional `--set` override).
