@@ -12,9 +12,9 @@
 //! output is computed once and shared by every stage that reads it, then
 //! dropped as soon as its last reader is done.
 //!
-//! With a sweep [`Cache`], every stage runs stage-at-a-time instead and every
-//! output is kept for the next point: reuse across points is worth the memory
-//! there.
+//! With a sweep [`Cache`], every stage runs stage-at-a-time instead and
+//! outputs are kept for later points (sources and the maps below them trial
+//! by trial, see [`items`]): reuse across points is worth the memory there.
 //!
 //! Determinism: every per-trial computation is a pure function of (config, input,
 //! seed), seeds come from [`derive_seed`] over (graph seed, stage id, trial id or
@@ -38,6 +38,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 mod chain;
+mod items;
 
 /// Receives progress while a graph runs (the CLI draws a bar with it).
 pub trait Progress: Sync {
@@ -79,6 +80,15 @@ pub trait Progress: Sync {
 /// its upstream stages (what dropping it may cost again) and `L` is the
 /// priority of the last entry dropped (so entries not used for a while age
 /// out); the lowest `H` goes first, ties to the least recently used.
+/// Sources and the maps below them are kept one trial at a time, each trial
+/// under its own key ([`items`]): a sweep that changes one condition of a
+/// scene (`graphs/shift/shift.toml` shifts its `test` condition and leaves
+/// `train` alone) computes only that condition's trials at each point, and
+/// the other's are served from the first point that computed them. A
+/// computed trial no announced run will read is not kept (its readers'
+/// trials will be served instead): under a sweep that leaves a chain of
+/// signal stages alone, only the chain's last output is kept.
+///
 /// A sweep also tells the cache, before it starts, which runs will need
 /// which outputs ([`Cache::expect`]): an output no later run needs is not
 /// kept, and one whose last run has used it is dropped, so the budget goes
@@ -100,9 +110,16 @@ pub struct Cache {
 /// Most payload bytes a [`Cache`] keeps by default: 2 GiB.
 pub const DEFAULT_CACHE_BYTES: usize = 2 << 30;
 
+/// What an entry keeps: a stage's whole output, or one trial's payload of
+/// an item-level stage (see [`items`]).
+enum Held {
+    Stage(Arc<Vec<Item>>),
+    Item(Payload),
+}
+
 /// One kept output.
 struct Entry {
-    items: Arc<Vec<Item>>,
+    held: Held,
     bytes: usize,
     /// Seconds to recompute it (its stage and everything upstream).
     cost: f64,
@@ -116,6 +133,9 @@ struct Entry {
 struct CacheMap {
     entries: HashMap<u64, Entry>,
     timings: HashMap<u64, StageTiming>,
+    /// Each computed trial's time by item key, kept beyond its payload like
+    /// `timings` (16 bytes a trial).
+    item_times: HashMap<u64, Duration>,
     bytes: usize,
     clock: u64,
     /// GreedyDual-Size's inflation value `L`.
@@ -178,9 +198,12 @@ impl Cache {
             let (now, floor) = (m.clock, m.floor);
             let timing = m.timings.get(&key).cloned();
             m.entries.get_mut(&key).and_then(|e| {
+                let Held::Stage(items) = &e.held else {
+                    return None;
+                };
                 e.used = now;
                 e.h = priority(floor, e.cost, e.bytes);
-                Some((e.items.clone(), timing?))
+                Some((items.clone(), timing?))
             })
         };
         let counter = if hit.is_some() { &self.hits } else { &self.misses };
@@ -193,9 +216,17 @@ impl Cache {
     /// budget alone bounds the cache.
     pub fn expect(&self, graph: &Graph) {
         let keys = stage_keys(graph);
+        // A graph whose trials cannot be listed fails when it runs; its
+        // trials are then not announced (the budget alone bounds them).
+        let plans = items::plans(graph, &keys, &key_context(graph)).unwrap_or_default();
         if let Ok(mut m) = self.map.lock() {
             for (i, k) in keys.into_iter().enumerate() {
                 if !always_runs(&graph.nodes[i].stage) {
+                    *m.future.entry(k).or_default() += 1;
+                }
+            }
+            for p in plans.iter().flatten() {
+                for &k in &p.keys {
                     *m.future.entry(k).or_default() += 1;
                 }
             }
@@ -221,6 +252,7 @@ impl Cache {
                         m.bytes -= e.bytes;
                     }
                     m.timings.remove(k);
+                    m.item_times.remove(k);
                 }
             }
         }
@@ -283,30 +315,168 @@ impl Cache {
         if let Some(old) = m.entries.remove(&key) {
             m.bytes -= old.bytes;
         }
-        while m.bytes + size > self.budget {
-            let Some((&victim, _)) = m
-                .entries
-                .iter()
-                .min_by(|(_, a), (_, b)| a.h.total_cmp(&b.h).then(a.used.cmp(&b.used)))
-            else {
-                break;
+        let mut victims = Victims::default();
+        if victims.make_room(&mut m, size, self.budget) {
+            m.insert(key, Held::Stage(items), size, cost);
+        }
+    }
+
+    /// Looks up, where `look` is set, the trials of an item-level stage: each
+    /// hit's payload and the time computing it took.
+    fn get_items(&self, keys: &[u64], look: &[bool]) -> Vec<Option<(Payload, Duration)>> {
+        let Ok(mut m) = self.map.lock() else {
+            return vec![None; keys.len()];
+        };
+        let m = &mut *m;
+        let floor = m.floor;
+        keys.iter()
+            .zip(look)
+            .map(|(k, &look)| {
+                if !look {
+                    return None;
+                }
+                let dt = *m.item_times.get(k)?;
+                let e = m.entries.get_mut(k)?;
+                let Held::Item(p) = &e.held else {
+                    return None;
+                };
+                m.clock += 1;
+                e.used = m.clock;
+                e.h = priority(floor, e.cost, e.bytes);
+                Some((p.clone(), dt))
+            })
+            .collect()
+    }
+    /// The time each trial took when it was computed, where known.
+    fn item_times(&self, keys: &[u64]) -> Vec<Option<Duration>> {
+        match self.map.lock() {
+            Ok(m) => keys.iter().map(|k| m.item_times.get(k).copied()).collect(),
+            Err(_) => vec![None; keys.len()],
+        }
+    }
+    /// Keeps computed trials of an item-level stage: `(key, payload, its
+    /// time, the time to recompute it with everything upstream)`. Trials no
+    /// announced run needs are not kept; room is made by GreedyDual-Size as
+    /// in [`Cache::put`], never by dropping a trial of the same batch.
+    /// A `None` payload keeps the time alone.
+    fn put_items(&self, batch: Vec<(u64, Option<Payload>, Duration, Duration)>) {
+        let Ok(mut m) = self.map.lock() else {
+            return;
+        };
+        let mut victims = Victims::default();
+        for (key, payload, dt, cost) in batch {
+            if m.future.get(&key) == Some(&0) {
+                continue;
+            }
+            m.item_times.insert(key, dt);
+            let Some(payload) = payload else {
+                continue;
             };
+            let size = payload.approx_bytes();
+            if size > self.budget {
+                continue;
+            }
+            if let Some(old) = m.entries.remove(&key) {
+                m.bytes -= old.bytes;
+            }
+            if victims.make_room(&mut m, size, self.budget) {
+                m.insert(key, Held::Item(payload), size, cost);
+            }
+        }
+    }
+    /// For each trial of an item-level stage (`own` keys), whether every
+    /// announced run still to come that has it also has the same trial of
+    /// each of the stage's readers (`readers`, item-level, by reader): then
+    /// no later run reads it (the readers' trials are served instead), and
+    /// keeping it only crowds out what will be read. A scene's signals under
+    /// a sweep that shifts a downstream key are read again; under one that
+    /// leaves the whole chain alone, only the last per-trial output is.
+    fn covered(&self, own: &[u64], readers: &[&[u64]]) -> Vec<bool> {
+        let Ok(m) = self.map.lock() else {
+            return vec![false; own.len()];
+        };
+        own.iter()
+            .enumerate()
+            .map(|(t, k)| {
+                let Some(left) = m.future.get(k) else {
+                    return false;
+                };
+                !readers.is_empty()
+                    && readers
+                        .iter()
+                        .all(|r| r.get(t).is_some_and(|rk| m.future.get(rk) == Some(left)))
+            })
+            .collect()
+    }
+    /// Keeps the timing of an item-level stage computed in full (a later run
+    /// served wholly from trials reports it).
+    fn put_timing(&self, key: u64, timing: StageTiming) {
+        if let Ok(mut m) = self.map.lock() {
+            if m.future.get(&key) != Some(&0) {
+                m.timings.insert(key, timing);
+            }
+        }
+    }
+    /// Counts a stage served from the cache (`hit`) or computed.
+    fn count(&self, hit: bool) {
+        let counter = if hit { &self.hits } else { &self.misses };
+        counter.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    }
+}
+
+impl CacheMap {
+    /// Inserts an entry (room already made).
+    fn insert(&mut self, key: u64, held: Held, bytes: usize, cost: Duration) {
+        self.clock += 1;
+        let cost = cost.as_secs_f64();
+        let entry = Entry {
+            held,
+            bytes,
+            cost,
+            h: priority(self.floor, cost, bytes),
+            used: self.clock,
+        };
+        self.entries.insert(key, entry);
+        self.bytes += bytes;
+    }
+}
+
+/// Eviction candidates, lowest GreedyDual-Size priority first (ties to the
+/// least recently used), listed once per batch of insertions: entries
+/// inserted after the listing are not candidates.
+#[derive(Default)]
+struct Victims {
+    order: Option<std::vec::IntoIter<u64>>,
+    /// The cache's clock at the listing: an entry used or inserted since is
+    /// spared.
+    listed_at: u64,
+}
+
+impl Victims {
+    /// Drops entries until `size` more bytes fit in `budget`; false when
+    /// they cannot (no candidate left).
+    fn make_room(&mut self, m: &mut CacheMap, size: usize, budget: usize) -> bool {
+        while m.bytes + size > budget {
+            if self.order.is_none() {
+                self.listed_at = m.clock;
+            }
+            let order = self.order.get_or_insert_with(|| {
+                let mut v: Vec<(f64, u64, u64)> = m.entries.iter().map(|(&k, e)| (e.h, e.used, k)).collect();
+                v.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+                v.into_iter().map(|(.., k)| k).collect::<Vec<_>>().into_iter()
+            });
+            let Some(victim) = order.next() else {
+                return false;
+            };
+            if m.entries.get(&victim).is_some_and(|e| e.used > self.listed_at) {
+                continue;
+            }
             if let Some(e) = m.entries.remove(&victim) {
                 m.bytes -= e.bytes;
                 m.floor = m.floor.max(e.h);
             }
         }
-        m.clock += 1;
-        let cost = cost.as_secs_f64();
-        let entry = Entry {
-            items,
-            bytes: size,
-            cost,
-            h: priority(m.floor, cost, size),
-            used: m.clock,
-        };
-        m.entries.insert(key, entry);
-        m.bytes += size;
+        true
     }
 }
 
@@ -417,13 +587,36 @@ pub fn run(graph: &Graph, opts: &RunOptions<'_>) -> Result<RunResult, RunError> 
     let mut hit: Vec<Option<Cached>> = vec![None; n];
     let mut skipped: Vec<Option<StageTiming>> = vec![None; n];
     let mut families: Vec<Option<u64>> = vec![None; n];
+    // Item-level stages under a cache: their trial plans, each trial's hit
+    // or whether it is computed, their items and costs by trial.
+    let mut item_plans: Vec<Option<items::ItemPlan>> = (0..n).map(|_| None).collect();
+    let mut item_hits: Vec<Vec<Option<(Payload, Duration)>>> = vec![Vec::new(); n];
+    let mut item_times: Vec<Vec<Option<Duration>>> = vec![Vec::new(); n];
+    let mut compute: Vec<Vec<bool>> = vec![Vec::new(); n];
+    let mut partial: Vec<Option<Vec<Option<Item>>>> = vec![None; n];
+    let mut item_costs: Vec<Vec<Duration>> = vec![Vec::new(); n];
     if let Some(c) = opts.cache {
         keys = stage_keys(graph);
-        plan(graph, c, &keys, opts.keep_outputs, &mut hit, &mut skipped);
-        let cacheable: Vec<u64> = (0..n)
+        item_plans = items::plans(graph, &keys, &key_context(graph))?;
+        plan(
+            graph,
+            c,
+            &keys,
+            &item_plans,
+            opts.keep_outputs,
+            &mut hit,
+            &mut skipped,
+            &mut item_hits,
+            &mut item_times,
+            &mut compute,
+        );
+        let mut cacheable: Vec<u64> = (0..n)
             .filter(|&i| !always_runs(&graph.nodes[i].stage))
             .map(|i| keys[i])
             .collect();
+        for p in item_plans.iter().flatten() {
+            cacheable.extend_from_slice(&p.keys);
+        }
         families = fit_families(graph);
         let own: Vec<u64> = families.iter().flatten().copied().collect();
         c.started(&cacheable, &own);
@@ -444,7 +637,45 @@ pub fn run(graph: &Graph, opts: &RunOptions<'_>) -> Result<RunResult, RunError> 
                 result.outputs.insert(node.id.clone(), items.clone());
             }
             result.timings.push(timing);
-            release_inputs(graph, i, &mut readers, &mut outputs);
+            release_inputs(graph, i, &mut readers, &mut outputs, &mut partial);
+            continue;
+        }
+        if let (Some(p), Some(c)) = (&item_plans[i], opts.cache) {
+            let served = (
+                std::mem::take(&mut item_hits[i]),
+                std::mem::take(&mut item_times[i]),
+                skipped[i].take(),
+            );
+            // The same trials of the stages reading this one, when all are item-level.
+            let reader_keys: Vec<&[u64]> = (0..n)
+                .filter(|&j| graph.input_index[j].contains(&i))
+                .map(|j| item_plans[j].as_ref().map(|r| r.keys.as_slice()))
+                .collect::<Option<_>>()
+                .unwrap_or_default();
+            let (items, timing, costs) = run_item_stage(
+                graph,
+                i,
+                p,
+                c,
+                opts,
+                served,
+                &compute[i],
+                &partial,
+                &item_costs,
+                &reader_keys,
+            )?;
+            upstream_cost[i] = inputs_cost + timing.total;
+            item_costs[i] = costs;
+            if items.iter().all(Option::is_some) {
+                let full: Arc<Vec<Item>> = Arc::new(items.iter().flatten().cloned().collect());
+                if opts.keep_outputs {
+                    result.outputs.insert(node.id.clone(), full.clone());
+                }
+                outputs[i] = Some(full);
+            }
+            partial[i] = Some(items);
+            result.timings.push(timing);
+            release_inputs(graph, i, &mut readers, &mut outputs, &mut partial);
             continue;
         }
         let prov = Provenance {
@@ -471,7 +702,7 @@ pub fn run(graph: &Graph, opts: &RunOptions<'_>) -> Result<RunResult, RunError> 
                 result.outputs.insert(node.id.clone(), items.clone());
             }
             outputs[i] = items;
-            release_inputs(graph, i, &mut readers, &mut outputs);
+            release_inputs(graph, i, &mut readers, &mut outputs, &mut partial);
             continue;
         }
         let inputs: Vec<Arc<Vec<Item>>> = graph.input_index[i]
@@ -706,7 +937,7 @@ pub fn run(graph: &Graph, opts: &RunOptions<'_>) -> Result<RunResult, RunError> 
             outputs[i] = Some(items);
         }
         result.timings.push(timing);
-        release_inputs(graph, i, &mut readers, &mut outputs);
+        release_inputs(graph, i, &mut readers, &mut outputs, &mut partial);
     }
     if let Some(c) = opts.cache {
         let own: Vec<u64> = families.iter().flatten().copied().collect();
@@ -726,8 +957,7 @@ pub fn run(graph: &Graph, opts: &RunOptions<'_>) -> Result<RunResult, RunError> 
 /// folds to another whose differ.
 fn stage_keys(graph: &Graph) -> Vec<u64> {
     let mut keys = vec![0u64; graph.nodes.len()];
-    let base = std::path::absolute(&graph.base_dir).unwrap_or_else(|_| graph.base_dir.clone());
-    let context = serde_json::json!([base.to_string_lossy(), graph.run.protocol]).to_string();
+    let context = key_context(graph);
     for &i in &graph.order {
         let node = &graph.nodes[i];
         let settings = settings_json(node.config.as_ref()).to_string();
@@ -740,6 +970,13 @@ fn stage_keys(graph: &Graph) -> Vec<u64> {
         keys[i] = derive_seed(graph.run.seed, &labels);
     }
     keys
+}
+
+/// What every key of a graph covers besides its stages: the folder relative
+/// paths resolve against and the evaluation protocol (see [`stage_keys`]).
+fn key_context(graph: &Graph) -> String {
+    let base = std::path::absolute(&graph.base_dir).unwrap_or_else(|_| graph.base_dir.clone());
+    serde_json::json!([base.to_string_lossy(), graph.run.protocol]).to_string()
 }
 
 /// Stages that run at every run, served from nothing a cache holds: sinks,
@@ -783,16 +1020,56 @@ fn fit_families(graph: &Graph) -> Vec<Option<u64>> {
 ///
 /// Fetching the hits here, before anything runs, pins them: the outputs this
 /// run computes cannot evict a hit the plan relies on.
+///
+/// An item-level stage ([`items`]) is planned trial by trial: a trial is
+/// wanted when a reader computes that trial (every trial, for a reader that
+/// is not item-level); a wanted trial is fetched or computed, and a trial
+/// nobody wants is computed only when the cache has never seen it.
+#[allow(clippy::too_many_arguments)]
 fn plan(
     graph: &Graph,
     cache: &Cache,
     keys: &[u64],
+    item_plans: &[Option<items::ItemPlan>],
     keep_outputs: bool,
     hit: &mut [Option<Cached>],
     skipped: &mut [Option<StageTiming>],
+    item_hits: &mut [Vec<Option<(Payload, Duration)>>],
+    item_times: &mut [Vec<Option<Duration>>],
+    compute: &mut [Vec<bool>],
 ) {
     let mut wanted = vec![false; graph.nodes.len()];
+    let mut wanted_trials: Vec<Vec<bool>> = item_plans
+        .iter()
+        .map(|p| vec![false; p.as_ref().map_or(0, |p| p.keys.len())])
+        .collect();
     for &i in graph.order.iter().rev() {
+        if let Some(p) = &item_plans[i] {
+            let known = cache.item_times(&p.keys);
+            // Fetched now: a run's start drops what no later run needs.
+            skipped[i] = cache.timing(keys[i]);
+            let look: Vec<bool> = (0..p.keys.len())
+                .map(|t| wanted[i] || keep_outputs || wanted_trials[i][t] || known[t].is_none())
+                .collect();
+            item_hits[i] = cache.get_items(&p.keys, &look);
+            compute[i] = look
+                .iter()
+                .zip(&item_hits[i])
+                .map(|(&l, h)| l && h.is_none())
+                .collect();
+            item_times[i] = known;
+            if look.iter().any(|&l| l) {
+                cache.count(!compute[i].iter().any(|&c| c));
+            }
+            for (t, _) in compute[i].iter().enumerate().filter(|(_, &c)| c) {
+                for &j in &graph.input_index[i] {
+                    if let Some(w) = wanted_trials[j].get_mut(t) {
+                        *w = true;
+                    }
+                }
+            }
+            continue;
+        }
         let computed = if always_runs(&graph.nodes[i].stage) {
             true
         } else if wanted[i] || keep_outputs {
@@ -814,13 +1091,194 @@ fn plan(
 }
 
 /// Drops an input's output once its last reader is done.
-fn release_inputs(graph: &Graph, i: usize, readers: &mut [usize], outputs: &mut [Option<Arc<Vec<Item>>>]) {
+fn release_inputs(
+    graph: &Graph,
+    i: usize,
+    readers: &mut [usize],
+    outputs: &mut [Option<Arc<Vec<Item>>>],
+    partial: &mut [Option<Vec<Option<Item>>>],
+) {
     for &j in &graph.input_index[i] {
         readers[j] -= 1;
         if readers[j] == 0 {
             outputs[j] = None;
+            partial[j] = None;
         }
     }
+}
+
+/// What the plan fetched for an item-level stage: each trial's hit, each
+/// trial's known time, and the stage-level timing of a run that computed it
+/// all.
+type Served = (
+    Vec<Option<(Payload, Duration)>>,
+    Vec<Option<Duration>>,
+    Option<StageTiming>,
+);
+
+/// What an item-level stage gives under a cache: its items by trial (the
+/// trials nobody wanted left out), its timing, and each trial's cost to
+/// recompute with everything upstream.
+type ItemOutcome = (Vec<Option<Item>>, StageTiming, Vec<Duration>);
+
+/// Runs an item-level stage under a cache: computes the trials the plan
+/// marked, takes the planned hits, and keeps what it computed.
+#[allow(clippy::too_many_arguments)]
+fn run_item_stage(
+    graph: &Graph,
+    i: usize,
+    plan: &items::ItemPlan,
+    cache: &Cache,
+    opts: &RunOptions<'_>,
+    (hits, mut own, stored): Served,
+    compute: &[bool],
+    partial: &[Option<Vec<Option<Item>>>],
+    costs: &[Vec<Duration>],
+    readers: &[&[u64]],
+) -> Result<ItemOutcome, RunError> {
+    let node = &graph.nodes[i];
+    let id = node.id.as_str();
+    let seed = graph.run.seed;
+    let len = plan.keys.len();
+    let todo: Vec<usize> = (0..len).filter(|&t| compute.get(t) == Some(&true)).collect();
+    own.resize(len, None);
+    let mut items: Vec<Option<Item>> = hits
+        .into_iter()
+        .zip(&plan.metas)
+        .map(|(h, meta)| {
+            h.map(|(payload, _)| Item {
+                meta: meta.clone(),
+                payload,
+            })
+        })
+        .collect();
+    items.resize(len, None);
+    let mut timing = StageTiming {
+        id: node.id.clone(),
+        type_name: node.type_name.clone(),
+        role: node.stage.role(),
+        ..StageTiming::default()
+    };
+    if todo.is_empty() {
+        // Nothing computed: the timing of the run that computed it all, or
+        // the trials' own times.
+        timing = match stored {
+            Some(t) => StageTiming {
+                id: timing.id,
+                type_name: timing.type_name,
+                role: timing.role,
+                cached: true,
+                ..t
+            },
+            None => {
+                let per_trial: Vec<Duration> = own.iter().map(|d| d.unwrap_or_default()).collect();
+                StageTiming {
+                    total: per_trial.iter().sum(),
+                    per_trial,
+                    cached: true,
+                    ..timing
+                }
+            }
+        };
+    } else {
+        let input = |j: usize, t: usize| -> Result<&Item, RunError> {
+            partial[j]
+                .as_ref()
+                .and_then(|v| v.get(t))
+                .and_then(Option::as_ref)
+                .ok_or_else(|| {
+                    RunError::new(
+                        id,
+                        Some(&plan.metas[t].trial_id),
+                        format!(
+                            "input `{}` has no item for this trial (internal planning error)",
+                            graph.nodes[j].id
+                        ),
+                    )
+                })
+        };
+        start(opts, id, todo.len());
+        let t_stage = Instant::now();
+        let done: Vec<Result<Timed<Payload>, RunError>> = todo
+            .par_iter()
+            .map(|&t| {
+                let trial_id = plan.metas[t].trial_id.as_str();
+                let (payload, dt) = match (&node.stage, &plan.listed) {
+                    (Stage::Source(src), Some(listed)) => {
+                        let ctx = TrialContext {
+                            stage_id: id,
+                            meta: &listed[t],
+                            seed: derive_seed(seed, &[id, trial_id]),
+                        };
+                        timed(|| src.produce(&ctx))
+                    }
+                    (Stage::Map(map), _) => {
+                        let inputs: Vec<&Item> = graph.input_index[i]
+                            .iter()
+                            .map(|&j| input(j, t))
+                            .collect::<Result<_, _>>()?;
+                        let ctx = TrialContext {
+                            stage_id: id,
+                            meta: &inputs[0].meta,
+                            seed: derive_seed(seed, &[id, trial_id]),
+                        };
+                        timed(|| map.process(&inputs, &ctx))
+                    }
+                    _ => {
+                        return Err(RunError::new(
+                            id,
+                            None,
+                            "not a per-trial stage (internal planning error)",
+                        ))
+                    }
+                };
+                tick(opts);
+                let payload = payload.map_err(|e| RunError::new(id, Some(trial_id), e.message))?;
+                Ok((payload, dt))
+            })
+            .collect();
+        timing.total = t_stage.elapsed();
+        let covered = cache.covered(&plan.keys, readers);
+        let mut keep = Vec::with_capacity(todo.len());
+        for (&t, r) in todo.iter().zip(done) {
+            let (payload, dt) = r?;
+            if covered[t] {
+                // Its readers' trials will be there instead: only its time is kept.
+                keep.push((plan.keys[t], None, dt, Duration::ZERO));
+                own[t] = Some(dt);
+                items[t] = Some(Item {
+                    meta: plan.metas[t].clone(),
+                    payload,
+                });
+                continue;
+            }
+            own[t] = Some(dt);
+            let upstream: Duration = graph.input_index[i].iter().filter_map(|&j| costs[j].get(t)).sum();
+            keep.push((plan.keys[t], Some(payload.clone()), dt, dt + upstream));
+            items[t] = Some(Item {
+                meta: plan.metas[t].clone(),
+                payload,
+            });
+        }
+        cache.put_items(keep);
+        timing.per_trial = own.iter().map(|d| d.unwrap_or_default()).collect();
+        if todo.len() == len {
+            cache.put_timing(plan.stage_key, timing.clone());
+        }
+        if let Some(p) = opts.progress {
+            p.finish(id);
+        }
+    }
+    let cost: Vec<Duration> = (0..len)
+        .map(|t| {
+            own[t].unwrap_or_default()
+                + graph.input_index[i]
+                    .iter()
+                    .filter_map(|&j| costs[j].get(t))
+                    .sum::<Duration>()
+        })
+        .collect();
+    Ok((items, timing, cost))
 }
 
 fn start(opts: &RunOptions<'_>, id: &str, total: usize) {
@@ -967,7 +1425,7 @@ mod tests {
         /// count exact and within the budget, and never panics.
         #[test]
         fn the_cache_accounting_holds_under_any_sequence(
-            ops in proptest::collection::vec((0u8..4, 0u64..12, 1usize..40, 0u64..50), 1..200),
+            ops in proptest::collection::vec((0u8..7, 0u64..12, 1usize..40, 0u64..50), 1..200),
             budget_cells in 16usize..200,
         ) {
             let c = Cache::with_budget(budget_cells * 8);
@@ -977,12 +1435,37 @@ mod tests {
                     2 => {
                         let _ = c.get(key);
                     }
-                    _ => {
+                    4 => {
+                        // A batch of trials, some keeping their time alone.
+                        let batch = (0..cells % 5)
+                            .map(|b| {
+                                let payload = images(cells * 16 / (b + 1))[0].payload.clone();
+                                let kept = !(b as u64 + cost).is_multiple_of(3);
+                                (key + b as u64, kept.then_some(payload), Duration::from_millis(cost), Duration::from_millis(cost))
+                            })
+                            .collect();
+                        c.put_items(batch);
+                    }
+                    5 => {
+                        let keys: Vec<u64> = (key..key + 4).collect();
+                        let got = c.get_items(&keys, &[true, false, true, true]);
+                        proptest::prop_assert!(got[1].is_none());
+                        // A trial served has its time.
+                        let times = c.item_times(&keys);
+                        for (g, t) in got.iter().zip(&times) {
+                            proptest::prop_assert!(g.is_none() || t.is_some());
+                        }
+                    }
+                    3 => {
                         // A run announced once, now started: its output goes.
                         c.map.lock().unwrap_or_else(|e| e.into_inner()).future.insert(key, 1);
                         c.started(&[key], &[key]);
                         proptest::prop_assert!(c.get(key).is_none());
                         c.map.lock().unwrap_or_else(|e| e.into_inner()).future.remove(&key);
+                    }
+                    _ => {
+                        let _ = c.get_items(&[key], &[true]);
+                        let _ = c.covered(&[key], &[&[key + 1]]);
                     }
                 }
                 let m = c.map.lock().unwrap_or_else(|e| e.into_inner());
@@ -991,6 +1474,28 @@ mod tests {
                 proptest::prop_assert!(m.bytes <= c.budget_bytes());
             }
         }
+    }
+
+    #[test]
+    fn a_trial_is_covered_only_when_every_later_run_has_its_readers_trial() {
+        let c = Cache::default();
+        {
+            let mut m = c.map.lock().unwrap();
+            m.future.extend([(1, 3), (2, 3), (3, 1), (4, 3)]);
+        }
+        // Key 1 is in 3 later runs, and so is its reader's trial 2.
+        assert_eq!(c.covered(&[1], &[&[2]]), [true]);
+        // A reader whose trial is in 1 later run of 3: two runs read key 1.
+        assert_eq!(c.covered(&[1], &[&[2], &[3]]), [false]);
+        assert_eq!(c.covered(&[1, 4], &[&[2, 3]]), [true, false]);
+        // No readers, or nothing announced: kept.
+        assert_eq!(c.covered(&[1], &[]), [false]);
+        assert_eq!(c.covered(&[9], &[&[2]]), [false]);
+        // A covered trial keeps its time, not its payload.
+        c.put_items(vec![(1, None, Duration::from_millis(5), Duration::ZERO)]);
+        assert_eq!(c.item_times(&[1]), [Some(Duration::from_millis(5))]);
+        assert!(c.get_items(&[1], &[true])[0].is_none());
+        assert_eq!(c.held_bytes(), 0);
     }
 
     #[test]

@@ -454,6 +454,19 @@ pub trait Source: Send + Sync {
     fn trials(&self) -> Result<Vec<TrialMeta>, StageError>;
     /// The payload of one trial: a pure function of (config, metadata, seed).
     fn produce(&self, ctx: &TrialContext<'_>) -> Result<Payload, StageError>;
+    /// What one trial's payload depends on besides the stage's id and type,
+    /// the graph's seed and the trial's metadata, as text to hash: a sweep's
+    /// cache reuses a trial's payload (and everything computed from it)
+    /// across points whose fingerprints and metadata agree. `None` (the
+    /// default) stands for the stage's whole settings, so a trial is reused
+    /// only when nothing in the stage's config changed. A source whose config
+    /// has parts only some trials read (a scene's conditions) returns what
+    /// this trial reads, so that a sweep shifting one condition does not
+    /// recompute the other's trials. It must cover everything `produce`
+    /// reads besides `ctx.meta` and `ctx.seed`, or a stale payload is served.
+    fn trial_fingerprint(&self, _meta: &TrialMeta) -> Option<String> {
+        None
+    }
     /// Its live form, for a source that produces trials as they happen (a
     /// DAQ): `palpate run --live` follows it instead of `trials`/`produce`.
     fn live(&self) -> Option<&dyn crate::stream::LiveSource> {

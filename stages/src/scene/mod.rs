@@ -75,11 +75,16 @@ impl StageConfig for SceneConfig {
     }
     fn build(&self, ctx: &BuildContext) -> Result<Stage, ConfigError> {
         let mut sims = Vec::new();
+        let mut fingerprints = Vec::new();
         for (name, cfg, scene) in self.resolve_conditions(ctx)?.0 {
-            let sim = Simulator::new(scene, array_seed(ctx, cfg.array_copy.unwrap_or(0)))?;
+            let seed = array_seed(ctx, cfg.array_copy.unwrap_or(0));
+            // The condition's merged config (scene file, base keys and the
+            // condition's own) and its array draw: all a trial of it reads.
+            fingerprints.push(serde_json::json!([cfg, seed.to_string()]).to_string());
+            let sim = Simulator::new(scene, seed)?;
             sims.push((name, Arc::new(sim)));
         }
-        Ok(Stage::Source(Box::new(SceneSource { sims })))
+        Ok(Stage::Source(Box::new(SceneSource { sims, fingerprints })))
     }
     /// The sample rate (`motion.sample_rate_hz`), for the stages downstream
     /// (a low-pass checks its cutoff against it), and the deprecation
@@ -118,12 +123,28 @@ fn array_seed(ctx: &BuildContext, copy: u32) -> u64 {
 /// The runtime `scene` source: one simulator per condition.
 pub struct SceneSource {
     sims: Vec<(Option<String>, Arc<Simulator>)>,
+    /// Per condition (same order as `sims`): what its trials depend on, for
+    /// [`Source::trial_fingerprint`].
+    fingerprints: Vec<String>,
 }
 
 impl SceneSource {
     /// The simulator behind the source (the first condition's).
     pub fn simulator(&self) -> &Simulator {
         &self.sims[0].1
+    }
+    /// The position in `sims` of the condition `meta` names.
+    fn condition_of(&self, meta: &TrialMeta) -> Result<usize, StageError> {
+        let want = meta.conditions.get("condition");
+        self.sims
+            .iter()
+            .position(|(name, _)| name.as_ref() == want || self.sims.len() == 1 && name.is_none())
+            .ok_or_else(|| {
+                StageError::new(format!(
+                    "trial `{}` names condition {want:?}, which this scene does not simulate",
+                    meta.trial_id
+                ))
+            })
     }
 }
 
@@ -178,19 +199,16 @@ impl Source for SceneSource {
                 ctx.meta.trial_id
             ))
         })?;
-        let want = ctx.meta.conditions.get("condition");
-        let sim = self
-            .sims
-            .iter()
-            .find(|(name, _)| name.as_ref() == want || self.sims.len() == 1 && name.is_none())
-            .map(|(_, sim)| sim)
-            .ok_or_else(|| {
-                StageError::new(format!(
-                    "trial `{}` names condition {want:?}, which this scene does not simulate",
-                    ctx.meta.trial_id
-                ))
-            })?;
+        let sim = &self.sims[self.condition_of(ctx.meta)?].1;
         Ok(sim.simulate(angle, ctx.seed)?.into())
+    }
+
+    /// The trial's condition's merged config and array seed: a sweep that
+    /// shifts one condition reuses the other conditions' trials.
+    fn trial_fingerprint(&self, meta: &TrialMeta) -> Option<String> {
+        self.condition_of(meta)
+            .ok()
+            .and_then(|c| self.fingerprints.get(c).cloned())
     }
 }
 
@@ -239,7 +257,10 @@ pub fn simulate_to_dir(
             .map_err(|e| StageError::new(format!("scene file {}: {e}", scene_file.display())))?;
         sims.push((name, Arc::new(sim)));
     }
-    let source = SceneSource { sims };
+    let source = SceneSource {
+        sims,
+        fingerprints: Vec::new(),
+    };
     let metas = source.trials()?;
     std::fs::create_dir_all(out).map_err(|e| StageError::new(format!("creating {}: {e}", out.display())))?;
     let names = taxel_names(&source.simulator().scene.layout);

@@ -1,0 +1,175 @@
+//! A sweep's cache reuses trials one at a time: a sweep that shifts one
+//! condition of a two-condition scene simulates and encodes the other
+//! condition's trials once, and every result is the bits of running each
+//! point alone.
+
+use palpate_core as core;
+use palpate_core::{LoadOptions, Progress, RunOptions};
+use std::sync::Mutex;
+
+const GRAPH: &str = r#"
+[run]
+seed = 7
+protocol = { train_test = { key = "condition", train = ["train"] } }
+
+[stages.scene]
+type = "scene"
+file = "graphs/scenes/lab.toml"
+angles = [30, 60]
+trials_per_angle = 2
+
+[stages.scene.conditions.train]
+[stages.scene.conditions.test]
+
+[stages.filter]
+type = "lowpass"
+inputs = ["scene"]
+cutoff_hz = 10.0
+
+[stages.norm]
+type = "normalize"
+inputs = ["filter"]
+
+[stages.drive]
+type = "drive"
+inputs = ["norm"]
+gain = 30.0
+
+[stages.enc]
+type = "izhikevich"
+inputs = ["drive"]
+
+[stages.bins]
+type = "bin"
+inputs = ["enc"]
+
+[stages.knn]
+type = "knn"
+inputs = ["bins"]
+
+[stages.mae]
+type = "mae"
+inputs = ["knn"]
+
+[sweep]
+# The normal force: a shift the trials' metadata (crossing times) does not
+# show, so only the scene's fingerprint tells the points' `test` trials apart.
+key = "stages.scene.conditions.test.motion.force_rel"
+values = [1.0, 1.3]
+"#;
+
+/// Records how many trials each stage starts, run by run.
+#[derive(Default)]
+struct Starts(Mutex<Vec<(String, usize)>>);
+
+impl Progress for Starts {
+    fn start(&self, stage: &str, total: usize) {
+        if let Ok(mut v) = self.0.lock() {
+            v.push((stage.to_string(), total));
+        }
+    }
+    fn tick(&self) {}
+    fn finish(&self, _stage: &str) {}
+}
+
+fn sweep(out: &std::path::Path, keep_outputs: bool, progress: &Starts) -> Vec<core::sweep::SweepRun> {
+    palpate::link();
+    let opts = LoadOptions {
+        out: Some(out.to_path_buf()),
+        ..Default::default()
+    };
+    let g = core::load_str(GRAPH, "items.toml", "items", &opts).unwrap_or_else(|e| panic!("{e}"));
+    let cache = core::Cache::default();
+    let run_opts = RunOptions {
+        cache: Some(&cache),
+        keep_outputs,
+        progress: Some(progress),
+    };
+    core::sweep::run_text(GRAPH, "items.toml", "items", &opts, &g, &run_opts)
+        .unwrap_or_else(|e| panic!("{e}"))
+}
+
+fn out_dir(name: &str) -> std::path::PathBuf {
+    let d = std::env::temp_dir().join(format!("palpate-sweep-items-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    d
+}
+
+#[test]
+fn shifting_one_condition_recomputes_only_its_trials() {
+    let starts = Starts::default();
+    let out = out_dir("counts");
+    let runs = sweep(&out, false, &starts);
+    assert_eq!(runs.len(), 2);
+    let starts = starts.0.into_inner().unwrap();
+    let per_trial = ["scene", "filter", "norm", "drive", "enc", "bins"];
+    let counts: Vec<(&str, usize)> = starts
+        .iter()
+        .filter(|(s, _)| per_trial.contains(&s.as_str()))
+        .map(|(s, n)| (s.as_str(), *n))
+        .collect();
+    // Point 1: both conditions (2 angles x 2 trials each); point 2: the
+    // shifted `test` condition alone.
+    let want: Vec<(&str, usize)> = per_trial
+        .iter()
+        .map(|&s| (s, 8))
+        .chain(per_trial.iter().map(|&s| (s, 4)))
+        .collect();
+    assert_eq!(counts, want);
+    // The second point's scene is computed, not served: it reports a run's
+    // own times (not `cached`), one per trial.
+    let scene = runs[1].result.timings.iter().find(|t| t.id == "scene").unwrap();
+    assert!(!scene.cached && scene.per_trial.len() == 8);
+    // The reports are those of each point run alone, without a cache.
+    for r in &runs {
+        let alone = core::run(&r.graph, &RunOptions::default()).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(alone.reports, r.result.reports, "{}", r.label);
+    }
+    let mae = |k: usize| runs[k].result.reports[0].1.metrics.clone();
+    assert_ne!(mae(0), mae(1), "the shift changes the test trials' estimates");
+    let _ = std::fs::remove_dir_all(&out);
+}
+
+#[test]
+fn trials_served_from_the_cache_are_the_bits_of_running_each_point_alone() {
+    let out = out_dir("bits");
+    let runs = sweep(&out, true, &Starts::default());
+    for r in &runs {
+        let alone = core::run(
+            &r.graph,
+            &RunOptions {
+                keep_outputs: true,
+                ..Default::default()
+            },
+        )
+        .unwrap_or_else(|e| panic!("{e}"));
+        for id in ["scene", "filter", "enc", "bins", "knn"] {
+            let (a, b) = (&alone.outputs[id], &r.result.outputs[id]);
+            assert_eq!(a.len(), b.len(), "{id} at {}", r.label);
+            for (x, y) in a.iter().zip(b.iter()) {
+                assert_eq!(
+                    x.content_key(),
+                    y.content_key(),
+                    "{id} {} at {}",
+                    x.meta.trial_id,
+                    r.label
+                );
+                // Metadata and provenance are this point's, not those of the
+                // point that computed the payload.
+                assert_eq!(x.meta, y.meta, "{id} {} at {}", x.meta.trial_id, r.label);
+            }
+        }
+        assert_eq!(alone.reports, r.result.reports, "{}", r.label);
+    }
+    // The shifted condition differs between the points; the other does not.
+    let scene = |k: usize, t: &str| {
+        runs[k].result.outputs["scene"]
+            .iter()
+            .find(|i| i.meta.trial_id == t)
+            .map(|i| i.content_key())
+            .unwrap()
+    };
+    assert_eq!(scene(0, "train-edge-30deg-r00"), scene(1, "train-edge-30deg-r00"));
+    assert_ne!(scene(0, "test-edge-30deg-r00"), scene(1, "test-edge-30deg-r00"));
+    let _ = std::fs::remove_dir_all(&out);
+}
