@@ -14,7 +14,8 @@
 //!
 //! With a sweep [`Cache`], every stage runs stage-at-a-time instead and
 //! outputs are kept for later points (sources and the maps below them trial
-//! by trial, see [`items`]): reuse across points is worth the memory there.
+//! by trial, see `runtime/items.rs`): reuse across points is worth the
+//! memory there.
 //!
 //! Determinism: every per-trial computation is a pure function of (config, input,
 //! seed), seeds come from [`derive_seed`] over (graph seed, stage id, trial id or
@@ -81,7 +82,7 @@ pub trait Progress: Sync {
 /// priority of the last entry dropped (so entries not used for a while age
 /// out); the lowest `H` goes first, ties to the least recently used.
 /// Sources and the maps below them are kept one trial at a time, each trial
-/// under its own key ([`items`]): a sweep that changes one condition of a
+/// under its own key (`runtime/items.rs`): a sweep that changes one condition of a
 /// scene (`graphs/shift/shift.toml` shifts its `test` condition and leaves
 /// `train` alone) computes only that condition's trials at each point, and
 /// the other's are served from the first point that computed them. A
