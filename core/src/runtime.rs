@@ -594,7 +594,7 @@ pub fn run(graph: &Graph, opts: &RunOptions<'_>) -> Result<RunResult, RunError> 
     let mut item_hits: Vec<Vec<Option<(Payload, Duration)>>> = vec![Vec::new(); n];
     let mut item_times: Vec<Vec<Option<Duration>>> = vec![Vec::new(); n];
     let mut compute: Vec<Vec<bool>> = vec![Vec::new(); n];
-    let mut partial: Vec<Option<Vec<Option<Item>>>> = vec![None; n];
+    let mut partial: Vec<Option<Partial>> = (0..n).map(|_| None).collect();
     let mut item_costs: Vec<Vec<Duration>> = vec![Vec::new(); n];
     if let Some(c) = opts.cache {
         keys = stage_keys(graph);
@@ -642,6 +642,30 @@ pub fn run(graph: &Graph, opts: &RunOptions<'_>) -> Result<RunResult, RunError> 
             continue;
         }
         if let (Some(p), Some(c)) = (&item_plans[i], opts.cache) {
+            let prov = Provenance {
+                stage: node.id.clone(),
+                type_name: node.type_name.clone(),
+                settings: settings_json(node.config.as_ref()),
+            };
+            let with_stage = |m: &TrialMeta| {
+                let mut m = m.clone();
+                m.provenance.push(prov.clone());
+                Arc::new(m)
+            };
+            // A source's trials as listed, or the first input's items' metadata.
+            let metas: Arc<Vec<Arc<TrialMeta>>> = Arc::new(match &node.stage {
+                Stage::Source(_) => p.listed.iter().map(&with_stage).collect(),
+                _ => graph.input_index[i]
+                    .first()
+                    .and_then(|&j| partial[j].as_ref())
+                    .ok_or_else(|| {
+                        RunError::new(id, None, "an input has no trials (internal planning error)")
+                    })?
+                    .metas
+                    .iter()
+                    .map(|m| with_stage(m))
+                    .collect::<Vec<_>>(),
+            });
             let served = (
                 std::mem::take(&mut item_hits[i]),
                 std::mem::take(&mut item_times[i]),
@@ -664,6 +688,7 @@ pub fn run(graph: &Graph, opts: &RunOptions<'_>) -> Result<RunResult, RunError> 
                 &partial,
                 &item_costs,
                 &reader_keys,
+                &metas,
             )?;
             upstream_cost[i] = inputs_cost + timing.total;
             item_costs[i] = costs;
@@ -674,7 +699,7 @@ pub fn run(graph: &Graph, opts: &RunOptions<'_>) -> Result<RunResult, RunError> 
                 }
                 outputs[i] = Some(full);
             }
-            partial[i] = Some(items);
+            partial[i] = Some(Partial { items, metas });
             result.timings.push(timing);
             release_inputs(graph, i, &mut readers, &mut outputs, &mut partial);
             continue;
@@ -1097,7 +1122,7 @@ fn release_inputs(
     i: usize,
     readers: &mut [usize],
     outputs: &mut [Option<Arc<Vec<Item>>>],
-    partial: &mut [Option<Vec<Option<Item>>>],
+    partial: &mut [Option<Partial>],
 ) {
     for &j in &graph.input_index[i] {
         readers[j] -= 1;
@@ -1117,6 +1142,14 @@ type Served = (
     Option<StageTiming>,
 );
 
+/// An item-level stage's output under a cache: its items by trial (the
+/// trials nobody wanted left out) and every trial's metadata (what its
+/// readers' items carry, provenance appended).
+struct Partial {
+    items: Vec<Option<Item>>,
+    metas: Arc<Vec<Arc<TrialMeta>>>,
+}
+
 /// What an item-level stage gives under a cache: its items by trial (the
 /// trials nobody wanted left out), its timing, and each trial's cost to
 /// recompute with everything upstream.
@@ -1133,9 +1166,10 @@ fn run_item_stage(
     opts: &RunOptions<'_>,
     (hits, mut own, stored): Served,
     compute: &[bool],
-    partial: &[Option<Vec<Option<Item>>>],
+    partial: &[Option<Partial>],
     costs: &[Vec<Duration>],
     readers: &[&[u64]],
+    metas: &[Arc<TrialMeta>],
 ) -> Result<ItemOutcome, RunError> {
     let node = &graph.nodes[i];
     let id = node.id.as_str();
@@ -1145,7 +1179,7 @@ fn run_item_stage(
     own.resize(len, None);
     let mut items: Vec<Option<Item>> = hits
         .into_iter()
-        .zip(&plan.metas)
+        .zip(metas)
         .map(|(h, meta)| {
             h.map(|(payload, _)| Item {
                 meta: meta.clone(),
@@ -1185,12 +1219,12 @@ fn run_item_stage(
         let input = |j: usize, t: usize| -> Result<&Item, RunError> {
             partial[j]
                 .as_ref()
-                .and_then(|v| v.get(t))
+                .and_then(|p| p.items.get(t))
                 .and_then(Option::as_ref)
                 .ok_or_else(|| {
                     RunError::new(
                         id,
-                        Some(&plan.metas[t].trial_id),
+                        Some(&metas[t].trial_id),
                         format!(
                             "input `{}` has no item for this trial (internal planning error)",
                             graph.nodes[j].id
@@ -1203,17 +1237,17 @@ fn run_item_stage(
         let done: Vec<Result<Timed<Payload>, RunError>> = todo
             .par_iter()
             .map(|&t| {
-                let trial_id = plan.metas[t].trial_id.as_str();
-                let (payload, dt) = match (&node.stage, &plan.listed) {
-                    (Stage::Source(src), Some(listed)) => {
+                let trial_id = metas[t].trial_id.as_str();
+                let (payload, dt) = match &node.stage {
+                    Stage::Source(src) => {
                         let ctx = TrialContext {
                             stage_id: id,
-                            meta: &listed[t],
+                            meta: &plan.listed[t],
                             seed: derive_seed(seed, &[id, trial_id]),
                         };
                         timed(|| src.produce(&ctx))
                     }
-                    (Stage::Map(map), _) => {
+                    Stage::Map(map) => {
                         let inputs: Vec<&Item> = graph.input_index[i]
                             .iter()
                             .map(|&j| input(j, t))
@@ -1248,7 +1282,7 @@ fn run_item_stage(
                 keep.push((plan.keys[t], None, dt, Duration::ZERO));
                 own[t] = Some(dt);
                 items[t] = Some(Item {
-                    meta: plan.metas[t].clone(),
+                    meta: metas[t].clone(),
                     payload,
                 });
                 continue;
@@ -1257,7 +1291,7 @@ fn run_item_stage(
             let upstream: Duration = graph.input_index[i].iter().filter_map(|&j| costs[j].get(t)).sum();
             keep.push((plan.keys[t], Some(payload.clone()), dt, dt + upstream));
             items[t] = Some(Item {
-                meta: plan.metas[t].clone(),
+                meta: metas[t].clone(),
                 payload,
             });
         }

@@ -24,11 +24,13 @@
 //! its inputs' payloads, its metadata and its seed, which derives from the
 //! graph's seed, the stage id and the trial id), so equal keys give equal
 //! bits. Item metadata is rebuilt from the current run (provenance names
-//! the current settings), never taken from the run that computed the payload.
+//! the current settings), never taken from the run that computed the
+//! payload; it is built at the stage's turn and dropped with its output, as
+//! without a cache.
 
 use super::{check_unique_ids, mixed_trials, RunError};
 use crate::graph::Graph;
-use crate::payload::{Provenance, TrialMeta};
+use crate::payload::TrialMeta;
 use crate::stage::{derive_seed, settings_json, Stage};
 use std::sync::Arc;
 
@@ -38,11 +40,10 @@ pub(super) struct ItemPlan {
     pub stage_key: u64,
     /// Each trial's key, in trial order.
     pub keys: Vec<u64>,
-    /// Each trial's item metadata, provenance up to this stage included.
-    pub metas: Vec<Arc<TrialMeta>>,
-    /// A source's trials as it listed them (index filled, no provenance):
-    /// what `produce` is given.
-    pub listed: Option<Vec<TrialMeta>>,
+    /// The trials as the source upstream listed them (index filled, no
+    /// provenance), shared by every stage below it: an item's metadata is
+    /// its source's plus provenance. A source's `produce` is given these.
+    pub listed: Arc<Vec<TrialMeta>>,
 }
 
 /// Whether each node is item-level: a source, or a map whose inputs are all
@@ -64,13 +65,6 @@ fn meta_label(m: &TrialMeta) -> String {
     serde_json::json!([m.trial_id, m.index, m.label, m.group, m.crossing_ms, m.conditions]).to_string()
 }
 
-/// `meta` with `prov` appended to its provenance.
-fn with_stage(meta: &TrialMeta, prov: &Provenance) -> Arc<TrialMeta> {
-    let mut m = meta.clone();
-    m.provenance.push(prov.clone());
-    Arc::new(m)
-}
-
 /// Every item-level stage's plan, by node (`None` for the others). Lists
 /// each source's trials (a source that cannot list them, two trials that
 /// share an id, or a map whose inputs carry different trials is the error
@@ -89,13 +83,7 @@ pub(super) fn plans(
         }
         let node = &graph.nodes[i];
         let id = node.id.as_str();
-        let settings_value = settings_json(node.config.as_ref());
-        let settings = settings_value.to_string();
-        let prov = Provenance {
-            stage: node.id.clone(),
-            type_name: node.type_name.clone(),
-            settings: settings_value,
-        };
+        let settings = settings_json(node.config.as_ref()).to_string();
         let plan = match &node.stage {
             Stage::Source(src) => {
                 let mut listed = src.trials().map_err(|e| RunError::new(id, None, e.message))?;
@@ -110,12 +98,10 @@ pub(super) fn plans(
                         derive_seed(seed, &[id, &node.type_name, context, &f, &meta_label(m)])
                     })
                     .collect();
-                let metas = listed.iter().map(|m| with_stage(m, &prov)).collect();
                 ItemPlan {
                     stage_key: stage_keys[i],
                     keys,
-                    metas,
-                    listed: Some(listed),
+                    listed: Arc::new(listed),
                 }
             }
             _ => {
@@ -123,19 +109,19 @@ pub(super) fn plans(
                 let first = out[inputs[0]].as_ref().ok_or_else(|| internal(graph, i))?;
                 for (k, &j) in inputs.iter().enumerate().skip(1) {
                     let other = out[j].as_ref().ok_or_else(|| internal(graph, i))?;
-                    let same = other.metas.len() == first.metas.len()
-                        && other
-                            .metas
-                            .iter()
-                            .zip(&first.metas)
-                            .all(|(a, b)| a.trial_id == b.trial_id);
+                    let same = Arc::ptr_eq(&other.listed, &first.listed)
+                        || other.listed.len() == first.listed.len()
+                            && other
+                                .listed
+                                .iter()
+                                .zip(first.listed.iter())
+                                .all(|(a, b)| a.trial_id == b.trial_id);
                     if !same {
                         return Err(mixed_trials(graph, id, i, k));
                     }
                 }
-                let mut keys = Vec::with_capacity(first.metas.len());
-                let mut metas = Vec::with_capacity(first.metas.len());
-                for (t, m) in first.metas.iter().enumerate() {
+                let mut keys = Vec::with_capacity(first.listed.len());
+                for (t, m) in first.listed.iter().enumerate() {
                     let label = meta_label(m);
                     let input_keys: Vec<String> = inputs
                         .iter()
@@ -144,13 +130,11 @@ pub(super) fn plans(
                     let mut labels: Vec<&str> = vec![id, &node.type_name, &settings, context, &label];
                     labels.extend(input_keys.iter().map(String::as_str));
                     keys.push(derive_seed(seed, &labels));
-                    metas.push(with_stage(m, &prov));
                 }
                 ItemPlan {
                     stage_key: stage_keys[i],
                     keys,
-                    metas,
-                    listed: None,
+                    listed: first.listed.clone(),
                 }
             }
         };
