@@ -279,6 +279,22 @@ pub struct TrialMeta {
     pub provenance: Vec<Provenance>,
 }
 
+impl TrialMeta {
+    /// Everything but provenance (which names the settings of every stage
+    /// upstream, and so differs between sweep points that produce the same
+    /// trial): what content and cache keys hash of a trial's metadata.
+    pub(crate) fn identity(&self) -> serde_json::Value {
+        serde_json::json!([
+            self.trial_id,
+            self.index,
+            self.label,
+            self.group,
+            self.crossing_ms,
+            self.conditions
+        ])
+    }
+}
+
 /// Analog taxel signals of one trial.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Signals {
@@ -521,16 +537,8 @@ impl Item {
     pub fn content_key(&self) -> u64 {
         use std::hash::Hasher;
         let mut h = std::hash::DefaultHasher::new();
-        let m = &self.meta;
         let mut json = |v: serde_json::Value| h.write(v.to_string().as_bytes());
-        json(serde_json::json!([
-            m.trial_id,
-            m.index,
-            m.label,
-            m.group,
-            m.crossing_ms,
-            m.conditions
-        ]));
+        json(self.meta.identity());
         // Destructured in full: a new field is a compile error here until it
         // is hashed.
         let words: &mut dyn Iterator<Item = u64> = match &self.payload {

@@ -647,11 +647,7 @@ pub fn run(graph: &Graph, opts: &RunOptions<'_>) -> Result<RunResult, RunError> 
                 type_name: node.type_name.clone(),
                 settings: settings_json(node.config.as_ref()),
             };
-            let with_stage = |m: &TrialMeta| {
-                let mut m = m.clone();
-                m.provenance.push(prov.clone());
-                Arc::new(m)
-            };
+            let with_stage = |m: &TrialMeta| meta_with(m, &prov);
             // A source's trials as listed, or the first input's items' metadata.
             let metas: Arc<Vec<Arc<TrialMeta>>> = Arc::new(match &node.stage {
                 Stage::Source(_) => p.listed.iter().map(&with_stage).collect(),
@@ -1188,6 +1184,9 @@ fn run_item_stage(
         })
         .collect();
     items.resize(len, None);
+    // Trial `t`'s cost to recompute everything upstream of this stage.
+    let upstream =
+        |t: usize| -> Duration { graph.input_index[i].iter().filter_map(|&j| costs[j].get(t)).sum() };
     let mut timing = StageTiming {
         id: node.id.clone(),
         type_name: node.type_name.clone(),
@@ -1277,19 +1276,11 @@ fn run_item_stage(
         let mut keep = Vec::with_capacity(todo.len());
         for (&t, r) in todo.iter().zip(done) {
             let (payload, dt) = r?;
-            if covered[t] {
-                // Its readers' trials will be there instead: only its time is kept.
-                keep.push((plan.keys[t], None, dt, Duration::ZERO));
-                own[t] = Some(dt);
-                items[t] = Some(Item {
-                    meta: metas[t].clone(),
-                    payload,
-                });
-                continue;
-            }
             own[t] = Some(dt);
-            let upstream: Duration = graph.input_index[i].iter().filter_map(|&j| costs[j].get(t)).sum();
-            keep.push((plan.keys[t], Some(payload.clone()), dt, dt + upstream));
+            // A covered trial keeps its time alone: its readers' trials
+            // will be served instead.
+            let kept = (!covered[t]).then(|| payload.clone());
+            keep.push((plan.keys[t], kept, dt, dt + upstream(t)));
             items[t] = Some(Item {
                 meta: metas[t].clone(),
                 payload,
@@ -1305,13 +1296,7 @@ fn run_item_stage(
         }
     }
     let cost: Vec<Duration> = (0..len)
-        .map(|t| {
-            own[t].unwrap_or_default()
-                + graph.input_index[i]
-                    .iter()
-                    .filter_map(|&j| costs[j].get(t))
-                    .sum::<Duration>()
-        })
+        .map(|t| own[t].unwrap_or_default() + upstream(t))
         .collect();
     Ok((items, timing, cost))
 }
@@ -1329,12 +1314,17 @@ fn tick(opts: &RunOptions<'_>) {
 }
 
 fn with_provenance(meta: &TrialMeta, prov: &Provenance, payload: Payload) -> Item {
-    let mut m = meta.clone();
-    m.provenance.push(prov.clone());
     Item {
-        meta: Arc::new(m),
+        meta: meta_with(meta, prov),
         payload,
     }
+}
+
+/// `meta` with `prov` appended to its provenance.
+fn meta_with(meta: &TrialMeta, prov: &Provenance) -> Arc<TrialMeta> {
+    let mut m = meta.clone();
+    m.provenance.push(prov.clone());
+    Arc::new(m)
 }
 
 fn unzip_timed(

@@ -62,7 +62,7 @@ pub(super) fn item_level(graph: &Graph) -> Vec<bool> {
 
 /// The metadata a trial's key covers: everything but provenance.
 fn meta_label(m: &TrialMeta) -> String {
-    serde_json::json!([m.trial_id, m.index, m.label, m.group, m.crossing_ms, m.conditions]).to_string()
+    m.identity().to_string()
 }
 
 /// Every item-level stage's plan, by node (`None` for the others). Lists
