@@ -1018,3 +1018,96 @@ fn reused_trial_spectra_give_the_bits_of_fresh_ones() {
         }
     }
 }
+
+/// [`batch::prepare`] frame by frame through `Prepared::push`, the path the
+/// streaming estimator takes (and the batch one took before frames were
+/// normalised side by side).
+fn prepare_one_by_one(im: &SpikeImages) -> Result<batch::Prepared, StageError> {
+    let mut p = batch::Prepared::empty(im.layout.len(), im.hop_ms, im.window_ms);
+    for k in 0..im.n_frames {
+        p.push(im.frame(k))?;
+    }
+    Ok(p)
+}
+
+/// Everything `prepare` gives, as bits.
+fn prepared_bits(p: &batch::Prepared) -> (Vec<u64>, Vec<bool>, Vec<u64>, u64, usize) {
+    (
+        p.norm.iter().map(|v| v.to_bits()).collect(),
+        p.active.clone(),
+        p.count.iter().map(|v| v.to_bits()).collect(),
+        p.max_count.to_bits(),
+        p.k,
+    )
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(64))]
+
+    /// Frames normalised eight at a time give the bits of one at a time,
+    /// on any counts: zero frames, flat frames (no spatial variance),
+    /// negative zeros, tiny and huge values, any frame count (whole groups
+    /// of eight and a tail) and any layout size.
+    #[test]
+    fn frames_side_by_side_are_the_bits_of_frame_by_frame(
+        rows in 1usize..6,
+        cols in 1usize..6,
+        n_frames in 0usize..40,
+        seed in any::<u64>(),
+        kind in 0u8..5,
+    ) {
+        let layout = TaxelLayout::Grid { rows, cols, pitch_mm: 3.0, taxel_mm: 2.0 };
+        let n = layout.len();
+        let counts: Vec<f64> = (0..n_frames * n)
+            .map(|i| {
+                let u = noise(seed, i);
+                match (kind, i % 7) {
+                    (0, _) => (u * 12.0).floor(),
+                    (1, 0..=4) => 0.0,
+                    (1, _) => -0.0,
+                    (2, _) => 3.0,
+                    (3, _) => u * 1e300,
+                    _ => if u < 0.5 { u * 1e-300 } else { (u * 4.0).floor() },
+                }
+            })
+            .collect();
+        let im = SpikeImages { layout, window_ms: 100.0, hop_ms: 10.0, n_frames, counts };
+        let tpl = Templates::for_angles(&im.layout, 10.0, &WssParams::default(), &[45.0]).unwrap();
+        let side = batch::prepare(&im, &tpl).unwrap();
+        let one = prepare_one_by_one(&im).unwrap();
+        prop_assert_eq!(prepared_bits(&side), prepared_bits(&one));
+    }
+}
+
+#[test]
+fn prepare_names_the_first_bad_count_as_frame_by_frame_did() {
+    let layout = TaxelLayout::paper();
+    let tpl = Templates::for_angles(&layout, 10.0, &WssParams::default(), &[45.0]).unwrap();
+    for (at, bad) in [
+        (0, f64::NAN),
+        (37, -1.0),
+        (16 * 9 + 3, f64::INFINITY),
+        (16 * 11 + 15, -1e-300),
+    ] {
+        let mut counts = vec![1.0; 12 * 16];
+        counts[at] = bad;
+        // A later bad count too (when there is room): the first one is named.
+        if at + 1 < counts.len() {
+            counts[12 * 16 - 1] = f64::NAN;
+        }
+        let im = SpikeImages {
+            layout: layout.clone(),
+            window_ms: 100.0,
+            hop_ms: 10.0,
+            n_frames: 12,
+            counts,
+        };
+        let side = batch::prepare(&im, &tpl).unwrap_err().to_string();
+        let one = prepare_one_by_one(&im).unwrap_err().to_string();
+        assert_eq!(side, one);
+        assert!(
+            side.contains(&format!("frame {}, taxel {}", at / 16, at % 16)),
+            "{side}"
+        );
+    }
+}
