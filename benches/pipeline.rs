@@ -20,6 +20,10 @@
 //!
 //! Run: `cargo bench --bench pipeline`.
 //!
+//! Allocation: the binary's allocator setting
+//! ([`palpate::cli::tune_allocator`]) is applied first, so that the stages
+//! reuse freed heap as they do in `palpate run`.
+//!
 //! Timing: each iteration is timed by the thread's own on-CPU time
 //! (`/proc/thread-self/schedstat`, Linux; wall time elsewhere), so the figure
 //! is the cost on one core even when the machine is shared; the `_wall` group
@@ -147,6 +151,10 @@ fn same(a: &Payload, b: &Payload) -> bool {
 }
 
 fn pipeline(c: &mut Criterion) {
+    // The binary's allocator setting, so that a stage's fresh output reuses
+    // freed heap as in `palpate run` instead of page-faulting new memory at
+    // every iteration (before 2026-11-27 the bench ran without it).
+    palpate::cli::tune_allocator();
     let q = Quickstart::load(45.0);
     let out = q.run_graph();
     let scene = &out["scene"][0];

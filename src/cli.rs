@@ -296,7 +296,9 @@ enum Format {
 /// 32 MiB (glibc's largest threshold) now come from the heap, and up to
 /// 1 GiB of free heap is kept. The peak is unchanged, and since the same
 /// sizes recur trial after trial the kept memory is reused, not grown.
-fn tune_allocator() {
+/// Public so that benches that time stages (`benches/pipeline.rs`) measure
+/// them under the allocator the binary runs them with.
+pub fn tune_allocator() {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     // SAFETY: mallopt only sets allocator parameters; it is called before
     // any other thread exists.
