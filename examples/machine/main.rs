@@ -19,6 +19,10 @@
 //! AVX2 kernels). And the activations applied to those products' outputs
 //! (`tanh` with the bias, the row softmax), in ns per value.
 //!
+//! The dependent multiply or add is also timed in 512-bit and 256-bit
+//! registers (the lane kernels' operations): a core's vector operations
+//! may wait longer on their last result than its scalar ones.
+//!
 //! `cargo run --release --example machine`. Each figure is the best of 5
 //! runs, so a shared machine's interruptions inflate it less.
 
@@ -86,6 +90,54 @@ fn products_ms(h: &[Vec<f64>], x: &[Vec<f64>], trials: usize, per_pass: usize, j
     })
 }
 
+/// `x = x·a + b` on `L` independent lanes, `n` times: the latency of a
+/// dependent multiply or add when the lanes are one vector register (the
+/// loop over lanes vectorizes; the chain runs through every element).
+#[inline(always)]
+fn lane_chain<const L: usize>(n: u64) -> f64 {
+    let (a, b) = (black_box(0.999_999_999), black_box(1e-9));
+    let mut x = black_box([1.0f64; L]);
+    let t = Instant::now();
+    for _ in 0..n {
+        for v in x.iter_mut() {
+            *v = *v * a + b;
+        }
+    }
+    black_box(x);
+    t.elapsed().as_secs_f64() * 1e9 / (2 * n) as f64
+}
+
+/// [`lane_chain`] with 8 lanes in one 512-bit register, if the CPU has
+/// AVX-512 (the encoders' and the filter's lane kernels run there).
+fn chain512(n: u64) -> Option<f64> {
+    #[cfg(target_arch = "x86_64")]
+    if is_x86_feature_detected!("avx512f") {
+        #[target_feature(enable = "avx512f")]
+        fn run(n: u64) -> f64 {
+            lane_chain::<8>(n)
+        }
+        // SAFETY: the CPU supports AVX-512F (checked above).
+        return Some(unsafe { run(n) });
+    }
+    let _ = n;
+    None
+}
+
+/// [`lane_chain`] with 4 lanes in one 256-bit register, if the CPU has AVX2.
+fn chain256(n: u64) -> Option<f64> {
+    #[cfg(target_arch = "x86_64")]
+    if is_x86_feature_detected!("avx2") {
+        #[target_feature(enable = "avx2")]
+        fn run(n: u64) -> f64 {
+            lane_chain::<4>(n)
+        }
+        // SAFETY: the CPU supports AVX2 (checked above).
+        return Some(unsafe { run(n) });
+    }
+    let _ = n;
+    None
+}
+
 fn best(mut f: impl FnMut() -> f64) -> f64 {
     (0..5).map(|_| f()).fold(f64::INFINITY, f64::min)
 }
@@ -104,6 +156,10 @@ fn main() {
         black_box(x);
         t.elapsed().as_secs_f64() * 1e9 / (2 * n) as f64
     });
+    // The same chain in vector registers: a core's scalar and vector
+    // operations need not have the same latency.
+    let ns512 = chain512(1).map(|_| best(|| chain512(n).unwrap_or(f64::NAN)));
+    let ns256 = chain256(1).map(|_| best(|| chain256(n).unwrap_or(f64::NAN)));
     // A 21.6 s, 16-taxel lab trial at 1 kHz: 345 280 doubles, 2.76 MB.
     let len = 21_580 * 16;
     let src: Vec<f64> = (0..len).map(|i| i as f64).collect();
@@ -204,6 +260,12 @@ fn main() {
     let tanh_ns = act_ns(3154, 30, &|v| dense::add_bias_map(v, &bias, vmath::tanh));
     let softmax_ns = act_ns(3154, 17, &|v| vmath::softmax_rows(v, 17));
     println!("dependent f64 multiply or add: {ns_per_op:.2} ns");
+    let show = |o: Option<f64>| o.map_or("no such registers".to_string(), |v| format!("{v:.2} ns"));
+    println!(
+        "the same in vector registers, every lane dependent: 512-bit (8 lanes) {}, 256-bit (4 lanes) {}",
+        show(ns512),
+        show(ns256)
+    );
     println!("copy of one lab trial's signals (2.76 MB): {copy_ms:.3} ms ({gb_s:.1} GB/s read + write)");
     println!(
         "read of the WSS template spectra (17 classes, {:.1} MB), again and again: {read_ms:.3} ms ({read_gb_s:.1} GB/s)",
