@@ -79,23 +79,23 @@ pub(crate) fn prepare(images: &SpikeImages, tpl: &Templates) -> Result<Prepared,
             images.n_frames
         )));
     }
-    // The first bad count in frame order, as `Prepared::push` frame by
-    // frame would report it; looked for only when a branch-free pass (which
-    // vectorizes, where an early-exit search did not) finds one.
-    let good = |c: f64| c.is_finite() & (c >= 0.0);
+    // Counts are checked by one branch-free pass (which vectorizes, where
+    // an early-exit search did not); only when it finds a bad one are the
+    // frames checked in order, so the error names the first, as
+    // `Prepared::push` frame by frame does.
     let all_good = crate::wide::with_avx2(
         #[inline(always)]
-        || images.counts.iter().fold(true, |ok, &c| ok & good(c)),
+        || {
+            images
+                .counts
+                .iter()
+                .fold(true, |ok, &c| ok & c.is_finite() & (c >= 0.0))
+        },
     );
-    if let Some(i) = (!all_good)
-        .then(|| images.counts.iter().position(|&c| !good(c)))
-        .flatten()
-    {
-        let (k, t) = (i / n.max(1), i % n.max(1));
-        return Err(StageError::new(format!(
-            "wss: spike count {} of frame {k}, taxel {t} is not a finite non-negative number",
-            images.counts[i]
-        )));
+    if !all_good {
+        for k in 0..images.n_frames {
+            check_frame(images.frame(k), k)?;
+        }
     }
     let mut norm = images.counts.clone();
     let mut active = vec![false; images.n_frames];
