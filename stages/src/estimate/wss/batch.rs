@@ -356,6 +356,9 @@ struct Plan {
     len: usize,
     block: usize,
     h: usize,
+    /// The frame a single block's segment starts at (the trial's first
+    /// active frame, see [`Fft::new`]); 0 for overlap-save.
+    origin: usize,
 }
 
 impl Plan {
@@ -368,6 +371,7 @@ impl Plan {
                 len: single,
                 block: k,
                 h,
+                origin: 0,
             }
         } else {
             let len = nice_len(4 * h);
@@ -375,6 +379,7 @@ impl Plan {
                 len,
                 block: len - h + 1,
                 h,
+                origin: 0,
             }
         }
     }
@@ -458,7 +463,19 @@ struct Fft<'a> {
     k: usize,
     /// The FFT length every single-block class uses (see [`Fft::plan`]).
     shared_len: usize,
+    /// The first frame with spatial variance and the frames from it to the
+    /// last such frame (`0` and `k` when none has any): outside them both
+    /// input sequences are exactly zero (see [`Fft::new`]).
+    origin: usize,
+    span: usize,
     spectra: &'a mut TrialSpectra,
+}
+
+/// The FFT length of a one-block convolution of `span` input frames with
+/// `h` templates, if one block is not too long (else overlap-save).
+fn single_len(span: usize, h: usize) -> Option<usize> {
+    let len = nice_len(span + h - 1);
+    (len <= SINGLE_BLOCK_MAX.max(4 * h)).then_some(len)
 }
 
 impl<'a> Fft<'a> {
@@ -467,13 +484,29 @@ impl<'a> Fft<'a> {
     /// spectra are made once (16 FFTs) rather than once per distinct length
     /// (three or four on a lab trial): the shorter classes' products and
     /// inverse FFTs grow a little, by less than the forward FFTs saved.
-    fn new(tpl: &'a Templates, n: usize, k: usize, spectra: &'a mut TrialSpectra) -> Self {
+    ///
+    /// A single block covers only the trial's active frames, `origin ..
+    /// origin + span`: a frame without spatial variance is zero in both
+    /// input sequences (its normalised image is 0), so the linear
+    /// convolution of the trial equals that of its active stretch, shifted
+    /// by `origin`, and is exactly zero from `origin + span + h − 1` on. On
+    /// lab trials the active stretch is about half the trial (the array
+    /// rests on the surface before and after the edge passes), so the
+    /// FFTs, the products and the cached template spectra are built at
+    /// about half the length. Only the rounding of the transforms changes.
+    fn new(tpl: &'a Templates, prep: &Prepared, spectra: &'a mut TrialSpectra) -> Self {
+        let (n, k) = (prep.n, prep.k);
+        let (origin, span) = match (
+            prep.active.iter().position(|&a| a),
+            prep.active.iter().rposition(|&a| a),
+        ) {
+            (Some(first), Some(last)) => (first, last - first + 1),
+            _ => (0, k),
+        };
         let shared_len = tpl
             .classes()
             .iter()
-            .map(|cls| Plan::new(k, cut(cls.len, k)))
-            .filter(|p| p.block >= k)
-            .map(|p| p.len)
+            .filter_map(|cls| single_len(span, cut(cls.len, k)))
             .max()
             .unwrap_or(0);
         Fft {
@@ -481,39 +514,52 @@ impl<'a> Fft<'a> {
             n,
             k,
             shared_len,
+            origin,
+            span,
             spectra,
         }
+    }
+
+    /// Whether `plan` is one block (from its origin to the trial's end).
+    fn single(&self, plan: Plan) -> bool {
+        plan.origin + plan.block >= self.k
     }
 
     /// The block plan of a class with `h` templates: its own for
     /// overlap-save, the shared length for a single block.
     fn plan(&self, h: usize) -> Plan {
-        let own = Plan::new(self.k, h);
-        if own.block >= self.k {
-            Plan {
-                len: own.len.max(self.shared_len),
-                ..own
-            }
-        } else {
-            own
+        match single_len(self.span, h) {
+            Some(len) => Plan {
+                len: len.max(self.shared_len),
+                block: self.k - self.origin,
+                h,
+                origin: self.origin,
+            },
+            // Never one block here: `span <= k`.
+            None => Plan::new(self.k, h),
         }
     }
 
     /// Input spectra for `plan`: block `b`'s segment is
-    /// `x[b·block − (h − 1) .. + len)` (zero outside the trial).
+    /// `x[origin + b·block − (h − 1) .. + len)` (zero outside the trial).
     fn input(&mut self, s: usize, plan: Plan) -> &InputSpectra {
         let (n, k) = (self.n, self.k);
-        let (tpl, seqs) = (self.tpl, &self.spectra.seqs);
-        // A single block needs no overlap: its segment starts at frame 0.
-        let key = if plan.block >= k {
+        // A single block needs no overlap: its segment starts at its origin.
+        let key = if self.single(plan) {
             Plan { h: 1, ..plan }
         } else {
             plan
         };
+        let (tpl, seqs) = (self.tpl, &self.spectra.seqs);
         self.spectra.inputs.entry((s, key)).or_insert_with(|| {
-            let Plan { len, block, h } = key;
+            let Plan {
+                len,
+                block,
+                h,
+                origin,
+            } = key;
             let bins = len / 2 + 1;
-            let blocks = k.div_ceil(block);
+            let blocks = (k - origin).div_ceil(block);
             let pair = tpl.plan(len);
             let mut scratch = pair.fwd.make_scratch_vec();
             let mut spec = vec![Complex::new(0.0, 0.0); bins];
@@ -526,7 +572,7 @@ impl<'a> Fft<'a> {
             for (b, nz) in nonzero.iter_mut().enumerate() {
                 for t in 0..n {
                     let x = &seqs[s][t * k..(t + 1) * k];
-                    let start = (b * block) as isize - (h as isize - 1);
+                    let start = (origin + b * block) as isize - (h as isize - 1);
                     let mut any = false;
                     for (j, v) in buf.iter_mut().enumerate() {
                         let m = start + j as isize;
@@ -558,11 +604,16 @@ impl<'a> Fft<'a> {
         let tpl = self.tpl;
         let h = cut(tpl.classes()[c].len, k);
         let plan = self.plan(h);
-        let Plan { len, block, .. } = plan;
+        let Plan {
+            len, block, origin, ..
+        } = plan;
         let bins = len / 2 + 1;
         let spec = tpl.batch_spectra(c, len, h);
         let pair = tpl.plan(len);
-        let single = block >= k;
+        let single = self.single(plan);
+        // A single block's outputs past `origin + span + h − 1` are exactly
+        // zero (see `Fft::new`) and are left so.
+        let ends = if single { self.span + h - 1 } else { block };
         let mut work = std::mem::take(&mut self.spectra.work);
         let ConvWork { acc, z, out, scratch } = &mut work;
         // Sizes only: `acc` is zeroed per block, `z` filled from it, `out`
@@ -575,7 +626,8 @@ impl<'a> Fft<'a> {
         let (x, nonzero) = self.input(s, plan);
         let mut y = vec![0.0; k];
         let fast = super::simd::fast_cpu();
-        // Output `b·block + r` sits at `r` (single block) or `h − 1 + r`.
+        // Output `origin + b·block + r` sits at `r` (single block) or
+        // `h − 1 + r` (overlap-save, whose origin is 0).
         let offset = if single { 0 } else { h - 1 };
         for (b, &nz) in nonzero.iter().enumerate() {
             if !nz {
@@ -613,8 +665,8 @@ impl<'a> Fft<'a> {
             z[0].im = 0.0;
             z[bins - 1].im = 0.0;
             let _ = pair.inv.process_with_scratch(z, out, scratch);
-            for r in 0..block {
-                let kk = b * block + r;
+            for r in 0..block.min(ends) {
+                let kk = origin + b * block + r;
                 if kk >= k {
                     break;
                 }
@@ -669,7 +721,7 @@ pub(crate) fn fast_series_in(
     }
     spectra.set_weights(prep, params);
     let (wp, nzp) = (spectra.wp.clone(), spectra.nzp.clone());
-    let mut fft = Fft::new(tpl, n, k, spectra);
+    let mut fft = Fft::new(tpl, prep, spectra);
     let before = params.before_start;
     let mut all = Vec::with_capacity(tpl.classes().len());
     for (c, cls) in tpl.classes().iter().enumerate() {

@@ -138,7 +138,10 @@
 //! # Speed
 //!
 //! [`batch`] computes eq. 5 as FFT convolutions (one inverse FFT per class and
-//! block, the taxel sum done in the frequency domain, template spectra cached);
+//! block, the taxel sum done in the frequency domain, template spectra cached;
+//! a one-block convolution spans only the trial's active frames, from the
+//! first frame with spatial variance to the last, since an inactive frame is
+//! zero in eq. 5's sums);
 //! [`stream`] is the frame-by-frame form ([`WssStream`]) by uniformly partitioned
 //! convolution. [`wss_reference`] keeps the direct sums for tests. The inner
 //! kernels use AVX2 + FMA when the CPU has them (checked at run time).

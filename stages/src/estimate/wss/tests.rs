@@ -157,6 +157,64 @@ fn fast_equals_reference() {
     }
 }
 
+/// `im` with `pre` and `post` frames added before and after it, each with
+/// `fill` spikes on every taxel: no spatial variance, so inactive frames
+/// (silent ones for `fill = 0`).
+fn with_quiet(im: &SpikeImages, pre: usize, post: usize, fill: f64) -> SpikeImages {
+    let n = im.layout.len();
+    let mut counts = vec![fill; pre * n];
+    counts.extend_from_slice(&im.counts);
+    counts.extend(std::iter::repeat_n(fill, post * n));
+    SpikeImages {
+        layout: im.layout.clone(),
+        window_ms: im.window_ms,
+        hop_ms: im.hop_ms,
+        n_frames: pre + im.n_frames + post,
+        counts,
+    }
+}
+
+/// A trial with inactive frames before and after its active stretch (as
+/// while the array rests on the surface): the fast path transforms the
+/// active stretch alone (`Fft::new`), and still equals the direct sums at
+/// every alignment, in the quiet parts too, for silent and for flat
+/// (spiking, uniform) quiet frames, every weighting and both rules for
+/// windows that start before the trial.
+#[test]
+fn fast_equals_reference_with_quiet_lead_and_tail() {
+    let tpl = Templates::new(&TaxelLayout::paper(), 10.0, &small_params()).unwrap();
+    for weighting in [Weighting::Constant, Weighting::OneMinusSr, Weighting::OnePlusSr] {
+        for before_start in [BeforeStart::Exclude, BeforeStart::Silent] {
+            let params = WssParams {
+                weighting,
+                before_start,
+                ..small_params()
+            };
+            for (j, theta) in [33.0, 140.0].into_iter().enumerate() {
+                let core = noisy(small_trial(theta), j as u64, 3.0);
+                for (pre, post, fill) in [
+                    (1, 0, 0.0),
+                    (0, 1, 0.0),
+                    (40, 7, 0.0),
+                    (3, 260, 2.0),
+                    (300, 300, 0.0),
+                ] {
+                    let im = with_quiet(&core, pre, post, fill);
+                    let fast = wss_series(&im, &tpl, &params).unwrap();
+                    let slow = wss_reference_series(&im, &tpl, &params).unwrap();
+                    assert_close(&fast, &slow, 1e-9, &format!("quiet {pre} + {post} ({fill})"));
+                    let (a, b) = (
+                        wss_batch(&im, &tpl, &params).unwrap(),
+                        wss_reference(&im, &tpl, &params).unwrap(),
+                    );
+                    assert_eq!(a.class_deg, b.class_deg);
+                    assert_eq!(a.best_frame, b.best_frame);
+                }
+            }
+        }
+    }
+}
+
 /// The fast path on arrays whose taxel count is not a multiple of the
 /// products' taxel group (9, 10 and 25 taxels: groups plus a remainder)
 /// still equals the direct sums.
