@@ -131,28 +131,43 @@ fn every_weighting_and_start_rule_gets_ideal_classes() {
     }
 }
 
-#[test]
-fn fast_equals_reference() {
-    let tpl = Templates::new(&TaxelLayout::paper(), 10.0, &small_params()).unwrap();
+/// The fast path's series against the direct sums on `im` (to 1e-9), and
+/// the batch estimate's class and frame against the reference estimate's.
+fn check_fast_against_reference(im: &SpikeImages, tpl: &Templates, params: &WssParams, what: &str) {
+    let fast = wss_series(im, tpl, params).unwrap();
+    let slow = wss_reference_series(im, tpl, params).unwrap();
+    assert_close(&fast, &slow, 1e-9, what);
+    let (a, b) = (
+        wss_batch(im, tpl, params).unwrap(),
+        wss_reference(im, tpl, params).unwrap(),
+    );
+    assert_eq!(a.class_deg, b.class_deg, "{what}");
+    assert_eq!(a.best_frame, b.best_frame, "{what}");
+}
+
+/// `small_params` under every weighting and both rules for windows that
+/// start before the trial.
+fn every_rule() -> Vec<WssParams> {
+    let mut out = Vec::new();
     for weighting in [Weighting::Constant, Weighting::OneMinusSr, Weighting::OnePlusSr] {
         for before_start in [BeforeStart::Exclude, BeforeStart::Silent] {
-            let params = WssParams {
+            out.push(WssParams {
                 weighting,
                 before_start,
                 ..small_params()
-            };
-            for (j, theta) in [33.0, 90.0, 140.0].into_iter().enumerate() {
-                let im = noisy(small_trial(theta), j as u64, 3.0);
-                let fast = wss_series(&im, &tpl, &params).unwrap();
-                let slow = wss_reference_series(&im, &tpl, &params).unwrap();
-                assert_close(&fast, &slow, 1e-9, "fast vs reference");
-                let (a, b) = (
-                    wss_batch(&im, &tpl, &params).unwrap(),
-                    wss_reference(&im, &tpl, &params).unwrap(),
-                );
-                assert_eq!(a.class_deg, b.class_deg);
-                assert_eq!(a.best_frame, b.best_frame);
-            }
+            });
+        }
+    }
+    out
+}
+
+#[test]
+fn fast_equals_reference() {
+    let tpl = Templates::new(&TaxelLayout::paper(), 10.0, &small_params()).unwrap();
+    for params in every_rule() {
+        for (j, theta) in [33.0, 90.0, 140.0].into_iter().enumerate() {
+            let im = noisy(small_trial(theta), j as u64, 3.0);
+            check_fast_against_reference(&im, &tpl, &params, "fast vs reference");
         }
     }
 }
@@ -183,33 +198,18 @@ fn with_quiet(im: &SpikeImages, pre: usize, post: usize, fill: f64) -> SpikeImag
 #[test]
 fn fast_equals_reference_with_quiet_lead_and_tail() {
     let tpl = Templates::new(&TaxelLayout::paper(), 10.0, &small_params()).unwrap();
-    for weighting in [Weighting::Constant, Weighting::OneMinusSr, Weighting::OnePlusSr] {
-        for before_start in [BeforeStart::Exclude, BeforeStart::Silent] {
-            let params = WssParams {
-                weighting,
-                before_start,
-                ..small_params()
-            };
-            for (j, theta) in [33.0, 140.0].into_iter().enumerate() {
-                let core = noisy(small_trial(theta), j as u64, 3.0);
-                for (pre, post, fill) in [
-                    (1, 0, 0.0),
-                    (0, 1, 0.0),
-                    (40, 7, 0.0),
-                    (3, 260, 2.0),
-                    (300, 300, 0.0),
-                ] {
-                    let im = with_quiet(&core, pre, post, fill);
-                    let fast = wss_series(&im, &tpl, &params).unwrap();
-                    let slow = wss_reference_series(&im, &tpl, &params).unwrap();
-                    assert_close(&fast, &slow, 1e-9, &format!("quiet {pre} + {post} ({fill})"));
-                    let (a, b) = (
-                        wss_batch(&im, &tpl, &params).unwrap(),
-                        wss_reference(&im, &tpl, &params).unwrap(),
-                    );
-                    assert_eq!(a.class_deg, b.class_deg);
-                    assert_eq!(a.best_frame, b.best_frame);
-                }
+    for params in every_rule() {
+        for (j, theta) in [33.0, 140.0].into_iter().enumerate() {
+            let core = noisy(small_trial(theta), j as u64, 3.0);
+            for (pre, post, fill) in [
+                (1, 0, 0.0),
+                (0, 1, 0.0),
+                (40, 7, 0.0),
+                (3, 260, 2.0),
+                (300, 300, 0.0),
+            ] {
+                let im = with_quiet(&core, pre, post, fill);
+                check_fast_against_reference(&im, &tpl, &params, &format!("quiet {pre} + {post} ({fill})"));
             }
         }
     }
