@@ -365,21 +365,21 @@ impl Plan {
     /// Single block when the linear convolution fits a modest FFT, otherwise
     /// overlap-save with an FFT about four template lengths long.
     fn new(k: usize, h: usize) -> Plan {
-        let single = nice_len(k + h - 1);
-        if single <= SINGLE_BLOCK_MAX.max(4 * h) {
-            Plan {
-                len: single,
+        match single_len(k, h) {
+            Some(len) => Plan {
+                len,
                 block: k,
                 h,
                 origin: 0,
-            }
-        } else {
-            let len = nice_len(4 * h);
-            Plan {
-                len,
-                block: len - h + 1,
-                h,
-                origin: 0,
+            },
+            None => {
+                let len = nice_len(4 * h);
+                Plan {
+                    len,
+                    block: len - h + 1,
+                    h,
+                    origin: 0,
+                }
             }
         }
     }
