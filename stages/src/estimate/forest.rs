@@ -54,6 +54,27 @@
 //! are ranked too and grow a tree without panicking, but the first version's
 //! order among equal NaNs was arbitrary, so there is nothing to match.)
 //!
+//! When the node's rows span few ranks of the feature (at most
+//! `HIST · rows / classes`, e.g. spike counts at the nodes near the root),
+//! the rows are not ordered at all: one pass adds each row's bootstrap
+//! weight to a histogram over (rank, class), and the sweep runs over the
+//! ranks, adding a rank's class weights at once (`(L + W)² − L² =
+//! W (2L + W)`, the same integers as row by row) and scoring the boundary
+//! between each pair of consecutive ranks present, in the same order as the
+//! row sweep, with the same state: so the same splits. A row sweep in rank
+//! order read each row's class and weight at random and updated the class's
+//! running count row after row (runs of rows of one class are a chain
+//! through memory).
+//!
+//! A feature found constant on a node's rows is constant on every
+//! descendant's (a subset of them), so each node passes its children the
+//! set of features known constant (up to the first 128 features); a drawn
+//! feature in that set is skipped without reading its values. The draws
+//! are unchanged (a skipped feature is still drawn, as it was drawn and
+//! then found constant), so the trees are too. On the peers data (80
+//! spike-count features, many all-zero deep in a tree) a third of the rows
+//! read per tree were reads of features that turned out constant.
+//!
 //! The counting sort keeps four interleaved counts per rank (rows of one
 //! rank, e.g. the many zero spike counts, then increment four counters in
 //! turn rather than one, which would serialise on the store). The sweep
@@ -536,13 +557,15 @@ pub fn grow_prepared(p: &Prepared, g: &Growth, rng: &mut ChaCha8Rng) -> Tree {
         keys: vec![0; len],
         spill: Vec::with_capacity(len),
         bins: vec![0; LANES * widest],
+        hist: vec![0; HIST * len + p.k],
         counts: vec![0; p.k],
         left: vec![0; p.k],
     };
     let mut nodes = vec![leaf(0)];
-    // Depth-first with an explicit stack: (node, rows range, depth).
-    let mut stack = vec![(0usize, 0usize, len, 0usize)];
-    while let Some((node, lo, hi, depth)) = stack.pop() {
+    // Depth-first with an explicit stack: (node, rows range, depth, the
+    // features known to be constant on the node's rows).
+    let mut stack = vec![(0usize, 0usize, len, 0usize, 0u128)];
+    while let Some((node, lo, hi, depth, mut constant)) = stack.pop() {
         let part = &mut rows[lo..hi];
         b.class_counts(part);
         nodes[node] = leaf(first_max(&b.counts));
@@ -550,7 +573,7 @@ pub fn grow_prepared(p: &Prepared, g: &Growth, rng: &mut ChaCha8Rng) -> Tree {
         if pure || (g.max_depth > 0 && depth >= g.max_depth) || part.len() < 2 * g.min_samples_leaf.max(1) {
             continue;
         }
-        let Some((feature, threshold)) = b.best_split(part, rng) else {
+        let Some((feature, threshold)) = b.best_split(part, rng, &mut constant) else {
             continue;
         };
         let mid = lo + b.partition(part, feature as usize, threshold);
@@ -563,8 +586,8 @@ pub fn grow_prepared(p: &Prepared, g: &Growth, rng: &mut ChaCha8Rng) -> Tree {
             left_or_class: left as u32,
         };
         // Right pushed first so the left subtree is grown first.
-        stack.push((left + 1, mid, hi, depth + 1));
-        stack.push((left, lo, mid, depth + 1));
+        stack.push((left + 1, mid, hi, depth + 1, constant));
+        stack.push((left, lo, mid, depth + 1, constant));
     }
     Tree { nodes }
 }
@@ -591,6 +614,21 @@ fn first_max(c: &[u64]) -> usize {
 /// Interleaved counts per rank in the counting sort.
 const LANES: usize = 4;
 
+/// A node's drawn feature is swept as a histogram of (rank, class) when its
+/// rows span at most `HIST · rows / classes` ranks (module docs).
+const HIST: usize = 2;
+
+/// The threshold between two consecutive distinct values `v < next`:
+/// halfway, or `v` itself where halfway rounds up to `next`.
+fn halfway(v: f64, next: f64) -> f64 {
+    let thr = v + (next - v) / 2.0;
+    if thr >= next {
+        v
+    } else {
+        thr
+    }
+}
+
 /// One tree's growth state and scratch (sized once per tree).
 struct Builder<'a> {
     p: &'a Prepared,
@@ -607,6 +645,8 @@ struct Builder<'a> {
     spill: Vec<u32>,
     /// Counting-sort bins.
     bins: Vec<u32>,
+    /// Per (rank, class) of the histogram sweep: rows `<< 32 |` weight.
+    hist: Vec<u64>,
     /// The node's weighted class counts.
     counts: Vec<u64>,
     /// Weighted class counts left of the sweep.
@@ -624,7 +664,14 @@ impl Builder<'_> {
 
     /// The best (feature, threshold) of the node holding `rows` (at least
     /// one), whose class counts are in `self.counts`, or `None`.
-    fn best_split(&mut self, rows: &[u32], rng: &mut ChaCha8Rng) -> Option<(u32, f64)> {
+    ///
+    /// `constant` has bit `f` set for features `f < 128` known to be
+    /// constant on the rows (found so at an ancestor: a subset of constant
+    /// rows is constant); such a feature, when drawn, is passed over without
+    /// reading its values, as reading them would find it constant again.
+    /// The features found constant here are added, for the children. The
+    /// draws are the same either way, so the same tree.
+    fn best_split(&mut self, rows: &[u32], rng: &mut ChaCha8Rng, constant: &mut u128) -> Option<(u32, f64)> {
         let Builder {
             p,
             g,
@@ -633,6 +680,7 @@ impl Builder<'_> {
             ranks,
             keys,
             bins,
+            hist,
             counts,
             left,
             ..
@@ -642,6 +690,7 @@ impl Builder<'_> {
             return None;
         }
         let len = rows.len();
+        let k = counts.len().max(1);
         let total: u64 = counts.iter().sum();
         let s_all: u64 = counts.iter().map(|c| c * c).sum();
         let min_leaf = g.min_samples_leaf.max(1);
@@ -657,32 +706,85 @@ impl Builder<'_> {
             let j = rng.random_range(t..dim);
             features.swap(t, j);
             let f = features[t] as usize;
+            let bit = if f < 128 { 1u128 << f } else { 0 };
+            if *constant & bit != 0 {
+                continue;
+            }
             let (col, vals) = p.feature(f);
             let (mut lo, mut hi) = (u32::MAX, 0u32);
             // The rows in ascending order of rank: a counting sort when the
             // feature has few distinct values for the node's rows, else a
             // sort of `rank << 32 | row` keys.
             if vals.len() <= 4 * len {
-                // Four interleaved counts per rank, so that runs of rows of
-                // one rank (common: many zeros) are four chains, not one.
-                let bins = &mut bins[..LANES * vals.len()];
-                bins.iter_mut().for_each(|c| *c = 0);
-                for (q, (r, &i)) in ranks.iter_mut().zip(rows).enumerate() {
+                for (r, &i) in ranks.iter_mut().zip(rows) {
                     let v = col[i as usize];
                     *r = v;
                     lo = lo.min(v);
                     hi = hi.max(v);
-                    bins[LANES * v as usize + q % LANES] += 1;
                 }
                 if vals[lo as usize] >= vals[hi as usize] {
+                    *constant |= bit;
                     continue; // constant here
                 }
+                let span = (hi - lo) as usize + 1;
+                if span * k <= HIST * len {
+                    // Few ranks for the rows: sweep a histogram of the ranks
+                    // instead of the rows in order (module docs).
+                    let h = &mut hist[..span * k];
+                    h.iter_mut().for_each(|e| *e = 0);
+                    for (&r, &i) in ranks.iter().zip(rows) {
+                        let rw = cw[i as usize];
+                        h[(r - lo) as usize * k + rw as u32 as usize] += 1 << 32 | rw >> 32;
+                    }
+                    left.iter_mut().for_each(|c| *c = 0);
+                    let (mut s_left, mut cross, mut n_left, mut rows_left) = (0u64, 0u64, 0u64, 0usize);
+                    let mut prev: Option<usize> = None;
+                    for (j, bin) in h.chunks_exact(k).enumerate() {
+                        let here = bin.iter().map(|e| e >> 32).sum::<u64>() as usize;
+                        if here == 0 {
+                            continue;
+                        }
+                        if let Some(pj) = prev {
+                            // The boundary between the previous rank present
+                            // and this one, with every row of the ranks below
+                            // it on the left: the row sweep's state there.
+                            let (v, next) = (vals[lo as usize + pj], vals[lo as usize + j]);
+                            if next > v && rows_left >= min_leaf && len - rows_left >= min_leaf {
+                                let n_right = total - n_left;
+                                let s_right = s_all + s_left - 2 * cross;
+                                let score = s_left as f64 / n_left as f64 + s_right as f64 / n_right as f64;
+                                if best.is_none_or(|(b, _, _)| score > b) {
+                                    best = Some((score, f as u32, halfway(v, next)));
+                                }
+                            }
+                        }
+                        for ((lc, &e), &nc) in left.iter_mut().zip(bin).zip(counts.iter()) {
+                            let w = e & 0xFFFF_FFFF;
+                            // (L + W)² − L² = W (2L + W): the rows' own
+                            // increments summed, the same integer.
+                            s_left += w * (2 * *lc + w);
+                            cross += w * nc;
+                            *lc += w;
+                            n_left += w;
+                        }
+                        rows_left += here;
+                        prev = Some(j);
+                    }
+                    continue;
+                }
+                // Four interleaved counts per rank, so that runs of rows of
+                // one rank (common: many zeros) are four chains, not one.
+                let bins = &mut bins[LANES * lo as usize..LANES * (hi as usize + 1)];
+                bins.iter_mut().for_each(|c| *c = 0);
+                for (q, &r) in ranks.iter().enumerate() {
+                    bins[LANES * (r - lo) as usize + q % LANES] += 1;
+                }
                 let mut at = 0;
-                for c in &mut bins[LANES * lo as usize..LANES * (hi as usize + 1)] {
+                for c in bins.iter_mut() {
                     (*c, at) = (at, at + *c);
                 }
                 for (q, (&r, &i)) in ranks.iter().zip(rows).enumerate() {
-                    let at = &mut bins[LANES * r as usize + q % LANES];
+                    let at = &mut bins[LANES * (r - lo) as usize + q % LANES];
                     keys[*at as usize] = u64::from(r) << 32 | u64::from(i);
                     *at += 1;
                 }
@@ -694,6 +796,7 @@ impl Builder<'_> {
                     *key = u64::from(v) << 32 | u64::from(i);
                 }
                 if vals[lo as usize] >= vals[hi as usize] {
+                    *constant |= bit;
                     continue; // constant here
                 }
                 keys.sort_unstable();
@@ -729,11 +832,7 @@ impl Builder<'_> {
                 let s_right = s_all + s_left - 2 * cross;
                 let score = s_left as f64 / n_left as f64 + s_right as f64 / n_right as f64;
                 if best.is_none_or(|(b, _, _)| score > b) {
-                    let mut thr = v + (next - v) / 2.0;
-                    if thr >= next {
-                        thr = v; // halfway rounded up to `next`: split at v itself
-                    }
-                    best = Some((score, f as u32, thr));
+                    best = Some((score, f as u32, halfway(v, next)));
                 }
             }
         }
