@@ -298,7 +298,7 @@ fn pairwise_tiled<const SQ: bool, const R: usize>(
 
 #[inline(always)]
 fn pairwise<const SQ: bool, const AVX: bool>(a: &[f64], b: &[f64], k: usize, out: &mut [f64], ldc: usize) {
-    pairwise_tiled::<SQ, MR>(a, b, k, out, ldc, |ar, br, k| tile::<SQ, AVX>(ar, br, k));
+    pairwise_tiled::<SQ, MR>(a, b, k, out, ldc, tile::<SQ, AVX>);
 }
 
 #[cfg(target_arch = "x86_64")]
