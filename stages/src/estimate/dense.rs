@@ -155,18 +155,38 @@ unsafe fn tile_avx<const SQ: bool>(a: [&[f64]; MR], b: [&[f64]; NR], k: usize) -
         // shared machine's peers runs to show). Padding the ragged edges into
         // whole tiles was tried and was slower (the extra branches in the
         // tile loop cost more than the scalar edge columns saved).
-        let x = _mm256_hadd_pd(acc[r][0], acc[r][1]);
-        let y = _mm256_hadd_pd(acc[r][2], acc[r][3]);
-        let s = _mm256_add_pd(
-            _mm256_permute2f128_pd::<0x20>(x, y),
-            _mm256_permute2f128_pd::<0x31>(x, y),
-        );
-        // SAFETY: out[r] holds NR = 4 doubles.
-        unsafe { _mm256_storeu_pd(out[r].as_mut_ptr(), s) };
-        for (c, o) in out[r].iter_mut().enumerate() {
-            for t in full..k {
-                *o += term::<SQ>(a[r][t], b[c][t]);
-            }
+        out[r] = reduce_row::<SQ>(acc[r], a[r], b, full, k);
+    }
+    out
+}
+
+/// One tile row's four entries from their four-lane accumulators (lane `l`
+/// partial sum `l`): `(q0 + q1) + (q2 + q3)` of each, then the terms past
+/// the last whole chunk (`full..k`) in order: [`dot`]'s / [`sq_dist`]'s
+/// additions.
+#[cfg(target_arch = "x86_64")]
+#[inline]
+#[target_feature(enable = "avx2")]
+fn reduce_row<const SQ: bool>(
+    acc: [std::arch::x86_64::__m256d; NR],
+    a: &[f64],
+    b: [&[f64]; NR],
+    full: usize,
+    k: usize,
+) -> [f64; NR] {
+    use std::arch::x86_64::*;
+    let x = _mm256_hadd_pd(acc[0], acc[1]);
+    let y = _mm256_hadd_pd(acc[2], acc[3]);
+    let s = _mm256_add_pd(
+        _mm256_permute2f128_pd::<0x20>(x, y),
+        _mm256_permute2f128_pd::<0x31>(x, y),
+    );
+    let mut out = [0.0f64; NR];
+    // SAFETY: out holds NR = 4 doubles.
+    unsafe { _mm256_storeu_pd(out.as_mut_ptr(), s) };
+    for (c, o) in out.iter_mut().enumerate() {
+        for t in full..k {
+            *o += term::<SQ>(a[t], b[c][t]);
         }
     }
     out
@@ -222,20 +242,7 @@ unsafe fn tile512<const SQ: bool>(a: [&[f64]; R512], b: [&[f64]; NR], k: usize) 
             _mm512_castpd512_pd256(acc[r][1]),
             _mm512_extractf64x4_pd::<1>(acc[r][1]),
         ];
-        // As in `tile_avx`: `(q0 + q1) + (q2 + q3)` of each pair's lanes.
-        let x = _mm256_hadd_pd(c[0], c[1]);
-        let y = _mm256_hadd_pd(c[2], c[3]);
-        let s = _mm256_add_pd(
-            _mm256_permute2f128_pd::<0x20>(x, y),
-            _mm256_permute2f128_pd::<0x31>(x, y),
-        );
-        // SAFETY: out[r] holds NR = 4 doubles.
-        unsafe { _mm256_storeu_pd(out[r].as_mut_ptr(), s) };
-        for (c, o) in out[r].iter_mut().enumerate() {
-            for t in full..k {
-                *o += term::<SQ>(a[r][t], b[c][t]);
-            }
-        }
+        out[r] = reduce_row::<SQ>(c, a[r], b, full, k);
     }
     out
 }
