@@ -145,16 +145,10 @@ unsafe fn tile_avx<const SQ: bool>(a: [&[f64]; MR], b: [&[f64]; NR], k: usize) -
     }
     let mut out = [[0.0f64; NR]; MR];
     const { assert!(NR == 4) };
+    // Padding the ragged edges into whole tiles was tried and was slower
+    // (the extra branches in the tile loop cost more than the scalar edge
+    // columns saved).
     for r in 0..MR {
-        // `(q0 + q1) + (q2 + q3)` of the four entries at once: `hadd` gives
-        // `[c0: q0+q1, c1: q0+q1, c0: q2+q3, c1: q2+q3]` (and likewise for
-        // columns 2 and 3), the lane swaps line the halves up. The same
-        // additions as the scalar reduction, without storing and reloading
-        // each accumulator (6-9% off the products at the peers shapes in
-        // a same-process comparison while it was written; too small for the
-        // shared machine's peers runs to show). Padding the ragged edges into
-        // whole tiles was tried and was slower (the extra branches in the
-        // tile loop cost more than the scalar edge columns saved).
         out[r] = reduce_row::<SQ>(acc[r], a[r], b, full, k);
     }
     out
@@ -175,6 +169,13 @@ fn reduce_row<const SQ: bool>(
     k: usize,
 ) -> [f64; NR] {
     use std::arch::x86_64::*;
+    // `(q0 + q1) + (q2 + q3)` of the four entries at once: `hadd` gives
+    // `[c0: q0+q1, c1: q0+q1, c0: q2+q3, c1: q2+q3]` (and likewise for
+    // columns 2 and 3), the lane swaps line the halves up. The same
+    // additions as the scalar reduction, without storing and reloading
+    // each accumulator (6-9% off the products at the peers shapes in a
+    // same-process comparison while it was written; too small for the
+    // shared machine's peers runs to show).
     let x = _mm256_hadd_pd(acc[0], acc[1]);
     let y = _mm256_hadd_pd(acc[2], acc[3]);
     let s = _mm256_add_pd(

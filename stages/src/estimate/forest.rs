@@ -695,6 +695,28 @@ impl Builder<'_> {
         let s_all: u64 = counts.iter().map(|c| c * c).sum();
         let min_leaf = g.min_samples_leaf.max(1);
         let m = g.m.clamp(1, dim);
+        // Scores the boundary between consecutive distinct values `v` and
+        // `next` with `rows_left` of the node's rows on its left, whose
+        // `[Σ L_c², Σ N_c L_c, Σ L_c]` are `sums` (the right side's follow:
+        // `S_R = Σ N_c² − 2X + S_L`, exact integers), keeping the first best.
+        // A candidate leaves `min_leaf` rows on each side and separates two
+        // values that compare unequal.
+        let offer = |best: &mut Option<(f64, u32, f64)>,
+                     f: usize,
+                     v: f64,
+                     next: f64,
+                     rows_left: usize,
+                     [s_left, cross, n_left]: [u64; 3]| {
+            if next <= v || rows_left < min_leaf || len - rows_left < min_leaf {
+                return;
+            }
+            let n_right = total - n_left;
+            let s_right = s_all + s_left - 2 * cross;
+            let score = s_left as f64 / n_left as f64 + s_right as f64 / n_right as f64;
+            if best.is_none_or(|(b, _, _)| score > b) {
+                *best = Some((score, f as u32, halfway(v, next)));
+            }
+        };
         let ranks = &mut ranks[..len];
         let keys = &mut keys[..len];
         let mut best: Option<(f64, u32, f64)> = None;
@@ -749,14 +771,7 @@ impl Builder<'_> {
                             // and this one, with every row of the ranks below
                             // it on the left: the row sweep's state there.
                             let (v, next) = (vals[lo as usize + pj], vals[lo as usize + j]);
-                            if next > v && rows_left >= min_leaf && len - rows_left >= min_leaf {
-                                let n_right = total - n_left;
-                                let s_right = s_all + s_left - 2 * cross;
-                                let score = s_left as f64 / n_left as f64 + s_right as f64 / n_right as f64;
-                                if best.is_none_or(|(b, _, _)| score > b) {
-                                    best = Some((score, f as u32, halfway(v, next)));
-                                }
-                            }
+                            offer(&mut best, f, v, next, rows_left, [s_left, cross, n_left]);
                         }
                         for ((lc, &e), &nc) in left.iter_mut().zip(bin).zip(counts.iter()) {
                             let w = e & 0xFFFF_FFFF;
@@ -824,16 +839,14 @@ impl Builder<'_> {
                 if next_r == r {
                     continue;
                 }
-                let (v, next) = (vals[r], vals[next_r]);
-                if next <= v || q + 1 < min_leaf || len - (q + 1) < min_leaf {
-                    continue;
-                }
-                let n_right = total - n_left;
-                let s_right = s_all + s_left - 2 * cross;
-                let score = s_left as f64 / n_left as f64 + s_right as f64 / n_right as f64;
-                if best.is_none_or(|(b, _, _)| score > b) {
-                    best = Some((score, f as u32, halfway(v, next)));
-                }
+                offer(
+                    &mut best,
+                    f,
+                    vals[r],
+                    vals[next_r],
+                    q + 1,
+                    [s_left, cross, n_left],
+                );
             }
         }
         best.map(|(_, f, thr)| (f, thr))
