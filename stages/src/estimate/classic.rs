@@ -68,26 +68,21 @@
 //! * `knn`: k nearest neighbours (Euclidean, on the standardised vectors),
 //!   class scores = the neighbours' shares (optionally `1/d`-weighted), as
 //!   scikit-learn's `KNeighborsClassifier::predict_proba`. The search is exact
-//!   and pruned ([`super::knn_index`]): principal axes, blocks of 16 training
-//!   vectors with bounding boxes, an `f32` partial-distance bound with a
-//!   rigorous rounding margin whose `k`-th smallest full sum also bounds the
-//!   `k`-th distance, and the exact [`sq_dist`] for the survivors only,
-//!   so the neighbours are those of a scan that keeps the `k` smallest
-//!   `(distance, index)` pairs (ties go to the earlier training vector),
-//!   bit for bit. On the peers k-NN workload (3154 x 3060 x 80, k = 10) a
-//!   query visits ~34 of 192 blocks, accumulates ~12% of the coordinate
-//!   terms in `f32` and computes ~10.7 exact distances; predict took 28.8 ms
-//!   on a loaded 2-core machine (scikit-learn 84.5 ms there; the previous
-//!   ball-bound index 47.7-49.6 ms against 56.7 ms on a quiet one), and
-//!   21.4-26.2 ms (thread CPU, minimum per run, 4 runs at load ~5, against
-//!   21.9-27.1 ms for the previous index build alternating with it; the
-//!   command is in [`super::knn_index`]'s "Cost"). The
-//!   index is built at the first prediction, which the peers fit includes:
-//!   2.7-3.7 ms there (13.3-20.0 ms with the Jacobi build; scikit-learn's
-//!   fit 2.0 ms). The full
+//!   ([`super::knn_scan`]): every query against every training vector in
+//!   `f32` through `‖z‖² + ‖x‖² − 2 z·x` (a fused multiply-add kernel with
+//!   AVX-512), a rigorous rounding margin, and the exact [`sq_dist`] for the
+//!   few vectors the margin cannot exclude (~`k` + 1), so the neighbours are
+//!   those of a scan that keeps the `k` smallest `(distance, index)` pairs
+//!   (ties go to the earlier training vector), bit for bit. It replaced a
+//!   pruned index (principal axes, boxes, a k-d order) that computed ~12% of
+//!   the coordinate terms but cost ~2.2 ms to build at the first prediction
+//!   and searched at a small share of the multiply rate: on the peers k-NN
+//!   workload (3154 x 3060 x 80, k = 10) the scan builds and searches faster
+//!   (docs/benches.md). For training sets far larger than the paper's
+//!   (~3000 vectors) a pruned index would compute fewer terms. The full `f64`
 //!   scan (GEMM identity through the tiled kernel, then an exact re-rank of
-//!   the candidates) stays for models without an index (rows not finite or
-//!   beyond 1e15). smartcore's search (cover tree or
+//!   the candidates) stays for training sets the scan declines (a value not
+//!   finite, a squared norm beyond 1e30). smartcore's search (cover tree or
 //!   linear) went through boxed iterators per distance and took ~20 s per fold.
 //! * `logistic`: multinomial logistic regression, `alpha/2 ‖W‖²` (intercepts
 //!   not penalised) added to the summed log loss, i.e. scikit-learn's
@@ -113,7 +108,7 @@ use super::features::{
     check_scaler, want, Classifier, FeatureKeys, FittedModel, FrameClassifier, Standardizer, TrainSet,
     TrainingLog, Vote, MODEL_FORMAT,
 };
-use super::{dense, forest, knn_index, lbfgs, smo, vmath};
+use super::{dense, forest, knn_scan, lbfgs, smo, vmath};
 use crate::estimate::features::{FitBaseline, TrainedEstimator};
 use crate::estimate::saved;
 use palpate_core::{
@@ -935,11 +930,11 @@ pub struct Knn {
     pub x: Vec<f64>,
     /// Their class indices.
     pub y: Vec<usize>,
-    /// The search index over `x` ([`knn_index`]), built on the first
+    /// The `f32` scan of `x` ([`knn_scan`]), built on the first
     /// prediction and not saved, so a saved model loads as
     /// before; `x` and `dim` must not change once it is built.
     #[serde(skip)]
-    index: knn_index::IndexCell,
+    scan: knn_scan::ScanCell,
 }
 
 impl Knn {
@@ -961,17 +956,17 @@ impl Knn {
             scaler,
             x,
             y,
-            index: Default::default(),
+            scan: Default::default(),
         }
     }
 
-    /// The search index (built on the first call), `None` when the rows are
-    /// not searched through one (empty, zero-width, not finite or too large).
-    fn index(&self) -> Option<&knn_index::KnnIndex> {
+    /// The scan (built on the first call), `None` when the rows are not
+    /// searched through one (empty, zero-width, not finite or too large).
+    fn scan(&self) -> Option<&knn_scan::Scan> {
         if self.dim == 0 || self.x.len() != self.y.len() * self.dim {
             return None;
         }
-        self.index.get(&self.x, self.dim)
+        self.scan.get(&self.x, self.dim)
     }
 
     /// The `k` nearest training vectors of standardised `z` as (squared
@@ -989,7 +984,7 @@ impl Knn {
         let k = self.k.min(self.y.len());
         best.clear();
         for (i, row) in self.x.chunks_exact(self.dim.max(1)).enumerate() {
-            push_neighbour(best, k, sq_dist(row, z), i);
+            knn_scan::offer(best, k, sq_dist(row, z), i);
         }
     }
 
@@ -1000,41 +995,18 @@ impl Knn {
     }
 
     /// [`Self::frame_scores`] of every row of `x` into the rows of `out`,
-    /// with the neighbours of [`Self::neighbours`] found through the index
-    /// ([`knn_index`]) when there is one, else by [`Self::scores_full`].
+    /// with the neighbours of [`Self::neighbours`] found through the `f32`
+    /// scan ([`knn_scan`]) when there is one, else by [`Self::scores_full`].
     pub fn scores_batch(&self, x: &[f64], out: &mut [f64]) {
         let dim = self.dim.max(1);
         let kc = self.classes.max(1);
         let z = self.scaler.apply_rows(x);
         let n = (z.len() / dim).min(out.len() / kc);
-        match self.index() {
-            Some(index) => self.scores_indexed(index, &z[..n * dim], out),
+        match self.scan() {
+            Some(scan) => scan.search(&self.x, &z[..n * dim], self.k, |q, best| {
+                self.shares(best, &mut out[q * kc..(q + 1) * kc]);
+            }),
             None => self.scores_full(&z[..n * dim], out),
-        }
-    }
-
-    /// The scores of the standardised rows `z` through the index: per
-    /// query, [`knn_index::KnnIndex::search`] (the full scan for a query
-    /// out of its range). The queries are rotated by blocks in one tiled
-    /// product.
-    fn scores_indexed(&self, index: &knn_index::KnnIndex, z: &[f64], out: &mut [f64]) {
-        const QB: usize = 64;
-        let dim = self.dim.max(1);
-        let k = self.k.min(self.y.len());
-        let kc = self.classes.max(1);
-        let mut scratch = knn_index::Scratch::default();
-        let (mut v, mut y) = (Vec::new(), Vec::new());
-        let mut best: Vec<(f64, usize)> = Vec::with_capacity(k + 1);
-        for (c, zc) in z.chunks(QB * dim).enumerate() {
-            index.rotate(zc, &mut v, &mut y);
-            for (q, zq) in zc.chunks_exact(dim).enumerate() {
-                let r = q * dim..(q + 1) * dim;
-                if !index.search(&self.x, zq, &v[r.clone()], &y[r], k, &mut best, &mut scratch) {
-                    self.neighbours_into(zq, &mut best);
-                }
-                let row = c * QB + q;
-                self.shares(&best, &mut out[row * kc..(row + 1) * kc]);
-            }
         }
     }
 
@@ -1092,7 +1064,7 @@ impl Knn {
                     let cut = tau + 2.0 * delta;
                     for (j, &v) in row.iter().enumerate() {
                         if v <= cut {
-                            push_neighbour(&mut best, k, sq_dist(a, &self.x[j * dim..(j + 1) * dim]), j);
+                            knn_scan::offer(&mut best, k, sq_dist(a, &self.x[j * dim..(j + 1) * dim]), j);
                         }
                     }
                 }
@@ -1122,20 +1094,6 @@ impl Knn {
             out.iter_mut().for_each(|o| *o = 0.0);
         }
     }
-}
-
-/// Offers training vector `i` at squared distance `d2` to the sorted list
-/// `best` of the `k` nearest so far: kept in `(distance, index)` order, equal
-/// distances keep the earlier index first (vectors are offered in index order).
-#[inline]
-fn push_neighbour(best: &mut Vec<(f64, usize)>, k: usize, d2: f64, i: usize) {
-    // Inputs are checked finite, so d2 is; a non-finite one is never a neighbour.
-    if k == 0 || !d2.is_finite() || (best.len() == k && d2 >= best[k - 1].0) {
-        return;
-    }
-    let pos = best.partition_point(|&(d, _)| d <= d2);
-    best.insert(pos, (d2, i));
-    best.truncate(k);
 }
 
 impl KnnConfig {
@@ -1185,10 +1143,8 @@ impl KnnConfig {
                 d.flat,
                 set.y.clone(),
             );
-            // The search index is built at the first prediction (as for a
-            // loaded model), so fitting stays a copy of the training set:
-            // building it (~3 ms on 3060 x 80, [`knn_index`]'s Cost) only
-            // pays for itself over many predictions.
+            // The `f32` scan is built at the first prediction (as for a
+            // loaded model), so fitting stays a copy of the training set.
             Ok(Box::new(knn))
         })
     }

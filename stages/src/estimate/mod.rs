@@ -30,7 +30,7 @@ pub mod dense;
 pub mod edbn;
 pub mod features;
 pub mod forest;
-pub mod knn_index;
+pub mod knn_scan;
 pub mod lbfgs;
 pub mod saved;
 pub mod smo;
