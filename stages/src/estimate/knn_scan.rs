@@ -233,13 +233,10 @@ impl Scan {
             let qb = QB.min(nq - q0);
             for (q, zr) in z[q0 * dim..(q0 + qb) * dim].chunks_exact(dim).enumerate() {
                 let row = &mut s.zq[q * dim..(q + 1) * dim];
-                let (mut nz, mut z2) = (0.0f64, 0.0f64);
                 for (o, &v) in row.iter_mut().zip(zr) {
                     *o = v as f32;
-                    let w = f64::from(*o);
-                    nz += w * w;
-                    z2 += v * v;
                 }
+                let (nz, z2) = norms(zr);
                 let ok = nz <= LIMIT && z2 <= LIMIT;
                 if !ok {
                     row.iter_mut().for_each(|o| *o = 0.0);
