@@ -247,6 +247,7 @@ impl Scan {
             // whose results are not read.
             self.partials(&s.zq, &mut s.r, qb.div_ceil(QT) * QT);
             // The selection's loops compiled for the widest vectors too.
+            let wide = avx512_cmp();
             crate::wide::with_avx2(
                 #[inline(always)]
                 || {
@@ -254,8 +255,14 @@ impl Scan {
                         let zr = &z[(q0 + q) * dim..(q0 + q + 1) * dim];
                         best.clear();
                         if k > 0 && ok {
-                            let t =
-                                self.candidates(&s.r[q * stride..(q + 1) * stride], k, nz, zn, &mut s.sel);
+                            let t = self.candidates(
+                                &s.r[q * stride..(q + 1) * stride],
+                                k,
+                                nz,
+                                zn,
+                                &mut s.sel,
+                                wide,
+                            );
                             for &(v, j) in &s.sel.cand {
                                 if v <= t {
                                     offer(&mut best, k, dense::sq_dist(zr, &x[j * dim..(j + 1) * dim]), j);
@@ -286,7 +293,7 @@ impl Scan {
     ///    the final one): a vector comparison per chunk, rarely true.
     /// 3. `r̃_(k)` is the `k`-th smallest of them, and its threshold the answer.
     #[inline(always)]
-    fn candidates(&self, r: &[f32], k: usize, nz: f64, zn: f64, s: &mut Select) -> f32 {
+    fn candidates(&self, r: &[f32], k: usize, nz: f64, zn: f64, s: &mut Select, wide: bool) -> f32 {
         let chunks = r.len() / LANES;
         let g = (2 * k).div_ceil(LANES).clamp(1, chunks.max(1));
         let per = chunks.div_ceil(g).max(1);
@@ -311,14 +318,14 @@ impl Scan {
         };
         s.cand.clear();
         for (b, c) in r.chunks_exact(LANES).enumerate() {
-            // One vector comparison per chunk; the lanes only when one hits
-            // (rare: ~k + a few a query).
-            if c.iter().fold(0u32, |a, &v| a | u32::from(v <= t1)) != 0 {
-                for (l, &v) in c.iter().enumerate() {
-                    let j = b * LANES + l;
-                    if v <= t1 && j < self.n {
-                        s.cand.push((v, j));
-                    }
+            // One vector comparison per chunk, then only the lanes that hit
+            // (rare: ~k + a few a query, most chunks with one).
+            let mut hits = at_or_below(c, t1, wide);
+            while hits != 0 {
+                let j = b * LANES + hits.trailing_zeros() as usize;
+                hits &= hits - 1;
+                if j < self.n {
+                    s.cand.push((r[j], j));
                 }
             }
         }
@@ -390,6 +397,37 @@ impl Scan {
     }
 }
 
+/// Whether [`at_or_below`] may use its AVX-512 comparison.
+fn avx512_cmp() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        crate::wide::avx512()
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        false
+    }
+}
+
+/// Bit `l` set when `c[l] ≤ t` ([`LANES`] values): one AVX-512 comparison
+/// when `wide` ([`avx512_cmp`]), else a test of all lanes at once and the
+/// lanes one by one only when one is.
+#[inline(always)]
+fn at_or_below(c: &[f32], t: f32, wide: bool) -> u32 {
+    #[cfg(target_arch = "x86_64")]
+    if wide {
+        // SAFETY: `wide` is true only when the CPU has AVX-512 F.
+        return unsafe { x86::at_or_below(c, t) };
+    }
+    let _ = wide;
+    if c.iter().fold(0u32, |a, &v| a | u32::from(v <= t)) == 0 {
+        return 0;
+    }
+    c.iter()
+        .enumerate()
+        .fold(0u32, |a, (l, &v)| a | (u32::from(v <= t) << l))
+}
+
 /// `(‖f32(v)‖², ‖v‖²)` in `f64`, each summed in eight lanes (any order is
 /// within the bounds' margin; one running sum per row was a chain of
 /// dependent additions, most of a build).
@@ -414,6 +452,9 @@ fn norms(v: &[f64]) -> (f64, f64) {
 }
 
 /// The `k`-th smallest of `v` (reordered), `+inf` when it has fewer than `k`.
+/// (A sorted insertion into a list on the stack instead, for `k ≤ 32`, took
+/// more samples than this selection on the peers set: the minima arrive in
+/// no order, so most values shift the list.)
 fn kth(v: &mut [f32], k: usize) -> f32 {
     if k == 0 || v.len() < k {
         return f32::INFINITY;
@@ -440,6 +481,23 @@ pub(crate) fn offer(best: &mut Vec<(f64, usize)>, k: usize, d2: f64, j: usize) {
 mod x86 {
     use super::{LANES, QB, QT};
     use std::arch::x86_64::*;
+
+    /// [`super::at_or_below`] in one comparison.
+    ///
+    /// # Safety
+    /// The CPU must have AVX-512 F; `c` holds at least [`LANES`] values.
+    #[inline]
+    #[target_feature(enable = "avx512f")]
+    pub(super) unsafe fn at_or_below(c: &[f32], t: f32) -> u32 {
+        assert!(c.len() >= LANES);
+        // SAFETY: 16 values from `c` (checked above); the CPU has AVX-512 F.
+        unsafe {
+            u32::from(_mm512_cmp_ps_mask::<_CMP_LE_OQ>(
+                _mm512_loadu_ps(c.as_ptr()),
+                _mm512_set1_ps(t),
+            ))
+        }
+    }
 
     /// [`super::Scan::partials`]: blocks in pairs (an odd last block is
     /// paired with itself and stored once), queries in tiles of [`QT`].
