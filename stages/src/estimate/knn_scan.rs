@@ -167,18 +167,26 @@ impl Scan {
         let mut neg2 = vec![0.0f32; blocks.checked_mul(dim)?.checked_mul(LANES)?];
         let mut base = vec![f32::INFINITY; blocks * LANES];
         let (mut nx_max, mut x_max) = (0.0f64, 0.0f64);
-        let norms = crate::wide::with_avx2(
+        let mut norms = Vec::with_capacity(n);
+        // A plain loop: an iterator adapter's `fold` may be compiled outside
+        // the wide function.
+        let in_range = crate::wide::with_avx2(
             #[inline(always)]
-            || -> Option<Vec<(f64, f64)>> {
-                x.chunks_exact(dim)
-                    .map(|row| {
-                        let (s32, s64) = norms(row);
-                        // Not finite (a NaN or an infinity makes the sums so) or too large.
-                        (s32 <= LIMIT && s64 <= LIMIT).then_some((s32, s64))
-                    })
-                    .collect()
+            || {
+                for row in x.chunks_exact(dim) {
+                    let (s32, s64) = norms_of(row);
+                    // Not finite (a NaN or an infinity makes the sums so) or too large.
+                    if !(s32 <= LIMIT && s64 <= LIMIT) {
+                        return false;
+                    }
+                    norms.push((s32, s64));
+                }
+                true
             },
-        )?;
+        );
+        if !in_range {
+            return None;
+        }
         for (j, &(s32, s64)) in norms.iter().enumerate() {
             base[j] = s32 as f32;
             nx_max = nx_max.max(s32);
@@ -236,7 +244,7 @@ impl Scan {
                 for (o, &v) in row.iter_mut().zip(zr) {
                     *o = v as f32;
                 }
-                let (nz, z2) = norms(zr);
+                let (nz, z2) = norms_of(zr);
                 let ok = nz <= LIMIT && z2 <= LIMIT;
                 if !ok {
                     row.iter_mut().for_each(|o| *o = 0.0);
@@ -432,7 +440,7 @@ fn at_or_below(c: &[f32], t: f32, wide: bool) -> u32 {
 /// within the bounds' margin; one running sum per row was a chain of
 /// dependent additions, most of a build).
 #[inline(always)]
-fn norms(v: &[f64]) -> (f64, f64) {
+fn norms_of(v: &[f64]) -> (f64, f64) {
     let (mut a, mut b) = ([0.0f64; 8], [0.0f64; 8]);
     let c = v.chunks_exact(8);
     let rest = c.remainder();
