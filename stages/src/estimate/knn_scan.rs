@@ -213,16 +213,6 @@ impl Scan {
         })
     }
 
-    /// Number of training vectors.
-    pub fn len(&self) -> usize {
-        self.n
-    }
-
-    /// True when there is no training vector.
-    pub fn is_empty(&self) -> bool {
-        self.n == 0
-    }
-
     /// The `k` nearest training rows of each standardised query row of `z`
     /// (rows of `x`, the `f64` vectors the scan was built from), passed to
     /// `each(query, neighbours)` in query order as `(D̂, index)` pairs,
@@ -255,7 +245,7 @@ impl Scan {
             // whose results are not read.
             self.partials(&s.zq, &mut s.r, qb.div_ceil(QT) * QT);
             // The selection's loops compiled for the widest vectors too.
-            let wide = avx512_cmp();
+            let wide = crate::wide::avx512();
             crate::wide::with_avx2(
                 #[inline(always)]
                 || {
@@ -406,20 +396,8 @@ impl Scan {
     }
 }
 
-/// Whether [`at_or_below`] may use its AVX-512 comparison.
-fn avx512_cmp() -> bool {
-    #[cfg(target_arch = "x86_64")]
-    {
-        crate::wide::avx512()
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    {
-        false
-    }
-}
-
 /// Bit `l` set when `c[l] ≤ t` ([`LANES`] values): one AVX-512 comparison
-/// when `wide` ([`avx512_cmp`]), else a test of all lanes at once and the
+/// when `wide` ([`crate::wide::avx512`]), else a test of all lanes at once and the
 /// lanes one by one only when one is.
 #[inline(always)]
 fn at_or_below(c: &[f32], t: f32, wide: bool) -> u32 {
