@@ -540,7 +540,7 @@ const NONE: usize = usize::MAX;
 /// All bits set: a lane that takes part (the masks of [`GramState`]).
 const ON: f64 = f64::from_bits(u64::MAX);
 
-/// Per-position state of [`solve_gram`], padded to a multiple of 8 with
+/// Per-position state of [`solve_gram`], padded to a multiple of 16 with
 /// lanes that never take part (masks off, kernel 0).
 struct GramState {
     n: usize,
@@ -563,7 +563,8 @@ struct GramState {
 impl GramState {
     fn new(k: &GramRanges<'_>, y: &[f64], var: &[usize], gidx: &[usize], c: f64) -> Self {
         let n = gidx.len();
-        let n_pad = n.div_ceil(8) * 8;
+        // A multiple of 16: the AVX-512 scans take 16 positions a step.
+        let n_pad = n.div_ceil(16) * 16;
         let pad = |v: Vec<f64>, fill: f64| {
             let mut v = v;
             v.resize(n_pad, fill);
@@ -673,7 +674,12 @@ impl GramState {
         if simd {
             // SAFETY: AVX2 is present (`simd` is `wide::avx2()`); the arrays
             // are equally long, a multiple of 8.
-            let (r, v) = unsafe { x86::best_up(&self.up, &self.ny, &self.grad, &self.rank) };
+            let (r, v) = if crate::wide::avx512() {
+                // SAFETY: AVX-512 F/VL/DQ are present; a multiple of 16.
+                unsafe { x86::best_up512(&self.up, &self.ny, &self.grad, &self.rank) }
+            } else {
+                unsafe { x86::best_up(&self.up, &self.ny, &self.grad, &self.rank) }
+            };
             return (rank_pos(r, pos_of), v);
         }
         let _ = simd;
@@ -706,20 +712,19 @@ impl GramState {
         #[cfg(target_arch = "x86_64")]
         if simd {
             // SAFETY: as in `best_up`; `ki` is as long as the arrays.
-            let (r, g2) = unsafe {
-                x86::best_low(
-                    x86::Low {
-                        low: &self.low,
-                        y: &self.y,
-                        grad: &self.grad,
-                        diag: &self.diag,
-                        rank: &self.rank,
-                        ki,
-                    },
-                    gmax,
-                    di,
-                    tau,
-                )
+            let l = x86::Low {
+                low: &self.low,
+                y: &self.y,
+                grad: &self.grad,
+                diag: &self.diag,
+                rank: &self.rank,
+                ki,
+            };
+            let (r, g2) = if crate::wide::avx512() {
+                // SAFETY: AVX-512 F/VL/DQ are present; a multiple of 16.
+                unsafe { x86::best_low512(l, gmax, di, tau) }
+            } else {
+                unsafe { x86::best_low(l, gmax, di, tau) }
             };
             return (rank_pos(r, pos_of), g2);
         }
@@ -760,19 +765,19 @@ impl GramState {
         #[cfg(target_arch = "x86_64")]
         if simd {
             // SAFETY: as in `best_up`; `ki` and `kj` are as long as the arrays.
-            let (r, v) = unsafe {
-                x86::update_best_up(
-                    &mut self.grad,
-                    x86::Up {
-                        up: &self.up,
-                        y: &self.y,
-                        ny: &self.ny,
-                        rank: &self.rank,
-                        ki,
-                        kj,
-                    },
-                    [yi, di, yj, dj],
-                )
+            let u = x86::Up {
+                up: &self.up,
+                y: &self.y,
+                ny: &self.ny,
+                rank: &self.rank,
+                ki,
+                kj,
+            };
+            let (r, v) = if crate::wide::avx512() {
+                // SAFETY: AVX-512 F/VL/DQ are present; a multiple of 16.
+                unsafe { x86::update_best_up512(&mut self.grad, u, [yi, di, yj, dj]) }
+            } else {
+                unsafe { x86::update_best_up(&mut self.grad, u, [yi, di, yj, dj]) }
             };
             return (rank_pos(r, pos_of), v);
         }
@@ -880,6 +885,16 @@ fn rank_pos(r: f64, pos_of: &[usize]) -> usize {
 /// positions `8m + 4h + l`. The eight pairs are then reduced by the same
 /// rule, so the pick is the scalar loop's. Only the IEEE operations of the
 /// scalar code (no FMA), so the same bits.
+///
+/// Where the CPU has AVX-512 (F, VL, DQ), the `*512` forms take 16
+/// positions a step (two chains of 8 lanes, lane masks as bits): the same
+/// operations lane by lane and the same reduction rule, so the same pick.
+/// Peers SVM fit, old and new binaries alternated (`RAYON_NUM_THREADS=1
+/// target/release/examples/peers --out <dir> --seed 1 --only svm --repeats
+/// 7`, four pairs, 2026-11-27): 19.3-20.8 ms against 18.2-19.3 ms, and
+/// after a tidy-up of the reductions 20.2-22.0 against 19.6-20.3 ms; test
+/// scores `cmp`-identical. The test `gram_solver_is_the_row_solver_bit_for_bit`
+/// runs both forms (and the scalar loop) against the row solver.
 #[cfg(target_arch = "x86_64")]
 mod x86 {
     use std::arch::x86_64::*;
@@ -948,18 +963,32 @@ mod x86 {
                     _mm256_storeu_pd(rs.as_mut_ptr().add(4 * h), self.r[h]);
                 }
             }
-            let (mut bv, mut br) = (vs[0], rs[0]);
-            for l in 1..8 {
-                if rs[l] < 0.0 {
-                    continue;
-                }
-                let better = if max { vs[l] > bv } else { vs[l] < bv };
-                if br < 0.0 || better || (vs[l] == bv && rs[l] > br) {
-                    (bv, br) = (vs[l], rs[l]);
-                }
-            }
-            (br, bv)
+            pick(&vs, &rs, max)
         }
+    }
+
+    /// The best of the lanes' `(value, rank)` pairs: the largest value
+    /// (`max`) or the smallest, then the largest rank, skipping rank −1
+    /// (none); `(rank, value)`.
+    fn pick(vs: &[f64], rs: &[f64], max: bool) -> (f64, f64) {
+        let (mut bv, mut br) = (vs[0], rs[0]);
+        for (&v, &r) in vs.iter().zip(rs).skip(1) {
+            if r < 0.0 {
+                continue;
+            }
+            let better = if max { v > bv } else { v < bv };
+            if br < 0.0 || better || (v == bv && r > br) {
+                (bv, br) = (v, r);
+            }
+        }
+        (br, bv)
+    }
+
+    /// The lanes' running maxima of `y G` reduced in lane order, as the
+    /// scalar loop's `yg >= gmax2`.
+    fn last_max(gs: &[f64]) -> f64 {
+        gs.iter()
+            .fold(f64::NEG_INFINITY, |m, &v| if v >= m { v } else { m })
     }
 
     /// Four doubles of `a` from `t` (callers assert `t + 4 <= a.len()`).
@@ -1069,10 +1098,178 @@ mod x86 {
             _mm256_storeu_pd(gs.as_mut_ptr(), g2[0]);
             _mm256_storeu_pd(gs.as_mut_ptr().add(4), g2[1]);
         }
-        let gmax2 = gs
-            .iter()
-            .fold(f64::NEG_INFINITY, |m, &v| if v >= m { v } else { m });
-        (rj, gmax2)
+        (rj, last_max(&gs))
+    }
+
+    /// [`Best`] with 512-bit vectors: two chains of 8 lanes, lane `l` of
+    /// chain `h` seeing positions `16m + 8h + l`; the same rule, so the
+    /// same pick (ties go by rank, so the lane order does not matter).
+    #[derive(Clone, Copy)]
+    struct Best512 {
+        v: [__m512d; 2],
+        r: [__m512d; 2],
+    }
+
+    impl Best512 {
+        #[inline]
+        #[target_feature(enable = "avx2,avx512f,avx512vl,avx512dq")]
+        fn new(v: f64) -> Self {
+            Best512 {
+                v: [_mm512_set1_pd(v); 2],
+                r: [_mm512_set1_pd(-1.0); 2],
+            }
+        }
+
+        /// As [`Best::offer`], with the lane mask as bits.
+        #[inline]
+        #[target_feature(enable = "avx2,avx512f,avx512vl,avx512dq")]
+        fn offer<const CMP: i32>(&mut self, h: usize, v: __m512d, r: __m512d, mask: __mmask8) {
+            let (best, br) = (self.v[h], self.r[h]);
+            let strict = _mm512_cmp_pd_mask::<CMP>(v, best);
+            let eq = _mm512_cmp_pd_mask::<_CMP_EQ_OQ>(v, best);
+            let later = _mm512_cmp_pd_mask::<_CMP_GT_OQ>(r, br);
+            let upd = mask & (strict | (eq & later));
+            self.v[h] = _mm512_mask_blend_pd(upd, best, v);
+            self.r[h] = _mm512_mask_blend_pd(upd, br, r);
+        }
+
+        /// As [`Best::reduce`], over the sixteen pairs.
+        #[inline]
+        #[target_feature(enable = "avx2,avx512f,avx512vl,avx512dq")]
+        fn reduce(&self, max: bool) -> (f64, f64) {
+            let (mut vs, mut rs) = ([0.0f64; 16], [0.0f64; 16]);
+            // SAFETY: sixteen doubles each, eight per store.
+            unsafe {
+                for h in 0..2 {
+                    _mm512_storeu_pd(vs.as_mut_ptr().add(8 * h), self.v[h]);
+                    _mm512_storeu_pd(rs.as_mut_ptr().add(8 * h), self.r[h]);
+                }
+            }
+            pick(&vs, &rs, max)
+        }
+    }
+
+    /// Eight doubles of `a` from `t` (callers assert `t + 8 <= a.len()`).
+    #[inline(always)]
+    unsafe fn at8(a: &[f64], t: usize) -> __m512d {
+        debug_assert!(t + 8 <= a.len());
+        // SAFETY: in bounds (above); the caller has AVX-512.
+        unsafe { _mm512_loadu_pd(a.as_ptr().add(t)) }
+    }
+
+    /// The lanes of a membership mask ([`super::ON`] or 0) that are on.
+    #[inline]
+    #[target_feature(enable = "avx2,avx512f,avx512vl,avx512dq")]
+    fn on(m: __m512d) -> __mmask8 {
+        let b = _mm512_castpd_si512(m);
+        _mm512_test_epi64_mask(b, b)
+    }
+
+    /// [`best_up`] with 512-bit vectors, 16 positions a step.
+    #[target_feature(enable = "avx2,avx512f,avx512vl,avx512dq")]
+    pub(super) unsafe fn best_up512(up: &[f64], ny: &[f64], grad: &[f64], rank: &[f64]) -> (f64, f64) {
+        let n = up.len();
+        assert!(n.is_multiple_of(16) && ny.len() == n && grad.len() == n && rank.len() == n);
+        let mut best = Best512::new(f64::NEG_INFINITY);
+        for t0 in (0..n).step_by(16) {
+            for h in 0..2 {
+                let t = t0 + 8 * h;
+                // SAFETY: t + 8 <= n, every array holds n doubles (asserted).
+                let (m, v, r) = unsafe {
+                    (
+                        on(at8(up, t)),
+                        _mm512_mul_pd(at8(ny, t), at8(grad, t)),
+                        at8(rank, t),
+                    )
+                };
+                best.offer::<_CMP_GT_OQ>(h, v, r, m);
+            }
+        }
+        best.reduce(true)
+    }
+
+    /// [`update_best_up`] with 512-bit vectors, 16 positions a step.
+    #[target_feature(enable = "avx2,avx512f,avx512vl,avx512dq")]
+    pub(super) unsafe fn update_best_up512(grad: &mut [f64], u: Up<'_>, s: [f64; 4]) -> (f64, f64) {
+        let n = grad.len();
+        assert!(n.is_multiple_of(16));
+        for a in [u.up, u.y, u.ny, u.rank, u.ki, u.kj] {
+            assert!(a.len() == n);
+        }
+        let (yi, di, yj, dj) = (
+            _mm512_set1_pd(s[0]),
+            _mm512_set1_pd(s[1]),
+            _mm512_set1_pd(s[2]),
+            _mm512_set1_pd(s[3]),
+        );
+        let mut best = Best512::new(f64::NEG_INFINITY);
+        let g = grad.as_mut_ptr();
+        for t0 in (0..n).step_by(16) {
+            for h in 0..2 {
+                let t = t0 + 8 * h;
+                // SAFETY: t + 8 <= n, every array holds n doubles (asserted).
+                unsafe {
+                    let yt = at8(u.y, t);
+                    // The operations of `update_best_up`, lane by lane.
+                    let qi = _mm512_mul_pd(at8(u.ki, t), _mm512_mul_pd(yi, yt));
+                    let qj = _mm512_mul_pd(at8(u.kj, t), _mm512_mul_pd(yj, yt));
+                    let step = _mm512_add_pd(_mm512_mul_pd(qi, di), _mm512_mul_pd(qj, dj));
+                    let gv = _mm512_add_pd(_mm512_loadu_pd(g.add(t)), step);
+                    _mm512_storeu_pd(g.add(t), gv);
+                    let v = _mm512_mul_pd(at8(u.ny, t), gv);
+                    best.offer::<_CMP_GT_OQ>(h, v, at8(u.rank, t), on(at8(u.up, t)));
+                }
+            }
+        }
+        best.reduce(true)
+    }
+
+    /// [`best_low`] with 512-bit vectors, 16 positions a step.
+    #[target_feature(enable = "avx2,avx512f,avx512vl,avx512dq")]
+    pub(super) unsafe fn best_low512(l: Low<'_>, gmax: f64, di: f64, tau: f64) -> (f64, f64) {
+        let n = l.low.len();
+        assert!(n.is_multiple_of(16));
+        for a in [l.y, l.grad, l.diag, l.rank, l.ki] {
+            assert!(a.len() == n);
+        }
+        let gm = _mm512_set1_pd(gmax);
+        let dii = _mm512_set1_pd(di);
+        let two = _mm512_set1_pd(2.0);
+        let tau = _mm512_set1_pd(tau);
+        let zero = _mm512_setzero_pd();
+        let sign = _mm512_set1_pd(-0.0);
+        let ninf = _mm512_set1_pd(f64::NEG_INFINITY);
+        let mut best = Best512::new(f64::INFINITY);
+        let mut g2 = [ninf; 2];
+        for t0 in (0..n).step_by(16) {
+            for (h, g2h) in g2.iter_mut().enumerate() {
+                let t = t0 + 8 * h;
+                // SAFETY: t + 8 <= n, every array holds n doubles (asserted).
+                let (m, yg) = unsafe { (on(at8(l.low, t)), _mm512_mul_pd(at8(l.y, t), at8(l.grad, t))) };
+                // max_pd returns its second operand when the first is NaN,
+                // as in `best_low`.
+                *g2h = _mm512_max_pd(_mm512_mask_blend_pd(m, ninf, yg), *g2h);
+                let b = _mm512_add_pd(gm, yg);
+                let cand = m & _mm512_cmp_pd_mask::<_CMP_GT_OQ>(b, zero);
+                if cand == 0 {
+                    continue;
+                }
+                // SAFETY: as above.
+                let (dt, kt, r) = unsafe { (at8(l.diag, t), at8(l.ki, t), at8(l.rank, t)) };
+                let a = _mm512_sub_pd(_mm512_add_pd(dii, dt), _mm512_mul_pd(two, kt));
+                let a = _mm512_mask_blend_pd(_mm512_cmp_pd_mask::<_CMP_GT_OQ>(a, zero), tau, a);
+                let obj = _mm512_div_pd(_mm512_xor_pd(_mm512_mul_pd(b, b), sign), a);
+                best.offer::<_CMP_LT_OQ>(h, obj, r, cand);
+            }
+        }
+        let (rj, _) = best.reduce(false);
+        let mut gs = [0.0f64; 16];
+        // SAFETY: sixteen doubles, eight per store.
+        unsafe {
+            _mm512_storeu_pd(gs.as_mut_ptr(), g2[0]);
+            _mm512_storeu_pd(gs.as_mut_ptr().add(8), g2[1]);
+        }
+        (rj, last_max(&gs))
     }
 }
 
@@ -1406,7 +1603,9 @@ mod tests {
         let want = solve(&y, &|s, t| rbf(&x[idx[s]], &x[idx[t]], 0.3), p);
         let fast = solve_gram(&kern, &y, &var, p);
         let scalar = crate::wide::baseline_only(|| solve_gram(&kern, &y, &var, p));
-        for got in [&fast, &scalar] {
+        // The AVX2 scans where the CPU also has AVX-512 (`fast` took those).
+        let avx2 = crate::wide::without_avx512(|| solve_gram(&kern, &y, &var, p));
+        for got in [&fast, &scalar, &avx2] {
             let bits = |s: &Solution| s.alpha.iter().map(|a| a.to_bits()).collect::<Vec<_>>();
             assert_eq!(bits(got), bits(&want), "seed {seed}, n {n}");
             assert_eq!(got.rho.to_bits(), want.rho.to_bits(), "seed {seed}, n {n}");
