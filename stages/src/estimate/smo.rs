@@ -421,15 +421,15 @@ const MAX_GRAM_N: usize = 1 << 52;
 /// iteration (select `i`, select `j`, update `G`) dominated the fit (1.1 µs
 /// an iteration, branchy index-list loops). Here the scans run over dense
 /// per-position arrays with the membership of `I_up`/`I_low` (and of the
-/// active set) held as masks, four lanes at a time with AVX2 (a scalar loop
-/// otherwise, same bits): every value is the same IEEE operation as in
-/// [`solve_rows`], and ties are broken as there (the last variable in
-/// variable order wins) by comparing `(value, variable)` pairs, so the
-/// positions may be in any order. Shrunk variables stay masked out of the
-/// selections; their gradients are updated too (cheaper than skipping them
-/// lane by lane) and, as in [`solve_rows`], rebuilt from the multipliers
-/// before they count again. The update of `G` and the next selection of `i`
-/// share one pass.
+/// active set) held as masks, four lanes at a time with AVX2, eight with
+/// AVX-512 (a scalar loop otherwise, same bits): every value is the same
+/// IEEE operation as in [`solve_rows`], and ties are broken as there (the
+/// last variable in variable order wins) by comparing `(value, variable)`
+/// pairs, so the positions may be in any order. Shrunk variables stay
+/// masked out of the selections; their gradients are updated too (cheaper
+/// than skipping them lane by lane) and, as in [`solve_rows`], rebuilt from
+/// the multipliers before they count again. The update of `G` and the
+/// next selection of `i` share one pass.
 pub fn solve_gram(k: &GramRanges<'_>, y: &[f64], var: &[usize], p: &SmoParams) -> Solution {
     let gidx: Vec<usize> = k.ranges.iter().flat_map(Clone::clone).collect();
     let n = gidx.len();
