@@ -558,6 +558,8 @@ struct GramState {
     /// [`ON`] where the variable is active and in `I_up` (`I_low`), else 0.
     up: Vec<f64>,
     low: Vec<f64>,
+    /// The scans may use AVX-512 (asked once per problem, not per scan).
+    x512: bool,
 }
 
 impl GramState {
@@ -584,6 +586,7 @@ impl GramState {
             n_active: n,
             up: vec![0.0; n_pad],
             low: vec![0.0; n_pad],
+            x512: crate::wide::avx512(),
         };
         st.activate_all();
         st
@@ -674,8 +677,8 @@ impl GramState {
         if simd {
             // SAFETY: AVX2 is present (`simd` is `wide::avx2()`); the arrays
             // are equally long, a multiple of 8.
-            let (r, v) = if crate::wide::avx512() {
-                // SAFETY: AVX-512 F/VL/DQ are present; a multiple of 16.
+            let (r, v) = if self.x512 {
+                // SAFETY: AVX-512 F/VL/DQ are present (`x512`); a multiple of 16.
                 unsafe { x86::best_up512(&self.up, &self.ny, &self.grad, &self.rank) }
             } else {
                 unsafe { x86::best_up(&self.up, &self.ny, &self.grad, &self.rank) }
@@ -720,8 +723,8 @@ impl GramState {
                 rank: &self.rank,
                 ki,
             };
-            let (r, g2) = if crate::wide::avx512() {
-                // SAFETY: AVX-512 F/VL/DQ are present; a multiple of 16.
+            let (r, g2) = if self.x512 {
+                // SAFETY: AVX-512 F/VL/DQ are present (`x512`); a multiple of 16.
                 unsafe { x86::best_low512(l, gmax, di, tau) }
             } else {
                 unsafe { x86::best_low(l, gmax, di, tau) }
@@ -773,8 +776,8 @@ impl GramState {
                 ki,
                 kj,
             };
-            let (r, v) = if crate::wide::avx512() {
-                // SAFETY: AVX-512 F/VL/DQ are present; a multiple of 16.
+            let (r, v) = if self.x512 {
+                // SAFETY: AVX-512 F/VL/DQ are present (`x512`); a multiple of 16.
                 unsafe { x86::update_best_up512(&mut self.grad, u, [yi, di, yj, dj]) }
             } else {
                 unsafe { x86::update_best_up(&mut self.grad, u, [yi, di, yj, dj]) }
