@@ -14,7 +14,7 @@
 //! estimates in a depth-first run); and those writes with four trials per
 //! pass over each class's spectra. And the trained baselines' layer
 //! products (`estimate::dense::gemm_nt`, the bits of a fixed-order dot
-//! product, no FMA) at their prediction shapes, in billions of products a
+//! product, each term fused) at their prediction shapes, in billions of products a
 //! second, with the kernel the CPU picks and with AVX-512 switched off (the
 //! AVX2 kernels). And the activations applied to those products' outputs
 //! (`tanh` with the bias, the row softmax), in ns per value.

@@ -6,11 +6,14 @@
 //!
 //! The release build targets baseline x86-64 (SSE2: two doubles per vector).
 //! [`with_avx2`] runs a closure inside a function compiled with AVX2 enabled,
-//! chosen once at run time, so the loops inlined into it use four lanes. Only
-//! AVX2 is enabled, never FMA, and Rust never contracts `a * b + c` on its own:
-//! every IEEE operation rounds the same at either width, so the signals are
-//! bit-identical on every x86-64 machine (tested: a lab trial simulated both
-//! ways, and a trial encoded both ways, give the same bits). Where the CPU
+//! chosen once at run time, so the loops inlined into it use four lanes. The
+//! function is compiled with AVX2 and FMA (the path requires both), but Rust
+//! never contracts `a * b + c` on its own: only an explicit `mul_add` fuses,
+//! and that rounds once on every path (the instruction here, the C
+//! library's exact `fma` on the baseline). Every IEEE operation rounds the
+//! same at either width, so the signals are bit-identical on every x86-64
+//! machine (tested: a lab trial simulated both ways, and a trial encoded
+//! both ways, give the same bits). Where the CPU
 //! also has AVX-512 (F, VL, DQ) the same closure is compiled with it: the
 //! same operations, with 32 vector registers instead of 16, which keeps a
 //! 16-lane kernel's state out of memory.
@@ -42,11 +45,33 @@ pub fn baseline_only<R>(f: impl FnOnce() -> R) -> R {
     with_switch(&BASELINE, f)
 }
 
-/// True when the AVX2 path may run on this thread: the CPU has AVX2 (checked
-/// once; `PALPATE_NO_AVX2` set in the environment turns it off) and
-/// [`baseline_only`] is not in force.
+/// True when the AVX2 path may run on this thread: the CPU has AVX2 and FMA
+/// (checked once; `PALPATE_NO_AVX2` set in the environment turns it off)
+/// and [`baseline_only`] is not in force.
 pub fn avx2() -> bool {
     cpu_avx2() && !BASELINE.with(Cell::get)
+}
+
+/// True when a scalar `mul_add` may be compiled to the FMA instruction on
+/// this thread: the CPU has FMA and [`baseline_only`] is not in force (the
+/// baseline path then fuses with the C library's `fma`: the same bits).
+pub fn fma() -> bool {
+    cpu_fma() && !BASELINE.with(Cell::get)
+}
+
+fn cpu_fma() -> bool {
+    use std::sync::OnceLock;
+    static ON: OnceLock<bool> = OnceLock::new();
+    *ON.get_or_init(|| {
+        #[cfg(target_arch = "x86_64")]
+        {
+            std::arch::is_x86_feature_detected!("fma")
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        {
+            false
+        }
+    })
 }
 
 /// True when the AVX-512 path may run (F, VL and DQ; `PALPATE_NO_AVX512`
@@ -79,7 +104,9 @@ fn cpu_avx2() -> bool {
     *ON.get_or_init(|| {
         #[cfg(target_arch = "x86_64")]
         {
-            std::env::var_os("PALPATE_NO_AVX2").is_none() && std::arch::is_x86_feature_detected!("avx2")
+            std::env::var_os("PALPATE_NO_AVX2").is_none()
+                && std::arch::is_x86_feature_detected!("avx2")
+                && std::arch::is_x86_feature_detected!("fma")
         }
         #[cfg(not(target_arch = "x86_64"))]
         {
@@ -94,7 +121,7 @@ fn cpu_avx2() -> bool {
 pub fn with_avx2<R>(f: impl FnOnce() -> R) -> R {
     #[cfg(target_arch = "x86_64")]
     {
-        #[target_feature(enable = "avx2")]
+        #[target_feature(enable = "avx2,fma")]
         fn wide<R>(f: impl FnOnce() -> R) -> R {
             f()
         }

@@ -289,8 +289,8 @@ impl OvoSvm {
     #[inline]
     fn kernel_into(&self, x: &[f64], out: &mut [f64]) {
         let gamma = self.gamma;
-        // Four partial sums per distance in a fixed order and no FMA: the
-        // same bits with or without AVX2 (crate::wide).
+        // Four partial sums per distance in a fixed order, each term fused
+        // (`dense` module docs): the same bits with or without AVX2.
         crate::wide::with_avx2(|| {
             for (k, s) in out.iter_mut().zip(self.sv.chunks_exact(self.dim.max(1))) {
                 *k = sq_dist(s, x);

@@ -2,18 +2,32 @@
 //! products `C = A Bᵀ` (`C[i][j] = a_i · b_j`) and squared distances
 //! (`C[i][j] = ‖a_i − b_j‖²`) of row-major `f64` matrices.
 //!
-//! Why by hand rather than `matrixmultiply`/`gemm`: those crates pick an FMA
-//! kernel at run time, so the bits of every dot product would depend on the
-//! CPU, and a single-row call (a stream's frame) could differ from the batch
-//! call over the same row. Here every entry is computed exactly as the
-//! scalar [`dot`] / [`sq_dist`] compute it (four partial sums over chunks of
-//! four, reduced as `(s0 + s1) + (s2 + s3)`, then the remainder in order, no
-//! FMA), so a frame scored alone, a batch, the AVX2 and the SSE2 path all
-//! give the same bits. The speed comes from register tiling: a tile of 2 rows
+//! Why by hand rather than `matrixmultiply`/`gemm`: those crates pick a
+//! kernel (and with it a summation order) at run time, so the bits of every
+//! dot product would depend on the CPU, and a single-row call (a stream's
+//! frame) could differ from the batch call over the same row. Here every
+//! entry is computed exactly as the scalar [`dot`] / [`sq_dist`] compute it:
+//! four partial sums over chunks of four, each term fused into its partial
+//! sum (`s_l ← fma(x, y, s_l)`, or `fma(d, d, s_l)` with `d = x − y`: one
+//! rounding per term), reduced as `(s0 + s1) + (s2 + s3)`, then the
+//! remainder fused in order. So a frame scored alone, a batch, the AVX-512,
+//! AVX2 and baseline paths all give the same bits on every x86-64 CPU.
+//!
+//! Fused, since 2026-11-27 (before, a separate multiply and add, two
+//! roundings per term): a fused multiply-add is a single correctly rounded
+//! operation wherever it runs (the FMA instruction, which the vector paths
+//! require with AVX2, or `f64::mul_add`, which on a CPU without one is the
+//! C library's exact software `fma`), so fusing keeps the bit rule above
+//! while doing a product's two operations in one: the layer products ran at
+//! about 60 % of the unfused limit, and the prediction of the ANN (ST) and
+//! the EDBN were ~45 % products. Every baseline that uses these kernels
+//! (ANN, EDBN, SVM, k-NN's exact distances, logistic regression) changed in
+//! its last bits then; RESULTS.md says what that moved. The speed comes
+//! from register tiling: a tile of 2 rows
 //! of `A` against 4 rows of `B` keeps 8 four-lane accumulators in registers
 //! and loads each chunk once per tile instead of once per entry, written
-//! with AVX intrinsics where the CPU has AVX2 ([`crate::wide::avx2`]; lane
-//! `l` is partial sum `l`, multiply and add separate), and blocks of `B`
+//! with AVX intrinsics where the CPU has AVX2 and FMA ([`crate::wide::avx2`];
+//! lane `l` is partial sum `l`), and blocks of `B`
 //! stay in cache while every row of `A` passes. The shapes here are small
 //! (dims 16-80, tens to thousands of rows), where a GEMM's packing would not
 //! pay anyway. Measured on the k-NN workload (3154 x 3060 x 80, one core,
@@ -39,54 +53,67 @@ const MR: usize = 2;
 const NR: usize = 4;
 
 /// Dot product over fixed-width chunks (vectorises) with a fixed summation
-/// order, so the same bits on every run and every path.
+/// order, each term fused into its partial sum (module docs), so the same
+/// bits on every run and every path.
 #[inline]
 pub fn dot(a: &[f64], b: &[f64]) -> f64 {
-    let mut acc = [0.0f64; 4];
-    let ca = a.chunks_exact(4);
-    let cb = b.chunks_exact(4);
-    let (ra, rb) = (ca.remainder(), cb.remainder());
-    for (x, y) in ca.zip(cb) {
-        for l in 0..4 {
-            acc[l] += x[l] * y[l];
-        }
-    }
-    let mut s = (acc[0] + acc[1]) + (acc[2] + acc[3]);
-    for (x, y) in ra.iter().zip(rb) {
-        s += x * y;
-    }
-    s
+    single_any::<false>(a, b)
 }
 
-/// `‖a − b‖²` with four partial sums in a fixed order (same bits everywhere).
+/// `‖a − b‖²` with four partial sums in a fixed order, each squared
+/// difference fused into its sum (same bits everywhere).
 #[inline]
 pub fn sq_dist(a: &[f64], b: &[f64]) -> f64 {
+    single_any::<true>(a, b)
+}
+
+/// [`single_fused`] with the FMA instruction where the CPU has it
+/// ([`crate::wide::fma`]), otherwise with the C library's `fma` (exact, the
+/// same bits, a call per term: slow, and only where no vector path runs).
+#[inline]
+fn single_any<const SQ: bool>(a: &[f64], b: &[f64]) -> f64 {
+    #[cfg(target_arch = "x86_64")]
+    if crate::wide::fma() {
+        #[target_feature(enable = "fma")]
+        fn fused<const SQ: bool>(a: &[f64], b: &[f64]) -> f64 {
+            single_fused::<SQ>(a, b)
+        }
+        // SAFETY: the CPU has FMA (checked at run time).
+        return unsafe { fused::<SQ>(a, b) };
+    }
+    single_fused::<SQ>(a, b)
+}
+
+/// The reference order: `s_l ← fma(x_t, y_t, s_l)` for `t ≡ l (mod 4)`
+/// over the whole chunks, `(s0 + s1) + (s2 + s3)`, then the remaining
+/// terms fused in order ([`madd`]).
+#[inline(always)]
+fn single_fused<const SQ: bool>(a: &[f64], b: &[f64]) -> f64 {
     let mut acc = [0.0f64; 4];
     let ca = a.chunks_exact(4);
     let cb = b.chunks_exact(4);
     let (ra, rb) = (ca.remainder(), cb.remainder());
     for (x, y) in ca.zip(cb) {
         for l in 0..4 {
-            let d = x[l] - y[l];
-            acc[l] += d * d;
+            acc[l] = madd::<SQ>(x[l], y[l], acc[l]);
         }
     }
     let mut s = (acc[0] + acc[1]) + (acc[2] + acc[3]);
-    for (x, y) in ra.iter().zip(rb) {
-        let d = x - y;
-        s += d * d;
+    for (&x, &y) in ra.iter().zip(rb) {
+        s = madd::<SQ>(x, y, s);
     }
     s
 }
 
-/// One entry's contribution: a product or a squared difference.
+/// One entry's term fused into the sum `s`: `fma(x, y, s)`, or
+/// `fma(d, d, s)` with `d = x − y` for a squared distance.
 #[inline(always)]
-fn term<const SQ: bool>(x: f64, y: f64) -> f64 {
+fn madd<const SQ: bool>(x: f64, y: f64, s: f64) -> f64 {
     if SQ {
         let d = x - y;
-        d * d
+        d.mul_add(d, s)
     } else {
-        x * y
+        x.mul_add(y, s)
     }
 }
 
@@ -111,11 +138,11 @@ fn tile<const SQ: bool, const AVX: bool>(a: [&[f64]; MR], b: [&[f64]; NR], k: us
 }
 
 /// [`tile`] with 256-bit vectors: lane `l` of each accumulator is partial
-/// sum `l` of the scalar kernels, multiplies and adds stay separate (no FMA),
-/// so the bits are theirs.
+/// sum `l` of the scalar kernels, each term fused as theirs is, so the bits
+/// are theirs.
 #[cfg(target_arch = "x86_64")]
 #[inline]
-#[target_feature(enable = "avx2")]
+#[target_feature(enable = "avx2,fma")]
 unsafe fn tile_avx<const SQ: bool>(a: [&[f64]; MR], b: [&[f64]; NR], k: usize) -> [[f64; NR]; MR] {
     use std::arch::x86_64::*;
     let full = k / 4 * 4;
@@ -132,13 +159,12 @@ unsafe fn tile_avx<const SQ: bool>(a: [&[f64]; MR], b: [&[f64]; NR], k: usize) -
             // SAFETY: as above.
             let bv = unsafe { _mm256_loadu_pd(pb[c].add(p)) };
             for r in 0..MR {
-                let t = if SQ {
+                acc[r][c] = if SQ {
                     let d = _mm256_sub_pd(av[r], bv);
-                    _mm256_mul_pd(d, d)
+                    _mm256_fmadd_pd(d, d, acc[r][c])
                 } else {
-                    _mm256_mul_pd(av[r], bv)
+                    _mm256_fmadd_pd(av[r], bv, acc[r][c])
                 };
-                acc[r][c] = _mm256_add_pd(acc[r][c], t);
             }
         }
         p += 4;
@@ -156,11 +182,11 @@ unsafe fn tile_avx<const SQ: bool>(a: [&[f64]; MR], b: [&[f64]; NR], k: usize) -
 
 /// One tile row's four entries from their four-lane accumulators (lane `l`
 /// partial sum `l`): `(q0 + q1) + (q2 + q3)` of each, then the terms past
-/// the last whole chunk (`full..k`) in order: [`dot`]'s / [`sq_dist`]'s
-/// additions.
+/// the last whole chunk (`full..k`) fused in order: [`dot`]'s / [`sq_dist`]'s
+/// operations.
 #[cfg(target_arch = "x86_64")]
 #[inline]
-#[target_feature(enable = "avx2")]
+#[target_feature(enable = "avx2,fma")]
 fn reduce_row<const SQ: bool>(
     acc: [std::arch::x86_64::__m256d; NR],
     a: &[f64],
@@ -187,7 +213,7 @@ fn reduce_row<const SQ: bool>(
     unsafe { _mm256_storeu_pd(out.as_mut_ptr(), s) };
     for (c, o) in out.iter_mut().enumerate() {
         for t in full..k {
-            *o += term::<SQ>(a[t], b[c][t]);
+            *o = madd::<SQ>(a[t], b[c][t], *o);
         }
     }
     out
@@ -202,7 +228,7 @@ fn reduce_row<const SQ: bool>(
 /// [`sq_dist`]. Half the vector operations of two AVX2 tiles.
 #[cfg(target_arch = "x86_64")]
 #[inline]
-#[target_feature(enable = "avx2,avx512f,avx512vl,avx512dq")]
+#[target_feature(enable = "avx2,fma,avx512f,avx512vl,avx512dq")]
 unsafe fn tile512<const SQ: bool>(a: [&[f64]; R512], b: [&[f64]; NR], k: usize) -> [[f64; NR]; R512] {
     use std::arch::x86_64::*;
     const { assert!(NR == 4) };
@@ -224,13 +250,12 @@ unsafe fn tile512<const SQ: bool>(a: [&[f64]; R512], b: [&[f64]; NR], k: usize) 
         for r in 0..R512 {
             let av = _mm512_broadcast_f64x4(unsafe { _mm256_loadu_pd(pa[r].add(p)) });
             for h in 0..2 {
-                let t = if SQ {
+                acc[r][h] = if SQ {
                     let d = _mm512_sub_pd(av, bv[h]);
-                    _mm512_mul_pd(d, d)
+                    _mm512_fmadd_pd(d, d, acc[r][h])
                 } else {
-                    _mm512_mul_pd(av, bv[h])
+                    _mm512_fmadd_pd(av, bv[h], acc[r][h])
                 };
-                acc[r][h] = _mm512_add_pd(acc[r][h], t);
             }
         }
         p += 4;
@@ -310,7 +335,7 @@ fn pairwise<const SQ: bool, const AVX: bool>(a: &[f64], b: &[f64], k: usize, out
 }
 
 #[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
+#[target_feature(enable = "avx2,fma")]
 unsafe fn pairwise_avx<const SQ: bool>(a: &[f64], b: &[f64], k: usize, out: &mut [f64], ldc: usize) {
     pairwise::<SQ, true>(a, b, k, out, ldc);
 }
@@ -318,7 +343,7 @@ unsafe fn pairwise_avx<const SQ: bool>(a: &[f64], b: &[f64], k: usize, out: &mut
 /// [`pairwise`] with [`tile512`] over the rows of `a` in fours, the last
 /// rows with the AVX2 tiles.
 #[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,avx512f,avx512vl,avx512dq")]
+#[target_feature(enable = "avx2,fma,avx512f,avx512vl,avx512dq")]
 unsafe fn pairwise512<const SQ: bool>(a: &[f64], b: &[f64], k: usize, out: &mut [f64], ldc: usize) {
     let m = a.len() / k.max(1);
     let m4 = m / R512 * R512;
@@ -472,13 +497,19 @@ fn panels512(b: &[f64], k: usize, n: usize) -> Vec<f64> {
 /// 16.8 / 13.9 at the ANN (S)'s input layer (2848 rows x 30 x 16), 14.4 /
 /// 12.2 at its output layer (x 17 x 30), 17.7 / 14.6 at the ANN (ST)'s
 /// input layer (3154 x 30 x 80), 17.7 / 15.6 and 17.5 / 13.8 at the EDBN's
-/// layers (x 60 x 80, x 30 x 60). The limit without FMA is two multiplies
+/// layers (x 60 x 80, x 30 x 60). The limit without FMA was two multiplies
 /// and two adds of four lanes a cycle, 8 products a cycle: ~29 G a second
 /// at the ~3.6 GHz the same program's dependent-operation latency implies
-/// (0.82 ns for 3 cycles), so this runs at ~60% of it. Three rows at a
-/// time (24 accumulators) was no faster.
+/// (0.82 ns for 3 cycles), so this ran at ~60% of it. Three rows at a
+/// time (24 accumulators) was no faster. Fused (module docs), the same
+/// program on 2026-11-27 18:10 (the AMD EPYC again, one core, best of 5): 24.0,
+/// 18.0, 24.9, 21.6 and 22.0 G a second at those five shapes (the AVX2
+/// kernels 13.0, 11.8, 15.6, 17.3, 14.3), up to ~7 products a cycle at
+/// the ~3.6 GHz above. Whether the core's FMA units or a step's loads (a
+/// broadcast of `a` per row, one or two panel vectors) bound it now was not
+/// measured.
 #[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,avx512f,avx512vl,avx512dq")]
+#[target_feature(enable = "avx2,fma,avx512f,avx512vl,avx512dq")]
 unsafe fn narrow512(a: &[f64], panels: &[f64], k: usize, n: usize, out: &mut [f64]) {
     let m = a.len() / k;
     assert!(n > 0 && panels.len() >= n.div_ceil(8) * 8 * k && out.len() >= m * n);
@@ -520,7 +551,7 @@ unsafe fn narrow512(a: &[f64], panels: &[f64], k: usize, n: usize, out: &mut [f6
 /// row). See [`narrow512`].
 #[cfg(target_arch = "x86_64")]
 #[inline]
-#[target_feature(enable = "avx2,avx512f,avx512vl,avx512dq")]
+#[target_feature(enable = "avx2,fma,avx512f,avx512vl,avx512dq")]
 unsafe fn block512<const R: usize, const H: usize>(
     a: &[f64],
     k: usize,
@@ -548,7 +579,7 @@ unsafe fn block512<const R: usize, const H: usize>(
                 for (acc_r, &p) in acc.iter_mut().zip(&pa) {
                     let x = _mm512_set1_pd(*p.add(c + l));
                     for (v, &wh) in acc_r[l].iter_mut().zip(&wv) {
-                        *v = _mm512_add_pd(*v, _mm512_mul_pd(x, wh));
+                        *v = _mm512_fmadd_pd(x, wh, *v);
                     }
                 }
             }
@@ -563,7 +594,7 @@ unsafe fn block512<const R: usize, const H: usize>(
                 // SAFETY: t < k, as above.
                 unsafe {
                     let wv = _mm512_loadu_pd(pb.add(t * w + 8 * h));
-                    s = _mm512_add_pd(s, _mm512_mul_pd(_mm512_set1_pd(*pa[r].add(t)), wv));
+                    s = _mm512_fmadd_pd(_mm512_set1_pd(*pa[r].add(t)), wv, s);
                 }
             }
             let j = j0 + 8 * h;
@@ -598,7 +629,7 @@ pub const NARROW_K: usize = 32;
 /// are no horizontal sums, which in the tiles cost more than the products
 /// when `k` is 16-80 and `b` has tens of rows (a layer's weights).
 #[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
+#[target_feature(enable = "avx2,fma")]
 unsafe fn narrow_avx(a: &[f64], bt: &[f64], k: usize, n: usize, np: usize, out: &mut [f64]) {
     let m = a.len() / k;
     assert!(np.is_multiple_of(4) && np >= n && bt.len() >= k * np && out.len() >= m * n);
@@ -642,7 +673,7 @@ fn store<const W: usize>(out: &mut [f64], at: usize, s: &[f64; W]) {
 /// registers. Requires `j0 + 4·H <= np` and `bt.len() >= a.len() · np`.
 #[cfg(target_arch = "x86_64")]
 #[inline]
-#[target_feature(enable = "avx2")]
+#[target_feature(enable = "avx2,fma")]
 unsafe fn narrow_block<const H: usize>(a: &[f64], bt: &[f64], np: usize, j0: usize) -> [f64; 8] {
     use std::arch::x86_64::*;
     let k = a.len();
@@ -658,7 +689,7 @@ unsafe fn narrow_block<const H: usize>(a: &[f64], bt: &[f64], np: usize, j0: usi
                 let x = _mm256_broadcast_sd(&*pa.add(c + l));
                 let w = pb.add((c + l) * np + j0);
                 for (h, v) in acc_l.iter_mut().enumerate() {
-                    *v = _mm256_add_pd(*v, _mm256_mul_pd(x, _mm256_loadu_pd(w.add(4 * h))));
+                    *v = _mm256_fmadd_pd(x, _mm256_loadu_pd(w.add(4 * h)), *v);
                 }
             }
         }
@@ -677,7 +708,7 @@ unsafe fn narrow_block<const H: usize>(a: &[f64], bt: &[f64], np: usize, j0: usi
             let x = _mm256_broadcast_sd(&*pa.add(t));
             let w = pb.add(t * np + j0);
             for (h, v) in s.iter_mut().enumerate() {
-                *v = _mm256_add_pd(*v, _mm256_mul_pd(x, _mm256_loadu_pd(w.add(4 * h))));
+                *v = _mm256_fmadd_pd(x, _mm256_loadu_pd(w.add(4 * h)), *v);
             }
         }
     }
@@ -740,6 +771,57 @@ mod tests {
     use super::*;
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
+
+    /// Each term is fused into its partial sum on every path: values where
+    /// a separate multiply and add would round differently (the module
+    /// docs' order), in lane 0 of the chunks and in the remainder, through
+    /// the narrow kernels (few rows of `b`), the tiles (many), the AVX2 and
+    /// the baseline paths. Fails when any kernel multiplies and adds apart.
+    #[test]
+    fn every_path_fuses_each_term() {
+        let e = |p: i32| 2f64.powi(p);
+        // dot: -1 + (1 + 2^-30)(1 - 2^-30) = -2^-60 exactly when fused; the
+        // product rounds to 1 on its own, which gives 0.
+        // sq_dist: 2^-54 + 2^-54 + (1 + 2^-30)^2 rounds to 1 + 2^-29 + 2^-52
+        // when fused; the square rounded on its own leaves a tie that rounds
+        // to 1 + 2^-29.
+        let (dot_want, sq_want) = (-e(-60), 1.0 + e(-29) + e(-52));
+        for k in [3usize, 12, 14] {
+            let lane = |v: [f64; 3]| -> Vec<f64> {
+                let mut r = vec![0.0; k];
+                let step = if k == 3 { 1 } else { 4 };
+                for (i, x) in v.into_iter().enumerate() {
+                    r[i * step] = x;
+                }
+                r
+            };
+            let (da, db) = (lane([0.0, -1.0, 1.0 + e(-30)]), lane([0.0, 1.0, 1.0 - e(-30)]));
+            let (sa, sb) = (lane([e(-27), e(-27), 1.0 + e(-30)]), vec![0.0; k]);
+            assert_eq!(dot(&da, &db), dot_want, "dot, k = {k}");
+            assert_eq!(sq_dist(&sa, &sb), sq_want, "sq_dist, k = {k}");
+            let rows = |r: &[f64], m: usize| r.repeat(m);
+            let check = |what: &str| {
+                for (m, n) in [(70, 3), (70, 70), (5, 9)] {
+                    let mut g = vec![f64::NAN; m * n];
+                    gemm_nt(&rows(&da, m), &rows(&db, n), k, &mut g);
+                    assert!(
+                        g.iter().all(|&v| v == dot_want),
+                        "{what} gemm_nt {m}x{n}x{k}: {g:?}"
+                    );
+                    let mut d = vec![f64::NAN; m * n];
+                    sq_dists(&rows(&sa, m), &rows(&sb, n), k, &mut d);
+                    assert!(d.iter().all(|&v| v == sq_want), "{what} sq_dists {m}x{n}x{k}");
+                }
+            };
+            check("widest");
+            crate::wide::without_avx512(|| check("AVX2"));
+            crate::wide::baseline_only(|| {
+                check("baseline");
+                assert_eq!(dot(&da, &db), dot_want);
+                assert_eq!(sq_dist(&sa, &sb), sq_want);
+            });
+        }
+    }
 
     #[test]
     fn tiles_match_the_scalar_kernels_bit_for_bit() {

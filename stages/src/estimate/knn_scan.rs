@@ -41,7 +41,7 @@
 //! 2. `|√D_j − √D'_j| ≤ e` for the exact distance `D_j = ‖z − x_j‖²`
 //!    (triangle inequality: rounding to `f32` moves each vector by at most
 //!    `u` times its norm).
-//! 3. The computed exact distance `D̂_j` (any summation order) satisfies
+//! 3. The computed exact distance `D̂_j` (any summation order, fused or not) satisfies
 //!    `D_j (1 − γ) ≤ D̂_j ≤ D_j (1 + γ)`, `γ = 1.01 (n + 2) v`.
 //!
 //! A vector may be skipped only when `D̂_j > τ`, `τ` the `k`-th smallest `D̂`
