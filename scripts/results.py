@@ -1170,12 +1170,11 @@ def main():
         "from the trial's peak slope; that rule amplified the sensor's noise on shallow edges, and its method-"
         "level numbers are not comparable with these (the Fig. 5 section says how G was chosen).",
         "",
-        "Since 2026-11-27 the trained baselines' products fuse each multiply-add (one rounding per term "
-        "instead of two; the same bits on every CPU and batch, see `stages/src/estimate/dense.rs`). Of this "
-        "page's method-level numbers that moved only the EDBN's paper_sensor row of Table 2 (2.89 ± 0.12 -> "
-        "2.92 ± 0.08°, largest per-class 6.80 -> 7.40; per seed 2.68, 3.00, 2.94, 2.82, 3.00 before) and two "
-        "SVM cells of the shift table (a second array 0.72 ± 0.41 -> 0.72 ± 0.40, skin twice as thick "
-        "2.38 -> 2.39); every other accuracy kept its value to the digits shown.",
+        "Since 2026-11-27 the trained baselines' products and their exponential fuse each multiply-add (one "
+        "rounding instead of two; the same bits on every CPU and batch, see `stages/src/estimate/dense.rs` and "
+        "`vmath.rs`). Of this page's method-level numbers that moved only the EDBN's paper_sensor row of "
+        "Table 2: 2.89 ± 0.12 -> 2.92 ± 0.12° (largest per-class 6.80 -> 7.20; per seed 2.68, 3.00, 2.94, "
+        "2.82, 3.00 before); every other accuracy kept its value to the digits shown.",
         "",
         "Reproduce everything (build, every graph in graphs/paper/, this file) with one command:",
         "",

@@ -533,15 +533,21 @@ impl Rbm {
             top = top.max(b);
         }
         if !fast {
-            for y in 0..k {
-                let mut f = 0.0;
-                for j in 0..nh {
-                    let o = d.base[j] + self.w[j * self.n_vis + nb + y];
-                    f += softplus(o);
-                    d.t[j * k + y] = o.clamp(-700.0, 700.0);
-                }
-                d.p[y] = self.a[nb + y] + f;
-            }
+            // In the AVX2 function so the fused `exp` is the FMA instruction.
+            crate::wide::with_avx2(
+                #[inline(always)]
+                || {
+                    for y in 0..k {
+                        let mut f = 0.0;
+                        for j in 0..nh {
+                            let o = d.base[j] + self.w[j * self.n_vis + nb + y];
+                            f += softplus(o);
+                            d.t[j * k + y] = o.clamp(-700.0, 700.0);
+                        }
+                        d.p[y] = self.a[nb + y] + f;
+                    }
+                },
+            );
             vmath::exp_in_place(&mut d.t[..nh * k]);
             softmax(&mut d.p);
             return;

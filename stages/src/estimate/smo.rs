@@ -1373,7 +1373,11 @@ fn rho(y: &[f64], alpha: &[f64], grad: &[f64], c: f64) -> f64 {
 /// ([`super::vmath::rbf_in_place`] of [`super::dense::sq_dists`]).
 #[inline]
 pub fn rbf(a: &[f64], b: &[f64], gamma: f64) -> f64 {
-    super::vmath::exp(-gamma * sq_dist(a, b))
+    // In the AVX2 function so the fused `exp` is the FMA instruction.
+    crate::wide::with_avx2(
+        #[inline(always)]
+        || super::vmath::exp(-gamma * sq_dist(a, b)),
+    )
 }
 
 pub use super::dense::sq_dist;
