@@ -52,28 +52,6 @@ pub fn avx2() -> bool {
     cpu_avx2() && !BASELINE.with(Cell::get)
 }
 
-/// True when a scalar `mul_add` may be compiled to the FMA instruction on
-/// this thread: the CPU has FMA and [`baseline_only`] is not in force (the
-/// baseline path then fuses with the C library's `fma`: the same bits).
-pub fn fma() -> bool {
-    cpu_fma() && !BASELINE.with(Cell::get)
-}
-
-fn cpu_fma() -> bool {
-    use std::sync::OnceLock;
-    static ON: OnceLock<bool> = OnceLock::new();
-    *ON.get_or_init(|| {
-        #[cfg(target_arch = "x86_64")]
-        {
-            std::arch::is_x86_feature_detected!("fma")
-        }
-        #[cfg(not(target_arch = "x86_64"))]
-        {
-            false
-        }
-    })
-}
-
 /// True when the AVX-512 path may run (F, VL and DQ; `PALPATE_NO_AVX512`
 /// turns it off, and [`without_avx512`] on this thread).
 pub fn avx512() -> bool {

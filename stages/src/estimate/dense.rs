@@ -67,21 +67,16 @@ pub fn sq_dist(a: &[f64], b: &[f64]) -> f64 {
     single_any::<true>(a, b)
 }
 
-/// [`single_fused`] with the FMA instruction where the CPU has it
-/// ([`crate::wide::fma`]), otherwise with the C library's `fma` (exact, the
-/// same bits, a call per term: slow, and only where no vector path runs).
+/// [`single_fused`] inside [`crate::wide::with_avx2`], whose function
+/// enables FMA, so `mul_add` is the instruction; on the baseline path it is
+/// the C library's `fma` (exact, the same bits, a call per term: slow, and
+/// only where no vector path runs).
 #[inline]
 fn single_any<const SQ: bool>(a: &[f64], b: &[f64]) -> f64 {
-    #[cfg(target_arch = "x86_64")]
-    if crate::wide::fma() {
-        #[target_feature(enable = "fma")]
-        fn fused<const SQ: bool>(a: &[f64], b: &[f64]) -> f64 {
-            single_fused::<SQ>(a, b)
-        }
-        // SAFETY: the CPU has FMA (checked at run time).
-        return unsafe { fused::<SQ>(a, b) };
-    }
-    single_fused::<SQ>(a, b)
+    crate::wide::with_avx2(
+        #[inline(always)]
+        || single_fused::<SQ>(a, b),
+    )
 }
 
 /// The reference order: `s_l ← fma(x_t, y_t, s_l)` for `t ≡ l (mod 4)`

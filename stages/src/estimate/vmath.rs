@@ -38,7 +38,7 @@
 //! polynomial's pairs and the reduction; about a quarter fewer operations:
 //! `tanh` 1.71 -> 1.25 ns a value in `cargo run --release --example
 //! machine`). Where a function is not compiled with FMA, `mul_add` is a call
-//! into the C library's exact `fma`, some ten an exponential: so every call
+//! into the C library's exact `fma`, 15 an exponential: so every call
 //! in a loop runs inside [`crate::wide::with_avx2`] (whose AVX2 function
 //! enables FMA), the scalar [`softmax`] included.
 
