@@ -46,6 +46,14 @@
 //! -10 %, EDBN and logistic fits -4-5 % in `benches/peers`). Each is tested
 //! against the scalar [`dot`] / [`sq_dist`] bit for bit, the AVX2 ones also
 //! on an AVX-512 CPU ([`crate::wide::without_avx512`]).
+//!
+//! [`gemm_nn`] is the same product with the second operand as columns
+//! (`b` row-major, `k x n`) and the first read through strides
+//! ([`View`]: a matrix or its transpose without a copy), for the RBMs'
+//! training minibatches: 20 rows, too few for [`narrow512`]'s packing, and
+//! whose products are `v Wᵀ`, `h W` and `hᵀ v`. Outputs across the lanes
+//! as in [`narrow512`], the same bits as [`gemm_nt`] over the materialised
+//! operands (test `gemm_nn_is_gemm_nt_bit_for_bit`).
 
 /// Rows of `A` per tile.
 const MR: usize = 2;
@@ -508,21 +516,28 @@ fn panels512(b: &[f64], k: usize, n: usize) -> Vec<f64> {
 unsafe fn narrow512(a: &[f64], panels: &[f64], k: usize, n: usize, out: &mut [f64]) {
     let m = a.len() / k;
     assert!(n > 0 && panels.len() >= n.div_ceil(8) * 8 * k && out.len() >= m * n);
+    let a = View::rows_of(a, m, k);
     for r0 in (0..m).step_by(ROWS512) {
         let r1 = (r0 + ROWS512).min(m);
         let mut j0 = 0;
         while j0 < n {
             let w = panel_width(j0, n);
             let panel = &panels[j0 * k..(j0 + w) * k];
+            let cols = Cols {
+                b: panel,
+                ld: w,
+                at: 0,
+                padded: true,
+            };
             let mut i = r0;
             // SAFETY (every call): rows i..i + R < m of `a`, a panel of
             // k x 8·H values, outputs masked to row i's n.
             while i + 2 <= r1 {
                 unsafe {
                     if w == 16 {
-                        block512::<2, 2>(a, k, i, panel, j0, n, out);
+                        nn_block512::<2, 2, true>(a, i, cols, n, j0, out);
                     } else {
-                        block512::<2, 1>(a, k, i, panel, j0, n, out);
+                        nn_block512::<2, 1, true>(a, i, cols, n, j0, out);
                     }
                 }
                 i += 2;
@@ -530,76 +545,13 @@ unsafe fn narrow512(a: &[f64], panels: &[f64], k: usize, n: usize, out: &mut [f6
             if i < r1 {
                 unsafe {
                     if w == 16 {
-                        block512::<1, 2>(a, k, i, panel, j0, n, out);
+                        nn_block512::<1, 2, true>(a, i, cols, n, j0, out);
                     } else {
-                        block512::<1, 1>(a, k, i, panel, j0, n, out);
+                        nn_block512::<1, 1, true>(a, i, cols, n, j0, out);
                     }
                 }
             }
             j0 += w;
-        }
-    }
-}
-
-/// Rows `i..i + R` of `a` against the panel of columns `j0..j0 + 8·H`
-/// (`k x 8·H`, row-major), stored (masked at `n`) into `out` (`n` per
-/// row). See [`narrow512`].
-#[cfg(target_arch = "x86_64")]
-#[inline]
-#[target_feature(enable = "avx2,fma,avx512f,avx512vl,avx512dq")]
-unsafe fn block512<const R: usize, const H: usize>(
-    a: &[f64],
-    k: usize,
-    i: usize,
-    panel: &[f64],
-    j0: usize,
-    n: usize,
-    out: &mut [f64],
-) {
-    use std::arch::x86_64::*;
-    const { assert!(H == 1 || H == 2) };
-    let w = 8 * H;
-    assert!((i + R) * k <= a.len() && panel.len() >= k * w && (i + R) * n <= out.len());
-    let full = k / 4 * 4;
-    let pb = panel.as_ptr();
-    let pa: [*const f64; R] = std::array::from_fn(|r| a[(i + r) * k..].as_ptr());
-    let mut acc = [[[_mm512_setzero_pd(); H]; 4]; R];
-    let mut c = 0;
-    while c < full {
-        for l in 0..4 {
-            // SAFETY: c + l < k; row c + l of the panel holds w values;
-            // row i + r of `a` holds k values.
-            unsafe {
-                let wv: [__m512d; H] = std::array::from_fn(|h| _mm512_loadu_pd(pb.add((c + l) * w + 8 * h)));
-                for (acc_r, &p) in acc.iter_mut().zip(&pa) {
-                    let x = _mm512_set1_pd(*p.add(c + l));
-                    for (v, &wh) in acc_r[l].iter_mut().zip(&wv) {
-                        *v = _mm512_fmadd_pd(x, wh, *v);
-                    }
-                }
-            }
-        }
-        c += 4;
-    }
-    for (r, acc_r) in acc.iter().enumerate() {
-        for h in 0..H {
-            let [a0, a1, a2, a3] = acc_r.map(|l| l[h]);
-            let mut s = _mm512_add_pd(_mm512_add_pd(a0, a1), _mm512_add_pd(a2, a3));
-            for t in full..k {
-                // SAFETY: t < k, as above.
-                unsafe {
-                    let wv = _mm512_loadu_pd(pb.add(t * w + 8 * h));
-                    s = _mm512_fmadd_pd(_mm512_set1_pd(*pa[r].add(t)), wv, s);
-                }
-            }
-            let j = j0 + 8 * h;
-            if j < n {
-                let lanes = (n - j).min(8);
-                let mask = ((1u16 << lanes) - 1) as __mmask8;
-                // SAFETY: the masked lanes are outputs j..j + lanes <= n of
-                // row i + r, inside `out` (asserted above).
-                unsafe { _mm512_mask_storeu_pd(out.as_mut_ptr().add((i + r) * n + j), mask, s) };
-            }
         }
     }
 }
@@ -729,10 +681,263 @@ pub fn sq_dists_strided(a: &[f64], b: &[f64], k: usize, out: &mut [f64], ldc: us
     pairwise_any::<true>(a, b, k, out, ldc);
 }
 
+/// A matrix read through strides: entry `(i, t)` is `data[i·rs + t·cs]`.
+/// A row-major matrix and its transpose are both views of one buffer,
+/// without a copy ([`View::rows_of`], [`View::transpose_of`]).
+#[derive(Clone, Copy, Debug)]
+pub struct View<'a> {
+    /// The values.
+    pub data: &'a [f64],
+    /// Rows.
+    pub rows: usize,
+    /// Columns.
+    pub cols: usize,
+    /// Distance between rows.
+    pub rs: usize,
+    /// Distance between columns.
+    pub cs: usize,
+}
+
+impl<'a> View<'a> {
+    /// `data` as `rows` rows of `cols` values.
+    pub fn rows_of(data: &'a [f64], rows: usize, cols: usize) -> Self {
+        View {
+            data,
+            rows,
+            cols,
+            rs: cols,
+            cs: 1,
+        }
+    }
+
+    /// The transpose of `data` taken as `rows` rows of `cols` values: a
+    /// `cols x rows` view.
+    pub fn transpose_of(data: &'a [f64], rows: usize, cols: usize) -> Self {
+        View {
+            data,
+            rows: cols,
+            cols: rows,
+            rs: 1,
+            cs: cols,
+        }
+    }
+
+    /// Entry `(i, t)`.
+    #[inline(always)]
+    fn at(&self, i: usize, t: usize) -> f64 {
+        self.data[i * self.rs + t * self.cs]
+    }
+
+    /// True when every entry lies inside `data`.
+    fn in_bounds(&self) -> bool {
+        self.rows == 0
+            || self.cols == 0
+            || (self.rows - 1)
+                .checked_mul(self.rs)
+                .zip((self.cols - 1).checked_mul(self.cs))
+                .and_then(|(x, y)| x.checked_add(y))
+                .is_some_and(|last| last < self.data.len())
+    }
+}
+
+/// `out[i·n + j] = Σ_t a(i, t) · b[t·n + j]`: the product of a view `a`
+/// (`m x k`) and a row-major `b` (`k x n`), each entry with the bits of
+/// [`dot`] of row `i` of `a` and column `j` of `b` (so of [`gemm_nt`] over
+/// the materialised row and column). For the RBM's training products,
+/// whose operands are a matrix or its transpose and whose batches are too
+/// small (20 rows) for [`gemm_nt`]'s packed kernels: `h Wᵀ`'s partner `W`,
+/// `Σ_rows h vᵀ` as `hᵀ v` (a transposed view, no copy) and `v Wᵀ` with
+/// one transpose of `W` a minibatch, all with the outputs across the
+/// lanes. With AVX-512 ([`crate::wide::avx512`]) the kernel is
+/// `nn512`; otherwise the operands are materialised for [`gemm_nt`].
+///
+/// # Panics
+/// If `a` reaches past its data, `b` holds fewer than `k·n` values or
+/// `out` fewer than `m·n`.
+pub fn gemm_nn(a: View<'_>, b: &[f64], n: usize, out: &mut [f64]) {
+    let (m, k) = (a.rows, a.cols);
+    assert!(a.in_bounds(), "gemm_nn: the view reaches past its data");
+    assert!(b.len() >= k * n && out.len() >= m * n, "gemm_nn: short b or out");
+    if m == 0 || n == 0 {
+        return;
+    }
+    #[cfg(target_arch = "x86_64")]
+    if crate::wide::avx512() {
+        // SAFETY: the CPU supports AVX-512 F/VL/DQ (checked at run time);
+        // the shapes are asserted above.
+        unsafe { nn512(a, b, n, out) };
+        return;
+    }
+    let mut rows = Vec::with_capacity(m * k);
+    for i in 0..m {
+        rows.extend((0..k).map(|t| a.at(i, t)));
+    }
+    let mut bt = vec![0.0; k * n];
+    transpose(&b[..k * n], k, n, &mut bt);
+    if k == 0 {
+        out[..m * n].iter_mut().for_each(|o| *o = 0.0);
+    } else {
+        gemm_nt(&rows, &bt, k, &mut out[..m * n]);
+    }
+}
+
+/// [`gemm_nn`] with 512-bit vectors: three rows of `a` against 16 columns
+/// of `b` (8 at the edge, the last vector masked), lane `j` of accumulator
+/// `l` partial sum `l` of [`dot`] for output `j`, as in [`narrow512`], but
+/// `b` read in place (rows `n` apart) and `a` through its strides.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma,avx512f,avx512vl,avx512dq")]
+unsafe fn nn512(a: View<'_>, b: &[f64], n: usize, out: &mut [f64]) {
+    let m = a.rows;
+    let mut i = 0;
+    while i < m {
+        let rows = (m - i).min(3);
+        let mut j0 = 0;
+        while j0 < n {
+            let wide = n - j0 > 8;
+            // SAFETY (every call): rows i..i + R < m; columns j0.. < n, the
+            // lanes past n masked; shapes asserted by `gemm_nn`.
+            unsafe {
+                let c = Cols {
+                    b,
+                    ld: n,
+                    at: j0,
+                    padded: false,
+                };
+                match (rows, wide, a.cs == 1) {
+                    (3, true, true) => nn_block512::<3, 2, true>(a, i, c, n, j0, out),
+                    (3, false, true) => nn_block512::<3, 1, true>(a, i, c, n, j0, out),
+                    (3, true, false) => nn_block512::<3, 2, false>(a, i, c, n, j0, out),
+                    (3, false, false) => nn_block512::<3, 1, false>(a, i, c, n, j0, out),
+                    (2, true, _) => nn_block512::<2, 2, false>(a, i, c, n, j0, out),
+                    (2, false, _) => nn_block512::<2, 1, false>(a, i, c, n, j0, out),
+                    (_, true, _) => nn_block512::<1, 2, false>(a, i, c, n, j0, out),
+                    (_, false, _) => nn_block512::<1, 1, false>(a, i, c, n, j0, out),
+                }
+            }
+            j0 += if wide { 16 } else { 8 };
+        }
+        i += rows;
+    }
+}
+
+/// The columns a block of [`nn_block512`] reads: `b`'s rows `ld` apart,
+/// starting at column `at` (a panel of [`panels512`], or `b` itself).
+#[cfg(target_arch = "x86_64")]
+#[derive(Clone, Copy)]
+struct Cols<'a> {
+    b: &'a [f64],
+    ld: usize,
+    at: usize,
+    /// Every row holds `8·H` readable values from `at` (a panel).
+    padded: bool,
+}
+
+/// Rows `i..i + R` of `a` against `8·H` columns of `b` (`cols`), into
+/// columns `j0..j0 + 8·H` of `out` (`n` a row; lanes at or past `n`
+/// masked off on load and store): lane `j` of accumulator `l` is partial
+/// sum `l` of [`dot`] for output `j`, reduced as `dot` reduces, so the
+/// bits are `dot`'s. The block of [`narrow512`] (a packed panel, read
+/// whole, and rows of `a` adjacent: `UNIT`) and of [`nn512`] (`b` in
+/// place, `a` through its strides). The masked loads and the stride
+/// multiply cost the packed layer kernel ~4 % (ANN (ST) predict 0.84-0.85
+/// against 0.80-0.86 ms, `benches/peers` alternated), hence `UNIT`.
+#[cfg(target_arch = "x86_64")]
+#[inline]
+#[target_feature(enable = "avx2,fma,avx512f,avx512vl,avx512dq")]
+unsafe fn nn_block512<const R: usize, const H: usize, const UNIT: bool>(
+    a: View<'_>,
+    i: usize,
+    cols: Cols<'_>,
+    n: usize,
+    j0: usize,
+    out: &mut [f64],
+) {
+    use std::arch::x86_64::*;
+    const { assert!(H == 1 || H == 2) };
+    assert!(!UNIT || a.cs == 1);
+    let k = a.cols;
+    let full = k / 4 * 4;
+    let masks: [__mmask8; H] = std::array::from_fn(|h| {
+        let lanes = n.saturating_sub(j0 + 8 * h).min(8);
+        ((1u16 << lanes) - 1) as __mmask8
+    });
+    let lanes = n.saturating_sub(j0).min(8 * H);
+    let read = if cols.padded { 8 * H } else { lanes };
+    assert!(
+        i + R <= a.rows
+            && (k == 0 || (k - 1) * cols.ld + cols.at + read <= cols.b.len())
+            && (i + R - 1) * n + j0 + lanes <= out.len()
+    );
+    let (pa, pb) = (a.data.as_ptr(), cols.b.as_ptr().wrapping_add(cols.at));
+    let rows: [usize; R] = std::array::from_fn(|r| (i + r) * a.rs);
+    // SAFETY (loads): t < k, and the unmasked lanes of row t lie within
+    // `cols` (asserted); entry (i + r, t) of `a` is in bounds
+    // (`View::in_bounds`, asserted by the callers).
+    // `UNIT` blocks read a zero-padded panel whole; the others mask.
+    let load = |t: usize, h: usize| unsafe {
+        let p = pb.add(t * cols.ld + 8 * h);
+        if UNIT && cols.padded {
+            _mm512_loadu_pd(p)
+        } else {
+            _mm512_maskz_loadu_pd(masks[h], p)
+        }
+    };
+    // `UNIT`: `a`'s columns adjacent (`cs == 1`), the index without a multiply.
+    let cs = if UNIT { 1 } else { a.cs };
+    let bcast = |r: usize, t: usize| unsafe { _mm512_set1_pd(*pa.add(rows[r] + t * cs)) };
+    let mut acc = [[[_mm512_setzero_pd(); H]; 4]; R];
+    let mut c = 0;
+    while c < full {
+        for l in 0..4 {
+            let bv: [__m512d; H] = std::array::from_fn(|h| load(c + l, h));
+            for (r, acc_r) in acc.iter_mut().enumerate() {
+                let x = bcast(r, c + l);
+                for (v, &bh) in acc_r[l].iter_mut().zip(&bv) {
+                    *v = _mm512_fmadd_pd(x, bh, *v);
+                }
+            }
+        }
+        c += 4;
+    }
+    for (r, acc_r) in acc.iter().enumerate() {
+        for h in 0..H {
+            let [a0, a1, a2, a3] = acc_r.map(|l| l[h]);
+            let mut s = _mm512_add_pd(_mm512_add_pd(a0, a1), _mm512_add_pd(a2, a3));
+            for t in full..k {
+                s = _mm512_fmadd_pd(bcast(r, t), load(t, h), s);
+            }
+            // SAFETY: the unmasked lanes are outputs j0 + 8h.. < n of row
+            // i + r, inside `out` (asserted above).
+            unsafe { _mm512_mask_storeu_pd(out.as_mut_ptr().add((i + r) * n + j0 + 8 * h), masks[h], s) };
+        }
+    }
+}
+
 /// Writes the transpose of `src` (`rows x cols`, row-major) into `dst` (`cols x rows`).
+///
+/// Four source rows at a time, so each destination row gets four
+/// adjacent values per visit (one store of four values instead of four
+/// stores a row apart); the EDBN's fit transposes its weights once a
+/// minibatch, and the entry-by-entry loop was a twentieth of the fit.
+///
+/// # Panics
+/// If `src` or `dst` holds fewer than `rows · cols` values.
 pub fn transpose(src: &[f64], rows: usize, cols: usize, dst: &mut [f64]) {
-    for (i, row) in src.chunks_exact(cols.max(1)).take(rows).enumerate() {
-        for (j, &v) in row.iter().enumerate() {
+    let len = rows * cols;
+    assert!(src.len() >= len && dst.len() >= len, "transpose: short buffers");
+    let (src, dst) = (&src[..len], &mut dst[..len]);
+    let mut i0 = 0;
+    while i0 + 4 <= rows {
+        let r: [&[f64]; 4] = std::array::from_fn(|q| &src[(i0 + q) * cols..(i0 + q + 1) * cols]);
+        for j in 0..cols {
+            let d = &mut dst[j * rows + i0..j * rows + i0 + 4];
+            d.copy_from_slice(&[r[0][j], r[1][j], r[2][j], r[3][j]]);
+        }
+        i0 += 4;
+    }
+    for i in i0..rows {
+        for (j, &v) in src[i * cols..(i + 1) * cols].iter().enumerate() {
             dst[j * rows + i] = v;
         }
     }
@@ -766,6 +971,61 @@ mod tests {
     use super::*;
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
+
+    /// [`gemm_nn`] gives [`gemm_nt`]'s bits over the materialised operands,
+    /// for row-major and transposed views, edge widths (masked lanes),
+    /// odd row counts and `k` with and without a remainder, on the
+    /// AVX-512 kernel and the fallback.
+    #[test]
+    fn gemm_nn_is_gemm_nt_bit_for_bit() {
+        let mut rng = ChaCha8Rng::seed_from_u64(11);
+        let mut cases = 0;
+        for &(m, k, n) in &[
+            (1, 1, 1),
+            (2, 3, 5),
+            (3, 4, 8),
+            (5, 7, 9),
+            (20, 80, 60),
+            (20, 60, 80),
+            (60, 20, 80),
+            (30, 20, 77),
+            (20, 77, 30),
+            (7, 0, 3),
+            (4, 13, 17),
+            (3, 16, 16),
+        ] {
+            let am: Vec<f64> = (0..m * k).map(|_| rng.random_range(-2.0..2.0)).collect();
+            let at: Vec<f64> = (0..m * k).map(|_| rng.random_range(-2.0..2.0)).collect();
+            let b: Vec<f64> = (0..k * n).map(|_| rng.random_range(-2.0..2.0)).collect();
+            let mut bt = vec![0.0; k * n];
+            transpose(&b, k, n, &mut bt);
+            // `at` holds a k x m matrix whose transpose is the operand.
+            let mut at_rows = vec![0.0; m * k];
+            transpose(&at, k, m, &mut at_rows);
+            for (view, rows) in [
+                (View::rows_of(&am, m, k), &am),
+                (View::transpose_of(&at, k, m), &at_rows),
+            ] {
+                let mut want = vec![0.0; m * n];
+                if k > 0 {
+                    gemm_nt(rows, &bt, k, &mut want);
+                }
+                for no512 in [false, true] {
+                    let mut got = vec![f64::NAN; m * n + 3];
+                    if no512 {
+                        crate::wide::without_avx512(|| gemm_nn(view, &b, n, &mut got));
+                    } else {
+                        gemm_nn(view, &b, n, &mut got);
+                    }
+                    let same = want.iter().zip(&got).all(|(x, y)| x.to_bits() == y.to_bits());
+                    assert!(same, "m {m} k {k} n {n} no512 {no512}");
+                    assert!(got[m * n..].iter().all(|x| x.is_nan()), "wrote past m·n");
+                    cases += 1;
+                }
+            }
+        }
+        assert_eq!(cases, 48);
+    }
 
     /// Each term is fused into its partial sum on every path: values where
     /// a separate multiply and add would round differently (the module

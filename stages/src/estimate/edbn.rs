@@ -26,7 +26,17 @@
 //! left the label units near the class prior in our tests (`discriminative =
 //! 0` restores it). Weights start at `N(0, 1/n_vis)` so hidden units
 //! differentiate within the first epochs. The layer above is trained on the mean-field activities `p(h | v)` of
-//! the layer below. The training log records each layer-epoch's mean squared
+//! the layer below.
+//!
+//! A minibatch's products (`p(h | v)` of its rows and of the chains, the
+//! chains' `p(v | h)`, and the statistics `Σ h vᵀ`) are each one
+//! [`dense::gemm_nn`] call on the weights, their transpose (taken once a
+//! minibatch) or a transposed view of the rows, with [`dense::dot`]'s bits
+//! entry by entry; the Bernoulli samples draw their uniforms in bulk
+//! (`Uniforms`, the same stream as one draw at a time); the gradient and
+//! update loops run vectorised with the same operations. So the fitted
+//! weights are bit for bit those of the straightforward loops, and the
+//! peers EDBN fit fell from ~0.55 to ~0.37 s (docs/benches.md). The training log records each layer-epoch's mean squared
 //! reconstruction error `‖v - p(v | p(h | v))‖² / D` after the epoch, on a fixed
 //! evenly spaced subset of at most 256 training vectors.
 //!
@@ -214,45 +224,39 @@ struct Disc {
     u_ok: bool,
     /// `max |U_jy|`.
     u_max: f64,
+    /// Per label, the discriminative gradient's factor (scratch of
+    /// `Rbm::add_discriminative`).
+    wd: Vec<f64>,
 }
 
-/// Accumulates a batch's statistics `Σ_rows h vᵀ` (as the tiled product
-/// `(hᵀ)(vᵀ)ᵀ` of the transposed rows), `Σ h` and `Σ v`.
-struct Outer {
-    ht: Vec<f64>,
-    vt: Vec<f64>,
-    prod: Vec<f64>,
-    nv: usize,
-    nh: usize,
+/// Adds `scale ·` a batch's statistics to `gw` (`nh x nv`), `gb` and `ga`:
+/// `Σ_rows h vᵀ` as the product `hᵀ v` (a transposed view of the rows
+/// `h`, `nh` wide, against the rows `v`, `nv` wide: no copy), into `prod`,
+/// and the column sums `Σ h`, `Σ v` row after row (each column's sum in row
+/// order, as summing the column alone does).
+fn add_outer(h: &[f64], v: &[f64], nh: usize, nv: usize, scale: f64, prod: &mut [f64], grads: Grads<'_>) {
+    let m = v.len() / nv.max(1);
+    dense::gemm_nn(dense::View::transpose_of(h, m, nh), v, nv, prod);
+    let Grads { gw, gb, ga } = grads;
+    gw.iter_mut()
+        .zip(&prod[..nh * nv])
+        .for_each(|(g, p)| *g += scale * p);
+    for (g, x) in [(gb, h), (ga, v)] {
+        let w = g.len();
+        let mut sums = x[..w.min(x.len())].to_vec();
+        for row in x.chunks_exact(w.max(1)).skip(1) {
+            sums.iter_mut().zip(row).for_each(|(s, x)| *s += x);
+        }
+        g.iter_mut().zip(&sums).for_each(|(g, s)| *g += scale * s);
+    }
 }
 
-impl Outer {
-    fn new(rows: usize, nv: usize, nh: usize) -> Self {
-        Outer {
-            ht: vec![0.0; nh * rows],
-            vt: vec![0.0; nv * rows],
-            prod: vec![0.0; nh * nv],
-            nv,
-            nh,
-        }
-    }
-
-    /// Adds `scale ·` the statistics of rows `h` (`nh` wide) and `v` (`nv`
-    /// wide) to `gw` (`nh x nv`), `gb` and `ga`.
-    fn add(&mut self, h: &[f64], v: &[f64], scale: f64, gw: &mut [f64], gb: &mut [f64], ga: &mut [f64]) {
-        let m = v.len() / self.nv.max(1);
-        let (ht, vt) = (&mut self.ht[..self.nh * m], &mut self.vt[..self.nv * m]);
-        dense::transpose(h, m, self.nh, ht);
-        dense::transpose(v, m, self.nv, vt);
-        dense::gemm_nt(ht, vt, m, &mut self.prod);
-        gw.iter_mut().zip(&self.prod).for_each(|(g, p)| *g += scale * p);
-        for (g, col) in gb.iter_mut().zip(ht.chunks_exact(m.max(1))) {
-            *g += scale * col.iter().sum::<f64>();
-        }
-        for (g, col) in ga.iter_mut().zip(vt.chunks_exact(m.max(1))) {
-            *g += scale * col.iter().sum::<f64>();
-        }
-    }
+/// The gradient accumulators of one RBM: weights (`nh x nv`), hidden and
+/// visible biases.
+struct Grads<'a> {
+    gw: &'a mut [f64],
+    gb: &'a mut [f64],
+    ga: &'a mut [f64],
 }
 
 /// Largest `|z|` whose `e^z` is taken in the product form of the posterior:
@@ -360,6 +364,7 @@ impl Disc {
             e: vec![0; k],
             u_ok: false,
             u_max: 0.0,
+            wd: vec![0.0; k],
         }
     }
 
@@ -395,6 +400,40 @@ fn sigmoid_in_place(v: &mut [f64]) {
         #[inline(always)]
         || v.iter_mut().for_each(|z| *z = vmath::sigmoid(*z)),
     );
+}
+
+/// Uniform draws on `[0, 1)` in bulk: `n` of them are the values `n` calls
+/// of `rng.random::<f64>()` give, in order (the top 53 bits of each
+/// `u64` of the stream times `2^-53`, as `rand` forms them; a `u64` slice
+/// filled from the stream holds the words `next_u64` returns, as the
+/// stream's bytes in order). One fill instead of a call per value: the
+/// Gibbs steps' Bernoulli samples drew ~16 M values a fit one at a time.
+/// The test `bulk_uniforms_are_the_stream_of_single_draws` holds this to
+/// `rand`'s own draws.
+#[derive(Default)]
+struct Uniforms {
+    bits: Vec<u64>,
+    u: Vec<f64>,
+}
+
+impl Uniforms {
+    /// The next `n` uniforms of `rng`.
+    fn draw(&mut self, rng: &mut ChaCha8Rng, n: usize) -> &[f64] {
+        const SCALE: f64 = 1.0 / (1u64 << 53) as f64;
+        self.bits.resize(n, 0);
+        rng.fill(&mut self.bits[..n]);
+        self.u.resize(n, 0.0);
+        crate::wide::with_avx2(
+            #[inline(always)]
+            || {
+                self.u
+                    .iter_mut()
+                    .zip(&self.bits)
+                    .for_each(|(u, &b)| *u = SCALE * (b >> 11) as f64)
+            },
+        );
+        &self.u[..n]
+    }
 }
 
 impl Rbm {
@@ -457,10 +496,12 @@ impl Rbm {
     }
 
     /// `p(h | v)` of every row of `v` (row-major, `n_vis` wide) into the rows
-    /// of `out`, as one tiled product.
-    fn hid_prob_rows(&self, v: &[f64], out: &mut [f64]) {
-        dense::gemm_nt(v, &self.w, self.n_vis, out);
-        dense::add_bias_map(out, &self.b, vmath::sigmoid);
+    /// of `out`, as one product with `wt`, the transpose of the weights
+    /// (`n_vis x n_hid`): [`dense::gemm_nn`], [`dense::dot`]'s bits.
+    fn hid_prob_rows(&self, v: &[f64], wt: &[f64], out: &mut [f64]) {
+        let m = v.len() / self.n_vis.max(1);
+        dense::gemm_nn(dense::View::rows_of(v, m, self.n_vis), wt, self.n_hid, out);
+        dense::add_bias_map(&mut out[..m * self.n_hid], &self.b, vmath::sigmoid);
     }
 
     /// Turns visible net inputs `out` (biases included) into probabilities:
@@ -473,14 +514,22 @@ impl Rbm {
         }
     }
 
-    /// Samples `v` from its probabilities in place (Bernoulli, and one label).
-    fn sample_vis(&self, p: &mut [f64], rng: &mut ChaCha8Rng) {
+    /// Samples `v` from its probabilities in place (Bernoulli, and one label),
+    /// with the uniforms drawn in bulk ([`Uniforms`]).
+    fn sample_vis(&self, p: &mut [f64], rng: &mut ChaCha8Rng, uni: &mut Uniforms) {
         let nb = self.n_vis - self.labels;
-        for x in p[..nb].iter_mut() {
-            *x = f64::from(u8::from(rng.random::<f64>() < *x));
-        }
+        let u = uni.draw(rng, nb + usize::from(self.labels > 0));
+        crate::wide::with_avx2(
+            #[inline(always)]
+            || {
+                p[..nb]
+                    .iter_mut()
+                    .zip(u)
+                    .for_each(|(x, &u)| *x = f64::from(u8::from(u < *x)))
+            },
+        );
         if self.labels > 0 {
-            let u: f64 = rng.random();
+            let u = u[nb];
             let mut acc = 0.0;
             let mut pick = self.labels - 1;
             for (k, &q) in p[nb..].iter().enumerate() {
@@ -731,21 +780,22 @@ impl Rbm {
 
     /// The hidden units' net inputs from the data part of every row of `v`
     /// (`n_vis` wide), `b_j + W_j·x` as [`Self::label_posterior`] forms
-    /// them, into the rows of `out` (`n_hid` wide): one tiled product for a
-    /// minibatch instead of `n_hid` short dot products per row ([`dense::gemm_nt`]
-    /// has [`dense::dot`]'s bits, and `b + s = s + b`), so the same bits.
-    /// `xs` and `wx` are scratch.
-    fn data_bases(&self, v: &[f64], xs: &mut Vec<f64>, wx: &mut Vec<f64>, out: &mut [f64]) {
-        let nb = self.n_vis - self.labels;
-        xs.clear();
-        v.chunks_exact(self.n_vis.max(1))
-            .for_each(|r| xs.extend_from_slice(&r[..nb]));
-        wx.clear();
-        self.w
-            .chunks_exact(self.n_vis.max(1))
-            .for_each(|r| wx.extend_from_slice(&r[..nb]));
-        dense::gemm_nt(xs, wx, nb, out);
-        for row in out.chunks_exact_mut(self.n_hid.max(1)) {
+    /// them, into the rows of `out` (`n_hid` wide): one product for a
+    /// minibatch instead of `n_hid` short dot products per row (the data
+    /// columns of the rows against the first rows of `wt`, the transposed
+    /// weights, `n_vis x n_hid`; [`dense::gemm_nn`] has [`dense::dot`]'s
+    /// bits, and `b + s = s + b`), so the same bits.
+    fn data_bases(&self, v: &[f64], wt: &[f64], out: &mut [f64]) {
+        let (nb, nh) = (self.n_vis - self.labels, self.n_hid);
+        let rows = dense::View {
+            data: v,
+            rows: v.len() / self.n_vis.max(1),
+            cols: nb,
+            rs: self.n_vis,
+            cs: 1,
+        };
+        dense::gemm_nn(rows, &wt[..nb * nh], nh, out);
+        for row in out[..rows.rows * nh].chunks_exact_mut(nh.max(1)) {
             row.iter_mut().zip(&self.b).for_each(|(o, b)| *o += b);
         }
     }
@@ -765,32 +815,46 @@ impl Rbm {
         d: &mut Disc,
     ) {
         let nb = self.n_vis - self.labels;
-        let k = self.labels;
+        let (nh, nv, k) = (self.n_hid, self.n_vis, self.labels);
         let y = (0..k).position(|c| v[nb + c] > 0.5).unwrap_or(0);
         d.base.copy_from_slice(base);
         self.posterior_from_base(d);
-        // σ(o) = e^o / (1 + e^o) from the posterior's e^o: no exponential here.
-        let sig = |at: usize| {
-            let t = d.t[at];
-            t / (1.0 + t)
-        };
-        for j in 0..self.n_hid {
-            let mut expect = 0.0;
-            for c in 0..k {
-                let s = sig(j * k + c);
-                expect += d.p[c] * s;
-                let t = f64::from(u8::from(c == y));
-                gw[j * self.n_vis + nb + c] += weight * (t - d.p[c]) * s;
-            }
-            let gj = sig(j * k + y) - expect;
-            gb[j] += weight * gj;
-            let row = &mut gw[j * self.n_vis..j * self.n_vis + nb];
-            let wg = weight * gj;
-            row.iter_mut().zip(&v[..nb]).for_each(|(g, x)| *g += wg * x);
-        }
-        for c in 0..k {
-            ga[nb + c] += weight * (f64::from(u8::from(c == y)) - d.p[c]);
-        }
+        // Vector loops (with_avx2): the same operations entry by entry as
+        // the scalar loops they replaced (no contraction into FMAs), so
+        // the same bits; a tenth of the EDBN's fit was these loops scalar.
+        crate::wide::with_avx2(
+            #[inline(always)]
+            || {
+                // σ(o) = e^o / (1 + e^o) from the posterior's e^o: no
+                // exponential here. In place of `t`, which is not read again.
+                d.t.iter_mut().for_each(|t| *t /= 1.0 + *t);
+                // weight·(1[c = y] − p_c), the label weights' factor.
+                for (c, (wd, &p)) in d.wd.iter_mut().zip(&d.p).enumerate() {
+                    *wd = weight * (f64::from(u8::from(c == y)) - p);
+                }
+                for (j, sj) in d.t.chunks_exact(k.max(1)).take(nh).enumerate() {
+                    // Σ_c p_c σ_jc, in label order.
+                    let mut expect = 0.0;
+                    for (&p, &s) in d.p.iter().zip(sj) {
+                        expect += p * s;
+                    }
+                    let gw_j = &mut gw[j * nv..(j + 1) * nv];
+                    let (row, labels) = gw_j.split_at_mut(nb);
+                    labels
+                        .iter_mut()
+                        .zip(sj)
+                        .zip(&d.wd)
+                        .for_each(|((g, &s), &wd)| *g += wd * s);
+                    let gj = sj[y] - expect;
+                    gb[j] += weight * gj;
+                    let wg = weight * gj;
+                    row.iter_mut().zip(&v[..nb]).for_each(|(g, x)| *g += wg * x);
+                }
+                for (g, &wd) in ga[nb..].iter_mut().zip(&d.wd) {
+                    *g += wd;
+                }
+            },
+        );
     }
 
     /// Trains with PCD on rows of `data` (each `n_vis` long); returns the
@@ -800,12 +864,13 @@ impl Rbm {
         let nh = self.n_hid;
         let n = data.len() / nv;
         let bs = cfg.batch_size.min(n).max(1);
+        let mut uni = Uniforms::default();
         // Persistent chains start at binarised random data vectors.
         let mut chains: Vec<f64> = Vec::with_capacity(bs * nv);
         for _ in 0..bs {
             let i = rng.random_range(0..n);
             let mut v = data[i * nv..(i + 1) * nv].to_vec();
-            self.sample_vis(&mut v, rng);
+            self.sample_vis(&mut v, rng, &mut uni);
             chains.extend_from_slice(&v);
         }
         let mut gw = vec![0.0; nh * nv];
@@ -819,9 +884,9 @@ impl Rbm {
         // and the transposes and product of the outer-product sums.
         let mut rows: Vec<f64> = Vec::with_capacity(bs * nv);
         let mut hb = vec![0.0; bs * nh];
-        let mut outer = Outer::new(bs, nv, nh);
+        let mut prod = vec![0.0; nh * nv];
         let mut wt = vec![0.0; nv * nh];
-        let (mut xs, mut wx, mut bases) = (Vec::new(), Vec::new(), vec![0.0; bs * nh]);
+        let mut bases = vec![0.0; bs * nh];
         let mut order: Vec<usize> = (0..n).collect();
         let mut errors = Vec::with_capacity(cfg.epochs);
         for epoch in 0..cfg.epochs {
@@ -841,12 +906,26 @@ impl Rbm {
                 batch
                     .iter()
                     .for_each(|&i| rows.extend_from_slice(&data[i * nv..(i + 1) * nv]));
-                self.hid_prob_rows(&rows, &mut hb[..m * nh]);
-                outer.add(&hb[..m * nh], &rows, 1.0, &mut gw, &mut gb, &mut ga);
+                // The weights' transpose, for the products with W below.
+                dense::transpose(&self.w, nh, nv, &mut wt);
+                self.hid_prob_rows(&rows, &wt, &mut hb[..m * nh]);
+                add_outer(
+                    &hb[..m * nh],
+                    &rows,
+                    nh,
+                    nv,
+                    1.0,
+                    &mut prod,
+                    Grads {
+                        gw: &mut gw,
+                        gb: &mut gb,
+                        ga: &mut ga,
+                    },
+                );
                 if self.labels > 0 && cfg.discriminative > 0.0 {
                     // The weights change only after the minibatch: every
                     // row's net inputs at once.
-                    self.data_bases(&rows, &mut xs, &mut wx, &mut bases[..m * nh]);
+                    self.data_bases(&rows, &wt, &mut bases[..m * nh]);
                     for (v, base) in rows.chunks_exact(nv).zip(bases.chunks_exact(nh.max(1))) {
                         self.add_discriminative(
                             v,
@@ -862,31 +941,55 @@ impl Rbm {
                 // Negative phase: one Gibbs step of every persistent chain:
                 // sample h ~ p(h | v) (chain by chain), v ~ p(v | h), then p(h | v).
                 let scale_neg = m as f64 / bs as f64;
-                self.hid_prob_rows(&chains, &mut hb);
-                hb.iter_mut()
-                    .for_each(|p| *p = f64::from(u8::from(rng.random::<f64>() < *p)));
-                dense::transpose(&self.w, nh, nv, &mut wt);
-                dense::gemm_nt(&hb, &wt, nh, &mut chains);
+                self.hid_prob_rows(&chains, &wt, &mut hb);
+                let u = uni.draw(rng, hb.len());
+                crate::wide::with_avx2(
+                    #[inline(always)]
+                    || {
+                        hb.iter_mut()
+                            .zip(u)
+                            .for_each(|(p, &u)| *p = f64::from(u8::from(u < *p)))
+                    },
+                );
+                dense::gemm_nn(dense::View::rows_of(&hb, bs, nh), &self.w, nv, &mut chains);
                 for v in chains.chunks_exact_mut(nv) {
                     v.iter_mut().zip(&self.a).for_each(|(v, a)| *v += a);
                     self.vis_activate(v);
-                    self.sample_vis(v, rng);
+                    self.sample_vis(v, rng, &mut uni);
                 }
-                self.hid_prob_rows(&chains, &mut hb);
-                outer.add(&hb, &chains, -scale_neg, &mut gw, &mut gb, &mut ga);
+                self.hid_prob_rows(&chains, &wt, &mut hb);
+                add_outer(
+                    &hb,
+                    &chains,
+                    nh,
+                    nv,
+                    -scale_neg,
+                    &mut prod,
+                    Grads {
+                        gw: &mut gw,
+                        gb: &mut gb,
+                        ga: &mut ga,
+                    },
+                );
                 let inv = 1.0 / batch.len() as f64;
-                for k in 0..nh * nv {
-                    vw[k] = mom * vw[k] + lr * (gw[k] * inv - cfg.l2 * self.w[k]);
-                    self.w[k] += vw[k];
-                }
-                for k in 0..nv {
-                    va[k] = mom * va[k] + lr * ga[k] * inv;
-                    self.a[k] += va[k];
-                }
-                for k in 0..nh {
-                    vb[k] = mom * vb[k] + lr * gb[k] * inv;
-                    self.b[k] += vb[k];
-                }
+                // Vectorised (the same operations entry by entry).
+                crate::wide::with_avx2(
+                    #[inline(always)]
+                    || {
+                        for ((w, v), g) in self.w.iter_mut().zip(&mut vw).zip(&gw) {
+                            *v = mom * *v + lr * (g * inv - cfg.l2 * *w);
+                            *w += *v;
+                        }
+                        for (a, (v, g)) in self.a.iter_mut().zip(va.iter_mut().zip(&ga)) {
+                            *v = mom * *v + lr * g * inv;
+                            *a += *v;
+                        }
+                        for (b, (v, g)) in self.b.iter_mut().zip(vb.iter_mut().zip(&gb)) {
+                            *v = mom * *v + lr * g * inv;
+                            *b += *v;
+                        }
+                    },
+                );
             }
             // Reconstruction error for the log, on a fixed evenly spaced subset
             // (at most RECON_SAMPLE vectors): a per-step error doubled the cost.
@@ -1311,6 +1414,30 @@ mod tests {
         r
     }
 
+    /// [`Uniforms`] gives the values of `rng.random::<f64>()` one call after
+    /// another, also after draws that leave the stream between words
+    /// (a `u32`) or at a block's edge, so the Gibbs samples keep their bits.
+    #[test]
+    fn bulk_uniforms_are_the_stream_of_single_draws() {
+        let mut uni = Uniforms::default();
+        for (seed, skip32) in [(1u64, 0usize), (2, 1), (3, 15), (4, 31), (5, 63)] {
+            let mut a = ChaCha8Rng::seed_from_u64(seed);
+            let mut b = ChaCha8Rng::seed_from_u64(seed);
+            for _ in 0..skip32 {
+                let (x, y): (u32, u32) = (a.random(), b.random());
+                assert_eq!(x, y);
+            }
+            for n in [1usize, 7, 31, 32, 33, 80, 81, 200] {
+                let bulk = uni.draw(&mut a, n).to_vec();
+                let single: Vec<f64> = (0..n).map(|_| b.random::<f64>()).collect();
+                assert_eq!(bulk, single, "seed {seed}, after {skip32} u32, n {n}");
+                assert!(bulk.iter().all(|u| (0.0..1.0).contains(u)));
+                let (x, y): (u32, u32) = (a.random(), b.random());
+                assert_eq!(x, y);
+            }
+        }
+    }
+
     #[test]
     fn minibatch_bases_are_the_bits_of_row_by_row() {
         // Odd widths (7, 23, 61 data values) leave remainders in the tiled
@@ -1321,9 +1448,10 @@ mod tests {
             let v: Vec<f64> = (0..rows * (nb + k))
                 .map(|_| rng.random_range(-2.0..2.0))
                 .collect();
-            let (mut xs, mut wx) = (Vec::new(), Vec::new());
+            let mut wt = vec![0.0; (nb + k) * nh];
+            dense::transpose(&r.w, nh, nb + k, &mut wt);
             let mut bases = vec![f64::NAN; rows * nh];
-            r.data_bases(&v, &mut xs, &mut wx, &mut bases);
+            r.data_bases(&v, &wt, &mut bases);
             let mut d = Disc::new(k, nh);
             d.prepare(&r);
             for (row, b) in v.chunks_exact(nb + k).zip(bases.chunks_exact(nh)) {
