@@ -229,34 +229,60 @@ struct Disc {
     wd: Vec<f64>,
 }
 
-/// Adds `scale ·` a batch's statistics to `gw` (`nh x nv`), `gb` and `ga`:
-/// `Σ_rows h vᵀ` as the product `hᵀ v` (a transposed view of the rows
-/// `h`, `nh` wide, against the rows `v`, `nv` wide: no copy), into `prod`,
-/// and the column sums `Σ h`, `Σ v` row after row (each column's sum in row
-/// order, as summing the column alone does).
-fn add_outer(h: &[f64], v: &[f64], nh: usize, nv: usize, scale: f64, prod: &mut [f64], grads: Grads<'_>) {
-    let m = v.len() / nv.max(1);
-    dense::gemm_nn(dense::View::transpose_of(h, m, nh), v, nv, prod);
-    let Grads { gw, gb, ga } = grads;
-    gw.iter_mut()
-        .zip(&prod[..nh * nv])
-        .for_each(|(g, p)| *g += scale * p);
-    for (g, x) in [(gb, h), (ga, v)] {
-        let w = g.len();
-        let mut sums = x[..w.min(x.len())].to_vec();
-        for row in x.chunks_exact(w.max(1)).skip(1) {
-            sums.iter_mut().zip(row).for_each(|(s, x)| *s += x);
+/// Accumulates a batch's statistics `Σ_rows h vᵀ` (the product `hᵀ v`:
+/// a transposed view of the rows `h`, no copy), `Σ h` and `Σ v` (each
+/// column's sum in row order, as summing the column alone does), with
+/// its scratch kept across minibatches.
+struct Outer {
+    prod: Vec<f64>,
+    sums: Vec<f64>,
+    nv: usize,
+    nh: usize,
+}
+
+impl Outer {
+    fn new(nv: usize, nh: usize) -> Self {
+        Outer {
+            prod: vec![0.0; nh * nv],
+            sums: Vec::with_capacity(nv.max(nh)),
+            nv,
+            nh,
         }
-        g.iter_mut().zip(&sums).for_each(|(g, s)| *g += scale * s);
+    }
+
+    /// Adds `scale ·` the statistics of rows `h` (`nh` wide) and `v` (`nv`
+    /// wide) to `gw` (`nh x nv`), `gb` and `ga`.
+    fn add(&mut self, h: &[f64], v: &[f64], scale: f64, gw: &mut [f64], gb: &mut [f64], ga: &mut [f64]) {
+        let (nh, nv) = (self.nh, self.nv);
+        let m = v.len() / nv.max(1);
+        dense::gemm_nn(dense::View::transpose_of(h, m, nh), v, nv, &mut self.prod);
+        gw.iter_mut()
+            .zip(&self.prod[..nh * nv])
+            .for_each(|(g, p)| *g += scale * p);
+        for (g, x) in [(gb, h), (ga, v)] {
+            let w = g.len();
+            // From the first row: `x0` is `-0.0 + x0`, a float sum's start.
+            self.sums.clear();
+            self.sums.extend_from_slice(&x[..w.min(x.len())]);
+            for row in x.chunks_exact(w.max(1)).skip(1) {
+                self.sums.iter_mut().zip(row).for_each(|(s, x)| *s += x);
+            }
+            g.iter_mut().zip(&self.sums).for_each(|(g, s)| *g += scale * s);
+        }
     }
 }
 
-/// The gradient accumulators of one RBM: weights (`nh x nv`), hidden and
-/// visible biases.
-struct Grads<'a> {
-    gw: &'a mut [f64],
-    gb: &'a mut [f64],
-    ga: &'a mut [f64],
+/// `p ← 1[u < p]` entry by entry: Bernoulli samples of the probabilities
+/// `p` from the uniforms `u` ([`Uniforms`]), vectorised.
+fn bernoulli_in_place(p: &mut [f64], u: &[f64]) {
+    crate::wide::with_avx2(
+        #[inline(always)]
+        || {
+            p.iter_mut()
+                .zip(u)
+                .for_each(|(p, &u)| *p = f64::from(u8::from(u < *p)))
+        },
+    );
 }
 
 /// Largest `|z|` whose `e^z` is taken in the product form of the posterior:
@@ -519,15 +545,7 @@ impl Rbm {
     fn sample_vis(&self, p: &mut [f64], rng: &mut ChaCha8Rng, uni: &mut Uniforms) {
         let nb = self.n_vis - self.labels;
         let u = uni.draw(rng, nb + usize::from(self.labels > 0));
-        crate::wide::with_avx2(
-            #[inline(always)]
-            || {
-                p[..nb]
-                    .iter_mut()
-                    .zip(u)
-                    .for_each(|(x, &u)| *x = f64::from(u8::from(u < *x)))
-            },
-        );
+        bernoulli_in_place(&mut p[..nb], u);
         if self.labels > 0 {
             let u = u[nb];
             let mut acc = 0.0;
@@ -881,10 +899,10 @@ impl Rbm {
         let mut vbuf = vec![0.0; nv];
         let mut disc = Disc::new(self.labels, nh);
         // Batch buffers: the batch's rows, hidden probabilities or samples,
-        // and the transposes and product of the outer-product sums.
+        // the statistics' scratch, the weights' transpose and the rows' bases.
         let mut rows: Vec<f64> = Vec::with_capacity(bs * nv);
         let mut hb = vec![0.0; bs * nh];
-        let mut prod = vec![0.0; nh * nv];
+        let mut outer = Outer::new(nv, nh);
         let mut wt = vec![0.0; nv * nh];
         let mut bases = vec![0.0; bs * nh];
         let mut order: Vec<usize> = (0..n).collect();
@@ -909,19 +927,7 @@ impl Rbm {
                 // The weights' transpose, for the products with W below.
                 dense::transpose(&self.w, nh, nv, &mut wt);
                 self.hid_prob_rows(&rows, &wt, &mut hb[..m * nh]);
-                add_outer(
-                    &hb[..m * nh],
-                    &rows,
-                    nh,
-                    nv,
-                    1.0,
-                    &mut prod,
-                    Grads {
-                        gw: &mut gw,
-                        gb: &mut gb,
-                        ga: &mut ga,
-                    },
-                );
+                outer.add(&hb[..m * nh], &rows, 1.0, &mut gw, &mut gb, &mut ga);
                 if self.labels > 0 && cfg.discriminative > 0.0 {
                     // The weights change only after the minibatch: every
                     // row's net inputs at once.
@@ -942,15 +948,7 @@ impl Rbm {
                 // sample h ~ p(h | v) (chain by chain), v ~ p(v | h), then p(h | v).
                 let scale_neg = m as f64 / bs as f64;
                 self.hid_prob_rows(&chains, &wt, &mut hb);
-                let u = uni.draw(rng, hb.len());
-                crate::wide::with_avx2(
-                    #[inline(always)]
-                    || {
-                        hb.iter_mut()
-                            .zip(u)
-                            .for_each(|(p, &u)| *p = f64::from(u8::from(u < *p)))
-                    },
-                );
+                bernoulli_in_place(&mut hb, uni.draw(rng, bs * nh));
                 dense::gemm_nn(dense::View::rows_of(&hb, bs, nh), &self.w, nv, &mut chains);
                 for v in chains.chunks_exact_mut(nv) {
                     v.iter_mut().zip(&self.a).for_each(|(v, a)| *v += a);
@@ -958,19 +956,7 @@ impl Rbm {
                     self.sample_vis(v, rng, &mut uni);
                 }
                 self.hid_prob_rows(&chains, &wt, &mut hb);
-                add_outer(
-                    &hb,
-                    &chains,
-                    nh,
-                    nv,
-                    -scale_neg,
-                    &mut prod,
-                    Grads {
-                        gw: &mut gw,
-                        gb: &mut gb,
-                        ga: &mut ga,
-                    },
-                );
+                outer.add(&hb, &chains, -scale_neg, &mut gw, &mut gb, &mut ga);
                 let inv = 1.0 / batch.len() as f64;
                 // Vectorised (the same operations entry by entry).
                 crate::wide::with_avx2(
