@@ -274,7 +274,59 @@ mod tests {
         assert_eq!(batch[51..], rows[51..]);
     }
 
+    /// The bits of `v`, every NaN as one.
+    fn canon(v: f64) -> u64 {
+        if v.is_nan() {
+            f64::NAN.to_bits()
+        } else {
+            v.to_bits()
+        }
+    }
+
     proptest! {
+        /// The blocked rows give [`softmax`]'s bits row by row for any
+        /// values (NaN, infinities, signed zeros, ties), any width and any
+        /// row count (full blocks and the per-row tail), on every path. A
+        /// NaN is compared as NaN: Rust leaves the sign and payload of a
+        /// NaN produced by arithmetic unspecified (the compiler may swap
+        /// the operands of an addition), so no two compilations promise them.
+        #[test]
+        fn softmax_rows_gives_the_bits_of_each_row(
+            k in 1usize..24,
+            xs in prop::collection::vec(
+                prop_oneof![
+                    -800.0f64..800.0,
+                    Just(0.0),
+                    Just(-0.0),
+                    Just(3.0),
+                    Just(f64::NAN),
+                    Just(f64::INFINITY),
+                    Just(f64::NEG_INFINITY),
+                    any::<f64>(),
+                ],
+                0..400,
+            ),
+        ) {
+            let expect: Vec<u64> = xs
+                .chunks(k)
+                .flat_map(|r| {
+                    let mut one = r.to_vec();
+                    if one.len() == k {
+                        softmax(&mut one);
+                    }
+                    one.into_iter().map(canon)
+                })
+                .collect();
+            let run = || {
+                let mut v = xs.clone();
+                softmax_rows(&mut v, k);
+                v.into_iter().map(canon).collect::<Vec<_>>()
+            };
+            prop_assert_eq!(&run(), &expect);
+            prop_assert_eq!(&crate::wide::without_avx512(run), &expect);
+            prop_assert_eq!(&crate::wide::baseline_only(run), &expect);
+        }
+
         /// The vectorised slice call gives the scalar call's bits for any
         /// input, NaN and infinities included, at every position (the
         /// scalar tail after the vector body as well).
