@@ -1280,8 +1280,11 @@ impl Softmax {
 /// Returns `(W, b)`, `W` `k x dim` row-major.
 ///
 /// Each evaluation is two products: the logits class by class, `Z = W Xᵀ`
-/// ([`dense::gemm_nn`] on `Xᵀ`, formed once), and the gradient `Rᵀ X` (as
-/// [`dense::gemm_nt`] of `Rᵀ` and `Xᵀ`) of the residuals `R = P − Y`.
+/// ([`dense::gemm_nn`] on `Xᵀ`, formed once), and the gradient `Rᵀ X`
+/// ([`dense::gemm_nn`] on `X`) of the residuals `R = P − Y`; without
+/// AVX-512, [`dense::gemm_nt`] on the operands as they are (`W` against the
+/// rows of `X`, `Rᵀ` against those of `Xᵀ`), which `gemm_nn` would
+/// otherwise copy into that form.
 /// Both hold a class's values for every row contiguously, so the softmax
 /// between them runs with the rows across the vector lanes, each row's
 /// operations those of the row-by-row definition in the same order (its
@@ -1322,8 +1325,13 @@ fn fit_softmax(
         }
         if dim == 0 {
             zt.iter_mut().for_each(|z| *z = 0.0);
-        } else {
+        } else if crate::wide::avx512() {
             dense::gemm_nn(dense::View::rows_of(w, k, dim), &xt, n, &mut zt);
+        } else {
+            // Without AVX-512 `gemm_nn` would copy its operands into this
+            // form: `dot(w_c, x_i)`, the same bits (a fused term is
+            // symmetric in its factors).
+            dense::gemm_nt(w, &x[..n * dim], dim, &mut zt);
         }
         crate::wide::with_avx2(
             #[inline(always)]
@@ -1377,8 +1385,10 @@ fn fit_softmax(
                 }
             },
         );
-        if dim > 0 {
+        if dim > 0 && crate::wide::avx512() {
             dense::gemm_nn(dense::View::rows_of(&rt, k, n), x, dim, gw);
+        } else if dim > 0 {
+            dense::gemm_nt(&rt, &xt, n, gw);
         }
         let mut sq = 0.0;
         for (gw, w) in gw.iter_mut().zip(w) {
