@@ -1314,6 +1314,11 @@ fn fit_softmax(
     // exponentials.
     let (mut mx, mut zy, mut sum) = (vec![0.0; n], vec![0.0; n], vec![0.0; n]);
     let nw = k * dim;
+    // Without AVX-512 `gemm_nn` would copy its operands into `gemm_nt`'s
+    // form, so `gemm_nt` takes them as they are: `dot(w_c, x_i)` and
+    // `dot(r_c, xᵀ_j)`, the same bits (a fused term is symmetric in its
+    // factors).
+    let nn = crate::wide::avx512();
     let fg = |theta: &[f64], g: &mut [f64]| -> f64 {
         let (w, b) = theta.split_at(nw);
         if n == 0 {
@@ -1325,12 +1330,9 @@ fn fit_softmax(
         }
         if dim == 0 {
             zt.iter_mut().for_each(|z| *z = 0.0);
-        } else if crate::wide::avx512() {
+        } else if nn {
             dense::gemm_nn(dense::View::rows_of(w, k, dim), &xt, n, &mut zt);
         } else {
-            // Without AVX-512 `gemm_nn` would copy its operands into this
-            // form: `dot(w_c, x_i)`, the same bits (a fused term is
-            // symmetric in its factors).
             dense::gemm_nt(w, &x[..n * dim], dim, &mut zt);
         }
         crate::wide::with_avx2(
@@ -1385,7 +1387,7 @@ fn fit_softmax(
                 }
             },
         );
-        if dim > 0 && crate::wide::avx512() {
+        if dim > 0 && nn {
             dense::gemm_nn(dense::View::rows_of(&rt, k, n), x, dim, gw);
         } else if dim > 0 {
             dense::gemm_nt(&rt, &xt, n, gw);
@@ -2101,6 +2103,15 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// No rows: the penalty alone, minimised at zero, without a panic on
+    /// the evaluation's slices chunked by the row count.
+    #[test]
+    fn logistic_fit_of_no_rows_is_zero() {
+        let (w, b) = fit_softmax(&[], &[], 3, 4, 1.0, 1e-6, 50);
+        assert_eq!((w.len(), b.len()), (12, 4));
+        assert!(w.iter().chain(&b).all(|v| *v == 0.0));
     }
 
     /// smartcore's L-BFGS logistic regression (which this one replaced)

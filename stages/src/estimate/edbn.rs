@@ -1072,8 +1072,10 @@ impl Dbn {
         // the peers test set's first hidden layer (3154 x 60, 1.5 MB) went
         // through L3 three times (perf: the bias pass alone ~5 % of a
         // prediction). Rows are independent, so the bits are the batch's.
-        let mut acts: Vec<Vec<f64>> = below.iter().map(|r| vec![0.0; BLOCK_ROWS * r.n_hid]).collect();
-        let mut base = vec![0.0; BLOCK_ROWS * top.n_hid];
+        // (A trial's few frames get buffers of their size, not a block's.)
+        let block = n.min(BLOCK_ROWS);
+        let mut acts: Vec<Vec<f64>> = below.iter().map(|r| vec![0.0; block * r.n_hid]).collect();
+        let mut base = vec![0.0; block * top.n_hid];
         for (b0, o) in (0..n)
             .step_by(BLOCK_ROWS)
             .zip(out[..n * k].chunks_mut(BLOCK_ROWS * k))

@@ -284,9 +284,10 @@ mod tests {
     }
 
     proptest! {
-        /// The blocked rows give [`softmax`]'s bits row by row for any
-        /// values (NaN, infinities, signed zeros, ties), any width and any
-        /// row count (full blocks and the per-row tail), on every path. A
+        /// The batch form (every row's exponentials in one pass) gives
+        /// [`softmax`]'s bits row by row for any values (NaN, infinities,
+        /// signed zeros, ties), any width and any row count (a ragged tail
+        /// left alone), on every path. A
         /// NaN is compared as NaN: Rust leaves the sign and payload of a
         /// NaN produced by arithmetic unspecified (the compiler may swap
         /// the operands of an addition), so no two compilations promise them.
