@@ -19,19 +19,23 @@
 //!   our own SMO solver, [`super::smo`] (libsvm's algorithm: second-order
 //!   working-set selection, a kernel cache, shrinking). The fold's whole Gram
 //!   matrix is computed once when it fits in `cache_mb` (every vector serves in
-//!   K - 1 machines), [`rbf_gram`]: only its upper triangle, by blocks of rows
-//!   through the tiled kernel ([`super::dense::sq_dists_strided`], written in
-//!   place) in parallel, the exponentials vectorised
-//!   ([`super::vmath::rbf_in_place`], ~1 ulp from glibc's `exp`, which cost a
-//!   call per entry), the lower triangle mirrored (the distances are
-//!   symmetric bit for bit). Its rows and columns are the vectors sorted by
-//!   class, so a machine's kernel rows are two slices of Gram rows, which
-//!   [`super::smo::solve_gram`] reads (copying each row it needs once, within
-//!   the same `cache_mb` budget) and solves with vectorised scans, taking the
-//!   steps of the per-machine solver ([`super::smo::solve`]) bit for bit (test
+//!   K - 1 machines), [`rbf_gram`]: only its upper triangle, computed and
+//!   kept ([`super::smo::UpperGram`]), by blocks of rows in parallel
+//!   (the distances with the vectors across the lanes,
+//!   [`super::dense::sq_dists_cols`], or the tiled kernel
+//!   [`super::dense::sq_dists_strided`] without AVX-512), the exponentials
+//!   vectorised ([`super::vmath::rbf_in_place`], ~1 ulp from glibc's `exp`,
+//!   which cost a call per entry); an entry below the diagonal is read as
+//!   its mirror (the distances are symmetric bit for bit). Its rows and
+//!   columns are the vectors sorted by class, so a machine's kernel rows
+//!   come from the two classes' blocks, which [`super::smo::solve_gram`]
+//!   reads (copying each row it needs once, within the same `cache_mb`
+//!   budget) and solves with vectorised scans, taking the steps of the
+//!   per-machine solver ([`super::smo::solve`]) bit for bit (test
 //!   `svm_gram_solver_fits_the_model_of_the_per_machine_path_bit_for_bit`).
-//!   Memory: the Gram matrix (`8 n²` bytes) only when it fits in `cache_mb`
-//!   (default 256 MiB: up to 5792 training vectors), plus per thread the
+//!   Memory: the Gram matrix's upper triangle (about `4 n (n + 32)` bytes,
+//!   [`super::smo::UpperGram::bytes`]) only when it fits in `cache_mb`
+//!   (default 256 MiB: up to 8176 training vectors), plus per thread the
 //!   rows of the machine it trains (`8 n_ab²` bytes, also only within
 //!   `cache_mb`); above that each machine computes its rows into its own
 //!   row cache of `cache_mb` (the previous path). Measured on the peers SVM
@@ -367,50 +371,37 @@ impl OvoSvm {
 }
 
 /// The RBF Gram matrix `G_st = exp(-γ‖x_s − x_t‖²)` of the `n = x.len() / dim`
-/// rows of `x` (row-major), `n × n` row-major, with the bits of [`smo::rbf`]
-/// entry by entry. Only the upper triangle is computed, by blocks of rows
-/// against the columns from the block's first row on (the tiled kernel
-/// [`dense::sq_dists`], then the vectorised exponential
-/// [`vmath::rbf_in_place`]), blocks in parallel; the lower triangle is its
-/// mirror, copied by 32 × 32 tiles. `sq_dist(a, b) = sq_dist(b, a)` bit for
-/// bit (`(a − b)² = (b − a)²` exactly), so the result is the full matrix's
-/// (test `half_gram_equals_the_full_one_bit_for_bit`), at half the
-/// distances and exponentials.
-pub fn rbf_gram(x: &[f64], dim: usize, gamma: f64) -> Vec<f64> {
-    const RB: usize = 32;
+/// rows of `x` (row-major), with the bits of [`smo::rbf`] entry by entry.
+/// Only the upper triangle is computed and kept ([`smo::UpperGram`]), by
+/// blocks of rows against the columns from the block's first row on (the
+/// tiled kernel [`dense::sq_dists_strided`], then the vectorised
+/// exponential [`vmath::rbf_in_place`] from the diagonal on), blocks in
+/// parallel. `sq_dist(a, b) = sq_dist(b, a)` bit for bit (`(a − b)² =
+/// (b − a)²` exactly), so reading `G_ts` as `G_st` gives the full matrix's
+/// bits (test `half_gram_equals_the_full_one_bit_for_bit`), at half the
+/// distances, exponentials and memory.
+pub fn rbf_gram(x: &[f64], dim: usize, gamma: f64) -> smo::UpperGram {
     let dim = dim.max(1);
     let n = x.len() / dim;
-    let mut g = vec![0.0f64; n * n];
-    if n == 0 {
-        return g;
-    }
-    g.par_chunks_mut(RB * n).enumerate().for_each(|(b, block)| {
-        let r0 = b * RB;
-        let rb = block.len() / n;
-        // Rows r0.. of the block against the vectors from r0 on, written in
-        // place (columns r0.. of each row); the exponential from the diagonal on.
-        dense::sq_dists_strided(
-            &x[r0 * dim..(r0 + rb) * dim],
-            &x[r0 * dim..],
-            dim,
-            &mut block[r0..],
-            n,
-        );
-        for r in 0..rb {
-            vmath::rbf_in_place(&mut block[r * n + r0 + r..(r + 1) * n], gamma);
-        }
+    // With AVX-512 the distances come from the vectors as columns (no
+    // horizontal sums; see `dense::sq_dists_cols`), transposed once.
+    let xt = crate::wide::avx512().then(|| {
+        let mut xt = vec![0.0; n * dim];
+        dense::transpose(&x[..n * dim], n, dim, &mut xt);
+        xt
     });
-    // Lower triangle: G_ts = G_st for s < t, tile by tile.
-    for i0 in (0..n).step_by(RB) {
-        for j0 in (0..=i0).step_by(RB) {
-            for i in i0..(i0 + RB).min(n) {
-                for j in j0..(j0 + RB).min(i) {
-                    g[i * n + j] = g[j * n + i];
-                }
-            }
+    smo::UpperGram::build(n, |r0, rows, block| {
+        let w = n - r0;
+        // Rows r0.. of the block against the vectors from r0 on.
+        let a = &x[r0 * dim..(r0 + rows) * dim];
+        match &xt {
+            Some(xt) => dense::sq_dists_cols(a, xt, dim, n, r0, block),
+            None => dense::sq_dists_strided(a, &x[r0 * dim..n * dim], dim, block, w),
         }
-    }
-    g
+        for r in 0..rows {
+            vmath::rbf_in_place(&mut block[r * w + r..(r + 1) * w], gamma);
+        }
+    })
 }
 
 impl SvmConfig {
@@ -497,9 +488,7 @@ impl SvmConfig {
         for c in 0..k {
             class_start[c + 1] += class_start[c];
         }
-        let gram: Option<Vec<f64>> = n
-            .checked_mul(n)
-            .and_then(|nn| nn.checked_mul(std::mem::size_of::<f64>()))
+        let gram: Option<smo::UpperGram> = smo::UpperGram::bytes(n)
             .filter(|&bytes| bytes <= budget && class_start[k] == n)
             .map(|_| {
                 let sorted: Vec<f64> = by_class.iter().flat_map(|&i| rows[i].iter().copied()).collect();
@@ -538,7 +527,6 @@ impl SvmConfig {
                             .collect();
                         let kern = smo::GramRanges {
                             gram: g,
-                            stride: n,
                             ranges: &ranges,
                         };
                         smo::solve_gram(&kern, &lab, &var, &params)
@@ -1791,15 +1779,15 @@ mod tests {
             let x = random_rows(n, dim, n as u64);
             let gamma = 0.37;
             let g = rbf_gram(&x, dim, gamma);
-            assert_eq!(g.len(), n * n);
+            assert_eq!(g.n(), n);
             for s in 0..n {
                 for t in 0..n {
                     let want = smo::rbf(&x[s * dim..(s + 1) * dim], &x[t * dim..(t + 1) * dim], gamma);
-                    assert_eq!(g[s * n + t].to_bits(), want.to_bits(), "n {n}, entry ({s}, {t})");
+                    assert_eq!(g.get(s, t).to_bits(), want.to_bits(), "n {n}, entry ({s}, {t})");
                 }
             }
         }
-        assert!(rbf_gram(&[], 4, 1.0).is_empty());
+        assert_eq!(rbf_gram(&[], 4, 1.0).n(), 0);
     }
 
     #[test]

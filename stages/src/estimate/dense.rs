@@ -535,9 +535,9 @@ unsafe fn narrow512(a: &[f64], panels: &[f64], k: usize, n: usize, out: &mut [f6
             while i + 2 <= r1 {
                 unsafe {
                     if w == 16 {
-                        nn_block512::<2, 2, true>(a, i, cols, n, j0, out);
+                        nn_block512::<2, 2, true, false>(a, i, cols, n, j0, out);
                     } else {
-                        nn_block512::<2, 1, true>(a, i, cols, n, j0, out);
+                        nn_block512::<2, 1, true, false>(a, i, cols, n, j0, out);
                     }
                 }
                 i += 2;
@@ -545,9 +545,9 @@ unsafe fn narrow512(a: &[f64], panels: &[f64], k: usize, n: usize, out: &mut [f6
             if i < r1 {
                 unsafe {
                     if w == 16 {
-                        nn_block512::<1, 2, true>(a, i, cols, n, j0, out);
+                        nn_block512::<1, 2, true, false>(a, i, cols, n, j0, out);
                     } else {
-                        nn_block512::<1, 1, true>(a, i, cols, n, j0, out);
+                        nn_block512::<1, 1, true, false>(a, i, cols, n, j0, out);
                     }
                 }
             }
@@ -805,14 +805,14 @@ unsafe fn nn512(a: View<'_>, b: &[f64], n: usize, out: &mut [f64]) {
                     padded: false,
                 };
                 match (rows, wide, a.cs == 1) {
-                    (3, true, true) => nn_block512::<3, 2, true>(a, i, c, n, j0, out),
-                    (3, false, true) => nn_block512::<3, 1, true>(a, i, c, n, j0, out),
-                    (3, true, false) => nn_block512::<3, 2, false>(a, i, c, n, j0, out),
-                    (3, false, false) => nn_block512::<3, 1, false>(a, i, c, n, j0, out),
-                    (2, true, _) => nn_block512::<2, 2, false>(a, i, c, n, j0, out),
-                    (2, false, _) => nn_block512::<2, 1, false>(a, i, c, n, j0, out),
-                    (_, true, _) => nn_block512::<1, 2, false>(a, i, c, n, j0, out),
-                    (_, false, _) => nn_block512::<1, 1, false>(a, i, c, n, j0, out),
+                    (3, true, true) => nn_block512::<3, 2, true, false>(a, i, c, n, j0, out),
+                    (3, false, true) => nn_block512::<3, 1, true, false>(a, i, c, n, j0, out),
+                    (3, true, false) => nn_block512::<3, 2, false, false>(a, i, c, n, j0, out),
+                    (3, false, false) => nn_block512::<3, 1, false, false>(a, i, c, n, j0, out),
+                    (2, true, _) => nn_block512::<2, 2, false, false>(a, i, c, n, j0, out),
+                    (2, false, _) => nn_block512::<2, 1, false, false>(a, i, c, n, j0, out),
+                    (_, true, _) => nn_block512::<1, 2, false, false>(a, i, c, n, j0, out),
+                    (_, false, _) => nn_block512::<1, 1, false, false>(a, i, c, n, j0, out),
                 }
             }
             j0 += if wide { 16 } else { 8 };
@@ -845,7 +845,7 @@ struct Cols<'a> {
 #[cfg(target_arch = "x86_64")]
 #[inline]
 #[target_feature(enable = "avx2,fma,avx512f,avx512vl,avx512dq")]
-unsafe fn nn_block512<const R: usize, const H: usize, const UNIT: bool>(
+unsafe fn nn_block512<const R: usize, const H: usize, const UNIT: bool, const SQ: bool>(
     a: View<'_>,
     i: usize,
     cols: Cols<'_>,
@@ -894,7 +894,7 @@ unsafe fn nn_block512<const R: usize, const H: usize, const UNIT: bool>(
             for (r, acc_r) in acc.iter_mut().enumerate() {
                 let x = bcast(r, c + l);
                 for (v, &bh) in acc_r[l].iter_mut().zip(&bv) {
-                    *v = _mm512_fmadd_pd(x, bh, *v);
+                    *v = term512::<SQ>(x, bh, *v);
                 }
             }
         }
@@ -905,12 +905,111 @@ unsafe fn nn_block512<const R: usize, const H: usize, const UNIT: bool>(
             let [a0, a1, a2, a3] = acc_r.map(|l| l[h]);
             let mut s = _mm512_add_pd(_mm512_add_pd(a0, a1), _mm512_add_pd(a2, a3));
             for t in full..k {
-                s = _mm512_fmadd_pd(bcast(r, t), load(t, h), s);
+                s = term512::<SQ>(bcast(r, t), load(t, h), s);
             }
             // SAFETY: the unmasked lanes are outputs j0 + 8h.. < n of row
             // i + r, inside `out` (asserted above).
             unsafe { _mm512_mask_storeu_pd(out.as_mut_ptr().add((i + r) * n + j0 + 8 * h), masks[h], s) };
         }
+    }
+}
+
+/// One term of [`nn_block512`], lane by lane [`madd`]: `fma(x, b, s)`, or
+/// `fma(d, d, s)` with `d = x − b` for a squared distance.
+#[cfg(target_arch = "x86_64")]
+#[inline]
+#[target_feature(enable = "avx2,fma,avx512f,avx512vl,avx512dq")]
+fn term512<const SQ: bool>(
+    x: std::arch::x86_64::__m512d,
+    b: std::arch::x86_64::__m512d,
+    s: std::arch::x86_64::__m512d,
+) -> std::arch::x86_64::__m512d {
+    use std::arch::x86_64::*;
+    if SQ {
+        let d = _mm512_sub_pd(x, b);
+        _mm512_fmadd_pd(d, d, s)
+    } else {
+        _mm512_fmadd_pd(x, b, s)
+    }
+}
+
+/// [`sq_dists`] against vectors held as columns: `out[i·w + j] =
+/// sq_dist(a_i, v_{c0 + j})` for the rows `a_i` of `a` (`k` wide) and the
+/// vectors `c0..n` of `bt` (`k x n` row-major, `bt[t·n + c]` = value `t` of
+/// vector `c`), `w = n − c0` outputs a row, each with [`sq_dist`]'s bits.
+/// For the SVM's Gram matrix ([`super::classic::rbf_gram`]): by rows of
+/// vectors ([`sq_dists_strided`]) each tile ends in horizontal sums; here
+/// the outputs lie across the lanes ([`nn_block512`], a subtraction and an
+/// FMA a term) and there are none. Without AVX-512 the vectors are copied
+/// back into rows for [`sq_dists`].
+///
+/// # Panics
+/// If `c0 > n`, `bt` holds fewer than `k·n` values or `out` fewer than
+/// `m·w`.
+pub fn sq_dists_cols(a: &[f64], bt: &[f64], k: usize, n: usize, c0: usize, out: &mut [f64]) {
+    let m = a.len() / k.max(1);
+    assert!(
+        c0 <= n && bt.len() >= k * n,
+        "sq_dists_cols: short bt or c0 past n"
+    );
+    let w = n - c0;
+    assert!(out.len() >= m * w, "sq_dists_cols: short out");
+    if m == 0 || w == 0 {
+        return;
+    }
+    #[cfg(target_arch = "x86_64")]
+    if k > 0 && crate::wide::avx512() {
+        // SAFETY: the CPU supports AVX-512 F/VL/DQ (checked above); shapes
+        // asserted above.
+        unsafe { sq_cols512(View::rows_of(&a[..m * k], m, k), bt, n, c0, out) };
+        return;
+    }
+    let mut rows = vec![0.0; w * k];
+    for (t, col) in bt.chunks_exact(n).take(k).enumerate() {
+        for (j, &v) in col[c0..].iter().enumerate() {
+            rows[j * k + t] = v;
+        }
+    }
+    pairwise_any::<true>(&a[..m * k], &rows, k, out, w);
+}
+
+/// [`sq_dists_cols`] with AVX-512: three rows against 16 vectors a block
+/// (8 at the edge, masked), as [`nn512`] with squared differences, panel
+/// by panel.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma,avx512f,avx512vl,avx512dq")]
+unsafe fn sq_cols512(a: View<'_>, bt: &[f64], n: usize, c0: usize, out: &mut [f64]) {
+    let (m, w) = (a.rows, n - c0);
+    // Each panel of 16 vectors (k rows of `bt` apart, 10 KB at k = 80)
+    // passes over all the rows, so it is read from memory once.
+    let mut j0 = 0;
+    while j0 < w {
+        let wide = w - j0 > 8;
+        let c = Cols {
+            b: bt,
+            ld: n,
+            at: c0 + j0,
+            // A whole panel is loaded without masks.
+            padded: w - j0 >= if wide { 16 } else { 8 },
+        };
+        let mut i = 0;
+        while i < m {
+            let rows = (m - i).min(3);
+            // SAFETY (every call): rows i..i + R < m; vectors c0 + j0.. < n,
+            // the lanes past n masked; `a` is row-major (`cs == 1`).
+            unsafe {
+                match (rows, wide) {
+                    (3, true) => nn_block512::<3, 2, true, true>(a, i, c, w, j0, out),
+                    (3, false) => nn_block512::<3, 1, true, true>(a, i, c, w, j0, out),
+                    (2, true) => nn_block512::<2, 2, true, true>(a, i, c, w, j0, out),
+                    (2, false) => nn_block512::<2, 1, true, true>(a, i, c, w, j0, out),
+                    (_, true) => nn_block512::<1, 2, true, true>(a, i, c, w, j0, out),
+                    (_, false) => nn_block512::<1, 1, true, true>(a, i, c, w, j0, out),
+                }
+            }
+            i += rows;
+        }
+        j0 += if wide { 16 } else { 8 };
     }
 }
 
@@ -971,6 +1070,54 @@ mod tests {
     use super::*;
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
+
+    /// Every entry of [`sq_dists_cols`] is [`sq_dist`] of its two vectors,
+    /// bit for bit: row counts around the three-row blocks, widths around
+    /// the 16- and 8-vector panels (full and masked), `k` with and without
+    /// a remainder of four, every starting vector `c0`; on the AVX-512
+    /// kernel and the fallback. Fails if the kernel's order of summation
+    /// changes or it rounds the square before adding it (values with many
+    /// significant bits, so roundings differ).
+    #[test]
+    fn sq_dists_cols_is_sq_dist_bit_for_bit() {
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        for &(m, k, n) in &[
+            (1, 1, 1),
+            (2, 3, 9),
+            (3, 4, 16),
+            (4, 7, 17),
+            (7, 80, 41),
+            (5, 13, 33),
+        ] {
+            let a: Vec<f64> = (0..m * k).map(|_| rng.random_range(-3.0..3.0)).collect();
+            let v: Vec<f64> = (0..n * k).map(|_| rng.random_range(-3.0..3.0)).collect();
+            let mut bt = vec![0.0; k * n];
+            transpose(&v, n, k, &mut bt);
+            for c0 in 0..=n {
+                let w = n - c0;
+                for no512 in [false, true] {
+                    let mut got = vec![f64::NAN; m * w + 2];
+                    let mut run = || sq_dists_cols(&a, &bt, k, n, c0, &mut got);
+                    if no512 {
+                        crate::wide::without_avx512(run);
+                    } else {
+                        run();
+                    }
+                    for i in 0..m {
+                        for j in 0..w {
+                            let want = sq_dist(&a[i * k..(i + 1) * k], &v[(c0 + j) * k..(c0 + j + 1) * k]);
+                            assert_eq!(
+                                got[i * w + j].to_bits(),
+                                want.to_bits(),
+                                "m {m} k {k} n {n} c0 {c0} ({i}, {j}) no512 {no512}"
+                            );
+                        }
+                    }
+                    assert!(got[m * w..].iter().all(|g| g.is_nan()), "wrote past its rows");
+                }
+            }
+        }
+    }
 
     /// [`gemm_nn`] gives [`gemm_nt`]'s bits over the materialised operands,
     /// for row-major and transposed views, edge widths (masked lanes),

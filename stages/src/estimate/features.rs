@@ -676,10 +676,21 @@ impl Standardizer {
 
     /// A standardised copy of the rows of `x` (row-major, as wide as the
     /// standardiser; a ragged tail is dropped).
+    ///
+    /// One pass, written straight into the new vector: a copy standardised
+    /// in place read and wrote the batch twice (perf: the copy and the pass
+    /// ~12 % of an ANN (ST) prediction of the peers test set).
     pub fn apply_rows(&self, x: &[f64]) -> Vec<f64> {
         let d = self.mean.len().max(1);
-        let mut z = x[..x.len() / d * d].to_vec();
-        z.chunks_exact_mut(d).for_each(|r| self.apply(r));
+        // Columns past the shorter of the two vectors stay as they are, as
+        // in [`Self::apply`].
+        let s = self.mean.len().min(self.inv_sd.len());
+        let (mean, inv_sd) = (&self.mean[..s], &self.inv_sd[..s]);
+        let mut z = Vec::with_capacity(x.len() / d * d);
+        for r in x.chunks_exact(d) {
+            z.extend(r[..s].iter().zip(mean).zip(inv_sd).map(|((x, m), s)| (x - m) * s));
+            z.extend_from_slice(&r[s..]);
+        }
         z
     }
 }
@@ -1353,6 +1364,34 @@ pub fn synthetic_items(angles: &[f64], reps: usize, p: &SynthParams, seed: u64) 
 mod tests {
     use super::*;
     use proptest::prelude::*;
+
+    /// The copy-then-standardise definition [`Standardizer::apply_rows`] must match.
+    fn apply_rows_by_copy(s: &Standardizer, x: &[f64]) -> Vec<f64> {
+        let d = s.mean.len().max(1);
+        let mut z = x[..x.len() / d * d].to_vec();
+        z.chunks_exact_mut(d).for_each(|r| s.apply(r));
+        z
+    }
+
+    proptest! {
+        /// One pass gives the bits of a copy standardised row by row, also
+        /// with a ragged tail, mean and scale of different lengths (the
+        /// columns past the shorter kept as they are) and an empty scaler.
+        #[test]
+        fn apply_rows_gives_the_bits_of_each_row_standardised(
+            mean in prop::collection::vec(-1e3f64..1e3, 0..6),
+            inv_sd in prop::collection::vec(1e-3f64..1e3, 0..6),
+            x in prop::collection::vec(prop_oneof![-1e6f64..1e6, Just(f64::NAN), Just(-0.0)], 0..40),
+        ) {
+            let s = Standardizer { mean, inv_sd };
+            let got = s.apply_rows(&x);
+            let want = apply_rows_by_copy(&s, &x);
+            prop_assert_eq!(got.len(), want.len());
+            for (g, w) in got.iter().zip(&want) {
+                prop_assert!(g.to_bits() == w.to_bits() || (g.is_nan() && w.is_nan()), "{} vs {}", g, w);
+            }
+        }
+    }
 
     /// The definition [`argmax`] must match: a scan replacing on `>`.
     fn argmax_scan(v: &[f64]) -> usize {

@@ -389,18 +389,127 @@ pub fn solve_rows(
     }
 }
 
-/// The kernel of a [`solve_gram`] problem: a symmetric Gram matrix
-/// (row-major, `stride` wide) and the ranges of its indices that make up the
-/// problem. Position `p` of the problem is the `p`-th index of the
-/// concatenated ranges, so each kernel row is a few contiguous slices of a
-/// Gram row (for a one-vs-one machine on a class-sorted Gram matrix: the
-/// two classes' blocks).
+/// Rows per block of an [`UpperGram`].
+pub const GRAM_BLOCK: usize = 32;
+
+/// The upper triangle (diagonal included) of a symmetric `n x n` kernel
+/// matrix, by blocks of [`GRAM_BLOCK`] rows: block `b` holds rows
+/// `r0 = b · GRAM_BLOCK ..` (at most `GRAM_BLOCK` of them), each from column
+/// `r0` to `n − 1`, so `K(s, t)` for `t ≥ s` is entry
+/// `(s − r0) · (n − r0) + (t − r0)` of its block. `K(s, t)` with `t < s` is
+/// read as `K(t, s)`; the few entries of a block left of its diagonal are
+/// never read (whatever its filler wrote there).
+///
+/// Why not the full matrix: the lower triangle was a copy of the upper one,
+/// written over the whole matrix (6 MB at the peers SVM's 1224 vectors,
+/// ~9 % of a fit) after zeroing it (12 MB, ~9 %), and each machine then
+/// copied its rows out of that 12 MB again. Here a machine's kernel rows
+/// are gathered from the two classes' blocks (a row's values left of the
+/// diagonal one per row above, from a block of at most ~40 KB that stays in
+/// cache while the machine reads it), each block is zeroed and filled by
+/// one thread while it sits in its cache, and the matrix takes half the
+/// memory.
+#[derive(Clone, Debug, Default)]
+pub struct UpperGram {
+    n: usize,
+    blocks: Vec<Vec<f64>>,
+}
+
+impl UpperGram {
+    /// The `n x n` matrix whose block of rows `r0 .. r0 + rows` is written by
+    /// `fill(r0, rows, block)`: `block` is `rows x (n − r0)` row-major,
+    /// zeroed, row `i` holding `K(r0 + i, r0 ..)`. Blocks are filled in
+    /// parallel; each is its own allocation, so nothing depends on the
+    /// thread count.
+    pub fn build(n: usize, fill: impl Fn(usize, usize, &mut [f64]) + Sync) -> Self {
+        use rayon::prelude::*;
+        let blocks = (0..n.div_ceil(GRAM_BLOCK))
+            .into_par_iter()
+            .map(|b| {
+                let r0 = b * GRAM_BLOCK;
+                let rows = GRAM_BLOCK.min(n - r0);
+                let mut v = vec![0.0; rows * (n - r0)];
+                fill(r0, rows, &mut v);
+                v
+            })
+            .collect();
+        UpperGram { n, blocks }
+    }
+
+    /// `K(s, t) = k(s, t)` evaluated for `t ≥ s` only (tests and small
+    /// problems).
+    pub fn from_fn(n: usize, k: impl Fn(usize, usize) -> f64 + Sync) -> Self {
+        Self::build(n, |r0, rows, block| {
+            let w = n - r0;
+            for i in 0..rows {
+                for t in r0 + i..n {
+                    block[i * w + t - r0] = k(r0 + i, t);
+                }
+            }
+        })
+    }
+
+    /// Bytes the matrix of `n` vectors takes (`None` if that overflows):
+    /// about `4 n (n + GRAM_BLOCK)`.
+    pub fn bytes(n: usize) -> Option<usize> {
+        // Full blocks b < q hold B (n − B b) values each, the last r rows
+        // r · r: in closed form, in u128 with checked products.
+        let (b, n) = (GRAM_BLOCK as u128, n as u128);
+        let (q, r) = (n / b, n % b);
+        let full = (b * q).checked_mul(n)? - (b * q).checked_mul(b * q.saturating_sub(1))? / 2;
+        let bytes = (full + r * r).checked_mul(std::mem::size_of::<f64>() as u128)?;
+        usize::try_from(bytes).ok()
+    }
+
+    /// Its number of rows (and columns).
+    pub fn n(&self) -> usize {
+        self.n
+    }
+
+    /// `K(s, t)`. Panics if `s` or `t` is not below [`Self::n`].
+    pub fn get(&self, s: usize, t: usize) -> f64 {
+        assert!(
+            s < self.n && t < self.n,
+            "UpperGram::get: ({s}, {t}) outside {}",
+            self.n
+        );
+        let (s, t) = if t < s { (t, s) } else { (s, t) };
+        let r0 = s / GRAM_BLOCK * GRAM_BLOCK;
+        self.blocks[s / GRAM_BLOCK][(s - r0) * (self.n - r0) + t - r0]
+    }
+
+    /// Appends `K(s, t)` for `t` in `cols` to `out`: the part left of the
+    /// diagonal one value per row above (column `s` of rows `t`), the rest
+    /// one contiguous slice of row `s`.
+    fn extend_row(&self, s: usize, cols: &std::ops::Range<usize>, out: &mut Vec<f64>) {
+        let n = self.n;
+        let split = cols.end.min(s).max(cols.start);
+        let mut t = cols.start;
+        while t < split {
+            let b = t / GRAM_BLOCK;
+            let r0 = b * GRAM_BLOCK;
+            let (w, end) = (n - r0, split.min(r0 + GRAM_BLOCK));
+            let block = &self.blocks[b];
+            out.extend((t..end).map(|u| block[(u - r0) * w + s - r0]));
+            t = end;
+        }
+        if split < cols.end {
+            let r0 = s / GRAM_BLOCK * GRAM_BLOCK;
+            let row = (s - r0) * (n - r0);
+            out.extend_from_slice(&self.blocks[s / GRAM_BLOCK][row + split - r0..row + cols.end - r0]);
+        }
+    }
+}
+
+/// The kernel of a [`solve_gram`] problem: a symmetric Gram matrix and the
+/// ranges of its indices that make up the problem. Position `p` of the
+/// problem is the `p`-th index of the concatenated ranges (for a
+/// one-vs-one machine on a class-sorted Gram matrix: the two classes'
+/// blocks).
 #[derive(Clone, Copy, Debug)]
 pub struct GramRanges<'a> {
-    /// The Gram matrix, `K(x_s, x_t)` at `s · stride + t`.
-    pub gram: &'a [f64],
-    /// Its row length.
-    pub stride: usize,
+    /// The Gram matrix.
+    pub gram: &'a UpperGram,
     /// Gram indices of the problem, in position order.
     pub ranges: &'a [std::ops::Range<usize>],
 }
@@ -437,7 +546,7 @@ pub fn solve_gram(k: &GramRanges<'_>, y: &[f64], var: &[usize], p: &SmoParams) -
     assert_eq!(y.len(), n, "one label per position");
     assert_eq!(var.len(), n, "one variable per position");
     assert!(
-        gidx.iter().all(|&g| g < k.stride) && k.gram.len() >= k.stride * k.stride,
+        gidx.iter().all(|&g| g < k.gram.n()),
         "solve_gram: a range lies outside the Gram matrix"
     );
     let mut pos_of = vec![usize::MAX; n];
@@ -579,7 +688,7 @@ impl GramState {
             ny: pad(yp.iter().map(|&v| -v).collect(), -1.0),
             y: pad(yp, 1.0),
             rank: pad(var.iter().map(|&v| v as f64).collect(), -1.0),
-            diag: pad(gidx.iter().map(|&g| k.gram[g * k.stride + g]).collect(), 1.0),
+            diag: pad(gidx.iter().map(|&g| k.gram.get(g, g)).collect(), 1.0),
             alpha: vec![0.0; n_pad],
             grad: pad(vec![-1.0; n], 0.0),
             active: vec![true; n],
@@ -844,11 +953,11 @@ impl<'a> KRows<'a> {
             return RowAt::Kept(self.slot[p]);
         }
         self.copied += 1;
-        let base = self.gidx[p] * self.k.stride;
+        let g = self.gidx[p];
         let (k, n_pad) = (self.k, self.n_pad);
         let fill = |out: &mut Vec<f64>| {
             for r in k.ranges {
-                out.extend_from_slice(&k.gram[base + r.start..base + r.end]);
+                k.gram.extend_row(g, r, out);
             }
             out.resize(out.len() + n_pad - self.gidx.len(), 0.0);
         };
@@ -1585,10 +1694,7 @@ mod tests {
         let class: Vec<usize> = (0..n).map(|_| rng.random_range(0..k)).collect();
         let mut sorted: Vec<usize> = (0..n).collect();
         sorted.sort_by_key(|&i| class[i]);
-        let gram: Vec<f64> = sorted
-            .iter()
-            .flat_map(|&s| sorted.iter().map(|&t| rbf(&x[s], &x[t], 0.3)).collect::<Vec<_>>())
-            .collect();
+        let gram = UpperGram::from_fn(n, |s, t| rbf(&x[sorted[s]], &x[sorted[t]], 0.3));
         let start = |c: usize| class.iter().filter(|&&d| d < c).count();
         let (a, b) = (0, 2);
         let idx: Vec<usize> = (0..n).filter(|&i| class[i] == a || class[i] == b).collect();
@@ -1604,7 +1710,6 @@ mod tests {
             .collect();
         let kern = GramRanges {
             gram: &gram,
-            stride: n,
             ranges: &ranges,
         };
         let want = solve(&y, &|s, t| rbf(&x[idx[s]], &x[idx[t]], 0.3), p);
@@ -1618,6 +1723,45 @@ mod tests {
             assert_eq!(got.rho.to_bits(), want.rho.to_bits(), "seed {seed}, n {n}");
             assert_eq!((got.iterations, got.converged), (want.iterations, want.converged));
         }
+    }
+
+    /// Every read of an [`UpperGram`] is the symmetric matrix's entry:
+    /// sizes around the 32-row blocks, rows against ranges that lie left
+    /// of, across and right of the diagonal and span several blocks.
+    #[test]
+    fn upper_gram_reads_the_symmetric_matrix() {
+        let k = |s: usize, t: usize| (s.min(t) * 1000 + s.max(t)) as f64;
+        for n in [1, 2, 31, 32, 33, 64, 70, 101] {
+            let g = UpperGram::from_fn(n, |s, t| {
+                assert!(t >= s, "filled below the diagonal");
+                k(s, t)
+            });
+            assert_eq!(g.n(), n);
+            assert_eq!(
+                UpperGram::bytes(n),
+                Some(g.blocks.iter().map(Vec::len).sum::<usize>() * 8)
+            );
+            let cuts = [0, 1, n / 3, n / 2, n.saturating_sub(1), n];
+            for s in 0..n {
+                for &a in &cuts {
+                    for &b in &cuts {
+                        if a > b {
+                            continue;
+                        }
+                        let mut row = vec![-1.0];
+                        g.extend_row(s, &(a..b), &mut row);
+                        let want: Vec<f64> = std::iter::once(-1.0).chain((a..b).map(|t| k(s, t))).collect();
+                        assert_eq!(row, want, "n {n}, row {s}, columns {a}..{b}");
+                    }
+                }
+                for t in 0..n {
+                    assert_eq!(g.get(s, t), k(s, t));
+                }
+            }
+        }
+        assert_eq!(UpperGram::bytes(0), Some(0));
+        assert_eq!(UpperGram::bytes(usize::MAX / 2), None);
+        assert_eq!(UpperGram::bytes(usize::MAX), None);
     }
 
     #[test]
