@@ -19,23 +19,25 @@
 //!   our own SMO solver, [`super::smo`] (libsvm's algorithm: second-order
 //!   working-set selection, a kernel cache, shrinking). The fold's whole Gram
 //!   matrix is computed once when it fits in `cache_mb` (every vector serves in
-//!   K - 1 machines), [`rbf_gram`]: only its upper triangle, computed and
-//!   kept ([`super::smo::UpperGram`]), by blocks of rows in parallel
-//!   (the distances with the vectors across the lanes,
-//!   [`super::dense::sq_dists_cols`], or the tiled kernel
-//!   [`super::dense::sq_dists_strided`] without AVX-512), the exponentials
-//!   vectorised ([`super::vmath::rbf_in_place`], ~1 ulp from glibc's `exp`,
-//!   which cost a call per entry); an entry below the diagonal is read as
-//!   its mirror (the distances are symmetric bit for bit). Its rows and
-//!   columns are the vectors sorted by class, so a machine's kernel rows
-//!   come from the two classes' blocks, which [`super::smo::solve_gram`]
-//!   reads (copying each row it needs once, within the same `cache_mb`
-//!   budget) and solves with vectorised scans, taking the steps of the
-//!   per-machine solver ([`super::smo::solve`]) bit for bit (test
+//!   K - 1 machines), by class blocks ([`rbf_block`]; the vectors sorted
+//!   by class): each class's own block once, in parallel, and the block
+//!   between a machine's two classes when that machine starts, so it is in
+//!   cache while the machine reads it (the distances with the vectors
+//!   across the lanes, [`super::dense::sq_dists_cols`], or the tiled kernel
+//!   [`super::dense::sq_dists_strided`] without AVX-512; the exponentials
+//!   vectorised, [`super::vmath::rbf_in_place`], ~1 ulp from glibc's `exp`,
+//!   which cost a call per entry). A machine's kernel rows come from its
+//!   three blocks ([`super::smo::PairBlocks`]; the distances are symmetric
+//!   bit for bit, so a column of the cross block is a row of the other),
+//!   which [`super::smo::solve_gram`] reads (copying each row it needs
+//!   once, within the same `cache_mb` budget) and solves with vectorised
+//!   scans, taking the steps of the per-machine solver
+//!   ([`super::smo::solve`]) bit for bit (test
 //!   `svm_gram_solver_fits_the_model_of_the_per_machine_path_bit_for_bit`).
-//!   Memory: the Gram matrix's upper triangle (about `4 n (n + 32)` bytes,
-//!   [`super::smo::UpperGram::bytes`]) only when it fits in `cache_mb`
-//!   (default 256 MiB: up to 8176 training vectors), plus per thread the
+//!   Memory: the classes' own blocks and one cross block a thread
+//!   (`8 (Σ_c n_c² + max n_a n_b)` bytes, ~0.8 MB for the peers SVM's 1224
+//!   vectors in 17 classes, where the whole Gram matrix was 12 MB) only when
+//!   they fit in `cache_mb` (default 256 MiB), plus per thread the
 //!   rows of the machine it trains (`8 n_ab²` bytes, also only within
 //!   `cache_mb`); above that each machine computes its rows into its own
 //!   row cache of `cache_mb` (the previous path). Measured on the peers SVM
@@ -370,38 +372,35 @@ impl OvoSvm {
     }
 }
 
-/// The RBF Gram matrix `G_st = exp(-γ‖x_s − x_t‖²)` of the `n = x.len() / dim`
-/// rows of `x` (row-major), with the bits of [`smo::rbf`] entry by entry.
-/// Only the upper triangle is computed and kept ([`smo::UpperGram`]), by
-/// blocks of rows against the columns from the block's first row on (the
-/// tiled kernel [`dense::sq_dists_strided`], then the vectorised
-/// exponential [`vmath::rbf_in_place`] from the diagonal on), blocks in
-/// parallel. `sq_dist(a, b) = sq_dist(b, a)` bit for bit (`(a − b)² =
-/// (b − a)²` exactly), so reading `G_ts` as `G_st` gives the full matrix's
-/// bits (test `half_gram_equals_the_full_one_bit_for_bit`), at half the
-/// distances, exponentials and memory.
-pub fn rbf_gram(x: &[f64], dim: usize, gamma: f64) -> smo::UpperGram {
+/// The RBF kernel block `K_ij = exp(-γ‖x_i − x_j‖²)` between the vectors
+/// `rows` and the vectors `cols` of `x` (row-major, `dim` wide), row-major
+/// `rows.len() x cols.len()`, each entry with the bits of [`smo::rbf`]
+/// (the distances are symmetric bit for bit, so a block and the block of
+/// the swapped ranges are each other's transpose). `xt`, `x` transposed
+/// (`dim x n`), takes the distances with the vectors across the lanes
+/// ([`dense::sq_dists_cols`]); without it, the tiled kernel.
+pub fn rbf_block(
+    x: &[f64],
+    xt: Option<&[f64]>,
+    dim: usize,
+    rows: std::ops::Range<usize>,
+    cols: std::ops::Range<usize>,
+    gamma: f64,
+) -> Vec<f64> {
     let dim = dim.max(1);
     let n = x.len() / dim;
-    // With AVX-512 the distances come from the vectors as columns (no
-    // horizontal sums; see `dense::sq_dists_cols`), transposed once.
-    let xt = crate::wide::avx512().then(|| {
-        let mut xt = vec![0.0; n * dim];
-        dense::transpose(&x[..n * dim], n, dim, &mut xt);
-        xt
-    });
-    smo::UpperGram::build(n, |r0, rows, block| {
-        let w = n - r0;
-        // Rows r0.. of the block against the vectors from r0 on.
-        let a = &x[r0 * dim..(r0 + rows) * dim];
-        match &xt {
-            Some(xt) => dense::sq_dists_cols(a, xt, dim, n, r0, block),
-            None => dense::sq_dists_strided(a, &x[r0 * dim..n * dim], dim, block, w),
-        }
-        for r in 0..rows {
-            vmath::rbf_in_place(&mut block[r * w + r..(r + 1) * w], gamma);
-        }
-    })
+    let w = cols.len();
+    let mut out = vec![0.0; rows.len() * w];
+    if out.is_empty() {
+        return out;
+    }
+    let a = &x[rows.start * dim..rows.end * dim];
+    match xt {
+        Some(xt) => dense::sq_dists_cols(a, xt, dim, n, cols, &mut out),
+        None => dense::sq_dists_strided(a, &x[cols.start * dim..cols.end * dim], dim, &mut out, w),
+    }
+    vmath::rbf_in_place(&mut out, gamma);
+    out
 }
 
 impl SvmConfig {
@@ -469,13 +468,11 @@ impl SvmConfig {
             1.0 / dim.max(1) as f64
         };
         let n = rows.len();
-        // The fold's whole Gram matrix when it fits in the cache budget: every
-        // vector takes part in K - 1 pairs, so each kernel value is then
-        // computed once per fold instead of once per pair. It is built by rows
-        // in parallel; each entry's bits do not depend on the thread count.
-        // Its rows and columns are the vectors sorted by class (stably), so a
-        // machine's kernel rows are two contiguous slices of a Gram row, which
-        // `smo::solve_gram` reads in place.
+        // The fold's kernel by class blocks when they fit in the cache budget
+        // (module docs): every vector takes part in K - 1 pairs, so each
+        // kernel value is computed once per fold instead of once per pair.
+        // The vectors are sorted by class (stably), so a class is a range
+        // of them; each entry's bits do not depend on the thread count.
         let budget = self.cache_mb.saturating_mul(1 << 20);
         let mut by_class: Vec<usize> = (0..n).collect();
         by_class.sort_by_key(|&i| y[i]);
@@ -488,11 +485,41 @@ impl SvmConfig {
         for c in 0..k {
             class_start[c + 1] += class_start[c];
         }
-        let gram: Option<smo::UpperGram> = smo::UpperGram::bytes(n)
+        // The classes' own kernel blocks, and per machine the block between
+        // its two classes (computed when the machine starts, in cache while
+        // it reads it): `Σ_c n_c²` values, plus `n_a n_b` per machine in
+        // progress (one per thread).
+        let sizes: Vec<usize> = class_start.windows(2).map(|w| w[1] - w[0]).collect();
+        let block_bytes = sizes
+            .iter()
+            .try_fold(0usize, |acc, &c| acc.checked_add(c.checked_mul(c)?))
+            .and_then(|own| {
+                let widest = (0..k)
+                    .flat_map(|a| (a + 1..k).map(move |b| (a, b)))
+                    .map(|(a, b)| sizes[a].saturating_mul(sizes[b]))
+                    .max()
+                    .unwrap_or(0);
+                own.checked_add(widest)?.checked_mul(std::mem::size_of::<f64>())
+            });
+        // (The vectors sorted by class, their transpose, the classes' blocks.)
+        type Blocks = (Vec<f64>, Option<Vec<f64>>, Vec<Vec<f64>>);
+        let gram: Option<Blocks> = block_bytes
             .filter(|&bytes| bytes <= budget && class_start[k] == n)
             .map(|_| {
                 let sorted: Vec<f64> = by_class.iter().flat_map(|&i| rows[i].iter().copied()).collect();
-                rbf_gram(&sorted, dim, gamma)
+                let xt = crate::wide::avx512().then(|| {
+                    let mut xt = vec![0.0; n * dim];
+                    dense::transpose(&sorted, n, dim, &mut xt);
+                    xt
+                });
+                let own = (0..k)
+                    .into_par_iter()
+                    .map(|c| {
+                        let r = class_start[c]..class_start[c + 1];
+                        rbf_block(&sorted, xt.as_deref(), dim, r.clone(), r, gamma)
+                    })
+                    .collect();
+                (sorted, xt, own)
             });
         let pairs: Vec<(usize, usize)> = (0..k).flat_map(|a| (a + 1..k).map(move |b| (a, b))).collect();
         let params = smo::SmoParams {
@@ -513,9 +540,9 @@ impl SvmConfig {
                 // only the sign convention differs).
                 let lab: Vec<f64> = idx.iter().map(|&i| if y[i] == b { 1.0 } else { -1.0 }).collect();
                 let sol = match &gram {
-                    Some(g) => {
-                        // Positions: class a's block of the sorted Gram matrix,
-                        // then class b's; `var` numbers them as `idx` does.
+                    Some((sorted, xt, own)) => {
+                        // Positions: class a's vectors in sorted order, then
+                        // class b's; `var` numbers them as `idx` does.
                         let ranges = [
                             class_start[a]..class_start[a + 1],
                             class_start[b]..class_start[b + 1],
@@ -525,10 +552,9 @@ impl SvmConfig {
                             .flat_map(Clone::clone)
                             .map(|s| idx.binary_search(&by_class[s]).unwrap_or(usize::MAX))
                             .collect();
-                        let kern = smo::GramRanges {
-                            gram: g,
-                            ranges: &ranges,
-                        };
+                        let [ra, rb] = ranges;
+                        let cross = rbf_block(sorted, xt.as_deref(), dim, ra.clone(), rb.clone(), gamma);
+                        let kern = smo::PairBlocks::new(&own[a], &own[b], &cross, ra.len(), rb.len());
                         smo::solve_gram(&kern, &lab, &var, &params)
                     }
                     None => smo::solve(
@@ -1772,29 +1798,50 @@ mod tests {
         assert!(acc > n * 9 / 10, "training accuracy {acc}/{n}");
     }
 
+    /// Every entry of an RBF block is [`smo::rbf`] of its two vectors, bit
+    /// for bit, with the vectors across the lanes (`xt`) and with the tiled
+    /// kernel: blocks of one range against itself (a class's own block),
+    /// against another and against an empty one, sizes around the 16- and
+    /// 8-vector panels, a dimension that leaves a tail.
     #[test]
-    fn half_gram_equals_the_full_one_bit_for_bit() {
-        // Sizes around the 32-row blocks and tiles, a dimension that leaves a tail.
-        for (n, dim) in [(1, 3), (31, 5), (32, 4), (77, 9), (130, 6)] {
+    fn rbf_blocks_equal_the_kernel_bit_for_bit() {
+        for (n, dim) in [(1, 3), (31, 5), (40, 4), (77, 9)] {
             let x = random_rows(n, dim, n as u64);
+            let mut xt = vec![0.0; n * dim];
+            dense::transpose(&x, n, dim, &mut xt);
             let gamma = 0.37;
-            let g = rbf_gram(&x, dim, gamma);
-            assert_eq!(g.n(), n);
-            for s in 0..n {
-                for t in 0..n {
-                    let want = smo::rbf(&x[s * dim..(s + 1) * dim], &x[t * dim..(t + 1) * dim], gamma);
-                    assert_eq!(g.get(s, t).to_bits(), want.to_bits(), "n {n}, entry ({s}, {t})");
+            let cuts = [0, n / 3, n / 2, n];
+            for (r, c) in [
+                (0..n, 0..n),
+                (cuts[1]..cuts[2], cuts[2]..n),
+                (0..cuts[1], cuts[1]..cuts[1]),
+            ] {
+                for t in [Some(xt.as_slice()), None] {
+                    let g = rbf_block(&x, t, dim, r.clone(), c.clone(), gamma);
+                    assert_eq!(g.len(), r.len() * c.len());
+                    for (i, s) in r.clone().enumerate() {
+                        for (j, u) in c.clone().enumerate() {
+                            let want =
+                                smo::rbf(&x[s * dim..(s + 1) * dim], &x[u * dim..(u + 1) * dim], gamma);
+                            let got = g[i * c.len() + j];
+                            assert_eq!(
+                                got.to_bits(),
+                                want.to_bits(),
+                                "n {n}, ({s}, {u}), xt {}",
+                                t.is_some()
+                            );
+                        }
+                    }
                 }
             }
         }
-        assert_eq!(rbf_gram(&[], 4, 1.0).n(), 0);
     }
 
     #[test]
     fn svm_gram_and_row_cache_paths_and_thread_counts_give_the_same_model() {
-        // 3 classes, 420 vectors: the Gram matrix (1.4 MB) is over a 1 MiB
-        // budget, so `cache_mb = 1` trains from per-machine row caches.
-        let (n, dim) = (420, 6);
+        // 3 classes, 720 vectors: the kernel blocks (over 1.3 MB) are over a
+        // 1 MiB budget, so `cache_mb = 1` trains from per-machine row caches.
+        let (n, dim) = (720, 6);
         let x = random_rows(n, dim, 8);
         let y: Vec<usize> = (0..n)
             .map(|i| usize::from(x[i * dim] > 0.2) + usize::from(x[i * dim + 1] + 0.5 * x[i * dim + 2] > 0.3))
@@ -1805,6 +1852,7 @@ mod tests {
             mean: vec![0.0; dim],
             inv_sd: vec![1.0; dim],
         };
+        assert!(block_bytes(&y, 3) > 1 << 20, "the blocks must not fit in 1 MiB");
         let fit = |cfg: &SvmConfig, threads: usize| fit_svm_on(cfg, 3, dim, &rows, &y, &scaler, threads);
         let gram = fit(&SvmConfig::default(), 1);
         let small = SvmConfig {
@@ -1832,6 +1880,19 @@ mod tests {
         assert!(right > n * 9 / 10, "training accuracy {right}/{n}");
     }
 
+    /// The bytes of the SVM's kernel blocks for labels `y` of `k` classes
+    /// (the classes' own blocks and the widest cross block).
+    fn block_bytes(y: &[usize], k: usize) -> usize {
+        let mut sizes = vec![0usize; k];
+        y.iter().for_each(|&c| sizes[c] += 1);
+        let own: usize = sizes.iter().map(|c| c * c).sum();
+        let cross = (0..k)
+            .flat_map(|a| (a + 1..k).map(move |b| (a, b)))
+            .map(|(a, b)| sizes[a] * sizes[b])
+            .max();
+        8 * (own + cross.unwrap_or(0))
+    }
+
     /// Every number of a fitted SVM, as bits (`PartialEq` on `f64` takes
     /// `-0.0 == 0.0`).
     fn svm_bits(m: &OvoSvm) -> Vec<u64> {
@@ -1846,13 +1907,13 @@ mod tests {
 
     #[test]
     fn svm_gram_solver_fits_the_model_of_the_per_machine_path_bit_for_bit() {
-        // 5 classes in no particular order, 400 vectors of 7 values (a
-        // dimension with a tail), coarse values (kernel ties): the Gram path
-        // (class-sorted Gram matrix, `smo::solve_gram`, AVX2 or not, 1 or 2
+        // 5 classes in no particular order, 800 vectors of 7 values (a
+        // dimension with a tail), coarse values (kernel ties): the block path
+        // (class-sorted kernel blocks, `smo::solve_gram`, AVX2 or not, 1 or 2
         // threads) gives the bits of the per-machine path (`cache_mb = 1`:
-        // the 1.3 MB Gram matrix does not fit, each machine runs
+        // the kernel blocks, over 1 MiB, do not fit, each machine runs
         // `smo::solve` with its own row cache and the scalar kernel).
-        let (n, dim) = (400, 7);
+        let (n, dim) = (800, 7);
         let x = random_rows(n, dim, 11);
         let mut rng = ChaCha8Rng::seed_from_u64(12);
         let y: Vec<usize> = (0..n)
@@ -1868,6 +1929,7 @@ mod tests {
             mean: vec![0.0; dim],
             inv_sd: vec![1.0; dim],
         };
+        assert!(block_bytes(&y, 5) > 1 << 20, "the blocks must not fit in 1 MiB");
         let fit = |cfg: &SvmConfig, threads: usize| fit_svm_on(cfg, 5, dim, &rows, &y, &scaler, threads);
         let per_machine = svm_bits(&fit(
             &SvmConfig {

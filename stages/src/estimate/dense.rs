@@ -935,24 +935,33 @@ fn term512<const SQ: bool>(
 
 /// [`sq_dists`] against vectors held as columns: `out[i·w + j] =
 /// sq_dist(a_i, v_{c0 + j})` for the rows `a_i` of `a` (`k` wide) and the
-/// vectors `c0..n` of `bt` (`k x n` row-major, `bt[t·n + c]` = value `t` of
-/// vector `c`), `w = n − c0` outputs a row, each with [`sq_dist`]'s bits.
-/// For the SVM's Gram matrix ([`super::classic::rbf_gram`]): by rows of
+/// vectors `cols = c0..c1` of `bt` (`k x n` row-major, `bt[t·n + c]` =
+/// value `t` of vector `c`), `w = c1 − c0` outputs a row, each with
+/// [`sq_dist`]'s bits.
+/// For the SVM's kernel blocks ([`super::classic::rbf_block`]): by rows of
 /// vectors ([`sq_dists_strided`]) each tile ends in horizontal sums; here
 /// the outputs lie across the lanes ([`nn_block512`], a subtraction and an
 /// FMA a term) and there are none. Without AVX-512 the vectors are copied
 /// back into rows for [`sq_dists`].
 ///
 /// # Panics
-/// If `c0 > n`, `bt` holds fewer than `k·n` values or `out` fewer than
-/// `m·w`.
-pub fn sq_dists_cols(a: &[f64], bt: &[f64], k: usize, n: usize, c0: usize, out: &mut [f64]) {
+/// If `cols` is not within `0..n`, `bt` holds fewer than `k·n` values or
+/// `out` fewer than `m·w`.
+pub fn sq_dists_cols(
+    a: &[f64],
+    bt: &[f64],
+    k: usize,
+    n: usize,
+    cols: std::ops::Range<usize>,
+    out: &mut [f64],
+) {
     let m = a.len() / k.max(1);
+    let (c0, c1) = (cols.start, cols.end);
     assert!(
-        c0 <= n && bt.len() >= k * n,
-        "sq_dists_cols: short bt or c0 past n"
+        c0 <= c1 && c1 <= n && bt.len() >= k * n,
+        "sq_dists_cols: short bt or columns past n"
     );
-    let w = n - c0;
+    let w = c1 - c0;
     assert!(out.len() >= m * w, "sq_dists_cols: short out");
     if m == 0 || w == 0 {
         return;
@@ -961,12 +970,12 @@ pub fn sq_dists_cols(a: &[f64], bt: &[f64], k: usize, n: usize, c0: usize, out: 
     if k > 0 && crate::wide::avx512() {
         // SAFETY: the CPU supports AVX-512 F/VL/DQ (checked above); shapes
         // asserted above.
-        unsafe { sq_cols512(View::rows_of(&a[..m * k], m, k), bt, n, c0, out) };
+        unsafe { sq_cols512(View::rows_of(&a[..m * k], m, k), bt, n, c0, w, out) };
         return;
     }
     let mut rows = vec![0.0; w * k];
     for (t, col) in bt.chunks_exact(n).take(k).enumerate() {
-        for (j, &v) in col[c0..].iter().enumerate() {
+        for (j, &v) in col[c0..c1].iter().enumerate() {
             rows[j * k + t] = v;
         }
     }
@@ -978,8 +987,8 @@ pub fn sq_dists_cols(a: &[f64], bt: &[f64], k: usize, n: usize, c0: usize, out: 
 /// by panel.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma,avx512f,avx512vl,avx512dq")]
-unsafe fn sq_cols512(a: View<'_>, bt: &[f64], n: usize, c0: usize, out: &mut [f64]) {
-    let (m, w) = (a.rows, n - c0);
+unsafe fn sq_cols512(a: View<'_>, bt: &[f64], n: usize, c0: usize, w: usize, out: &mut [f64]) {
+    let m = a.rows;
     // Each panel of 16 vectors (k rows of `bt` apart, 10 KB at k = 80)
     // passes over all the rows, so it is read from memory once.
     let mut j0 = 0;
@@ -1074,7 +1083,8 @@ mod tests {
     /// Every entry of [`sq_dists_cols`] is [`sq_dist`] of its two vectors,
     /// bit for bit: row counts around the three-row blocks, widths around
     /// the 16- and 8-vector panels (full and masked), `k` with and without
-    /// a remainder of four, every starting vector `c0`; on the AVX-512
+    /// a remainder of four, ranges of vectors from every start and to every
+    /// end; on the AVX-512
     /// kernel and the fallback. Fails if the kernel's order of summation
     /// changes or it rounds the square before adding it (values with many
     /// significant bits, so roundings differ).
@@ -1093,11 +1103,11 @@ mod tests {
             let v: Vec<f64> = (0..n * k).map(|_| rng.random_range(-3.0..3.0)).collect();
             let mut bt = vec![0.0; k * n];
             transpose(&v, n, k, &mut bt);
-            for c0 in 0..=n {
-                let w = n - c0;
+            for (c0, c1) in (0..=n).flat_map(|c0| [(c0, n), (c0, (c0 + 9).min(n)), (0, c0)]) {
+                let w = c1 - c0;
                 for no512 in [false, true] {
                     let mut got = vec![f64::NAN; m * w + 2];
-                    let mut run = || sq_dists_cols(&a, &bt, k, n, c0, &mut got);
+                    let mut run = || sq_dists_cols(&a, &bt, k, n, c0..c1, &mut got);
                     if no512 {
                         crate::wide::without_avx512(run);
                     } else {
@@ -1109,7 +1119,7 @@ mod tests {
                             assert_eq!(
                                 got[i * w + j].to_bits(),
                                 want.to_bits(),
-                                "m {m} k {k} n {n} c0 {c0} ({i}, {j}) no512 {no512}"
+                                "m {m} k {k} n {n} {c0}..{c1} ({i}, {j}) no512 {no512}"
                             );
                         }
                     }

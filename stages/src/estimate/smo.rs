@@ -48,9 +48,9 @@
 //!   degenerate problem; each iteration strictly lowers the objective, so the
 //!   cap is only a guard. [`Solution::converged`] says whether it was hit.
 //! * **Kernel in memory.** [`solve_gram`] is the same algorithm, step for
-//!   step and bit for bit, for a kernel already held in a Gram matrix (the
-//!   `svm` stage's fits): no row cache or gathers (a problem's kernel rows
-//!   are copied once from two contiguous slices of Gram rows), and the
+//!   step and bit for bit, for a kernel already held in memory (the `svm`
+//!   stage's fits, [`PairBlocks`]; any [`GramRows`]): no row cache or
+//!   gathers (a problem's kernel rows are copied once from its blocks), and the
 //!   selections and the gradient update scan dense arrays with AVX2 (masks
 //!   for `I_up`, `I_low` and the active set; ties broken by variable index as
 //!   the sequential loops break them; the update of `G` and the next `i` in
@@ -61,8 +61,9 @@
 //!   core, shared 2-core machine, min of 20): the machines took 22.9 ms
 //!   through `solve_rows` (≈1.1 µs an iteration, index-list loops with
 //!   unpredictable branches) and ~7 ms through `solve_gram` (a quarter of
-//!   that is the first copy of each row, from a Gram matrix that does not
-//!   fit in L2).
+//!   that was the first copy of each row, from a whole Gram matrix that did
+//!   not fit in L2; the machines' blocks, computed as each machine starts,
+//!   now are in cache when it copies them).
 //!
 //! Why not smartcore's `SVC`: it is an approximate online solver (LaSVM, a
 //! fixed number of passes) that recomputes and allocates every kernel value it
@@ -389,140 +390,92 @@ pub fn solve_rows(
     }
 }
 
-/// Rows per block of an [`UpperGram`].
-pub const GRAM_BLOCK: usize = 32;
+/// The kernel of a [`solve_gram`] problem, by positions `0..len()`.
+pub trait GramRows {
+    /// The number of positions.
+    fn len(&self) -> usize;
+    /// True when there are no positions.
+    fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+    /// `K(p, p)`.
+    fn diag(&self, p: usize) -> f64;
+    /// Appends `K(p, q)` for every position `q`, in order, to `out`.
+    fn extend_row(&self, p: usize, out: &mut Vec<f64>);
+}
 
-/// The upper triangle (diagonal included) of a symmetric `n x n` kernel
-/// matrix, by blocks of [`GRAM_BLOCK`] rows: block `b` holds rows
-/// `r0 = b · GRAM_BLOCK ..` (at most `GRAM_BLOCK` of them), each from column
-/// `r0` to `n − 1`, so `K(s, t)` for `t ≥ s` is entry
-/// `(s − r0) · (n − r0) + (t − r0)` of its block. `K(s, t)` with `t < s` is
-/// read as `K(t, s)`; the few entries of a block left of its diagonal are
-/// never read (whatever its filler wrote there).
+/// The kernel of a one-vs-one machine by class blocks: positions `0..na`
+/// are class a's vectors, `na..na + nb` class b's; `a` (`na x na`) and `b`
+/// (`nb x nb`) are the classes' own kernel matrices, whole and row-major,
+/// `cross` (`na x nb`) the kernel between them. A row of class a is a row
+/// of `a` then a row of `cross`; a row of class b a column of `cross` then
+/// a row of `b`.
 ///
-/// Why not the full matrix: the lower triangle was a copy of the upper one,
-/// written over the whole matrix (6 MB at the peers SVM's 1224 vectors,
-/// ~9 % of a fit) after zeroing it (12 MB, ~9 %), and each machine then
-/// copied its rows out of that 12 MB again. Here a machine's kernel rows
-/// are gathered from the two classes' blocks (a row's values left of the
-/// diagonal one per row above, from a block of at most ~40 KB that stays in
-/// cache while the machine reads it), each block is zeroed and filled by
-/// one thread while it sits in its cache, and the matrix takes half the
-/// memory.
-#[derive(Clone, Debug, Default)]
-pub struct UpperGram {
-    n: usize,
-    blocks: Vec<Vec<f64>>,
-}
-
-impl UpperGram {
-    /// The `n x n` matrix whose block of rows `r0 .. r0 + rows` is written by
-    /// `fill(r0, rows, block)`: `block` is `rows x (n − r0)` row-major,
-    /// zeroed, row `i` holding `K(r0 + i, r0 ..)`. Blocks are filled in
-    /// parallel; each is its own allocation, so nothing depends on the
-    /// thread count.
-    pub fn build(n: usize, fill: impl Fn(usize, usize, &mut [f64]) + Sync) -> Self {
-        use rayon::prelude::*;
-        let blocks = (0..n.div_ceil(GRAM_BLOCK))
-            .into_par_iter()
-            .map(|b| {
-                let r0 = b * GRAM_BLOCK;
-                let rows = GRAM_BLOCK.min(n - r0);
-                let mut v = vec![0.0; rows * (n - r0)];
-                fill(r0, rows, &mut v);
-                v
-            })
-            .collect();
-        UpperGram { n, blocks }
-    }
-
-    /// `K(s, t) = k(s, t)` evaluated for `t ≥ s` only (tests and small
-    /// problems).
-    pub fn from_fn(n: usize, k: impl Fn(usize, usize) -> f64 + Sync) -> Self {
-        Self::build(n, |r0, rows, block| {
-            let w = n - r0;
-            for i in 0..rows {
-                for t in r0 + i..n {
-                    block[i * w + t - r0] = k(r0 + i, t);
-                }
-            }
-        })
-    }
-
-    /// Bytes the matrix of `n` vectors takes (`None` if that overflows):
-    /// about `4 n (n + GRAM_BLOCK)`.
-    pub fn bytes(n: usize) -> Option<usize> {
-        // Full blocks b < q hold B (n − B b) values each, the last r rows
-        // r · r: in closed form, in u128 with checked products.
-        let (b, n) = (GRAM_BLOCK as u128, n as u128);
-        let (q, r) = (n / b, n % b);
-        let full = (b * q).checked_mul(n)? - (b * q).checked_mul(b * q.saturating_sub(1))? / 2;
-        let bytes = (full + r * r).checked_mul(std::mem::size_of::<f64>() as u128)?;
-        usize::try_from(bytes).ok()
-    }
-
-    /// Its number of rows (and columns).
-    pub fn n(&self) -> usize {
-        self.n
-    }
-
-    /// `K(s, t)`. Panics if `s` or `t` is not below [`Self::n`].
-    pub fn get(&self, s: usize, t: usize) -> f64 {
-        assert!(
-            s < self.n && t < self.n,
-            "UpperGram::get: ({s}, {t}) outside {}",
-            self.n
-        );
-        let (s, t) = if t < s { (t, s) } else { (s, t) };
-        let r0 = s / GRAM_BLOCK * GRAM_BLOCK;
-        self.blocks[s / GRAM_BLOCK][(s - r0) * (self.n - r0) + t - r0]
-    }
-
-    /// Appends `K(s, t)` for `t` in `cols` to `out`: the part left of the
-    /// diagonal one value per row above (column `s` of rows `t`), the rest
-    /// one contiguous slice of row `s`.
-    fn extend_row(&self, s: usize, cols: &std::ops::Range<usize>, out: &mut Vec<f64>) {
-        let n = self.n;
-        let split = cols.end.min(s).max(cols.start);
-        let mut t = cols.start;
-        while t < split {
-            let b = t / GRAM_BLOCK;
-            let r0 = b * GRAM_BLOCK;
-            let (w, end) = (n - r0, split.min(r0 + GRAM_BLOCK));
-            let block = &self.blocks[b];
-            out.extend((t..end).map(|u| block[(u - r0) * w + s - r0]));
-            t = end;
-        }
-        if split < cols.end {
-            let r0 = s / GRAM_BLOCK * GRAM_BLOCK;
-            let row = (s - r0) * (n - r0);
-            out.extend_from_slice(&self.blocks[s / GRAM_BLOCK][row + split - r0..row + cols.end - r0]);
-        }
-    }
-}
-
-/// The kernel of a [`solve_gram`] problem: a symmetric Gram matrix and the
-/// ranges of its indices that make up the problem. Position `p` of the
-/// problem is the `p`-th index of the concatenated ranges (for a
-/// one-vs-one machine on a class-sorted Gram matrix: the two classes'
-/// blocks).
+/// Why: with the whole Gram matrix computed before the machines (its upper
+/// triangle alone 6 MB for the peers SVM's 1224 vectors), each machine
+/// read its rows back from memory; a machine's `cross` block (~40 KB) is computed when the machine
+/// starts and read while it is in cache, and the classes' blocks are small
+/// and read by every machine of their class.
 #[derive(Clone, Copy, Debug)]
-pub struct GramRanges<'a> {
-    /// The Gram matrix.
-    pub gram: &'a UpperGram,
-    /// Gram indices of the problem, in position order.
-    pub ranges: &'a [std::ops::Range<usize>],
+pub struct PairBlocks<'a> {
+    a: &'a [f64],
+    b: &'a [f64],
+    cross: &'a [f64],
+    na: usize,
+    nb: usize,
+}
+
+impl<'a> PairBlocks<'a> {
+    /// Class a's kernel matrix `a` (`na x na`), class b's `b` (`nb x nb`)
+    /// and the kernel between them `cross` (`na x nb`), all row-major.
+    ///
+    /// # Panics
+    /// If a block's length is not its shape's.
+    pub fn new(a: &'a [f64], b: &'a [f64], cross: &'a [f64], na: usize, nb: usize) -> Self {
+        assert!(
+            Some(a.len()) == na.checked_mul(na)
+                && Some(b.len()) == nb.checked_mul(nb)
+                && Some(cross.len()) == na.checked_mul(nb),
+            "PairBlocks: blocks of the wrong size"
+        );
+        PairBlocks { a, b, cross, na, nb }
+    }
+}
+
+impl GramRows for PairBlocks<'_> {
+    fn len(&self) -> usize {
+        self.na + self.nb
+    }
+    fn diag(&self, p: usize) -> f64 {
+        if p < self.na {
+            self.a[p * self.na + p]
+        } else {
+            let q = p - self.na;
+            self.b[q * self.nb + q]
+        }
+    }
+    fn extend_row(&self, p: usize, out: &mut Vec<f64>) {
+        let (na, nb) = (self.na, self.nb);
+        if p < na {
+            out.extend_from_slice(&self.a[p * na..(p + 1) * na]);
+            out.extend_from_slice(&self.cross[p * nb..(p + 1) * nb]);
+        } else {
+            let q = p - na;
+            out.extend((0..na).map(|i| self.cross[i * nb + q]));
+            out.extend_from_slice(&self.b[q * nb..(q + 1) * nb]);
+        }
+    }
 }
 
 /// Variables of a [`solve_gram`] problem are at most this many (ranks are
 /// held exactly as `f64` lanes).
 const MAX_GRAM_N: usize = 1 << 52;
 
-/// [`solve_rows`] for a kernel read straight from a Gram matrix, with the
-/// same iterations and bits: variable `var[p]` is position `p` of `k`, `y`
-/// is indexed by variable, and the answer equals
-/// `solve_rows(y, diag, fill, p)` with `fill(v, out)` writing the Gram
-/// entries between the variables' positions (test
+/// [`solve_rows`] for a kernel held in memory, with the same iterations
+/// and bits: variable `var[p]` is position `p` of `k`, `y` is indexed by
+/// variable, and the answer equals `solve_rows(y, diag, fill, p)` with
+/// `fill(v, out)` writing the kernel entries between the variables'
+/// positions (test
 /// `gram_solver_is_the_row_solver_bit_for_bit`).
 ///
 /// Why a second solver: with every kernel value already in memory the
@@ -539,16 +492,11 @@ const MAX_GRAM_N: usize = 1 << 52;
 /// than skipping them lane by lane) and, as in [`solve_rows`], rebuilt from
 /// the multipliers before they count again. The update of `G` and the
 /// next selection of `i` share one pass.
-pub fn solve_gram(k: &GramRanges<'_>, y: &[f64], var: &[usize], p: &SmoParams) -> Solution {
-    let gidx: Vec<usize> = k.ranges.iter().flat_map(Clone::clone).collect();
-    let n = gidx.len();
+pub fn solve_gram<K: GramRows + ?Sized>(k: &K, y: &[f64], var: &[usize], p: &SmoParams) -> Solution {
+    let n = k.len();
     assert!(n <= MAX_GRAM_N, "solve_gram: too many variables");
     assert_eq!(y.len(), n, "one label per position");
     assert_eq!(var.len(), n, "one variable per position");
-    assert!(
-        gidx.iter().all(|&g| g < k.gram.n()),
-        "solve_gram: a range lies outside the Gram matrix"
-    );
     let mut pos_of = vec![usize::MAX; n];
     for (pos, &v) in var.iter().enumerate() {
         assert!(
@@ -557,10 +505,10 @@ pub fn solve_gram(k: &GramRanges<'_>, y: &[f64], var: &[usize], p: &SmoParams) -
         );
         pos_of[v] = pos;
     }
-    let mut st = GramState::new(k, y, var, &gidx, p.c);
+    let mut st = GramState::new(k, y, var, p.c);
     let n_pad = st.y.len();
     let simd = crate::wide::avx2();
-    let mut rows = KRows::new(*k, gidx, n_pad, p.cache_bytes);
+    let mut rows = KRows::new(k, n_pad, p.cache_bytes);
     let c = p.c;
     let mut shrunk = false;
     let mut unshrunk = false;
@@ -672,8 +620,8 @@ struct GramState {
 }
 
 impl GramState {
-    fn new(k: &GramRanges<'_>, y: &[f64], var: &[usize], gidx: &[usize], c: f64) -> Self {
-        let n = gidx.len();
+    fn new<K: GramRows + ?Sized>(k: &K, y: &[f64], var: &[usize], c: f64) -> Self {
+        let n = k.len();
         // A multiple of 16: the AVX-512 scans take 16 positions a step.
         let n_pad = n.div_ceil(16) * 16;
         let pad = |v: Vec<f64>, fill: f64| {
@@ -688,7 +636,7 @@ impl GramState {
             ny: pad(yp.iter().map(|&v| -v).collect(), -1.0),
             y: pad(yp, 1.0),
             rank: pad(var.iter().map(|&v| v as f64).collect(), -1.0),
-            diag: pad(gidx.iter().map(|&g| k.gram.get(g, g)).collect(), 1.0),
+            diag: pad((0..n).map(|p| k.diag(p)).collect(), 1.0),
             alpha: vec![0.0; n_pad],
             grad: pad(vec![-1.0; n], 0.0),
             active: vec![true; n],
@@ -758,7 +706,7 @@ impl GramState {
     /// [`reconstruct_gradient`]: `G_t = −1 + Σ_s Q_ts α_s`, summed over `s`
     /// in variable order as there, `Q_st = K_st · (y_s y_t)` as the row cache
     /// holds it.
-    fn reconstruct_gradient(&mut self, rows: &mut KRows<'_>, pos_of: &[usize]) {
+    fn reconstruct_gradient<K: GramRows + ?Sized>(&mut self, rows: &mut KRows<'_, K>, pos_of: &[usize]) {
         self.grad[..self.n].iter_mut().for_each(|g| *g = -1.0);
         for &s in pos_of {
             let a = self.alpha[s];
@@ -903,23 +851,23 @@ impl GramState {
 }
 
 /// Kernel rows of a [`solve_gram`] problem over its positions (zero
-/// padded), copied from the Gram matrix's slices the first time each is
+/// padded), copied from the kernel's blocks the first time each is
 /// needed and kept while they fit in `cache_bytes`: SMO comes back to the
 /// same few rows again and again, and a problem's rows then sit in one
 /// compact block that stays in cache, where reading them from the Gram
 /// matrix went to as many scattered rows (measured: the row copies took a
 /// quarter of the solver's time). Past the budget, two scratch rows are
 /// refilled per iteration.
-struct KRows<'a> {
-    k: GramRanges<'a>,
-    gidx: Vec<usize>,
+struct KRows<'a, K: GramRows + ?Sized> {
+    k: &'a K,
+    n: usize,
     n_pad: usize,
     /// Offset of each position's row in `kept` (`usize::MAX`: not there).
     slot: Vec<usize>,
     kept: Vec<f64>,
     keep: bool,
     scratch: [Vec<f64>; 2],
-    /// Rows copied from the Gram matrix.
+    /// Rows copied from the kernel.
     copied: usize,
 }
 
@@ -930,13 +878,13 @@ enum RowAt {
     Scratch(usize),
 }
 
-impl<'a> KRows<'a> {
-    fn new(k: GramRanges<'a>, gidx: Vec<usize>, n_pad: usize, cache_bytes: usize) -> Self {
-        let n = gidx.len();
+impl<'a, K: GramRows + ?Sized> KRows<'a, K> {
+    fn new(k: &'a K, n_pad: usize, cache_bytes: usize) -> Self {
+        let n = k.len();
         let keep = n.saturating_mul(n_pad).saturating_mul(std::mem::size_of::<f64>()) <= cache_bytes;
         KRows {
             k,
-            gidx,
+            n,
             n_pad,
             slot: vec![usize::MAX; n],
             kept: Vec::with_capacity(if keep { n * n_pad } else { 0 }),
@@ -953,13 +901,10 @@ impl<'a> KRows<'a> {
             return RowAt::Kept(self.slot[p]);
         }
         self.copied += 1;
-        let g = self.gidx[p];
-        let (k, n_pad) = (self.k, self.n_pad);
+        let (k, n, n_pad) = (self.k, self.n, self.n_pad);
         let fill = |out: &mut Vec<f64>| {
-            for r in k.ranges {
-                k.gram.extend_row(g, r, out);
-            }
-            out.resize(out.len() + n_pad - self.gidx.len(), 0.0);
+            k.extend_row(p, out);
+            out.resize(out.len() + n_pad - n, 0.0);
         };
         if self.keep {
             let at = self.kept.len();
@@ -1694,7 +1639,6 @@ mod tests {
         let class: Vec<usize> = (0..n).map(|_| rng.random_range(0..k)).collect();
         let mut sorted: Vec<usize> = (0..n).collect();
         sorted.sort_by_key(|&i| class[i]);
-        let gram = UpperGram::from_fn(n, |s, t| rbf(&x[sorted[s]], &x[sorted[t]], 0.3));
         let start = |c: usize| class.iter().filter(|&&d| d < c).count();
         let (a, b) = (0, 2);
         let idx: Vec<usize> = (0..n).filter(|&i| class[i] == a || class[i] == b).collect();
@@ -1708,10 +1652,15 @@ mod tests {
             .flat_map(Clone::clone)
             .map(|s| idx.binary_search(&sorted[s]).expect("in the pair"))
             .collect();
-        let kern = GramRanges {
-            gram: &gram,
-            ranges: &ranges,
+        let block = |r: &std::ops::Range<usize>, c: &std::ops::Range<usize>| -> Vec<f64> {
+            r.clone()
+                .flat_map(|s| c.clone().map(move |t| (s, t)))
+                .map(|(s, t)| rbf(&x[sorted[s]], &x[sorted[t]], 0.3))
+                .collect()
         };
+        let (ra, rb) = (&ranges[0], &ranges[1]);
+        let (own_a, own_b, cross) = (block(ra, ra), block(rb, rb), block(ra, rb));
+        let kern = PairBlocks::new(&own_a, &own_b, &cross, ra.len(), rb.len());
         let want = solve(&y, &|s, t| rbf(&x[idx[s]], &x[idx[t]], 0.3), p);
         let fast = solve_gram(&kern, &y, &var, p);
         let scalar = crate::wide::baseline_only(|| solve_gram(&kern, &y, &var, p));
@@ -1725,43 +1674,35 @@ mod tests {
         }
     }
 
-    /// Every read of an [`UpperGram`] is the symmetric matrix's entry:
-    /// sizes around the 32-row blocks, rows against ranges that lie left
-    /// of, across and right of the diagonal and span several blocks.
+    /// Every row and diagonal entry of [`PairBlocks`] is the symmetric
+    /// matrix's: class a's rows from its own block and the cross block,
+    /// class b's from a column of the cross block and its own block; with
+    /// empty classes too.
     #[test]
-    fn upper_gram_reads_the_symmetric_matrix() {
+    fn pair_blocks_read_the_symmetric_matrix() {
         let k = |s: usize, t: usize| (s.min(t) * 1000 + s.max(t)) as f64;
-        for n in [1, 2, 31, 32, 33, 64, 70, 101] {
-            let g = UpperGram::from_fn(n, |s, t| {
-                assert!(t >= s, "filled below the diagonal");
-                k(s, t)
-            });
-            assert_eq!(g.n(), n);
-            assert_eq!(
-                UpperGram::bytes(n),
-                Some(g.blocks.iter().map(Vec::len).sum::<usize>() * 8)
-            );
-            let cuts = [0, 1, n / 3, n / 2, n.saturating_sub(1), n];
-            for s in 0..n {
-                for &a in &cuts {
-                    for &b in &cuts {
-                        if a > b {
-                            continue;
-                        }
-                        let mut row = vec![-1.0];
-                        g.extend_row(s, &(a..b), &mut row);
-                        let want: Vec<f64> = std::iter::once(-1.0).chain((a..b).map(|t| k(s, t))).collect();
-                        assert_eq!(row, want, "n {n}, row {s}, columns {a}..{b}");
-                    }
-                }
-                for t in 0..n {
-                    assert_eq!(g.get(s, t), k(s, t));
-                }
+        for (na, nb) in [(1, 1), (3, 5), (17, 2), (0, 4), (4, 0)] {
+            let n = na + nb;
+            let block = |r: std::ops::Range<usize>, c: std::ops::Range<usize>| -> Vec<f64> {
+                r.flat_map(|s| c.clone().map(move |t| k(s, t))).collect()
+            };
+            let (a, b, cross) = (block(0..na, 0..na), block(na..n, na..n), block(0..na, na..n));
+            let g = PairBlocks::new(&a, &b, &cross, na, nb);
+            assert_eq!(g.len(), n);
+            for p in 0..n {
+                let mut row = vec![-1.0];
+                g.extend_row(p, &mut row);
+                let want: Vec<f64> = std::iter::once(-1.0).chain((0..n).map(|q| k(p, q))).collect();
+                assert_eq!(row, want, "({na}, {nb}), row {p}");
+                assert_eq!(g.diag(p), k(p, p));
             }
         }
-        assert_eq!(UpperGram::bytes(0), Some(0));
-        assert_eq!(UpperGram::bytes(usize::MAX / 2), None);
-        assert_eq!(UpperGram::bytes(usize::MAX), None);
+    }
+
+    #[test]
+    #[should_panic(expected = "blocks of the wrong size")]
+    fn pair_blocks_of_the_wrong_size_are_refused() {
+        let _ = PairBlocks::new(&[1.0], &[1.0], &[1.0, 2.0], 1, 1);
     }
 
     #[test]
