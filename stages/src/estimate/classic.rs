@@ -44,10 +44,10 @@
 //!   workload (1224 x 80, 17 classes, C = 10; one core, shared 2-core
 //!   machine, min of repeats; `RAYON_NUM_THREADS=1
 //!   target/release/examples/peers --out /tmp/ws --seed 1 --only svm`):
-//!   fit 32-34 ms before (Gram 9.3 ms, machines 22.9 ms), ~17 ms now (Gram
-//!   ~8.5 ms, at the adder throughput of its 0.77 M distances x 80 dims;
-//!   machines ~7 ms); scikit-learn's `SVC` on the same arrays: 43.7 ms
-//!   (`benches/peers`). A vector's class scores are its votes
+//!   fit 32-34 ms with per-machine row caches (Gram 9.3 ms, machines
+//!   22.9 ms), ~17 ms with the whole Gram matrix in memory, 14-16 ms by
+//!   class blocks (2026-11-28; docs/benches.md); scikit-learn's `SVC` on
+//!   the same arrays: 41-48 ms (`benches/peers`, by the hour). A vector's class scores are its votes
 //!   plus sklearn's tie-breaker, `votes_c + conf_c / (3 (max|conf| + 1))` with
 //!   `conf_c` the summed decision values in favour of `c`, so confidences only
 //!   order classes with equal votes; scores are divided by `K - 1`. The

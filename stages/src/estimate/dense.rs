@@ -940,7 +940,7 @@ fn term512<const SQ: bool>(
 /// [`sq_dist`]'s bits.
 /// For the SVM's kernel blocks ([`super::classic::rbf_block`]): by rows of
 /// vectors ([`sq_dists_strided`]) each tile ends in horizontal sums; here
-/// the outputs lie across the lanes ([`nn_block512`], a subtraction and an
+/// the outputs lie across the lanes (`nn_block512`, a subtraction and an
 /// FMA a term) and there are none. Without AVX-512 the vectors are copied
 /// back into rows for [`sq_dists`].
 ///
