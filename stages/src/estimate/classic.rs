@@ -17,8 +17,8 @@
 //!   them), each on that pair's vectors only, so each problem is small and
 //!   balanced. Each machine is trained *exactly* (to libsvm's KKT tolerance) by
 //!   our own SMO solver, [`super::smo`] (libsvm's algorithm: second-order
-//!   working-set selection, a kernel cache, shrinking). The fold's whole Gram
-//!   matrix is computed once when it fits in `cache_mb` (every vector serves in
+//!   working-set selection, a kernel cache, shrinking). The fold's kernel
+//!   is computed once when it fits in `cache_mb` (every vector serves in
 //!   K - 1 machines), by class blocks ([`rbf_block`]; the vectors sorted
 //!   by class): each class's own block once, in parallel, and the block
 //!   between a machine's two classes when that machine starts, so it is in
@@ -47,8 +47,8 @@
 //!   fit 32-34 ms with per-machine row caches (Gram 9.3 ms, machines
 //!   22.9 ms), ~17 ms with the whole Gram matrix in memory, 14-16 ms by
 //!   class blocks (2026-11-28; docs/benches.md); scikit-learn's `SVC` on
-//!   the same arrays: 41-48 ms (`benches/peers`, by the hour). A vector's class scores are its votes
-//!   plus sklearn's tie-breaker, `votes_c + conf_c / (3 (max|conf| + 1))` with
+//!   the same arrays: 41-48 ms (`benches/peers`, by the hour). A vector's
+//!   class scores are its votes plus sklearn's tie-breaker, `votes_c + conf_c / (3 (max|conf| + 1))` with
 //!   `conf_c` the summed decision values in favour of `c`, so confidences only
 //!   order classes with equal votes; scores are divided by `K - 1`. The
 //!   machines' support vectors are pooled in [`OvoSvm`] so each one's kernel
@@ -210,10 +210,11 @@ pub struct SvmConfig {
     /// Shrink the active set during SMO (libsvm's heuristic; the answer is the
     /// same to within `tol`). Default true.
     pub shrinking: bool,
-    /// Kernel cache budget, MiB: the fold's whole Gram matrix is computed once
-    /// when it fits (and each machine copies the rows it needs from it, when
-    /// they fit too), otherwise each machine keeps its own LRU row cache of
-    /// this size. Default 256.
+    /// Kernel cache budget, MiB: the fold's kernel is computed once, by class
+    /// blocks (8 (Σ n_c² + max n_a n_b) bytes for classes of n_c training
+    /// vectors), when the blocks fit (and each machine
+    /// copies the rows it needs from them, when they fit too), otherwise
+    /// each machine keeps its own LRU row cache of this size. Default 256.
     pub cache_mb: usize,
     /// `winner` (paper) or `sum`. Default `winner`.
     pub vote: Vote,
@@ -372,6 +373,23 @@ impl OvoSvm {
     }
 }
 
+/// Bytes of the SVM's kernel blocks for classes of `sizes` vectors: each
+/// class's own block and one cross block per machine in progress (the
+/// widest counted once), `8 (Σ_c n_c² + max_{a<b} n_a n_b)`; `None` if that
+/// overflows.
+pub fn kernel_block_bytes(sizes: &[usize]) -> Option<usize> {
+    let own = sizes
+        .iter()
+        .try_fold(0usize, |acc, &c| acc.checked_add(c.checked_mul(c)?))?;
+    let widest = sizes
+        .iter()
+        .enumerate()
+        .flat_map(|(a, &na)| sizes[a + 1..].iter().map(move |&nb| na.saturating_mul(nb)))
+        .max()
+        .unwrap_or(0);
+    own.checked_add(widest)?.checked_mul(std::mem::size_of::<f64>())
+}
+
 /// The RBF kernel block `K_ij = exp(-γ‖x_i − x_j‖²)` between the vectors
 /// `rows` and the vectors `cols` of `x` (row-major, `dim` wide), row-major
 /// `rows.len() x cols.len()`, each entry with the bits of [`smo::rbf`]
@@ -490,17 +508,7 @@ impl SvmConfig {
         // it reads it): `Σ_c n_c²` values, plus `n_a n_b` per machine in
         // progress (one per thread).
         let sizes: Vec<usize> = class_start.windows(2).map(|w| w[1] - w[0]).collect();
-        let block_bytes = sizes
-            .iter()
-            .try_fold(0usize, |acc, &c| acc.checked_add(c.checked_mul(c)?))
-            .and_then(|own| {
-                let widest = (0..k)
-                    .flat_map(|a| (a + 1..k).map(move |b| (a, b)))
-                    .map(|(a, b)| sizes[a].saturating_mul(sizes[b]))
-                    .max()
-                    .unwrap_or(0);
-                own.checked_add(widest)?.checked_mul(std::mem::size_of::<f64>())
-            });
+        let block_bytes = kernel_block_bytes(&sizes);
         // (The vectors sorted by class, their transpose, the classes' blocks.)
         type Blocks = (Vec<f64>, Option<Vec<f64>>, Vec<Vec<f64>>);
         let gram: Option<Blocks> = block_bytes
@@ -1880,17 +1888,20 @@ mod tests {
         assert!(right > n * 9 / 10, "training accuracy {right}/{n}");
     }
 
-    /// The bytes of the SVM's kernel blocks for labels `y` of `k` classes
-    /// (the classes' own blocks and the widest cross block).
+    /// [`kernel_block_bytes`] for labels `y` of `k` classes.
     fn block_bytes(y: &[usize], k: usize) -> usize {
         let mut sizes = vec![0usize; k];
         y.iter().for_each(|&c| sizes[c] += 1);
-        let own: usize = sizes.iter().map(|c| c * c).sum();
-        let cross = (0..k)
-            .flat_map(|a| (a + 1..k).map(move |b| (a, b)))
-            .map(|(a, b)| sizes[a] * sizes[b])
-            .max();
-        8 * (own + cross.unwrap_or(0))
+        kernel_block_bytes(&sizes).unwrap_or(usize::MAX)
+    }
+
+    #[test]
+    fn kernel_block_bytes_counts_own_and_widest_cross_blocks() {
+        // 8 (3² + 1² + 2² + max(3·1, 3·2, 1·2)) = 8 (14 + 6).
+        assert_eq!(kernel_block_bytes(&[3, 1, 2]), Some(160));
+        assert_eq!(kernel_block_bytes(&[5]), Some(200));
+        assert_eq!(kernel_block_bytes(&[]), Some(0));
+        assert_eq!(kernel_block_bytes(&[usize::MAX, 1]), None);
     }
 
     /// Every number of a fitted SVM, as bits (`PartialEq` on `f64` takes

@@ -841,7 +841,9 @@ struct Cols<'a> {
 /// whole, and rows of `a` adjacent: `UNIT`) and of [`nn512`] (`b` in
 /// place, `a` through its strides). The masked loads and the stride
 /// multiply cost the packed layer kernel ~4 % (ANN (ST) predict 0.84-0.85
-/// against 0.80-0.86 ms, `benches/peers` alternated), hence `UNIT`.
+/// against 0.80-0.86 ms, `benches/peers` alternated), hence `UNIT`. With
+/// `SQ` each term is a squared difference instead ([`term512`]), so the
+/// bits are [`sq_dist`]'s: the block of [`sq_dists_cols`].
 #[cfg(target_arch = "x86_64")]
 #[inline]
 #[target_feature(enable = "avx2,fma,avx512f,avx512vl,avx512dq")]

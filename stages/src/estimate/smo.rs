@@ -413,9 +413,9 @@ pub trait GramRows {
 ///
 /// Why: with the whole Gram matrix computed before the machines (its upper
 /// triangle alone 6 MB for the peers SVM's 1224 vectors), each machine
-/// read its rows back from memory; a machine's `cross` block (~40 KB) is computed when the machine
-/// starts and read while it is in cache, and the classes' blocks are small
-/// and read by every machine of their class.
+/// read its rows back from memory; a machine's `cross` block (~40 KB) is
+/// computed when the machine starts and read while it is in cache, and the
+/// classes' blocks are small and read by every machine of their class.
 #[derive(Clone, Copy, Debug)]
 pub struct PairBlocks<'a> {
     a: &'a [f64],
