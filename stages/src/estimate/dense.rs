@@ -408,10 +408,10 @@ pub fn gemm_nt(a: &[f64], b: &[f64], k: usize, out: &mut [f64]) {
     let m = (a.len() / k.max(1)).min(out.len() / n.max(1));
     #[cfg(target_arch = "x86_64")]
     if (1..=NARROW).contains(&n) && (1..=NARROW_K512).contains(&k) && m >= ROWS512 && crate::wide::avx512() {
-        let panels = panels512(b, k, n);
+        let panels = panels512(b, k, panel_columns(n));
         // SAFETY: the CPU supports AVX-512 F/VL/DQ (checked above); the
         // shapes are the ones `narrow512` asserts.
-        unsafe { narrow512(&a[..m * k], &panels, k, n, &mut out[..m * n]) };
+        unsafe { narrow512(&a[..m * k], b, &panels, k, n, &mut out[..m * n]) };
         return;
     }
     #[cfg(target_arch = "x86_64")]
@@ -488,9 +488,14 @@ fn panels512(b: &[f64], k: usize, n: usize) -> Vec<f64> {
 /// the 32 registers AVX-512 gives. Lane `j` of accumulator `l` is partial
 /// sum `l` of [`dot`] for output `j`, so the bits are [`dot`]'s, as in
 /// [`narrow_avx`]. Outputs are stored with a lane mask, never past a row's
-/// `n`-th. `panels`: [`panels512`]. Loop order: blocks of [`ROWS512`]
-/// rows; within one, each panel (`k · 128` bytes, in L1) passes over all
-/// its rows.
+/// `n`-th. `panels`: [`panels512`], of the first [`panel_columns`] columns;
+/// one or two columns past a multiple of 8 are each row's dot product with
+/// `b`'s row instead ([`dots_of_rows`]; `2848 x 17 x 30`, the ANN (S)'s
+/// output layer: 18.1-18.4 -> 20.1-20.9 G products a second, `cargo run
+/// --release --example machine`, six runs of each build alternated,
+/// 2026-11-28). Loop order: blocks of [`ROWS512`] rows; within one, each
+/// panel (`k · 128` bytes, in L1) passes over all its rows, then the
+/// columns past the panels.
 ///
 /// Why: the AVX2 kernels spend their time on loads (one weight vector per
 /// product in [`narrow_avx`], which holds one row in its 16 registers) and
@@ -513,15 +518,21 @@ fn panels512(b: &[f64], k: usize, n: usize) -> Vec<f64> {
 /// measured.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma,avx512f,avx512vl,avx512dq")]
-unsafe fn narrow512(a: &[f64], panels: &[f64], k: usize, n: usize, out: &mut [f64]) {
+unsafe fn narrow512(a: &[f64], b: &[f64], panels: &[f64], k: usize, n: usize, out: &mut [f64]) {
     let m = a.len() / k;
-    assert!(n > 0 && panels.len() >= n.div_ceil(8) * 8 * k && out.len() >= m * n);
-    let a = View::rows_of(a, m, k);
+    assert!(
+        n > 0
+            && panels.len() >= panel_columns(n).div_ceil(8) * 8 * k
+            && out.len() >= m * n
+            && b.len() >= n * k
+    );
+    let n_panels = panel_columns(n);
+    let (ar, a) = (a, View::rows_of(a, m, k));
     for r0 in (0..m).step_by(ROWS512) {
         let r1 = (r0 + ROWS512).min(m);
         let mut j0 = 0;
-        while j0 < n {
-            let w = panel_width(j0, n);
+        while j0 < n_panels {
+            let w = panel_width(j0, n_panels);
             let panel = &panels[j0 * k..(j0 + w) * k];
             let cols = Cols {
                 b: panel,
@@ -553,8 +564,84 @@ unsafe fn narrow512(a: &[f64], panels: &[f64], k: usize, n: usize, out: &mut [f6
             }
             j0 += w;
         }
+        // The columns past the panels: each row's [`dot`] with them, the
+        // reference order itself (inlined here, so with AVX-512 and FMA).
+        for j in n_panels..n {
+            dots_of_rows(
+                &ar[r0 * k..r1 * k],
+                &b[j * k..(j + 1) * k],
+                &mut out[r0 * n + j..],
+                n,
+            );
+        }
     }
 }
+
+/// `out[i·ld] = dot(a_i, col)` for every `k`-wide row `a_i` of `a` (`k` =
+/// `col.len()`), with [`single_fused`]'s bits: lane `l` of a row's 256-bit
+/// accumulator is its partial sum `l`, four rows at a time, so that 16
+/// chains run side by side (one dot product of 30 terms alone waits on
+/// the FMA's latency: the compiler's own vectorisation of this loop was no
+/// faster than the mostly empty panel it replaces).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+fn dots_of_rows(a: &[f64], col: &[f64], out: &mut [f64], ld: usize) {
+    use std::arch::x86_64::*;
+    let k = col.len();
+    let whole = k / 4 * 4;
+    let mut rows = a.chunks_exact(4 * k);
+    let mut i = 0;
+    for block in &mut rows {
+        let mut acc = [_mm256_setzero_pd(); 4];
+        for c in (0..whole).step_by(4) {
+            // SAFETY: c + 4 <= whole <= k, and row r's chunk lies in `block`.
+            unsafe {
+                let y = _mm256_loadu_pd(col.as_ptr().add(c));
+                for (r, acc) in acc.iter_mut().enumerate() {
+                    let x = _mm256_loadu_pd(block.as_ptr().add(r * k + c));
+                    *acc = _mm256_fmadd_pd(x, y, *acc);
+                }
+            }
+        }
+        for (r, acc) in acc.iter().enumerate() {
+            let mut l = [0.0f64; 4];
+            // SAFETY: `l` holds four doubles.
+            unsafe { _mm256_storeu_pd(l.as_mut_ptr(), *acc) };
+            let mut s = (l[0] + l[1]) + (l[2] + l[3]);
+            for t in whole..k {
+                s = block[r * k + t].mul_add(col[t], s);
+            }
+            out[(i + r) * ld] = s;
+        }
+        i += 4;
+    }
+    for row in rows.remainder().chunks_exact(k) {
+        out[i * ld] = single_fused::<false>(row, col);
+        i += 1;
+    }
+}
+
+/// Columns of a product of `n` columns that [`narrow512`] computes from
+/// panels: all but a last [`FEW_COLUMNS`] or fewer past a multiple of 8
+/// (when there are more than 8), which it computes as plain dot products.
+///
+/// Why: 17 classes made a 16-wide and an 8-wide panel, the second
+/// seven-eighths zero lanes: a third of the layer's vector products wasted
+/// (the ANN's, the logistic regression's and the EDBN's output layers).
+fn panel_columns(n: usize) -> usize {
+    let tail = n % 8;
+    if n > 8 && tail <= FEW_COLUMNS {
+        n - tail
+    } else {
+        n
+    }
+}
+
+/// Most columns past a multiple of 8 that [`narrow512`] computes as dot
+/// products instead of a mostly empty panel. A panel's row costs `k`
+/// 512-bit products whatever its width; a dot product of `k` terms about
+/// `k/4` 256-bit ones and a reduction, so up to two columns win.
+const FEW_COLUMNS: usize = 2;
 
 /// Most rows of `b` for [`narrow_avx`]: its transposed copy (`k x n`) is
 /// then at most `k · 64` doubles, in L1 for the widths used here.
@@ -1215,7 +1302,7 @@ mod tests {
             assert_eq!(sq_dist(&sa, &sb), sq_want, "sq_dist, k = {k}");
             let rows = |r: &[f64], m: usize| r.repeat(m);
             let check = |what: &str| {
-                for (m, n) in [(70, 3), (70, 70), (5, 9)] {
+                for (m, n) in [(70, 3), (70, 70), (5, 9), (70, 17), (67, 26)] {
                     let mut g = vec![f64::NAN; m * n];
                     gemm_nt(&rows(&da, m), &rows(&db, n), k, &mut g);
                     assert!(
@@ -1262,6 +1349,11 @@ mod tests {
             (3, 2, 4),
             (130, 60, 80),
             (65, 17, 30),
+            // Columns past the AVX-512 panels as dot products: one and
+            // two, rows in fours and not, a `k` remainder.
+            (67, 26, 13),
+            (66, 10, 4),
+            (71, 25, 1),
             (64, 64, 128),
             (70, 9, 7),
             (129, 8, 16),

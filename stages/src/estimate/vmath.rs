@@ -41,6 +41,14 @@
 //! into the C library's exact `fma`, 15 an exponential: so every call
 //! in a loop runs inside [`crate::wide::with_avx2`] (whose AVX2 function
 //! enables FMA), the scalar [`softmax`] included.
+//!
+//! Two shortcuts with the same bits (2026-11-28, each proptested against
+//! the form it replaced): [`tanh`] clamps its exponential's argument at
+//! `−40` and scales it by one power of two (its argument is never
+//! positive), and the softmax takes each row's maximum in eight lanes
+//! ([`row_max`]) instead of a fold over `f64::max`. `cargo run --release
+//! --example machine`-shaped timings (3154 rows, one core): `tanh` with its
+//! bias 1.245 -> 1.10 ns a value, the row softmax of 17 1.89 -> 1.43.
 
 /// `1.5·2^52`: adding it rounds a double below `2^51` in magnitude to an
 /// integer (round half to even), which subtracting it recovers exactly.
@@ -68,6 +76,29 @@ fn pow2(n: f64) -> f64 {
 pub fn exp(x: f64) -> f64 {
     // NaN passes through the clamp (and is returned at the end).
     let xc = x.clamp(X_MIN, X_MAX);
+    let (p, k) = exp_parts(xc);
+    let k1 = (k * 0.5 + SHIFT) - SHIFT;
+    let y = p * pow2(k1) * pow2(k - k1);
+    if x.is_nan() {
+        x
+    } else {
+        y
+    }
+}
+
+/// `e^x` for `x` in `[−40, 0]`, with [`exp`]'s bits there: `k` is then in
+/// `[−58, 0]`, where one power of two scales `p` exactly, as [`exp`]'s two
+/// do (both products are exact in the normal range). No clamp, no NaN
+/// test: the caller's. For [`tanh`], whose exponential is always there.
+#[inline(always)]
+fn exp_small_nonpositive(x: f64) -> f64 {
+    let (p, k) = exp_parts(x);
+    p * pow2(k)
+}
+
+/// [`exp`]'s reduction and polynomial: `(e^r, k)` with `x = k·ln 2 + r`.
+#[inline(always)]
+fn exp_parts(xc: f64) -> (f64, f64) {
     let k = xc.mul_add(std::f64::consts::LOG2_E, SHIFT) - SHIFT;
     let r = (-k).mul_add(LN2_LO, (-k).mul_add(LN2_HI, xc));
     // q = Σ_{i=2..13} r^(i-2)/i! by Estrin's scheme: a dependency chain of
@@ -87,25 +118,32 @@ pub fn exp(x: f64) -> f64 {
         r2.mul_add(a5, a4),
         r4.mul_add(r2.mul_add(a3, a2), r2.mul_add(a1, a0)),
     );
-    let p = 1.0 + r2.mul_add(q, r);
-    let k1 = (k * 0.5 + SHIFT) - SHIFT;
-    let y = p * pow2(k1) * pow2(k - k1);
-    if x.is_nan() {
-        x
-    } else {
-        y
-    }
+    (1.0 + r2.mul_add(q, r), k)
 }
 
 /// `tanh x = sign(x)·(1 − e)/(1 + e)` with `e = exp(−2|x|)`: one
 /// exponential. Within a few ulps of the C library's `tanh` in absolute
 /// terms (relative accuracy degrades only where `|x|` is tiny and the value
 /// is too).
+///
+/// The exponential's argument is clamped at `−40` first: `e^−40 < 2^−54`,
+/// and for any `e` below that `1 − e` and `1 + e` both round to 1, so the
+/// result is `±1` whether `e` is `e^−40` or smaller: the bits of the
+/// unclamped formula, with the cheaper [`exp_small_nonpositive`] (about a
+/// fifth fewer operations than [`exp`]: no upper clamp, one scaling).
 #[inline(always)]
 pub fn tanh(x: f64) -> f64 {
-    let e = exp(-2.0 * x.abs());
-    ((1.0 - e) / (1.0 + e)).copysign(x)
+    let e = exp_small_nonpositive((-2.0 * x.abs()).max(TANH_FLOOR));
+    let t = ((1.0 - e) / (1.0 + e)).copysign(x);
+    if x.is_nan() {
+        x
+    } else {
+        t
+    }
 }
+
+/// Where [`tanh`] clamps its exponential's argument (see there).
+const TANH_FLOOR: f64 = -40.0;
 
 /// The logistic function `1/(1 + e^−z)`, never overflowing: for `z < 0` it
 /// is computed as `e^z/(1 + e^z)`. Finite for every finite `z`; in `[0, 1]`.
@@ -119,6 +157,42 @@ pub fn sigmoid(z: f64) -> f64 {
     }
 }
 
+/// The largest non-NaN value of `row` (`−inf` when there is none): the
+/// value of `row.iter().fold(f64::NEG_INFINITY, f64::max)`, in eight
+/// independent lanes.
+///
+/// Why: the fold is one dependent chain of a compare and a blend per value
+/// (`f64::max`'s NaN rule), and it cost a third of a softmax row of 17
+/// values (`cargo run --release --example machine`). A maximum does not
+/// depend on the order it is taken in, and a select `v > m` skips NaN as
+/// `f64::max` does (the lanes start at `−inf`, so they never hold NaN), so
+/// the lanes give the same value. Only the sign of a zero maximum may
+/// differ, which no caller can see: they subtract it from every value, and
+/// `v − 0` and `v + 0` differ only for `v = ±0`, whose `exp` is 1 either way.
+#[inline(always)]
+pub fn row_max(row: &[f64]) -> f64 {
+    #[inline(always)]
+    fn larger(a: f64, b: f64) -> f64 {
+        if b > a {
+            b
+        } else {
+            a
+        }
+    }
+    let mut l = [f64::NEG_INFINITY; 8];
+    let mut chunks = row.chunks_exact(8);
+    for c in &mut chunks {
+        for j in 0..8 {
+            l[j] = larger(l[j], c[j]);
+        }
+    }
+    for j in 0..4 {
+        l[j] = larger(l[j], l[j + 4]);
+    }
+    let m = larger(larger(l[0], l[2]), larger(l[1], l[3]));
+    chunks.remainder().iter().fold(m, |m, &v| larger(m, v))
+}
+
 /// In-place softmax, shifted by the maximum so it never overflows. Runs in
 /// [`crate::wide::with_avx2`], so the fused `exp` is the FMA instruction.
 #[inline]
@@ -126,7 +200,7 @@ pub fn softmax(z: &mut [f64]) {
     crate::wide::with_avx2(
         #[inline(always)]
         || {
-            let m = z.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+            let m = row_max(z);
             let mut sum = 0.0;
             for v in z.iter_mut() {
                 *v = exp(*v - m);
@@ -152,7 +226,7 @@ pub fn softmax_rows(z: &mut [f64], k: usize) {
         #[inline(always)]
         || {
             for row in z.chunks_exact_mut(k) {
-                let m = row.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+                let m = row_max(row);
                 row.iter_mut().for_each(|v| *v -= m);
             }
             z.iter_mut().for_each(|x| *x = exp(*x));
@@ -326,6 +400,85 @@ mod tests {
             prop_assert_eq!(&run(), &expect);
             prop_assert_eq!(&crate::wide::without_avx512(run), &expect);
             prop_assert_eq!(&crate::wide::baseline_only(run), &expect);
+        }
+
+        /// [`tanh`] (its exponential clamped and scaled once) gives the
+        /// bits of the formula over the full [`exp`] for any input, on
+        /// every path, NaN compared as NaN.
+        #[test]
+        fn tanh_is_the_formula_over_the_full_exp(
+            xs in prop::collection::vec(
+                prop_oneof![
+                    -25.0f64..25.0,
+                    -1e-3f64..1e-3,
+                    18.0f64..22.0,
+                    Just(0.0),
+                    Just(-0.0),
+                    Just(f64::NAN),
+                    Just(f64::INFINITY),
+                    Just(f64::NEG_INFINITY),
+                    Just(f64::MIN_POSITIVE / 4.0),
+                    any::<f64>(),
+                ],
+                0..40,
+            ),
+        ) {
+            let formula = |x: f64| {
+                crate::wide::with_avx2(|| {
+                    let e = exp(-2.0 * x.abs());
+                    ((1.0 - e) / (1.0 + e)).copysign(x)
+                })
+            };
+            let run = || {
+                let mut v = xs.clone();
+                crate::wide::with_avx2(|| v.iter_mut().for_each(|x| *x = tanh(*x)));
+                v
+            };
+            for got in [run(), crate::wide::without_avx512(run), crate::wide::baseline_only(run)] {
+                for (x, t) in xs.iter().zip(got) {
+                    prop_assert_eq!(canon(t), canon(formula(*x)), "tanh({})", x);
+                }
+            }
+        }
+
+        /// [`row_max`] is the fold over `f64::max` it replaced (compared by
+        /// value: the sign of a zero maximum may differ), and the softmax
+        /// built on it gives the bits of one shifted by the fold's maximum,
+        /// for any values (NaN, infinities, signed zeros) and length.
+        #[test]
+        fn row_max_is_the_fold_of_f64_max(
+            xs in prop::collection::vec(
+                prop_oneof![
+                    -800.0f64..800.0,
+                    Just(0.0),
+                    Just(-0.0),
+                    Just(f64::NAN),
+                    Just(f64::INFINITY),
+                    Just(f64::NEG_INFINITY),
+                    any::<f64>(),
+                ],
+                0..40,
+            ),
+        ) {
+            let fold = xs.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+            let m = row_max(&xs);
+            prop_assert!(m == fold, "row_max {} vs fold {}", m, fold);
+            // The softmax before `row_max`, spelled out.
+            let mut expect = xs.clone();
+            crate::wide::with_avx2(|| {
+                let mut sum = 0.0;
+                for v in expect.iter_mut() {
+                    *v = exp(*v - fold);
+                    sum += *v;
+                }
+                expect.iter_mut().for_each(|v| *v /= sum);
+            });
+            let mut got = xs.clone();
+            softmax(&mut got);
+            prop_assert_eq!(
+                got.into_iter().map(canon).collect::<Vec<_>>(),
+                expect.into_iter().map(canon).collect::<Vec<_>>()
+            );
         }
 
         /// The vectorised slice call gives the scalar call's bits for any
