@@ -21,6 +21,7 @@
 //! with `Ĩ` the centred unit-norm frame.
 
 use super::params::{Distance, WssParams};
+use crate::estimate::vmath;
 use palpate_core::geometry::Edge;
 use palpate_core::{ConfigError, TaxelLayout};
 use realfft::num_complex::Complex;
@@ -284,16 +285,31 @@ impl ClassShape {
 
     /// [`Self::template`] into `out` (one value per taxel), without
     /// allocating: a refining search builds a class's templates per probe.
+    ///
+    /// The Gaussian profile's exponential is [`vmath::exp`], not `f64::exp`:
+    /// glibc's is a call per value that picks an FMA or a non-FMA variant
+    /// at run time, so a template's last bits (and, through a refining
+    /// search's comparisons, in rare ties an estimate's) depended on the
+    /// CPU; `vmath::exp` gives the same bits on every x86-64 CPU and a
+    /// row's values in one vectorised pass. It is within an ulp of glibc's
+    /// (its module docs).
     fn template_into(&self, i: usize, out: &mut [f64]) {
         let s = self.lo + i as f64 * self.ds;
-        for (v, &o) in out.iter_mut().zip(&self.offsets) {
-            *v = match &self.table {
-                Some(t) => t.value(o - s),
-                None => {
-                    let d = ((o - s).abs() - self.half).max(0.0);
-                    (-d * d * self.inv_s2).exp()
+        match &self.table {
+            Some(t) => {
+                for (v, &o) in out.iter_mut().zip(&self.offsets) {
+                    *v = t.value(o - s);
                 }
-            };
+            }
+            None => crate::wide::with_avx2(
+                #[inline(always)]
+                || {
+                    for (v, &o) in out.iter_mut().zip(&self.offsets) {
+                        let d = ((o - s).abs() - self.half).max(0.0);
+                        *v = vmath::exp(-d * d * self.inv_s2);
+                    }
+                },
+            ),
         }
     }
 }
