@@ -491,8 +491,8 @@ fn panels512(b: &[f64], k: usize, n: usize) -> Vec<f64> {
 /// `n`-th. `panels`: [`panels512`], of the first [`panel_columns`] columns;
 /// one or two columns past a multiple of 8 are each row's dot product with
 /// `b`'s row instead ([`dots_of_rows`]; `2848 x 17 x 30`, the ANN (S)'s
-/// output layer: 18.1-18.4 -> 20.1-20.9 G products a second, `cargo run
-/// --release --example machine`, six runs of each build alternated,
+/// output layer: 16.1-18.3 -> 20.6-20.7 G products a second, `cargo run
+/// --release --example machine`, four runs of each build alternated,
 /// 2026-11-28). Loop order: blocks of [`ROWS512`] rows; within one, each
 /// panel (`k · 128` bytes, in L1) passes over all its rows, then the
 /// columns past the panels.
@@ -520,13 +520,9 @@ fn panels512(b: &[f64], k: usize, n: usize) -> Vec<f64> {
 #[target_feature(enable = "avx2,fma,avx512f,avx512vl,avx512dq")]
 unsafe fn narrow512(a: &[f64], b: &[f64], panels: &[f64], k: usize, n: usize, out: &mut [f64]) {
     let m = a.len() / k;
-    assert!(
-        n > 0
-            && panels.len() >= panel_columns(n).div_ceil(8) * 8 * k
-            && out.len() >= m * n
-            && b.len() >= n * k
-    );
     let n_panels = panel_columns(n);
+    assert!(n > 0 && panels.len() >= n_panels.div_ceil(8) * 8 * k && out.len() >= m * n && b.len() >= n * k);
+    // `ar`: the rows as a slice, for the columns past the panels.
     let (ar, a) = (a, View::rows_of(a, m, k));
     for r0 in (0..m).step_by(ROWS512) {
         let r1 = (r0 + ROWS512).min(m);

@@ -47,8 +47,9 @@
 //! `−40` and scales it by one power of two (its argument is never
 //! positive), and the softmax takes each row's maximum in eight lanes
 //! ([`row_max`]) instead of a fold over `f64::max`. `cargo run --release
-//! --example machine`-shaped timings (3154 rows, one core): `tanh` with its
-//! bias 1.245 -> 1.10 ns a value, the row softmax of 17 1.89 -> 1.43.
+//! --example machine` (its last line; four runs of each build alternated,
+//! 2026-11-28): `tanh` with its bias 1.30-1.36 -> 1.11-1.14 ns a value, the
+//! row softmax of 17 1.81-1.90 -> 1.51-1.60.
 
 /// `1.5·2^52`: adding it rounds a double below `2^51` in magnitude to an
 /// integer (round half to even), which subtracting it recovers exactly.
@@ -162,8 +163,10 @@ pub fn sigmoid(z: f64) -> f64 {
 /// independent lanes.
 ///
 /// Why: the fold is one dependent chain of a compare and a blend per value
-/// (`f64::max`'s NaN rule), and it cost a third of a softmax row of 17
-/// values (`cargo run --release --example machine`). A maximum does not
+/// (`f64::max`'s NaN rule): in a throwaway timing of a softmax's passes
+/// (3154 rows of 17, one core, not kept) the maximum and shift took 0.58
+/// ns a value of 1.89, 0.21 in lanes (the module docs' figures are the
+/// committed `machine` example's). A maximum does not
 /// depend on the order it is taken in, and a select `v > m` skips NaN as
 /// `f64::max` does (the lanes start at `−inf`, so they never hold NaN), so
 /// the lanes give the same value. Only the sign of a zero maximum may
