@@ -268,6 +268,13 @@ pub struct TrialMeta {
     /// When the edge crosses the array, `[start, end]` in ms from the trial's
     /// start, if the source knows it (simulated scenes do).
     pub crossing_ms: Option<[f64; 2]>,
+    /// The sliding speed the trial was palpated at, mm/s, as commanded (what
+    /// a robot knows beforehand, not a measurement), if the source knows it:
+    /// a scene's `motion.speed_mm_s` (of the trial's condition), a recording's
+    /// `speed_mm_s` label (or condition). Model-based estimators that need the
+    /// speed (WSS) take it from here unless their own config sets one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub speed_mm_s: Option<f64>,
     /// The conditions the trial was recorded under, by name, e.g.
     /// `condition = "fast"` for a scene's `conditions` table, or a label
     /// file's extra keys (`speed_mm_s = "1.5"`): what
@@ -290,7 +297,8 @@ impl TrialMeta {
             self.label,
             self.group,
             self.crossing_ms,
-            self.conditions
+            self.conditions,
+            self.speed_mm_s
         ])
     }
 }

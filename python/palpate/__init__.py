@@ -552,7 +552,8 @@ class Dataset:
     """A simulated scene's trials: ``signals`` float64 ``(trials, samples, taxels)``,
     ``labels`` (true angle per trial, degrees; NaN if none), ``trial_ids``,
     ``groups``, ``crossing_ms`` ``(trials, 2)`` (NaN if unknown),
-    ``sample_rate_hz``, ``layout``; ``trials`` holds each trial's ``Signals``
+    ``speed_mm_s`` (each trial's commanded sliding speed, which WSS builds its
+    templates for), ``sample_rate_hz``, ``layout``; ``trials`` holds each trial's ``Signals``
     (with its metadata) for the building blocks."""
 
     signals: np.ndarray
@@ -560,6 +561,7 @@ class Dataset:
     trial_ids: List[str]
     groups: np.ndarray
     crossing_ms: np.ndarray
+    speed_mm_s: np.ndarray
     sample_rate_hz: float
     layout: dict
     unit: str
@@ -598,6 +600,7 @@ def simulate(scene: Union[str, os.PathLike, dict], seed: int = 1, **keys: Any) -
         trial_ids=[m["trial_id"] for m in metas],
         groups=np.array([m["group"] for m in metas], dtype=np.int64),
         crossing_ms=np.array([m["crossing_ms"] if m["crossing_ms"] else (nan, nan) for m in metas], dtype=float).reshape(-1, 2),
+        speed_mm_s=np.array([nan if m.get("speed_mm_s") is None else m["speed_mm_s"] for m in metas], dtype=float),
         sample_rate_hz=trials[0].sample_rate_hz if trials else float("nan"),
         layout=trials[0].layout if trials else grid(),
         unit=trials[0].unit if trials else "",

@@ -12,7 +12,8 @@
 //!
 //! `layout` is the JSON form of [`TaxelLayout`] as a dict (`{"kind": "grid",
 //! "rows": 4, ...}`); `meta` is `{"trial_id", "index", "angle_deg", "stimulus",
-//! "group", "crossing_ms"}`. Sizes coming from Python are checked (a signal's
+//! "group", "crossing_ms", "speed_mm_s"}` (`speed_mm_s`: the commanded
+//! sliding speed, which WSS uses when its config sets none). Sizes coming from Python are checked (a signal's
 //! rows must agree, a spike's taxel must exist, times must be finite) and a
 //! violation is a `ValueError` naming the field.
 
@@ -143,6 +144,7 @@ pub fn meta_to_py<'py>(py: Python<'py>, m: &TrialMeta) -> PyResult<Bound<'py, Py
     d.set_item("stimulus", m.label.stimulus.to_string())?;
     d.set_item("group", m.group)?;
     d.set_item("crossing_ms", m.crossing_ms.map(|c| (c[0], c[1])))?;
+    d.set_item("speed_mm_s", m.speed_mm_s)?;
     Ok(d)
 }
 
@@ -180,6 +182,15 @@ pub fn meta_from_py(obj: Option<&Bound<'_, PyAny>>, index: usize) -> PyResult<Tr
     if let Some(v) = d.get_item("crossing_ms")?.filter(|v| !v.is_none()) {
         let (a, b): (f64, f64) = v.extract()?;
         m.crossing_ms = Some([a, b]);
+    }
+    if let Some(v) = d.get_item("speed_mm_s")?.filter(|v| !v.is_none()) {
+        let v: f64 = v.extract()?;
+        if !(v.is_finite() && v > 0.0) {
+            return Err(PyValueError::new_err(format!(
+                "`speed_mm_s`: must be a positive number of mm/s, got {v}"
+            )));
+        }
+        m.speed_mm_s = Some(v);
     }
     Ok(m)
 }

@@ -102,6 +102,9 @@ def test_simulate_matches_the_graph_scene_and_is_seeded():
     d = palpate.simulate(GRAPHS / "scenes" / "lab.toml", seed=1, angles=[30.0, 60.0], trials_per_angle=2)
     assert d.signals.ndim == 3 and d.signals.shape[0] == 4 and d.signals.shape[2] == 16
     assert list(d.labels) == [30.0, 30.0, 60.0, 60.0]
+    assert list(d.speed_mm_s) == [2.0] * 4  # the scene's motion.speed_mm_s
+    fast = palpate.simulate(GRAPHS / "scenes" / "lab.toml", seed=1, angles=[30.0], trials_per_angle=1, motion={"speed_mm_s": 4.0})
+    assert list(fast.speed_mm_s) == [4.0]
     # Trials differ in length (the angle sets the crossing time): the stack is
     # NaN-padded at the end, and each trial's own samples are all finite.
     for k, t in enumerate(d.trials):

@@ -100,6 +100,44 @@ fn csv_glob_one_trial_per_file_with_toml_sidecar() {
 }
 
 #[test]
+fn a_label_file_declares_each_trials_speed() {
+    let d = tempfile::tempdir().unwrap();
+    std::fs::create_dir(d.path().join("rec")).unwrap();
+    for t in 0..3 {
+        std::fs::write(d.path().join(format!("rec/t{t}.csv")), csv_trial(t, 4, 20, 500.0)).unwrap();
+    }
+    let graph = |labels: &str| {
+        std::fs::write(d.path().join("labels.toml"), labels).unwrap();
+        run_graph(
+            d.path(),
+            &format!("[run]\nseed = 1\n[stages.src]\ntype = \"signal_file\"\npath = \"rec/*.csv\"\nlabels = \"labels.toml\"\n{GRID2}\n"),
+        )
+    };
+    // The key, else a numeric condition of that name, else none.
+    let r = graph(
+        "[trials.t0]\nspeed_mm_s = 3.0\nconditions = { speed_mm_s = 9 }\n\
+         [trials.t1]\nconditions = { speed_mm_s = 1.5 }\n[trials.t2]\nangle_deg = 30.0\n",
+    )
+    .unwrap();
+    let speeds: Vec<Option<f64>> = items(&r, "src").iter().map(|i| i.meta.speed_mm_s).collect();
+    assert_eq!(speeds, [Some(3.0), Some(1.5), None]);
+    // A speed that is not a positive number is refused, naming the trial.
+    for (bad, want) in [
+        ("[trials.t0]\nconditions = { speed_mm_s = \"fast\" }\n", "`t0`"),
+        ("[trials.t1]\nspeed_mm_s = -2.0\n", "speed_mm_s"),
+        ("[trials.t2]\nconditions = { speed_mm_s = 0 }\n", "`t2`"),
+    ] {
+        let others = ["t0", "t1", "t2"]
+            .iter()
+            .filter(|t| !bad.contains(&format!("[trials.{t}]")))
+            .map(|t| format!("[trials.{t}]\n"))
+            .collect::<String>();
+        let e = graph(&format!("{bad}{others}")).unwrap_err();
+        assert!(e.contains(want) && e.contains("speed_mm_s"), "{bad}: {e}");
+    }
+}
+
+#[test]
 fn csv_many_trials_per_file_with_labels_in_columns() {
     let d = tempfile::tempdir().unwrap();
     let mut s = String::from("# exported by the lab rig\ntrial,angle_deg,taxel_0,taxel_1\n");
@@ -591,7 +629,7 @@ fn signals_round_trip_through_csv_and_npy_sinks() {
         }
         std::fs::write(
             p.join("lab.csv"),
-            "trial,angle_deg,group\nedge-0,10,5\nedge-1,20,\nedge-2,10,\n",
+            "trial,angle_deg,group,speed_mm_s\nedge-0,10,5,2.5\nedge-1,20,,\nedge-2,10,,4\n",
         )
         .unwrap();
         let out = p.join("out").display().to_string();
@@ -623,12 +661,15 @@ fn signals_round_trip_through_csv_and_npy_sinks() {
             assert_eq!(a.meta.trial_id, b.meta.trial_id);
             assert_eq!(a.meta.label, b.meta.label);
             assert_eq!(a.meta.group, b.meta.group);
+            assert_eq!(a.meta.speed_mm_s, b.meta.speed_mm_s);
             let (sa, sb) = (signals(a), signals(b));
             assert_eq!(sa.data, sb.data, "{format}: same bits");
             assert!((sa.sample_rate_hz - sb.sample_rate_hz).abs() < 1e-9);
         }
         assert_eq!(back[0].meta.group, 5);
         assert_eq!(back[2].meta.group, 1);
+        let speeds: Vec<Option<f64>> = back.iter().map(|i| i.meta.speed_mm_s).collect();
+        assert_eq!(speeds, [Some(2.5), None, Some(4.0)]);
     }
 }
 

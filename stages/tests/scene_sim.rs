@@ -471,6 +471,8 @@ fn scene_files_are_defaults_that_inline_keys_override() {
     );
     assert_eq!(items.len(), 2);
     assert_eq!(items[1].meta.label.angle_deg, Some(40.0));
+    // Each trial declares the speed it was palpated at (the inline one).
+    assert!(items.iter().all(|it| it.meta.speed_mm_s == Some(2.0)));
     let [c0, _] = items[0].meta.crossing_ms.unwrap();
     let plan_margin_ms = 1.0 / (2.0 * 20f64.to_radians().sin()) * 1000.0;
     assert!((c0 - (1000.0 + plan_margin_ms)).abs() < 1e-6, "{c0}");
@@ -601,5 +603,22 @@ fn simulate_writes_what_signal_file_reads_back_with_labels() {
             .unwrap_err()
             .message
             .contains("nope.toml")
+    );
+}
+
+#[test]
+fn each_condition_declares_its_own_speed() {
+    let items = items(
+        "angles = [30]\ntrials_per_angle = 1\nmotion = { speed_mm_s = 10.0, hold_before_s = 0.2, hold_after_s = 0.2 }\n\
+         conditions = { slow = {}, fast = { motion = { speed_mm_s = 15.0 } } }",
+    );
+    let mut speeds: Vec<(String, Option<f64>)> = items
+        .iter()
+        .map(|it| (it.meta.conditions["condition"].clone(), it.meta.speed_mm_s))
+        .collect();
+    speeds.sort_by(|a, b| a.0.cmp(&b.0));
+    assert_eq!(
+        speeds,
+        [("fast".to_string(), Some(15.0)), ("slow".to_string(), Some(10.0))]
     );
 }

@@ -33,7 +33,8 @@ fn root() -> PathBuf {
 }
 
 /// The quickstart's chain in its causal form (graphs/live.toml's settings),
-/// on two lab-scene trials.
+/// on two lab-scene trials palpated at 3 mm/s, which WSS (no speed of its
+/// own) must take from each trial, streamed or not.
 fn live_graph() -> String {
     let front = common::causal_front_end("scene");
     format!(
@@ -46,6 +47,7 @@ type = "scene"
 file = "{}"
 trials_per_angle = 1
 angles = [30.0, 75.0]
+motion = {{ speed_mm_s = 3.0 }}
 
 {front}
 [stages.enc]

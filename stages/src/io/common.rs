@@ -219,6 +219,10 @@ pub struct TrialLabels {
     pub group: Option<usize>,
     /// Trial length, ms (spike files).
     pub duration_ms: Option<f64>,
+    /// The commanded sliding speed, mm/s (what WSS builds its templates for
+    /// when its config sets no `speed_mm_s`). A condition `speed_mm_s` that
+    /// reads as a number gives it too, when this key is absent.
+    pub speed_mm_s: Option<f64>,
     /// Conditions the trial was recorded under (`conditions = { speed_mm_s =
     /// 1.5, skin = "thick" }`: strings, numbers or booleans), which the
     /// `leave_one_condition_out` and `train_test` protocols split on.
@@ -258,6 +262,7 @@ impl TrialLabels {
             stimulus: other.stimulus.or(self.stimulus),
             group: other.group.or(self.group),
             duration_ms: other.duration_ms.or(self.duration_ms),
+            speed_mm_s: other.speed_mm_s.or(self.speed_mm_s),
             conditions: {
                 let mut c = self.conditions.clone();
                 c.extend(other.conditions.clone());
@@ -277,6 +282,28 @@ impl TrialLabels {
             angle_deg: self.angle_deg,
         }
     }
+
+    /// The declared speed: the `speed_mm_s` key, else a `speed_mm_s`
+    /// condition that reads as a number. `what` names the trial for errors:
+    /// a speed that is not a positive number is refused, not ignored, since
+    /// WSS would otherwise build its templates for the wrong speed.
+    pub fn speed(&self, what: &str) -> Result<Option<f64>, String> {
+        let v = match (self.speed_mm_s, self.conditions.get("speed_mm_s")) {
+            (Some(v), _) => v,
+            (None, Some(s)) => s
+                .trim()
+                .parse::<f64>()
+                .map_err(|_| format!("{what}: condition `speed_mm_s` = {s:?} is not a number of mm/s"))?,
+            (None, None) => return Ok(None),
+        };
+        if v.is_finite() && v > 0.0 {
+            Ok(Some(v))
+        } else {
+            Err(format!(
+                "{what}: `speed_mm_s` must be a positive number of mm/s, got {v}"
+            ))
+        }
+    }
 }
 
 /// Reads `edge`, `ridge` or `unknown` (any case).
@@ -292,7 +319,7 @@ pub fn parse_stimulus(s: &str) -> Result<Stimulus, String> {
 }
 
 /// The label-column names a data file or sidecar may carry.
-pub const LABEL_COLUMNS: [&str; 4] = ["angle_deg", "stimulus", "group", "duration_ms"];
+pub const LABEL_COLUMNS: [&str; 5] = ["angle_deg", "stimulus", "group", "duration_ms", "speed_mm_s"];
 
 /// Reads one label cell of a CSV file into `labels`; `what` names the place for
 /// errors. Empty cells are "not given".
@@ -302,7 +329,7 @@ pub fn set_label_cell(labels: &mut TrialLabels, column: &str, cell: &str, what: 
         return Ok(());
     }
     match column {
-        "angle_deg" | "duration_ms" => {
+        "angle_deg" | "duration_ms" | "speed_mm_s" => {
             let v: f64 = cell
                 .parse()
                 .map_err(|_| format!("{what}: cannot read `{cell}` as a number"))?;
@@ -311,10 +338,12 @@ pub fn set_label_cell(labels: &mut TrialLabels, column: &str, cell: &str, what: 
             }
             if column == "angle_deg" {
                 labels.angle_deg = Some(v);
-            } else if v > 0.0 {
-                labels.duration_ms = Some(v);
+            } else if v <= 0.0 {
+                return Err(format!("{what}: `{column}` must be positive, got {v}"));
+            } else if column == "speed_mm_s" {
+                labels.speed_mm_s = Some(v);
             } else {
-                return Err(format!("{what}: duration must be positive, got {v}"));
+                labels.duration_ms = Some(v);
             }
         }
         "stimulus" => labels.stimulus = Some(parse_stimulus(cell).map_err(|e| format!("{what}: {e}"))?),
@@ -341,6 +370,11 @@ pub fn check_label_numbers(l: &TrialLabels) -> Result<(), String> {
     if let Some(d) = l.duration_ms.filter(|d| !(d.is_finite() && *d > 0.0)) {
         return Err(format!(
             "duration_ms = {d} must be a finite, positive number of ms"
+        ));
+    }
+    if let Some(v) = l.speed_mm_s.filter(|v| !(v.is_finite() && *v > 0.0)) {
+        return Err(format!(
+            "speed_mm_s = {v} must be a finite, positive number of mm/s"
         ));
     }
     Ok(())
@@ -370,6 +404,7 @@ pub fn merge_consistent(into: &mut TrialLabels, other: &TrialLabels, what: &str)
     one(&mut into.stimulus, other.stimulus, "stimulus", what)?;
     one(&mut into.group, other.group, "group", what)?;
     one(&mut into.duration_ms, other.duration_ms, "duration_ms", what)?;
+    one(&mut into.speed_mm_s, other.speed_mm_s, "speed_mm_s", what)?;
     Ok(())
 }
 
@@ -486,6 +521,8 @@ struct JsonTrial {
     group: Option<usize>,
     #[serde(default, deserialize_with = "de_conditions")]
     conditions: BTreeMap<String, String>,
+    #[serde(default)]
+    speed_mm_s: Option<f64>,
 }
 
 #[derive(Deserialize)]
@@ -502,7 +539,7 @@ struct TrialsJson {
 }
 
 /// Reads the labels of a `trials.json`: `{"trials": [{"trial_id": ..., "label":
-/// {"stimulus": ..., "angle_deg": ...}, "group": ...}, ...]}` (other keys are
+/// {"stimulus": ..., "angle_deg": ...}, "group": ..., "speed_mm_s": ...}, ...]}` (other keys are
 /// ignored: they are metadata, not labels).
 fn read_trials_json(text: &str) -> Result<BTreeMap<String, TrialLabels>, String> {
     let parsed: TrialsJson = serde_json::from_str(text).map_err(|e| e.to_string())?;
@@ -513,6 +550,7 @@ fn read_trials_json(text: &str) -> Result<BTreeMap<String, TrialLabels>, String>
             stimulus: t.label.stimulus,
             group: t.group,
             duration_ms: None,
+            speed_mm_s: t.speed_mm_s,
             conditions: t.conditions,
         };
         if out.insert(t.trial_id.clone(), labels).is_some() {
@@ -587,7 +625,7 @@ pub fn build_metas(
         seen.insert(id, k);
     }
     let mut reps: HashMap<(Stimulus, Option<i64>), usize> = HashMap::new();
-    Ok(trials
+    trials
         .iter()
         .enumerate()
         .map(|(index, (id, l))| {
@@ -596,17 +634,24 @@ pub fn build_metas(
             let rep = reps.entry(key).or_default();
             let group = l.group.unwrap_or(*rep);
             *rep += 1;
-            TrialMeta {
+            let speed_mm_s = l
+                .speed(&format!(
+                    "trial `{id}` ({})",
+                    origins.get(index).map_or("?", String::as_str)
+                ))
+                .map_err(StageError::new)?;
+            Ok(TrialMeta {
                 trial_id: id.clone(),
                 index,
                 label,
                 group,
                 crossing_ms: None,
+                speed_mm_s,
                 conditions: l.conditions.clone(),
                 provenance: vec![],
-            }
+            })
         })
-        .collect())
+        .collect()
 }
 
 /// The loaded trial `meta` names: looked up at its index first (the runtime
@@ -641,6 +686,9 @@ pub fn sidecar_toml(rows: &[(String, &TrialMeta, Option<f64>)]) -> String {
         ));
         if let Some(d) = d {
             s.push_str(&format!("duration_ms = {d:?}\n"));
+        }
+        if let Some(v) = m.speed_mm_s {
+            s.push_str(&format!("speed_mm_s = {v:?}\n"));
         }
         if !m.conditions.is_empty() {
             let q = |x: &str| format!("\"{}\"", x.replace('\\', "\\\\").replace('"', "\\\""));

@@ -183,6 +183,8 @@ impl Source for SceneSource {
                         },
                         group: rep,
                         crossing_ms: Some(crossing),
+                        // The commanded speed, before `variation`'s tracking error.
+                        speed_mm_s: Some(sc.motion.speed_mm_s),
                         conditions: conditions.clone(),
                         provenance: Vec::new(),
                     });

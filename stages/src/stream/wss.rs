@@ -7,7 +7,8 @@
 //! flush emits the trial's final estimate, refined, its decision time capped
 //! at what the images cover, as the batch model does. With `stop_margin` the
 //! final estimate is the first decided one, as in batch. Templates are built
-//! on the first block (they depend on the layout and hop) and shared by every
+//! on the first block (they depend on the layout, the hop and the speed: the
+//! config's, else the trial's declared one, as in batch) and shared by every
 //! trial with the same ones.
 
 use crate::estimate::wss::{Templates, WssConfig, WssParams, WssStream};
@@ -26,8 +27,8 @@ fn wss_stream(cfg: &WssConfig, _ctx: &BuildContext) -> Result<StreamForm, Config
 }
 register_stream!("wss", WssConfig, wss_stream);
 
-/// Templates for a (layout, hop).
-type Cached = (TaxelLayout, u64, Arc<Templates>);
+/// Templates for a (layout, hop, speed).
+type Cached = (TaxelLayout, u64, u64, Arc<Templates>);
 
 struct WssStage {
     params: WssParams,
@@ -41,8 +42,9 @@ fn templates(
     images: &SpikeImages,
     params: &WssParams,
 ) -> Result<Arc<Templates>, StageError> {
-    if let Some((l, h, t)) = cache.lock().unwrap_or_else(|e| e.into_inner()).as_ref() {
-        if *l == images.layout && *h == images.hop_ms.to_bits() {
+    let speed = params.speed().to_bits();
+    if let Some((l, h, v, t)) = cache.lock().unwrap_or_else(|e| e.into_inner()).as_ref() {
+        if *l == images.layout && *h == images.hop_ms.to_bits() && *v == speed {
             return Ok(t.clone());
         }
     }
@@ -53,14 +55,14 @@ fn templates(
             .map_err(|e| StageError::new(format!("wss: images' {e}")))?,
     );
     *cache.lock().unwrap_or_else(|e| e.into_inner()) =
-        Some((images.layout.clone(), images.hop_ms.to_bits(), t.clone()));
+        Some((images.layout.clone(), images.hop_ms.to_bits(), speed, t.clone()));
     Ok(t)
 }
 
 impl StreamStage for WssStage {
-    fn open(&self, _ctx: &TrialContext<'_>) -> Result<Box<dyn StreamState>, StageError> {
+    fn open(&self, ctx: &TrialContext<'_>) -> Result<Box<dyn StreamState>, StageError> {
         Ok(Box::new(WssState {
-            params: self.params.clone(),
+            params: self.params.for_trial(ctx.meta.speed_mm_s),
             cache: self.templates.clone(),
             stream: None,
             first: None,

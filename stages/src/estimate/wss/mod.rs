@@ -127,6 +127,13 @@
 //!
 //! # Unknown crossing speed
 //!
+//! The speed is "known beforehand" (the robot's command): unless the config
+//! sets `speed_mm_s`, each trial's templates are built for the speed the
+//! trial declares ([`palpate_core::TrialMeta::speed_mm_s`]: a scene's
+//! `motion.speed_mm_s`, a recording's label), else 2 mm/s. So a scene run
+//! at another speed needs no second key (with templates for 2 mm/s, the lab
+//! scene at 3 mm/s scores ~17 degrees MAE), and trials of several speeds mix.
+//!
 //! The templates' timing is the edge's normal speed `v·sin θ`, so a declared
 //! speed 10 % off is matched best by an angle whose `sin θ` is 10 % off. With
 //! `speed_tolerance = e > 0`, templates are built at `speed_steps` speeds over
@@ -220,17 +227,25 @@ impl Estimator for WssEstimator {
 /// Templates of every speed of the grid (the declared speed alone when it is known).
 type SpeedSets = Arc<Vec<(f64, Arc<Templates>)>>;
 
-/// The fitted (model-based) WSS: parameters and templates cached per (layout, hop).
+/// The fitted (model-based) WSS: parameters and templates cached per
+/// (layout, hop, speed): a trial's speed is its own declared one unless the
+/// config sets one ([`WssParams::for_trial`]).
 struct WssModel {
     params: WssParams,
-    cache: Mutex<HashMap<(String, u64), SpeedSets>>,
+    cache: Mutex<HashMap<(String, u64, u64), SpeedSets>>,
 }
 
 impl WssModel {
-    fn templates(&self, images: &palpate_core::SpikeImages) -> Result<SpeedSets, StageError> {
+    /// The template sets for `images` under `params` (a speed set).
+    fn templates(
+        &self,
+        images: &palpate_core::SpikeImages,
+        params: &WssParams,
+    ) -> Result<SpeedSets, StageError> {
         let key = (
             serde_json::to_string(&images.layout).unwrap_or_default(),
             images.hop_ms.to_bits(),
+            params.speed().to_bits(),
         );
         if let Some(t) = self.cache.lock().unwrap_or_else(|e| e.into_inner()).get(&key) {
             return Ok(t.clone());
@@ -238,8 +253,8 @@ impl WssModel {
         // Built outside the lock: two threads may both build the same templates
         // on first use, which costs time but never changes a result.
         let mut sets = Vec::new();
-        for f in self.params.speed_factors() {
-            let t = Templates::new(&images.layout, images.hop_ms, &self.params.at_speed(f))
+        for f in params.speed_factors() {
+            let t = Templates::new(&images.layout, images.hop_ms, &params.at_speed(f))
                 .map_err(|e| StageError::new(format!("wss: images' {e}")))?;
             sets.push((f, Arc::new(t)));
         }
@@ -252,16 +267,17 @@ impl WssModel {
 impl Model for WssModel {
     fn predict(&self, item: &Item, _ctx: &TrialContext<'_>) -> Result<Estimate, StageError> {
         let images = item.payload.images()?;
-        let sets = self.templates(images)?;
-        let e = match self.params.stop_margin {
+        let params = self.params.for_trial(item.meta.speed_mm_s);
+        let sets = self.templates(images, &params)?;
+        let e = match params.stop_margin {
             None => {
                 let refs: Vec<(f64, &Templates)> = sets.iter().map(|(f, t)| (*f, t.as_ref())).collect();
-                wss_batch_speeds(images, &refs, &self.params)?
+                wss_batch_speeds(images, &refs, &params)?
             }
             Some(margin) => {
                 // The config allows stop_margin only with a known speed: one set.
                 let tpl = sets[0].1.clone();
-                let mut s = WssStream::new(tpl, self.params.clone(), images.window_ms)?;
+                let mut s = WssStream::new(tpl, params.clone(), images.window_ms)?;
                 let mut stopped = None;
                 for k in 0..images.n_frames {
                     let e = s.push(images.frame(k))?;

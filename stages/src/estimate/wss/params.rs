@@ -181,8 +181,12 @@ impl AngleGrid {
 )]
 #[schemars(bound = "A: JsonSchema + DefaultAngles + Serialize")]
 pub struct WssSettings<A> {
-    /// Sliding speed the templates assume, mm/s ("known beforehand"). Default 2.
-    pub speed_mm_s: f64,
+    /// Sliding speed the templates assume, mm/s ("known beforehand"). Default:
+    /// each trial's own declared speed (a scene's `motion.speed_mm_s`, a
+    /// recording's `speed_mm_s` label), else 2 mm/s (the paper's). A live
+    /// board's trials declare none: set the arm's speed here. Set, it
+    /// overrides every trial's (to study a wrong declared speed, say).
+    pub speed_mm_s: Option<f64>,
     /// Spread `σ` of eq. 6, mm. Default 1 (half the paper's 2 mm taxel).
     pub sigma_mm: f64,
     /// Width of the simulated line, mm. Default 0.2 (the paper's).
@@ -295,7 +299,7 @@ impl DefaultAngles for Vec<f64> {
 impl<A: DefaultAngles> Default for WssSettings<A> {
     fn default() -> Self {
         WssSettings {
-            speed_mm_s: 2.0,
+            speed_mm_s: None,
             sigma_mm: 1.0,
             line_width_mm: 0.2,
             angles: A::default_angles(),
@@ -334,7 +338,27 @@ impl WssConfig {
     }
 }
 
+/// The speed WSS assumes when neither its config nor the trial gives one,
+/// mm/s: the paper's.
+pub const DEFAULT_SPEED_MM_S: f64 = 2.0;
+
 impl WssParams {
+    /// The speed the templates are built for, mm/s: `speed_mm_s`, else
+    /// [`DEFAULT_SPEED_MM_S`].
+    pub fn speed(&self) -> f64 {
+        self.speed_mm_s.unwrap_or(DEFAULT_SPEED_MM_S)
+    }
+
+    /// These parameters for a trial whose declared speed is `declared`: the
+    /// configured speed when there is one (it overrides the trial's), else
+    /// the trial's, else the default. Always with a speed set.
+    pub fn for_trial(&self, declared: Option<f64>) -> WssParams {
+        WssParams {
+            speed_mm_s: Some(self.speed_mm_s.or(declared).unwrap_or(DEFAULT_SPEED_MM_S)),
+            ..self.clone()
+        }
+    }
+
     /// The coarse speed grid as factors of `speed_mm_s`: `[1]` when the speed
     /// is known (`speed_tolerance = 0`), else `speed_steps` factors evenly
     /// spaced over `1 ± speed_tolerance`.
@@ -351,7 +375,7 @@ impl WssParams {
     /// These parameters with the speed scaled by `factor` and known.
     pub fn at_speed(&self, factor: f64) -> WssParams {
         WssParams {
-            speed_mm_s: self.speed_mm_s * factor,
+            speed_mm_s: Some(self.speed() * factor),
             speed_tolerance: 0.0,
             ..self.clone()
         }
@@ -359,7 +383,9 @@ impl WssParams {
 
     /// Checks every value, naming the key of the first bad one.
     pub fn validate(&self) -> Result<(), ConfigError> {
-        check_positive("speed_mm_s", self.speed_mm_s, "mm/s")?;
+        if let Some(v) = self.speed_mm_s {
+            check_positive("speed_mm_s", v, "mm/s")?;
+        }
         check_positive("sigma_mm", self.sigma_mm, "mm")?;
         if !(self.line_width_mm.is_finite() && self.line_width_mm >= 0.0) {
             return Err(ConfigError::key(

@@ -262,7 +262,7 @@ impl ClassShape {
     fn new(layout: &TaxelLayout, hop_ms: f64, params: &WssParams, theta_deg: f64) -> ClassShape {
         let edge = Edge::new(theta_deg);
         let (lo, _) = edge.footprint(layout);
-        let ds = edge.normal_speed(params.speed_mm_s) * hop_ms / 1000.0;
+        let ds = edge.normal_speed(params.speed()) * hop_ms / 1000.0;
         let half = params.line_width_mm / 2.0;
         let table = (params.distance == Distance::Area)
             .then(|| AreaTable::new(edge.normal, layout.taxel_mm(), half, params.sigma_mm));
@@ -399,7 +399,7 @@ fn flat_gauss_integral(t: f64, h: f64, sigma: f64) -> f64 {
 fn lengths(layout: &TaxelLayout, hop_ms: f64, params: &WssParams, theta_deg: f64) -> (f64, usize) {
     let edge = Edge::new(theta_deg);
     let (lo, hi) = edge.footprint(layout);
-    let ds = edge.normal_speed(params.speed_mm_s) * hop_ms / 1000.0;
+    let ds = edge.normal_speed(params.speed()) * hop_ms / 1000.0;
     let k = ((hi - lo) / ds).ceil().max(0.0);
     let cap = (params.max_template_s * 1000.0 / hop_ms).floor() + 1.0;
     // Both are finite and positive here (validated inputs); `as` saturates anyway.

@@ -58,7 +58,7 @@ fn small_trial(theta: f64) -> SpikeImages {
 
 fn small_params() -> WssParams {
     WssParams {
-        speed_mm_s: 10.0,
+        speed_mm_s: Some(10.0),
         angles: vec![20.0, 45.0, 70.0, 90.0, 120.0],
         ..WssParams::default()
     }
@@ -358,7 +358,7 @@ fn all_weights_zero_falls_back_to_constant() {
 #[test]
 fn grid_near_0_and_180_is_finite() {
     let params = WssParams {
-        speed_mm_s: 10.0,
+        speed_mm_s: Some(10.0),
         angles: AngleGrid::Range {
             from: 1.0,
             to: 179.0,
@@ -457,7 +457,7 @@ fn config_errors_name_the_key() {
     );
     assert_eq!(
         bad(WssConfig {
-            speed_mm_s: -1.0,
+            speed_mm_s: Some(-1.0),
             ..Default::default()
         }),
         "speed_mm_s"
@@ -742,7 +742,7 @@ proptest! {
         w in 0usize..3,
     ) {
         let params = WssParams {
-            speed_mm_s: 20.0,
+            speed_mm_s: Some(20.0),
             angles: vec![30.0, 60.0, 90.0, 150.0],
             weighting: [Weighting::Constant, Weighting::OneMinusSr, Weighting::OnePlusSr][w],
             ..WssParams::default()
@@ -888,7 +888,7 @@ fn joint_speed_search_tolerates_a_wrong_declared_speed() {
     for theta in [35.0, 62.5, 118.0] {
         let im = small_trial(theta); // the edge slides at 10 mm/s
         let known = WssParams {
-            speed_mm_s: 11.5,
+            speed_mm_s: Some(11.5),
             refine: Refine::Search,
             ..small_params()
         };
@@ -910,7 +910,7 @@ fn joint_speed_search_tolerates_a_wrong_declared_speed() {
         };
         let e_joint = wss_batch(&im, &tpl, &joint).unwrap().angle_deg.unwrap();
         let exact = WssParams {
-            speed_mm_s: 10.0,
+            speed_mm_s: Some(10.0),
             ..known.clone()
         };
         let tpl10 = Templates::new(&layout, 10.0, &exact).unwrap();
@@ -1005,7 +1005,7 @@ fn timing_refinement_is_unbiased_and_speed_free() {
     for told in [2.0, 2.4] {
         let params = WssParams {
             refine: Refine::Timing,
-            speed_mm_s: told,
+            speed_mm_s: Some(told),
             ..WssParams::default()
         };
         let tpl = Templates::new(&TaxelLayout::paper(), 10.0, &params).unwrap();
@@ -1024,7 +1024,7 @@ fn timing_refinement_flags_a_class_it_disagrees_with() {
     // timing answer is still right, and the disagreement is flagged.
     let params = WssParams {
         refine: Refine::Timing,
-        speed_mm_s: 1.0,
+        speed_mm_s: Some(1.0),
         ..WssParams::default()
     };
     let tpl = Templates::new(&TaxelLayout::paper(), 10.0, &params).unwrap();
@@ -1168,4 +1168,76 @@ fn prepare_names_the_first_bad_count_as_frame_by_frame_did() {
             "{side}"
         );
     }
+}
+
+#[test]
+fn the_stage_builds_templates_for_each_trials_declared_speed_unless_told_one() {
+    use palpate_core::{Item, Payload, TrialContext, TrialMeta};
+    // Ideal trials at 4 and 10 mm/s, one of each at 45 and 70 degrees, each
+    // declaring its speed; one at 10 mm/s declaring none.
+    let trial = |theta: f64, speed: f64, declared: Option<f64>| Item {
+        meta: Arc::new(TrialMeta {
+            trial_id: format!("{theta}-{speed}"),
+            speed_mm_s: declared,
+            ..TrialMeta::default()
+        }),
+        payload: Payload::Images(Arc::new(ideal(
+            &TaxelLayout::paper(),
+            theta,
+            speed,
+            500.0,
+            10.0,
+            100.0,
+        ))),
+    };
+    let answers = |cfg: WssConfig, items: &[Item]| -> Vec<Option<f64>> {
+        let ctx = palpate_core::FitContext {
+            stage_id: "wss",
+            fold: 0,
+            seed: 1,
+        };
+        let model = WssEstimator {
+            params: cfg.params().unwrap(),
+        }
+        .fit(&[], &ctx)
+        .unwrap();
+        items
+            .iter()
+            .map(|it| {
+                let t = TrialContext {
+                    stage_id: "wss",
+                    meta: &it.meta,
+                    seed: 1,
+                };
+                model.predict(it, &t).unwrap().class_deg
+            })
+            .collect()
+    };
+    let cfg = WssConfig {
+        angles: AngleGrid::List(vec![20.0, 45.0, 70.0, 90.0, 120.0]),
+        ..WssConfig::default()
+    };
+    let declared: Vec<Item> = [(45.0, 4.0), (70.0, 4.0), (45.0, 10.0), (70.0, 10.0)]
+        .iter()
+        .map(|&(a, v)| trial(a, v, Some(v)))
+        .collect();
+    // Each trial's own speed, in one model (the template cache is per speed).
+    assert_eq!(
+        answers(cfg.clone(), &declared),
+        [Some(45.0), Some(70.0), Some(45.0), Some(70.0)]
+    );
+    // A configured speed overrides every trial's: right for the 10 mm/s
+    // trials, wrong for the 4 mm/s ones (their crossing looks 2.5x slower).
+    let told = answers(
+        WssConfig {
+            speed_mm_s: Some(10.0),
+            ..cfg.clone()
+        },
+        &declared,
+    );
+    assert_eq!(told[2..], [Some(45.0), Some(70.0)]);
+    assert!(told[..2] != [Some(45.0), Some(70.0)], "{told:?}");
+    // No declared speed: the 2 mm/s default, wrong for a 10 mm/s trial.
+    let undeclared = answers(cfg, &[trial(45.0, 10.0, None)]);
+    assert_ne!(undeclared, [Some(45.0)]);
 }
