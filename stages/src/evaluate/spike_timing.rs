@@ -14,13 +14,14 @@
 //!   and `W` the stimulus width, key `stimulus_width_mm`) has `s` linear in
 //!   between, so the centre of the stimulus (`s + W/2`) meets `c_i` at
 //!   `t_i = t₀ + (hi + W/2 - c_i) (t₁ - t₀) / (hi + W - lo)`.
-//! * A recording without a crossing declares the palpation speed `v`
-//!   (`speed_mm_s`) and when the edge crosses the array's centre
-//!   (`centre_crossing_ms`, the layout's origin): `s(t) = -v sin θ (t - t_c)`,
-//!   so `t_i = t_c - c_i / (v sin θ)`.
+//! * A recording without a crossing declares when the edge crosses the
+//!   array's centre (`centre_crossing_ms`, the layout's origin) and the
+//!   palpation speed `v` (`speed_mm_s`, else each trial's own declared
+//!   speed, e.g. from its label file): `s(t) = -v sin θ (t - t_c)`, so
+//!   `t_i = t_c - c_i / (v sin θ)`.
 //!
-//! Trials without a true angle, or without a crossing when no speed is
-//! declared, are skipped and counted.
+//! Trials without a true angle, or without a crossing when no centre
+//! crossing or no speed is declared, are skipped and counted.
 //!
 //! # Statistics, per taxel, of the relative times `d = t_spike - t_i` (s)
 //!
@@ -81,10 +82,11 @@ pub struct SpikeTimingConfig {
     /// width for a ridge (its centre line is what "crosses"). Default 0.
     pub stimulus_width_mm: f64,
     /// Palpation speed, mm/s, for trials that carry no crossing (recordings);
-    /// with `centre_crossing_ms`. Default none (such trials are skipped).
+    /// with `centre_crossing_ms`. Default none: each trial's own declared
+    /// speed (a recording's `speed_mm_s` label); a trial with none is skipped.
     pub speed_mm_s: Option<f64>,
     /// When the edge crosses the array's centre, ms from each trial's start,
-    /// for trials that carry no crossing; with `speed_mm_s`. Default none.
+    /// for trials that carry no crossing. Default none (such trials are skipped).
     pub centre_crossing_ms: Option<f64>,
 }
 
@@ -136,9 +138,11 @@ impl SpikeTimingConfig {
             1e3,
             "mm",
         ));
-        match (self.speed_mm_s, self.centre_crossing_ms) {
-            (Some(v), Some(t)) => {
-                c.take(palpate_core::check_positive("speed_mm_s", v, "mm/s"));
+        if let Some(v) = self.speed_mm_s {
+            c.take(palpate_core::check_positive("speed_mm_s", v, "mm/s"));
+        }
+        match self.centre_crossing_ms {
+            Some(t) => {
                 c.take(palpate_core::check_range(
                     "centre_crossing_ms",
                     t,
@@ -147,22 +151,20 @@ impl SpikeTimingConfig {
                     "ms",
                 ));
             }
-            (None, None) => {}
-            (Some(_), None) => c.push(ConfigError::key(
+            // Without it a speed (the config's) could never be used.
+            None if self.speed_mm_s.is_some() => c.push(ConfigError::key(
                 "centre_crossing_ms",
                 "needed with `speed_mm_s`: when the edge crosses the array's centre",
             )),
-            (None, Some(_)) => c.push(ConfigError::key(
-                "speed_mm_s",
-                "needed with `centre_crossing_ms`: the palpation speed",
-            )),
+            None => {}
         }
         c.finish()
     }
 
     /// When the stimulus' centre line crosses each taxel's centre in this
     /// trial, ms from its start; `None` when the trial has no angle, or no
-    /// crossing and no declared speed.
+    /// crossing and no declared centre crossing or speed (the config's, else
+    /// the trial's).
     pub fn crossing_times(
         &self,
         item_meta: &palpate_core::TrialMeta,
@@ -189,7 +191,11 @@ impl SpikeTimingConfig {
                     .collect(),
             );
         }
-        let (v, tc) = (self.speed_mm_s?, self.centre_crossing_ms?);
+        let tc = self.centre_crossing_ms?;
+        let v = self.speed_mm_s.or(item_meta.speed_mm_s)?;
+        if !(v.is_finite() && v > 0.0) {
+            return None;
+        }
         let vn = edge.normal_speed(v) / 1000.0; // mm per ms
         Some(centres.iter().map(|c| tc - c / vn).collect())
     }
@@ -676,6 +682,20 @@ mod tests {
             cfg.crossing_times(&m, &l).is_none(),
             "no crossing, no speed: skipped"
         );
+        // The trial's own declared speed when the config gives none.
+        let own = SpikeTimingConfig {
+            centre_crossing_ms: Some(5000.0),
+            ..SpikeTimingConfig::default()
+        };
+        assert!(own.crossing_times(&m, &l).is_none(), "no speed anywhere");
+        let mut declared = (*m).clone();
+        declared.speed_mm_s = Some(2.0);
+        assert_eq!(own.crossing_times(&declared, &l), Some(t.clone()));
+        // ... which the config's overrides: at 4 mm/s the times halve.
+        declared.speed_mm_s = Some(4.0);
+        let half = own.crossing_times(&declared, &l).unwrap();
+        assert!((half[3] - (5000.0 - 2250.0 / 2.0)).abs() < 1e-9, "{half:?}");
+        assert_eq!(rec.crossing_times(&declared, &l), Some(t));
     }
 
     #[test]
