@@ -190,7 +190,6 @@ use palpate_core::{
     register_stage, BuildContext, ConfigError, Estimate, Estimator, FitContext, InputSpec, Item, Model,
     PayloadKind, Stage, StageConfig, StageError, TrialContext,
 };
-use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
 
 #[typetag::serde(name = "wss")]
@@ -219,7 +218,7 @@ impl Estimator for WssEstimator {
     fn fit(&self, _train: &[&Item], _ctx: &FitContext<'_>) -> Result<Box<dyn Model>, StageError> {
         Ok(Box::new(WssModel {
             params: self.params.clone(),
-            cache: Mutex::new(HashMap::new()),
+            cache: Mutex::new(Vec::new()),
         }))
     }
 }
@@ -227,12 +226,23 @@ impl Estimator for WssEstimator {
 /// Templates of every speed of the grid (the declared speed alone when it is known).
 type SpeedSets = Arc<Vec<(f64, Arc<Templates>)>>;
 
+/// Template sets [`WssModel`] keeps, most recently used first. Each set may
+/// hold up to 64 MiB of cached spectra per grid speed, and a recording whose
+/// trials declare many distinct speeds would otherwise keep one set per
+/// speed, growing with the number of trials. Four covers a few speeds mixed
+/// in one run; more only rebuild templates (the same results, more time).
+const MAX_TEMPLATE_SETS: usize = 4;
+
+/// What the template sets are cached by: layout (its JSON), hop and speed bits.
+type SetKey = (String, u64, u64);
+
 /// The fitted (model-based) WSS: parameters and templates cached per
-/// (layout, hop, speed): a trial's speed is its own declared one unless the
-/// config sets one ([`WssParams::for_trial`]).
+/// (layout, hop, speed), at most [`MAX_TEMPLATE_SETS`] of them: a trial's
+/// speed is its own declared one unless the config sets one
+/// ([`WssParams::for_trial`]).
 struct WssModel {
     params: WssParams,
-    cache: Mutex<HashMap<(String, u64, u64), SpeedSets>>,
+    cache: Mutex<Vec<(SetKey, SpeedSets)>>,
 }
 
 impl WssModel {
@@ -247,8 +257,14 @@ impl WssModel {
             images.hop_ms.to_bits(),
             params.speed().to_bits(),
         );
-        if let Some(t) = self.cache.lock().unwrap_or_else(|e| e.into_inner()).get(&key) {
-            return Ok(t.clone());
+        {
+            let mut c = self.cache.lock().unwrap_or_else(|e| e.into_inner());
+            if let Some(i) = c.iter().position(|(k, _)| *k == key) {
+                let hit = c.remove(i);
+                let t = hit.1.clone();
+                c.insert(0, hit);
+                return Ok(t);
+            }
         }
         // Built outside the lock: two threads may both build the same templates
         // on first use, which costs time but never changes a result.
@@ -258,9 +274,15 @@ impl WssModel {
                 .map_err(|e| StageError::new(format!("wss: images' {e}")))?;
             sets.push((f, Arc::new(t)));
         }
-        let t = Arc::new(sets);
+        let t: SpeedSets = Arc::new(sets);
         let mut c = self.cache.lock().unwrap_or_else(|e| e.into_inner());
-        Ok(c.entry(key).or_insert(t).clone())
+        if let Some(i) = c.iter().position(|(k, _)| *k == key) {
+            // Another thread built them first: share its sets.
+            return Ok(c[i].1.clone());
+        }
+        c.insert(0, (key, t.clone()));
+        c.truncate(MAX_TEMPLATE_SETS);
+        Ok(t)
     }
 }
 

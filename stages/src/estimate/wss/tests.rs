@@ -1241,3 +1241,45 @@ fn the_stage_builds_templates_for_each_trials_declared_speed_unless_told_one() {
     let undeclared = answers(cfg, &[trial(45.0, 10.0, None)]);
     assert_ne!(undeclared, [Some(45.0)]);
 }
+
+#[test]
+fn trials_of_many_speeds_keep_a_bounded_number_of_template_sets() {
+    use palpate_core::{Item, Model, Payload, TrialContext, TrialMeta};
+    // No configured speed (it would override the trials').
+    let model = WssModel {
+        params: WssParams {
+            speed_mm_s: None,
+            ..small_params()
+        },
+        cache: std::sync::Mutex::new(Vec::new()),
+    };
+    let speeds = [4.0, 5.0, 6.0, 7.0, 8.0, 10.0];
+    for (i, &v) in speeds.iter().chain(&speeds).enumerate() {
+        let item = Item {
+            meta: Arc::new(TrialMeta {
+                trial_id: format!("t{i}"),
+                speed_mm_s: Some(v),
+                ..TrialMeta::default()
+            }),
+            payload: Payload::Images(Arc::new(ideal(
+                &TaxelLayout::paper(),
+                45.0,
+                v,
+                500.0,
+                10.0,
+                100.0,
+            ))),
+        };
+        let ctx = TrialContext {
+            stage_id: "wss",
+            meta: &item.meta,
+            seed: 1,
+        };
+        let e = model.predict(&item, &ctx).unwrap();
+        assert_eq!(e.class_deg, Some(45.0), "{v} mm/s");
+        let c = model.cache.lock().unwrap();
+        assert!(c.len() <= MAX_TEMPLATE_SETS && c.len() == (i + 1).min(MAX_TEMPLATE_SETS));
+        // The set just used is first.
+        assert_eq!(c[0].0 .2, v.to_bits());
+    }
+}
