@@ -13,7 +13,8 @@
 //! `layout` is the JSON form of [`TaxelLayout`] as a dict (`{"kind": "grid",
 //! "rows": 4, ...}`); `meta` is `{"trial_id", "index", "angle_deg", "stimulus",
 //! "group", "crossing_ms", "speed_mm_s"}` (`speed_mm_s`: the commanded
-//! sliding speed, which WSS uses when its config sets none). Sizes coming from Python are checked (a signal's
+//! sliding speed, which WSS uses when its config sets none). Sizes coming
+//! from Python are checked (a signal's
 //! rows must agree, a spike's taxel must exist, times must be finite) and a
 //! violation is a `ValueError` naming the field.
 

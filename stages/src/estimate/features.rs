@@ -679,9 +679,10 @@ impl Standardizer {
     ///
     /// One pass, written straight into the new vector: a copy standardised
     /// in place read and wrote the batch twice (perf: the copy and the pass
-    /// ~12 % of an ANN (ST) prediction of the peers test set). Row slices
-    /// zipped in vector code, not `extend` (whose per-row growth checks kept
-    /// the pass at 12 % of that prediction); the same operations per value.
+    /// ~12 % of an ANN (ST) prediction of the peers test set). Written by
+    /// zipped row slices into the vector's capacity, in vector code: with
+    /// `extend` row by row that prediction took 0.665 ms, now 0.649 ms
+    /// (docs/benches.md); the same operations per value.
     pub fn apply_rows(&self, x: &[f64]) -> Vec<f64> {
         let d = self.mean.len().max(1);
         // Columns past the shorter of the two vectors stay as they are, as

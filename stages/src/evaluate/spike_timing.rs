@@ -691,10 +691,11 @@ mod tests {
         let mut declared = (*m).clone();
         declared.speed_mm_s = Some(2.0);
         assert_eq!(own.crossing_times(&declared, &l), Some(t.clone()));
-        // ... which the config's overrides: at 4 mm/s the times halve.
+        // At a declared 4 mm/s the offsets from the centre crossing halve ...
         declared.speed_mm_s = Some(4.0);
         let half = own.crossing_times(&declared, &l).unwrap();
         assert!((half[3] - (5000.0 - 2250.0 / 2.0)).abs() < 1e-9, "{half:?}");
+        // ... unless the config gives a speed (rec's 2 mm/s), which wins.
         assert_eq!(rec.crossing_times(&declared, &l), Some(t));
     }
 

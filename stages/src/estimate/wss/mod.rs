@@ -131,8 +131,11 @@
 //! sets `speed_mm_s`, each trial's templates are built for the speed the
 //! trial declares ([`palpate_core::TrialMeta::speed_mm_s`]: a scene's
 //! `motion.speed_mm_s`, a recording's label), else 2 mm/s. So a scene run
-//! at another speed needs no second key (with templates for 2 mm/s, the lab
-//! scene at 3 mm/s scores ~17 degrees MAE), and trials of several speeds mix.
+//! at another speed needs no second key, and trials of several speeds mix.
+//! Templates for the wrong speed cost much: the quickstart at 4 mm/s scores
+//! 0.15 degrees MAE, and 25.7 with `--set stages.wss.speed_mm_s=2`
+//! (`palpate run graphs/quickstart.toml --set
+//! stages.scene.motion.speed_mm_s=4`).
 //!
 //! The templates' timing is the edge's normal speed `v·sin θ`, so a declared
 //! speed 10 % off is matched best by an angle whose `sin θ` is 10 % off. With

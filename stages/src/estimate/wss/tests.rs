@@ -1278,7 +1278,7 @@ fn trials_of_many_speeds_keep_a_bounded_number_of_template_sets() {
         let e = model.predict(&item, &ctx).unwrap();
         assert_eq!(e.class_deg, Some(45.0), "{v} mm/s");
         let c = model.cache.lock().unwrap();
-        assert!(c.len() <= MAX_TEMPLATE_SETS && c.len() == (i + 1).min(MAX_TEMPLATE_SETS));
+        assert_eq!(c.len(), (i + 1).min(MAX_TEMPLATE_SETS));
         // The set just used is first.
         assert_eq!(c[0].0 .2, v.to_bits());
     }
