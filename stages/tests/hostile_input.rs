@@ -367,12 +367,12 @@ fn wide_csv_headers_and_many_trials_read_correctly() {
     let row: Vec<String> = (0..n).rev().map(|i| i.to_string()).collect();
     let text = format!("{}\n{}\n", names.join(","), row.join(","));
     let cfg = SignalFileConfig {
-        layout: palpate_stages::io::LayoutConfig::Grid {
+        layout: Some(palpate_stages::io::LayoutConfig::Grid {
             rows: 200,
             cols: 200,
             pitch_mm: 1.0,
             taxel_mm: 0.5,
-        },
+        }),
         ..Default::default()
     };
     let t = read_signal_bytes(text.as_bytes(), "w.csv", "w", SignalFormat::Csv, &cfg, n).unwrap();

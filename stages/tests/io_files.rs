@@ -648,14 +648,27 @@ fn signals_round_trip_through_csv_and_npy_sinks() {
         } else {
             ""
         };
-        let r2 = run_graph(
-            p,
-            &format!(
-                "[stages.back]\ntype = \"signal_file\"\npath = \"out/save/*.{format}\"\nlabels = \"out/save/labels.toml\"\n{rate}{GRID2}\n"
-            ),
-        )
-        .unwrap();
+        // No `layout` key: the sidecar the sink wrote declares the 2 x 2 array.
+        let back_graph = |layout: &str| {
+            run_graph(
+                p,
+                &format!(
+                    "[stages.back]\ntype = \"signal_file\"\npath = \"out/save/*.{format}\"\nlabels = \"out/save/labels.toml\"\n{rate}{layout}\n"
+                ),
+            )
+        };
+        let r2 = back_graph("").unwrap();
         let back = items(&r2, "back");
+        assert_eq!(signals(&back[0]).layout, signals(&first[0]).layout);
+        // The same layout set again is fine; another one names the sidecar.
+        assert!(back_graph(GRID2).is_ok());
+        let e =
+            back_graph(r#"layout = { kind = "grid", rows = 1, cols = 4, pitch_mm = 3.0, taxel_mm = 2.0 }"#)
+                .unwrap_err();
+        assert!(
+            e.contains("`layout`") && e.contains("labels.toml") && e.contains("a 2 x 2 grid"),
+            "{e}"
+        );
         assert_eq!(back.len(), first.len());
         for (a, b) in first.iter().zip(back) {
             assert_eq!(a.meta.trial_id, b.meta.trial_id);
@@ -703,7 +716,9 @@ fn spikes_round_trip_through_csv_and_npy_sinks() {
         let first = items(&r, "src").to_vec();
         let r2 = run_graph(
             p,
-            &format!("[stages.back]\ntype = \"spike_file\"\npath = \"out/save/*.{format}\"\nlabels = \"out/save/labels.toml\"\n{GRID2}\n"),
+            // No `layout` key: the sidecar declares the 2 x 2 grid (read as
+            // the default 4 x 4, every event would land on the wrong taxel).
+            &format!("[stages.back]\ntype = \"spike_file\"\npath = \"out/save/*.{format}\"\nlabels = \"out/save/labels.toml\"\n"),
         )
         .unwrap();
         let back = items(&r2, "back");

@@ -548,7 +548,10 @@ fn simulate_writes_what_signal_file_reads_back_with_labels() {
     let scene = dir.join("scene.toml");
     std::fs::write(
         &scene,
-        "angles = [90, 45]\ntrials_per_angle = 2\neffects = [{ kind = \"piezo\" }, { kind = \"noise\", sigma = 0.01 }]\n",
+        // A 3 x 2 array: the label files carry the layout, so `signal_file`
+        // reads the files back without a `layout` key.
+        "angles = [90, 45]\ntrials_per_angle = 2\neffects = [{ kind = \"piezo\" }, { kind = \"noise\", sigma = 0.01 }]\n\
+         array = { rows = 3, cols = 2, pitch_mm = 3.0, taxel_mm = 2.0 }\n",
     )
     .unwrap();
     let want = items_in(
@@ -586,18 +589,23 @@ fn simulate_writes_what_signal_file_reads_back_with_labels() {
                 assert_eq!(g.meta.label, w.meta.label, "{ext} {labels}");
                 assert_eq!(g.meta.group, w.meta.group, "{ext} {labels}");
                 assert_eq!(data(g), data(w), "{ext} {labels}: samples differ");
+                let (gs, ws) = (g.payload.signals().unwrap(), w.payload.signals().unwrap());
+                assert_eq!(
+                    gs.layout, ws.layout,
+                    "{ext} {labels}: the layout the labels declare"
+                );
             }
         }
     }
     // The CSV's columns are the ones `signal_file` expects.
     let csv = std::fs::read_to_string(dir.join("out-csv/edge-90deg-r00.csv")).unwrap();
     let header = csv.lines().next().unwrap();
-    assert!(header.starts_with("time_ms,taxel_0,taxel_1,") && header.ends_with(",taxel_15"));
+    assert!(header.starts_with("time_ms,taxel_0,taxel_1,") && header.ends_with(",taxel_5"));
     // The NPY is (samples, taxels).
     let bytes = std::fs::read(dir.join("out-npy/edge-45deg-r01.npy")).unwrap();
     let npy = npyz::NpyFile::new(&bytes[..]).unwrap();
     let w = want.iter().find(|i| i.meta.trial_id == "edge-45deg-r01").unwrap();
-    assert_eq!(npy.shape(), &[data(w)[0].len() as u64, 16]);
+    assert_eq!(npy.shape(), &[data(w)[0].len() as u64, 6]);
     assert!(
         palpate_stages::scene::simulate_to_dir(&dir.join("nope.toml"), &dir.join("o"), 5, false)
             .unwrap_err()

@@ -23,6 +23,19 @@
 //! CSV: a header row with `trial` and any of `angle_deg`, `stimulus`, `group`,
 //! `duration_ms`; one row per trial; an empty cell means "not given".
 //!
+//! ## The array's layout
+//!
+//! A TOML sidecar may also declare the taxel layout the files were recorded
+//! with, in a `[layout]` table with the keys of a stage's `layout` key
+//! (`kind = "grid"`, `rows`, `cols`, `pitch_mm`, `taxel_mm`, or `kind =
+//! "positions"`, `positions_mm`, `taxel_mm`); a `trials.json` declares it in
+//! its `layout` entry. `palpate simulate`, `write_signals` and `write_spikes`
+//! write it, so files of a 3 x 3 array read back as a 3 x 3 array without a
+//! second key. Which layout a file source uses ([`resolve_layout`]): its
+//! `layout` key when set (a sidecar that declares another layout is then an
+//! error naming both, not a silent choice), else the sidecar's, else the
+//! paper's 4 x 4 grid.
+//!
 //! ## Precedence and groups
 //!
 //! A sidecar value wins over a value read from the data file. A trial with an
@@ -412,6 +425,106 @@ pub fn merge_consistent(into: &mut TrialLabels, other: &TrialLabels, what: &str)
 #[serde(deny_unknown_fields)]
 struct TomlSidecar {
     trials: BTreeMap<String, TrialLabels>,
+    /// The array the files were recorded with (read by [`read_sidecar_layout`]).
+    #[serde(default)]
+    #[allow(dead_code)]
+    layout: Option<TaxelLayout>,
+}
+
+/// The part of a sidecar (TOML or `trials.json`) that declares the layout;
+/// every other entry is ignored here and checked by [`parse_sidecar`].
+#[derive(Deserialize)]
+struct SidecarLayout {
+    #[serde(default)]
+    layout: Option<TaxelLayout>,
+}
+
+/// The taxel layout a label sidecar declares (its `[layout]` table, or a
+/// `trials.json`'s `layout`), checked; `None` when it declares none (a CSV
+/// sidecar never does).
+pub fn read_sidecar_layout(path: &Path) -> Result<Option<TaxelLayout>, String> {
+    let shown = path.display();
+    let ext = path
+        .extension()
+        .map(|e| e.to_string_lossy().to_ascii_lowercase())
+        .unwrap_or_default();
+    if ext != "toml" && ext != "json" {
+        return Ok(None);
+    }
+    let text = std::fs::read_to_string(path).map_err(|e| format!("cannot read {shown}: {e}"))?;
+    parse_sidecar_layout(&text, &ext, &shown.to_string())
+}
+
+/// [`read_sidecar_layout`] on a sidecar's text: `ext` (`toml` or `json`;
+/// anything else declares none) picks the syntax and `shown` names the file.
+pub fn parse_sidecar_layout(text: &str, ext: &str, shown: &str) -> Result<Option<TaxelLayout>, String> {
+    let parsed: SidecarLayout = match ext {
+        "toml" => toml::from_str(text).map_err(|e| format!("{shown}: {e}"))?,
+        "json" => serde_json::from_str(text).map_err(|e| format!("{shown}: {e}"))?,
+        _ => return Ok(None),
+    };
+    match parsed.layout {
+        Some(l) => {
+            l.validate().map_err(|m| format!("{shown}: `layout`: {m}"))?;
+            Ok(Some(l))
+        }
+        None => Ok(None),
+    }
+}
+
+/// The layout a file source reads its files with: its `layout` key (`key`,
+/// when set), else the one the label sidecar `sidecar` declares, else the
+/// paper's 4 x 4 grid. A key and a sidecar that disagree are an error on the
+/// key naming the sidecar: one of them describes another array.
+pub fn resolve_layout(
+    key: &str,
+    set: Option<&LayoutConfig>,
+    sidecar: Option<&Path>,
+) -> Result<TaxelLayout, ConfigError> {
+    let declared = match sidecar {
+        Some(p) if p.is_file() => read_sidecar_layout(p).map_err(|m| ConfigError::key("labels", m))?,
+        _ => None,
+    };
+    match (set, declared) {
+        (Some(c), Some(d)) => {
+            let l = c.to_layout(key)?;
+            if l != d {
+                return Err(ConfigError::key(
+                    key,
+                    format!(
+                        "{} but the label sidecar {} declares {}; remove the key or correct the sidecar",
+                        describe_layout(&l),
+                        sidecar.map_or(String::new(), |p| p.display().to_string()),
+                        describe_layout(&d)
+                    ),
+                ));
+            }
+            Ok(l)
+        }
+        (Some(c), None) => c.to_layout(key),
+        (None, Some(d)) => Ok(d),
+        (None, None) => LayoutConfig::default().to_layout(key),
+    }
+}
+
+/// A layout in a few words, for errors.
+pub fn describe_layout(l: &TaxelLayout) -> String {
+    match l {
+        TaxelLayout::Grid {
+            rows,
+            cols,
+            pitch_mm,
+            taxel_mm,
+        } => format!("a {rows} x {cols} grid ({pitch_mm} mm pitch, {taxel_mm} mm taxels)"),
+        TaxelLayout::Positions {
+            positions_mm,
+            taxel_mm,
+            ..
+        } => format!(
+            "{} taxels at given positions ({taxel_mm} mm taxels)",
+            positions_mm.len()
+        ),
+    }
 }
 
 /// Reads a label sidecar (TOML, CSV, or the `trials.json` of `palpate
@@ -670,10 +783,24 @@ pub fn loaded_trial<T>(
 
 /// Writes the label sidecar (TOML) the sources read: one `[trials."<id>"]`
 /// table per trial with `angle_deg` (when known), `stimulus`, `group` and, for
-/// spikes, `duration_ms`. TOML rather than CSV so that a `*.csv` glob over the
-/// data files does not pick the sidecar up. Numbers use Rust's round-trip form.
-pub fn sidecar_toml(rows: &[(String, &TrialMeta, Option<f64>)]) -> String {
+/// spikes, `duration_ms`, and first the array's `[layout]` when given (what
+/// the file sources read the files with, see the module docs). TOML rather
+/// than CSV so that a `*.csv` glob over the data files does not pick the
+/// sidecar up. Numbers use Rust's round-trip form.
+pub fn sidecar_toml(rows: &[(String, &TrialMeta, Option<f64>)], layout: Option<&TaxelLayout>) -> String {
     let mut s = String::from("# Labels of the trials in this folder (palpate label sidecar).\n");
+    if let Some(l) = layout {
+        #[derive(Serialize)]
+        struct L<'a> {
+            layout: &'a TaxelLayout,
+        }
+        // A layout always serialises (numbers and a tag); an error would
+        // only drop the table, and the sources then fall back to their key.
+        if let Ok(t) = toml::to_string(&L { layout: l }) {
+            s.push_str("# The array these files were recorded with.\n");
+            s.push_str(&t);
+        }
+    }
     for (id, m, d) in rows {
         let id = id.replace('\\', "\\\\").replace('"', "\\\"");
         s.push_str(&format!("\n[trials.\"{id}\"]\n"));
@@ -735,6 +862,53 @@ mod tests {
         let dup = vec![t("a", None, None), t("a", None, None)];
         let e = build_metas(&dup, &["f1".into(), "f2".into()]).unwrap_err();
         assert!(e.message.contains("`a`") && e.message.contains("f1") && e.message.contains("f2"));
+    }
+
+    #[test]
+    fn a_sidecar_declares_the_layout_and_a_key_must_agree_with_it() {
+        let d = tempfile::tempdir().unwrap();
+        let toml = d.path().join("labels.toml");
+        let grid = TaxelLayout::Grid {
+            rows: 3,
+            cols: 2,
+            pitch_mm: 2.5,
+            taxel_mm: 2.0,
+        };
+        let meta = TrialMeta {
+            trial_id: "t0".into(),
+            ..TrialMeta::default()
+        };
+        std::fs::write(&toml, sidecar_toml(&[("t0".into(), &meta, None)], Some(&grid))).unwrap();
+        // The sidecar the writer makes parses as labels and declares the grid.
+        assert_eq!(read_sidecar(&toml).unwrap().len(), 1);
+        assert_eq!(read_sidecar_layout(&toml).unwrap(), Some(grid.clone()));
+        assert_eq!(resolve_layout("layout", None, Some(&toml)).unwrap(), grid);
+        let other = LayoutConfig::default();
+        let e = resolve_layout("layout", Some(&other), Some(&toml))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("labels.toml") && e.contains("3 x 2") && e.contains("4 x 4"),
+            "{e}"
+        );
+        // No sidecar, or one without a layout (CSV never has one): the key, else 4 x 4.
+        let csv = d.path().join("labels.csv");
+        std::fs::write(&csv, "trial,angle_deg\nt0,30\n").unwrap();
+        assert_eq!(resolve_layout("layout", None, Some(&csv)).unwrap().len(), 16);
+        assert_eq!(resolve_layout("layout", None, None).unwrap().len(), 16);
+        // trials.json's `layout`, and a bad one named with its file.
+        let json = d.path().join("trials.json");
+        std::fs::write(&json, r#"{"layout": {"kind": "grid", "rows": 1, "cols": 5, "pitch_mm": 3.0, "taxel_mm": 2.0}, "trials": []}"#).unwrap();
+        assert_eq!(resolve_layout("layout", None, Some(&json)).unwrap().len(), 5);
+        std::fs::write(
+            &toml,
+            "[layout]\nkind = \"grid\"\nrows = 0\ncols = 4\npitch_mm = 3.0\ntaxel_mm = 2.0\n[trials.t0]\n",
+        )
+        .unwrap();
+        let e = resolve_layout("layout", None, Some(&toml))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("labels.toml") && e.contains("labels"), "{e}");
     }
 
     #[test]

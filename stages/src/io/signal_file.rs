@@ -64,8 +64,8 @@
 
 use super::arrays::{read_mat, read_npy_plain, read_npz, NdArray, NpyContent};
 use super::common::{
-    apply_sidecar, build_metas, expand_paths, file_ids, merge_consistent, read_sidecar, set_label_cell,
-    LayoutConfig, TrialLabels, LABEL_COLUMNS,
+    apply_sidecar, build_metas, expand_paths, file_ids, merge_consistent, read_sidecar, resolve_layout,
+    set_label_cell, LayoutConfig, TrialLabels, LABEL_COLUMNS,
 };
 use palpate_core::{
     check_positive, register_stage, BuildContext, ConfigChecks, ConfigError, InputSpec, Inspection,
@@ -116,9 +116,12 @@ pub struct SignalFileConfig {
     /// Sample rate, Hz. Required unless every file carries its own (a time
     /// column, a `sample_rate_hz` variable, DAQ timestamps). Default none.
     pub sample_rate_hz: Option<f64>,
-    /// Taxel layout; its taxel count must match the files'. Default: the paper's
-    /// 4 x 4 grid, 3 mm pitch, 2 mm taxels.
-    pub layout: LayoutConfig,
+    /// Taxel layout; its taxel count must match the files'. Default: the one
+    /// the label sidecar declares (its `[layout]` table, or a `trials.json`'s
+    /// `layout`: `palpate simulate`, `write_signals` and `write_spikes` write
+    /// it), else the paper's 4 x 4 grid, 3 mm pitch, 2 mm taxels. Set and
+    /// unlike the sidecar's, an error.
+    pub layout: Option<LayoutConfig>,
     /// Unit of the samples, e.g. `V`. Default `V`.
     pub unit: String,
     /// Label sidecar (TOML, CSV, or a `trials.json` from `palpate simulate`)
@@ -155,7 +158,7 @@ impl Default for SignalFileConfig {
             paths: vec![],
             format: SignalFormat::Auto,
             sample_rate_hz: None,
-            layout: LayoutConfig::default(),
+            layout: None,
             unit: "V".into(),
             labels: None,
             columns: vec![],
@@ -197,20 +200,8 @@ impl SignalFileConfig {
     /// Checks the config and makes the (not yet loaded) source.
     fn source(&self, ctx: &BuildContext) -> Result<SignalFileSource, ConfigError> {
         let mut c = ConfigChecks::new();
-        let layout = c.take(self.layout.to_layout("layout"));
         if let Some(r) = self.sample_rate_hz {
             c.take(check_positive("sample_rate_hz", r, "Hz"));
-        }
-        let n_taxels = layout.as_ref().map_or(self.columns.len(), TaxelLayout::len);
-        if !self.columns.is_empty() && self.columns.len() != n_taxels {
-            c.push(ConfigError::key(
-                "columns",
-                format!(
-                    "lists {} names but the layout has {} taxels",
-                    self.columns.len(),
-                    n_taxels
-                ),
-            ));
         }
         if !(self.daq_scale.is_finite() && self.daq_scale != 0.0 && self.daq_offset.is_finite()) {
             c.push(ConfigError::key(
@@ -235,6 +226,18 @@ impl SignalFileConfig {
                     format!("file {} not found", l.display()),
                 ));
             }
+        }
+        let layout = c.take(resolve_layout("layout", self.layout.as_ref(), labels.as_deref()));
+        let n_taxels = layout.as_ref().map_or(self.columns.len(), TaxelLayout::len);
+        if !self.columns.is_empty() && self.columns.len() != n_taxels {
+            c.push(ConfigError::key(
+                "columns",
+                format!(
+                    "lists {} names but the layout has {} taxels",
+                    self.columns.len(),
+                    n_taxels
+                ),
+            ));
         }
         c.finish()?;
         let layout = layout.ok_or_else(|| ConfigError::key("layout", "not a layout"))?;
@@ -263,6 +266,10 @@ pub fn read_signal_files(
     };
     cfg.source(&ctx)?.load()
 }
+
+/// Appended to a taxel-count mismatch: where the layout comes from.
+const LAYOUT_HINT: &str =
+    "; the stage's `layout` key, or a `[layout]` table in the label sidecar, declares the recorded array";
 
 /// The format of `path` under setting `f`.
 pub fn format_of(f: SignalFormat, path: &Path) -> Result<SignalFormat, String> {
@@ -462,7 +469,7 @@ pub fn read_signal_bytes(
                 .map_err(|e| format!("{shown}: {e}"))?;
             if rec.data.len() != n_taxels {
                 return Err(format!(
-                    "{shown}: channel mismatch: the frames carry {} channels but the layout has {n_taxels} taxels",
+                    "{shown}: channel mismatch: the frames carry {} channels but the layout has {n_taxels} taxels{LAYOUT_HINT}",
                     rec.data.len()
                 ));
             }
@@ -627,7 +634,7 @@ fn arrays_to_trials(
                             expected_shape(matlab, !cfg.taxel_major)
                         )
                     } else {
-                        String::new()
+                        LAYOUT_HINT.to_string()
                     };
                     return Err(format!(
                         "{what}: wrong shape {:?}: the taxel axis has {} entries but the layout has {n_taxels} taxels; expected {}{hint}",
@@ -828,7 +835,7 @@ fn read_csv_signals(
     for (i, n) in names.iter().enumerate() {
         if !present[i] {
             return Err(format!(
-                "{shown}: missing taxel column `{n}` (taxel {i} of {n_taxels})"
+                "{shown}: missing taxel column `{n}` (taxel {i} of the layout's {n_taxels}){LAYOUT_HINT}"
             ));
         }
     }

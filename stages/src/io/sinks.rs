@@ -241,7 +241,11 @@ impl Sink for SignalsSink {
                 })
             });
         }
-        finish_with_sidecar(files, &rows, info, "signals")
+        let layout = items
+            .first()
+            .and_then(|it| it.payload.signals().ok())
+            .map(|s| &s.layout);
+        finish_with_sidecar(files, &rows, info, layout, "signals")
     }
 }
 
@@ -273,9 +277,10 @@ fn finish_with_sidecar(
     mut files: Files,
     rows: &[(String, &TrialMeta, Option<f64>)],
     info: Option<serde_json::Value>,
+    layout: Option<&TaxelLayout>,
     what: &str,
 ) -> Result<SinkReport, StageError> {
-    files.add("labels.toml".into(), sidecar_toml(rows).into_bytes())?;
+    files.add("labels.toml".into(), sidecar_toml(rows, layout).into_bytes())?;
     if let Some(info) = info {
         files.add("info.json".into(), json(&info))?;
     }
@@ -334,7 +339,11 @@ impl Sink for ImagesSink {
             let stems: Vec<&str> = rows.iter().map(|(s, _, _)| s.as_str()).collect();
             o.insert("trials".into(), serde_json::json!(stems));
         }
-        finish_with_sidecar(files, &rows, info, "spike images")
+        let layout = items
+            .first()
+            .and_then(|it| it.payload.images().ok())
+            .map(|im| &im.layout);
+        finish_with_sidecar(files, &rows, info, layout, "spike images")
     }
 }
 
@@ -492,7 +501,11 @@ impl Sink for SpikesSink {
                 "npy_layout": self.cfg.npy_layout,
             })
         });
-        finish_with_sidecar(files, &rows, info, "spikes")
+        let layout = items
+            .first()
+            .and_then(|it| it.payload.spikes().ok())
+            .map(|s| &s.layout);
+        finish_with_sidecar(files, &rows, info, layout, "spikes")
     }
 }
 

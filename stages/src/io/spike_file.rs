@@ -35,8 +35,8 @@
 
 use super::arrays::{read_npy, NpyContent};
 use super::common::{
-    apply_sidecar, build_metas, expand_paths, file_ids, merge_consistent, read_sidecar, set_label_cell,
-    LayoutConfig, TrialLabels, LABEL_COLUMNS,
+    apply_sidecar, build_metas, expand_paths, file_ids, merge_consistent, read_sidecar, resolve_layout,
+    set_label_cell, LayoutConfig, TrialLabels, LABEL_COLUMNS,
 };
 use super::signal_file::{check_csv_complete, csv_error};
 use palpate_core::{
@@ -133,8 +133,12 @@ pub struct SpikeFileConfig {
     /// Trial length, ms; default none: the last event + 1 ms (a sidecar's
     /// `duration_ms` wins).
     pub duration_ms: Option<f64>,
-    /// Taxel layout. Default: the paper's 4 x 4 grid, 3 mm pitch, 2 mm taxels.
-    pub layout: LayoutConfig,
+    /// Taxel layout; its taxel count must match the files'. Default: the one
+    /// the label sidecar declares (its `[layout]` table, or a `trials.json`'s
+    /// `layout`: `palpate simulate`, `write_signals` and `write_spikes` write
+    /// it), else the paper's 4 x 4 grid, 3 mm pitch, 2 mm taxels. Set and
+    /// unlike the sidecar's, an error.
+    pub layout: Option<LayoutConfig>,
     /// Label sidecar (TOML, CSV, or a `trials.json` from `palpate simulate`).
     /// Default none.
     pub labels: Option<String>,
@@ -150,7 +154,7 @@ impl Default for SpikeFileConfig {
             time_origin: TimeOrigin::Zero,
             polarity: Polarity::Both,
             duration_ms: None,
-            layout: LayoutConfig::default(),
+            layout: None,
             labels: None,
         }
     }
@@ -166,7 +170,6 @@ impl StageConfig for SpikeFileConfig {
     }
     fn build(&self, ctx: &BuildContext) -> Result<Stage, ConfigError> {
         let mut c = palpate_core::ConfigChecks::new();
-        let layout = c.take(self.layout.to_layout("layout"));
         if let Some(d) = self.duration_ms {
             c.take(check_positive("duration_ms", d, "ms"));
         }
@@ -188,6 +191,7 @@ impl StageConfig for SpikeFileConfig {
                 ));
             }
         }
+        let layout = c.take(resolve_layout("layout", self.layout.as_ref(), labels.as_deref()));
         c.finish()?;
         let layout = layout.ok_or_else(|| ConfigError::key("layout", "not a layout"))?;
         Ok(Stage::Source(Box::new(SpikeFileSource {

@@ -294,7 +294,11 @@ pub fn simulate_to_dir(
     let rows: Vec<(String, &TrialMeta, Option<f64>)> =
         metas.iter().map(|m| (m.trial_id.clone(), m, None)).collect();
     let labels = out.join("labels.toml");
-    write_file(&labels, crate::io::common::sidecar_toml(&rows).as_bytes())?;
+    let layout = &source.simulator().scene.layout;
+    write_file(
+        &labels,
+        crate::io::common::sidecar_toml(&rows, Some(layout)).as_bytes(),
+    )?;
     files.push(labels);
 
     let sc = &source.simulator().scene;
