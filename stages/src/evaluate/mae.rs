@@ -536,6 +536,16 @@ pub fn render(stats: &MaeStats, per_class: bool) -> String {
             String::new()
         }
     );
+    if stats.trials > 0 && stats.no_edge == stats.trials {
+        // The usual cause on a recording is the front end, not the estimator:
+        // say where to look (the guide's troubleshooting page says more).
+        let _ = writeln!(
+            s,
+            "  every trial came out \"no edge\": check the front end -- `normalize`'s `min_span` is in the \
+             signal's unit (0.1 for volts, 100 for millivolts) and the encoder must fire (a `raster_plot` \
+             stage shows its spikes)"
+        );
+    }
     if let Some(d) = stats.decision_ms {
         let _ = writeln!(
             s,
@@ -779,7 +789,12 @@ mod tests {
     fn all_no_edge_gives_no_nan() {
         let s = mae_stats("w", &[(Some(10.0), None)]);
         assert_eq!(s.mae_deg, None);
-        assert!(!render(&s, true).contains("NaN"));
+        let text = render(&s, true);
+        assert!(!text.contains("NaN"));
+        // Every trial without an edge: the report says where to look.
+        assert!(text.contains("min_span"), "{text}");
+        let some = mae_stats("w", &[(Some(10.0), None), (Some(20.0), Some(20.0))]);
+        assert!(!render(&some, true).contains("min_span"));
     }
 
     #[test]
