@@ -475,12 +475,26 @@ pub fn parse_sidecar_layout(text: &str, ext: &str, shown: &str) -> Result<Option
 /// The layout a file source reads its files with: its `layout` key (`key`,
 /// when set), else the one the label sidecar `sidecar` declares, else the
 /// paper's 4 x 4 grid. A key and a sidecar that disagree are an error on the
-/// key naming the sidecar: one of them describes another array.
+/// key naming the sidecar: one of them describes another array. The flag is
+/// true when the layout was declared (key or sidecar), false for the default.
 pub fn resolve_layout(
     key: &str,
     set: Option<&LayoutConfig>,
     sidecar: Option<&Path>,
-) -> Result<TaxelLayout, ConfigError> {
+) -> Result<(TaxelLayout, bool), ConfigError> {
+    match resolve_declared(key, set, sidecar)? {
+        Some(l) => Ok((l, true)),
+        None => Ok((LayoutConfig::default().to_layout(key)?, false)),
+    }
+}
+
+/// [`resolve_layout`] without the default: `None` when neither the key nor
+/// the sidecar declares a layout.
+fn resolve_declared(
+    key: &str,
+    set: Option<&LayoutConfig>,
+    sidecar: Option<&Path>,
+) -> Result<Option<TaxelLayout>, ConfigError> {
     let declared = match sidecar {
         Some(p) if p.is_file() => read_sidecar_layout(p).map_err(|m| ConfigError::key("labels", m))?,
         _ => None,
@@ -499,11 +513,11 @@ pub fn resolve_layout(
                     ),
                 ));
             }
-            Ok(l)
+            Ok(Some(l))
         }
-        (Some(c), None) => c.to_layout(key),
-        (None, Some(d)) => Ok(d),
-        (None, None) => LayoutConfig::default().to_layout(key),
+        (Some(c), None) => c.to_layout(key).map(Some),
+        (None, Some(d)) => Ok(Some(d)),
+        (None, None) => Ok(None),
     }
 }
 
@@ -882,7 +896,10 @@ mod tests {
         // The sidecar the writer makes parses as labels and declares the grid.
         assert_eq!(read_sidecar(&toml).unwrap().len(), 1);
         assert_eq!(read_sidecar_layout(&toml).unwrap(), Some(grid.clone()));
-        assert_eq!(resolve_layout("layout", None, Some(&toml)).unwrap(), grid);
+        assert_eq!(
+            resolve_layout("layout", None, Some(&toml)).unwrap(),
+            (grid.clone(), true)
+        );
         let other = LayoutConfig::default();
         let e = resolve_layout("layout", Some(&other), Some(&toml))
             .unwrap_err()
@@ -894,12 +911,14 @@ mod tests {
         // No sidecar, or one without a layout (CSV never has one): the key, else 4 x 4.
         let csv = d.path().join("labels.csv");
         std::fs::write(&csv, "trial,angle_deg\nt0,30\n").unwrap();
-        assert_eq!(resolve_layout("layout", None, Some(&csv)).unwrap().len(), 16);
-        assert_eq!(resolve_layout("layout", None, None).unwrap().len(), 16);
+        let (l, declared) = resolve_layout("layout", None, Some(&csv)).unwrap();
+        assert_eq!((l.len(), declared), (16, false));
+        let (l, declared) = resolve_layout("layout", Some(&LayoutConfig::default()), None).unwrap();
+        assert_eq!((l.len(), declared), (16, true));
         // trials.json's `layout`, and a bad one named with its file.
         let json = d.path().join("trials.json");
         std::fs::write(&json, r#"{"layout": {"kind": "grid", "rows": 1, "cols": 5, "pitch_mm": 3.0, "taxel_mm": 2.0}, "trials": []}"#).unwrap();
-        assert_eq!(resolve_layout("layout", None, Some(&json)).unwrap().len(), 5);
+        assert_eq!(resolve_layout("layout", None, Some(&json)).unwrap().0.len(), 5);
         std::fs::write(
             &toml,
             "[layout]\nkind = \"grid\"\nrows = 0\ncols = 4\npitch_mm = 3.0\ntaxel_mm = 2.0\n[trials.t0]\n",

@@ -227,7 +227,10 @@ impl SignalFileConfig {
                 ));
             }
         }
-        let layout = c.take(resolve_layout("layout", self.layout.as_ref(), labels.as_deref()));
+        // A signal file's column count checks the layout: no default to flag.
+        let layout = c
+            .take(resolve_layout("layout", self.layout.as_ref(), labels.as_deref()))
+            .map(|(l, _)| l);
         let n_taxels = layout.as_ref().map_or(self.columns.len(), TaxelLayout::len);
         if !self.columns.is_empty() && self.columns.len() != n_taxels {
             c.push(ConfigError::key(

@@ -193,10 +193,11 @@ impl StageConfig for SpikeFileConfig {
         }
         let layout = c.take(resolve_layout("layout", self.layout.as_ref(), labels.as_deref()));
         c.finish()?;
-        let layout = layout.ok_or_else(|| ConfigError::key("layout", "not a layout"))?;
+        let (layout, declared) = layout.ok_or_else(|| ConfigError::key("layout", "not a layout"))?;
         Ok(Stage::Source(Box::new(SpikeFileSource {
             cfg: self.clone(),
             layout,
+            assumed: (!declared).then(|| ctx.stage_id.clone()),
             files,
             labels,
             loaded: OnceLock::new(),
@@ -231,9 +232,39 @@ type CsvEvents = (String, TrialLabels, Vec<(u32, f64)>);
 struct SpikeFileSource {
     cfg: SpikeFileConfig,
     layout: TaxelLayout,
+    /// The stage's id when the layout is the default 4 x 4 (neither the key
+    /// nor the label file declared one): [`unused_edges`] is then reported.
+    assumed: Option<String>,
     files: Vec<PathBuf>,
     labels: Option<PathBuf>,
     loaded: OnceLock<Result<Loaded, StageError>>,
+}
+
+/// Events of a smaller array read with a larger grid land on its first rows
+/// and columns and leave the others silent, with no error. So when the grid
+/// was assumed rather than declared and no event at all lies in its last
+/// row or last column, say so (a warning, not an error: a real 4 x 4 array
+/// may have a dead edge row).
+fn unused_edges<'a>(layout: &TaxelLayout, events: impl Iterator<Item = &'a (u32, f64)>) -> Option<String> {
+    let (rows, cols) = layout.grid()?;
+    let (mut last_row, mut last_col, mut any) = (false, false, false);
+    for &(taxel, _) in events {
+        any = true;
+        let t = taxel as usize;
+        last_row |= t / cols.max(1) == rows - 1;
+        last_col |= t % cols.max(1) == cols - 1;
+    }
+    (any && !(last_row && last_col)).then(|| {
+        format!(
+            "no event in the last {} of the default {rows} x {cols} grid: if the array is smaller, \
+             declare it (the `layout` key, or a `[layout]` table in the label file)",
+            match (last_row, last_col) {
+                (false, false) => "row or column",
+                (false, true) => "row",
+                _ => "column",
+            }
+        )
+    })
 }
 
 /// Events of one trial as read, before durations and labels are settled.
@@ -257,6 +288,11 @@ impl SpikeFileSource {
         let mut raw = Vec::new();
         for r in per_file {
             raw.extend(r.map_err(StageError::new)?);
+        }
+        if let Some(id) = &self.assumed {
+            if let Some(m) = unused_edges(&self.layout, raw.iter().flat_map(|t| &t.events)) {
+                eprintln!("warning: spike_file `{id}`: {m}");
+            }
         }
         let mut labelled: Vec<(String, TrialLabels)> =
             raw.iter().map(|t| (t.id.clone(), t.labels.clone())).collect();
@@ -588,4 +624,32 @@ fn read_csv_events(
             },
         })
         .collect())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn events_of_a_smaller_array_on_the_default_grid_are_flagged() {
+        let grid = LayoutConfig::default().to_layout("layout").unwrap();
+        let ev = |xy: &[(u32, u32)]| xy.iter().map(|&(x, y)| (y * 4 + x, 1.0)).collect::<Vec<_>>();
+        // A 3 x 3 array's events (x, y < 3): neither the last row nor column.
+        let small = ev(&[(0, 0), (2, 2), (1, 2)]);
+        let m = unused_edges(&grid, small.iter()).unwrap();
+        assert!(m.contains("row or column") && m.contains("`layout`"), "{m}");
+        // 4 rows, 3 columns: only the last column is silent.
+        assert!(unused_edges(&grid, ev(&[(0, 3), (2, 0)]).iter())
+            .unwrap()
+            .contains("last column"));
+        // Both edges reached (in different events), or no events at all: nothing to say.
+        assert_eq!(unused_edges(&grid, ev(&[(3, 0), (0, 3)]).iter()), None);
+        assert_eq!(unused_edges(&grid, std::iter::empty()), None);
+        // Explicit positions have no rows and columns.
+        let pos = TaxelLayout::Positions {
+            positions_mm: vec![[0.0, 0.0], [3.0, 0.0]],
+            taxel_mm: 2.0,
+        };
+        assert_eq!(unused_edges(&pos, ev(&[(0, 0)]).iter()), None);
+    }
 }
