@@ -207,7 +207,8 @@ enum DaqCommand {
         /// Seed of the simulated trial.
         #[arg(long, default_value_t = 0)]
         seed: u64,
-        /// A recording (CSV, NPY, NPZ, MAT or raw DAQ; the first trial is played).
+        /// A recording (CSV, NPY, NPZ, MAT or raw DAQ; the first trial is played). Its array is the one a
+        /// `labels.toml` or `trials.json` beside it declares (as `palpate simulate` writes), else 4 x 4.
         #[arg(long)]
         recording: Option<PathBuf>,
         /// Sample rate of the recording, Hz, when the file does not carry it.
@@ -793,6 +794,27 @@ fn cmd_stages(type_name: Option<String>) -> ExitCode {
     }
 }
 
+/// The layout a label file beside `rec` declares (`labels.toml`, else
+/// `trials.json`), as a `layout` key; `None` when neither exists or declares one.
+fn sibling_layout(rec: &std::path::Path) -> Result<Option<crate::stages::io::LayoutConfig>, String> {
+    use crate::stages::io::LayoutConfig;
+    let dir = rec.parent().unwrap_or_else(|| std::path::Path::new("."));
+    for name in ["labels.toml", "trials.json"] {
+        let p = dir.join(name);
+        if !p.is_file() {
+            continue;
+        }
+        if let Some(l) = crate::stages::io::common::read_sidecar_layout(&p)? {
+            eprintln!("layout from {}", p.display());
+            let json = serde_json::to_value(&l).map_err(|e| e.to_string())?;
+            return serde_json::from_value::<LayoutConfig>(json)
+                .map(Some)
+                .map_err(|e| format!("{}: `layout`: {e}", p.display()));
+        }
+    }
+    Ok(None)
+}
+
 fn cmd_daq(command: DaqCommand) -> ExitCode {
     use crate::stages::io::{daq, signal_file};
     match command {
@@ -814,9 +836,20 @@ fn cmd_daq(command: DaqCommand) -> ExitCode {
                     }
                 },
                 (None, Some(rec)) => {
+                    // The array: the one a label file beside the recording
+                    // declares (`palpate simulate` and the `write_*` sinks
+                    // write one), else the reader's default 4 x 4.
+                    let layout = match sibling_layout(&rec) {
+                        Ok(l) => l,
+                        Err(e) => {
+                            eprintln!("{e}");
+                            return ExitCode::FAILURE;
+                        }
+                    };
                     let cfg = signal_file::SignalFileConfig {
                         path: Some(rec.display().to_string()),
                         sample_rate_hz,
+                        layout,
                         ..Default::default()
                     };
                     match signal_file::read_signal_files(&cfg, std::path::Path::new(".")) {

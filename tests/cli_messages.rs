@@ -170,6 +170,73 @@ fn daq_run_emulate_scene_works_outside_the_repository() {
 }
 
 #[test]
+fn an_emulated_recording_plays_the_array_its_label_file_declares() {
+    let d = tempfile::tempdir().unwrap();
+    let mut csv = String::from("time_ms");
+    for i in 0..9 {
+        csv.push_str(&format!(",taxel_{i}"));
+    }
+    csv.push('\n');
+    for k in 0..200 {
+        csv.push_str(&format!("{k}"));
+        for i in 0..9 {
+            csv.push_str(&format!(",{}", 1.75 + 0.01 * i as f64));
+        }
+        csv.push('\n');
+    }
+    std::fs::write(d.path().join("t0.csv"), csv).unwrap();
+    let mut emu = palpate_in(d.path())
+        .args([
+            "daq",
+            "emulate",
+            "--recording",
+            "t0.csv",
+            "--speed",
+            "100",
+            "--delay",
+            "0",
+        ])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    // Without a label file: read as the default 4 x 4, the 9 columns are an
+    // error that says where the layout is declared.
+    let out = emu.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && err.contains("[layout]"), "{err}");
+    std::fs::write(
+        d.path().join("labels.toml"),
+        "[layout]\nkind = \"grid\"\nrows = 3\ncols = 3\npitch_mm = 3.0\ntaxel_mm = 2.0\n[trials.t0]\nangle_deg = 30.0\n",
+    )
+    .unwrap();
+    emu = palpate_in(d.path())
+        .args([
+            "daq",
+            "emulate",
+            "--recording",
+            "t0.csv",
+            "--speed",
+            "100",
+            "--delay",
+            "0",
+        ])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut first = String::new();
+    {
+        use std::io::BufRead;
+        let stdout = emu.stdout.as_mut().unwrap();
+        std::io::BufReader::new(stdout).read_line(&mut first).unwrap();
+    }
+    let _ = emu.kill();
+    let _ = emu.wait();
+    assert!(first.contains("(9 taxels"), "{first}");
+}
+
+#[test]
 fn the_end_of_an_emulators_playback_is_not_an_error() {
     let d = tempfile::tempdir().unwrap();
     let scene = repo().join("graphs/scenes/lab.toml");
