@@ -15,7 +15,16 @@
 //! With a sweep [`Cache`], every stage runs stage-at-a-time instead and
 //! outputs are kept for later points (sources and the maps below them trial
 //! by trial, see `runtime/items.rs`): reuse across points is worth the
-//! memory there.
+//! memory there. That memory is, at the peak, a signal stage's output and
+//! its input for every trial at once, so it grows with trials x taxels x
+//! samples: `graphs/paper/table2.toml` (170 trials, 5 repeats) peaked at
+//! 1.33 GB on the 4 x 4 lab scene and 5.6 GB with `--set
+//! stages.scene.array.rows=8 --set stages.scene.array.cols=8` (pitch 2 mm),
+//! against 173 and 485 MB for one run of the same graph without its sweep
+//! (depth-first), and with a cache budget of 64 MB instead of 2 GiB (the
+//! cache is not what holds it). Running the per-trial chain depth-first
+//! under a cache too, keeping only what the cache and the trained estimators
+//! need, would bound it; not done yet.
 //!
 //! Determinism: every per-trial computation is a pure function of (config, input,
 //! seed), seeds come from [`derive_seed`] over (graph seed, stage id, trial id or
