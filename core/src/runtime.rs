@@ -12,19 +12,22 @@
 //! output is computed once and shared by every stage that reads it, then
 //! dropped as soon as its last reader is done.
 //!
-//! With a sweep [`Cache`], every stage runs stage-at-a-time instead and
-//! outputs are kept for later points (sources and the maps below them trial
-//! by trial, see `runtime/items.rs`): reuse across points is worth the
-//! memory there. That memory is, at the peak, a signal stage's output and
-//! its input for every trial at once, so it grows with trials x taxels x
-//! samples: `graphs/paper/table2.toml` (170 trials, 5 repeats) peaked at
-//! 1.33 GB on the 4 x 4 lab scene and 5.6 GB with `--set
-//! stages.scene.array.rows=8 --set stages.scene.array.cols=8` (pitch 2 mm),
-//! against 173 and 485 MB for one run of the same graph without its sweep
-//! (depth-first), and with a cache budget of 64 MB instead of 2 GiB (the
-//! cache is not what holds it). Running the per-trial chain depth-first
-//! under a cache too, keeping only what the cache and the trained estimators
-//! need, would bound it; not done yet.
+//! With a sweep [`Cache`], stages run stage-at-a-time instead and outputs
+//! are kept for later points (sources and the maps below them trial by
+//! trial, see `runtime/items.rs`): reuse across points is worth the memory
+//! there. That memory is, at the peak, a signal stage's output and its input
+//! for every trial at once, so it grows with trials x taxels x samples. So a
+//! chain the run computes in full (no trial served from the cache) and whose
+//! outputs no announced run still to come contains runs depth-first under a
+//! cache too, keeping nothing in the cache (nothing would read it). A sweep
+//! of seeds, as `graphs/paper/table2.toml`'s 5 repeats (170 trials each), then
+//! peaks near one run's memory: 1.33 GB -> 203 MB on the 4 x 4 lab scene,
+//! 5.6 GB -> 576 MB with `--set stages.scene.array.rows=8 --set
+//! stages.scene.array.cols=8` (pitch 2 mm), the same sweep table to the bit
+//! (`/usr/bin/time -f %M`; one run without the sweep: 173 / 485 MB). A chain
+//! that later runs share (a sweep of a downstream key, `palpate batch`'s
+//! graphs that start with the same trials) still runs stage-at-a-time and
+//! is kept for them.
 //!
 //! Determinism: every per-trial computation is a pure function of (config, input,
 //! seed), seeds come from [`derive_seed`] over (graph seed, stage id, trial id or
@@ -394,6 +397,15 @@ impl Cache {
             }
         }
     }
+    /// Whether some announced run still to come contains one of `keys` (a
+    /// key never announced counts as needed: without announcements any
+    /// output may be reused).
+    fn needed_later(&self, keys: &[u64]) -> bool {
+        let Ok(m) = self.map.lock() else {
+            return true;
+        };
+        keys.iter().any(|k| m.future.get(k) != Some(&0))
+    }
     /// For each trial of an item-level stage (`own` keys), whether every
     /// announced run still to come that has it also has the same trial of
     /// each of the stage's readers (`readers`, item-level, by reader): then
@@ -578,8 +590,8 @@ pub fn run(graph: &Graph, opts: &RunOptions<'_>) -> Result<RunResult, RunError> 
     let mut result = RunResult::default();
     let seed = graph.run.seed;
     let mut keys = vec![0u64; n];
-    // Depth-first per-trial chains (not under a sweep cache, which keeps
-    // every output anyway): their kept outputs and timings, by node.
+    // Depth-first per-trial chains (under a sweep cache only those no other
+    // run shares, below): their kept outputs and timings, by node.
     let mut depth_first: Vec<Option<StageTiming>> = vec![None; n];
     if opts.cache.is_none() {
         let keep = chain::kept(graph, opts.keep_outputs);
@@ -630,6 +642,30 @@ pub fn run(graph: &Graph, opts: &RunOptions<'_>) -> Result<RunResult, RunError> 
         families = fit_families(graph);
         let own: Vec<u64> = families.iter().flatten().copied().collect();
         c.started(&cacheable, &own);
+        // A chain this run computes in full and no later run shares runs
+        // depth-first, as without a cache: stage-at-a-time would hold a
+        // signal stage's output for every trial at once (5.6 GB for
+        // `table2.toml` on an 8 x 8 array) for nothing to reuse.
+        let keep = chain::kept(graph, opts.keep_outputs);
+        for ch in chain::chains(graph) {
+            let unshared = ch.nodes.iter().all(|&i| match &item_plans[i] {
+                Some(p) => {
+                    compute[i].len() == p.keys.len()
+                        && compute[i].iter().all(|&x| x)
+                        && !c.needed_later(&p.keys)
+                        && !c.needed_later(&[p.stage_key])
+                }
+                None => hit[i].is_none() && skipped[i].is_none() && !c.needed_later(&[keys[i]]),
+            });
+            if !unshared {
+                continue;
+            }
+            let out = chain::run_chain(graph, &ch, &keep, opts)?;
+            for ((&i, items), timing) in ch.nodes.iter().zip(out.items).zip(out.timings) {
+                outputs[i] = items.map(Arc::new);
+                depth_first[i] = Some(timing);
+            }
+        }
     }
     // Content keys of an estimator input's items, computed once per run for
     // every estimator that may reuse a model (by input node).
@@ -643,6 +679,7 @@ pub fn run(graph: &Graph, opts: &RunOptions<'_>) -> Result<RunResult, RunError> 
         let id = node.id.as_str();
         let inputs_cost: Duration = graph.input_index[i].iter().map(|&j| upstream_cost[j]).sum();
         if let Some(timing) = depth_first[i].take() {
+            upstream_cost[i] = inputs_cost + timing.total;
             if let (true, Some(items)) = (opts.keep_outputs, &outputs[i]) {
                 result.outputs.insert(node.id.clone(), items.clone());
             }

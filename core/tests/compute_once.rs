@@ -1,7 +1,7 @@
 //! An output read by several stages is computed once.
 
 mod common;
-use common::{load, SCALE_CALLS, SERIAL};
+use common::{load, ORDER, SCALE_CALLS, SERIAL};
 use std::sync::atomic::Ordering;
 
 /// Runs the sweep of graph `text` under `cache`.
@@ -311,5 +311,77 @@ values = ["x", "y", "z"]"#,
     assert_eq!(
         n, 9,
         "an estimator with effects is fitted at every point, even an identical one"
+    );
+}
+
+/// The order in which one thread ran the two `t_scale` stages of `text`'s
+/// sweep under a cache: `(note, trial)` per call.
+fn scale_order(text: &str) -> Vec<(String, String)> {
+    let cache = palpate_core::Cache::default();
+    ORDER.lock().unwrap_or_else(|e| e.into_inner()).clear();
+    let pool = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap();
+    pool.install(|| sweep_runs(text, &cache));
+    std::mem::take(&mut *ORDER.lock().unwrap_or_else(|e| e.into_inner()))
+}
+
+#[test]
+fn a_chain_no_other_run_shares_runs_depth_first_under_a_sweep_cache() {
+    let graph = |sweep: &str| {
+        format!(
+            r#"
+[stages.src]
+type = "t_source"
+classes = 2
+reps = 2
+samples = 20
+
+[stages.a]
+type = "t_scale"
+inputs = ["src"]
+note = "order-a"
+
+[stages.b]
+type = "t_scale"
+inputs = ["a"]
+note = "order-b"
+
+[stages.est]
+type = "t_estimator"
+inputs = ["b"]
+
+[stages.sink]
+type = "t_sink"
+inputs = ["est"]
+
+[sweep]
+{sweep}
+"#
+        )
+    };
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    // Seeds: every run simulates its own trials and nothing is shared, so
+    // each trial goes through `a` and `b` before the next starts (peak
+    // memory: one trial's chain, not a stage's output for every trial).
+    let order = scale_order(&graph("key = \"run.seed\"\nvalues = [1, 2]"));
+    assert_eq!(order.len(), 2 * 2 * 4, "{order:?}");
+    for run in order.chunks(8) {
+        for pair in run.chunks(2) {
+            assert_eq!(pair[0].0, "order-a", "{order:?}");
+            assert_eq!(pair[1].0, "order-b", "{order:?}");
+            assert_eq!(pair[0].1, pair[1].1, "the same trial: {order:?}");
+        }
+    }
+    // A downstream key: `a`'s trials are kept for the later points, so the
+    // first point runs stage at a time (every `a` before any `b`), and the
+    // later ones serve `a` from the cache.
+    let order = scale_order(&graph("key = \"stages.b.factor\"\nvalues = [1.0, 3.0]"));
+    let notes: Vec<&str> = order.iter().map(|(n, _)| n.as_str()).collect();
+    assert_eq!(
+        notes,
+        [
+            "order-a", "order-a", "order-a", "order-a", "order-b", "order-b", "order-b", "order-b",
+            "order-b", "order-b", "order-b", "order-b"
+        ],
+        "{order:?}"
     );
 }

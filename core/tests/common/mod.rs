@@ -105,6 +105,9 @@ impl Default for TScale {
 /// Tests that read the counters take this lock: tests of one binary run in parallel.
 pub static SERIAL: Mutex<()> = Mutex::new(());
 pub static SCALE_CALLS: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+/// `(note, trial id)` of each `t_scale` call whose `note` starts with
+/// `order`, in call order: how a run interleaved its stages.
+pub static ORDER: Mutex<Vec<(String, String)>> = Mutex::new(Vec::new());
 
 #[typetag::serde(name = "t_scale")]
 impl StageConfig for TScale {
@@ -124,6 +127,11 @@ register_stage!("t_scale", TScale);
 impl Map for TScale {
     fn process(&self, inputs: &[&Item], _ctx: &TrialContext<'_>) -> Result<Payload, StageError> {
         SCALE_CALLS.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+        if self.note.starts_with("order") {
+            if let Ok(mut o) = ORDER.lock() {
+                o.push((self.note.clone(), inputs[0].meta.trial_id.clone()));
+            }
+        }
         if self.fail_on.as_deref() == Some(inputs[0].meta.trial_id.as_str()) {
             return Err(StageError::new("t_scale fails here"));
         }
