@@ -105,11 +105,13 @@ pub struct DaqConfig {
     /// With `scene`: what every taxel reads off the object, DAQ units (V).
     /// Default 3.3 (the paper's board saturates at its supply).
     pub open_v: f64,
-    /// Taxel layout; channel `i` is taxel `i`. Default the paper's 4x4 grid
-    /// (3 mm pitch, 2 mm taxels).
-    pub layout: LayoutConfig,
-    /// Frame rate of the board, Hz (an emulated scene must sample at it). Default 1000.
-    pub sample_rate_hz: f64,
+    /// Taxel layout; channel `i` is taxel `i`. Default: with `scene` (and no
+    /// `port` or `recording`), the emulated scene's array; else the paper's
+    /// 4x4 grid (3 mm pitch, 2 mm taxels).
+    pub layout: Option<LayoutConfig>,
+    /// Frame rate of the board, Hz (an emulated scene must sample at it).
+    /// Default: with `scene` alone, the scene's rate; else 1000.
+    pub sample_rate_hz: Option<f64>,
     /// Decoded value = raw · `scale` + `offset` (e.g. V per ADC count). Default 1.
     pub scale: f64,
     /// See `scale`, DAQ units. Default 0.
@@ -155,8 +157,8 @@ impl Default for DaqConfig {
             speed: 0.0,
             gap_ms: 1000.0,
             open_v: 3.3,
-            layout: LayoutConfig::default(),
-            sample_rate_hz: 1000.0,
+            layout: None,
+            sample_rate_hz: None,
             scale: 1.0,
             offset: 0.0,
             unit: "V".into(),
@@ -342,8 +344,6 @@ impl DaqConfig {
     /// Checks every key, naming each bad one (all at once).
     fn check(&self, ctx: &BuildContext) -> Result<Checked, ConfigError> {
         let mut c = ConfigChecks::new();
-        let layout = c.take(self.layout.to_layout("layout"));
-        let fs = c.take(check_range("sample_rate_hz", self.sample_rate_hz, 1.0, 1e6, "Hz"));
         let scale = c.take(check_range(
             "scale",
             self.scale,
@@ -393,6 +393,7 @@ impl DaqConfig {
                 "only with `scene` (the angles to emulate)",
             ));
         }
+        let mut emulated: Option<(TaxelLayout, f64)> = None;
         let input = match (&self.port, &self.recording, &self.scene) {
             (Some(p), _, _) => Some(Input::Port(p.clone())),
             (None, Some(r), _) => Some(Input::Recording(ctx.base_dir.join(r))),
@@ -403,6 +404,11 @@ impl DaqConfig {
                     trials_per_angle: self.trials_per_angle,
                     ..SceneConfig::default()
                 };
+                // The board an emulated scene stands for has the scene's
+                // array and rate unless the keys say otherwise.
+                if let Ok(sc) = scene.resolve(ctx) {
+                    emulated = Some((sc.layout.clone(), sc.motion.sample_rate_hz));
+                }
                 match c.take(scene.build(ctx).map_err(|e| e.within("scene"))) {
                     Some(Stage::Source(src)) => Some(Input::Scene(Arc::from(src))),
                     _ => None,
@@ -415,6 +421,16 @@ impl DaqConfig {
                 None
             }
         };
+        let layout = match (&self.layout, &emulated) {
+            (Some(l), _) => c.take(l.to_layout("layout")),
+            (None, Some((l, _))) => Some(l.clone()),
+            (None, None) => c.take(LayoutConfig::default().to_layout("layout")),
+        };
+        let fs = self
+            .sample_rate_hz
+            .or(emulated.as_ref().map(|e| e.1))
+            .unwrap_or(1000.0);
+        let fs = c.take(check_range("sample_rate_hz", fs, 1.0, 1e6, "Hz"));
         c.finish()?;
         let (
             Some(input),
@@ -921,6 +937,44 @@ mod tests {
     }
 
     #[test]
+    fn an_emulated_board_has_the_scenes_array_and_rate_unless_the_keys_say_otherwise() {
+        let d = tempfile::tempdir().unwrap();
+        std::fs::write(
+            d.path().join("s.toml"),
+            "angles = [45]\ntrials_per_angle = 1\narray = { rows = 3, cols = 2, pitch_mm = 3.0, taxel_mm = 2.0 }\n\
+             motion = { sample_rate_hz = 500.0 }\n",
+        )
+        .unwrap();
+        let ctx = BuildContext {
+            stage_id: "daq".into(),
+            seed: 1,
+            out_dir: d.path().to_path_buf(),
+            base_dir: d.path().to_path_buf(),
+        };
+        let scene = DaqConfig {
+            scene: Some("s.toml".into()),
+            ..DaqConfig::default()
+        };
+        let c = scene.check(&ctx).unwrap();
+        assert_eq!((c.layout.len(), c.fs), (6, 500.0));
+        // Keys win (a mismatch is then the emulator's error, naming them).
+        let keyed = DaqConfig {
+            layout: Some(LayoutConfig::default()),
+            sample_rate_hz: Some(1000.0),
+            ..scene
+        };
+        let c = keyed.check(&ctx).unwrap();
+        assert_eq!((c.layout.len(), c.fs), (16, 1000.0));
+        // A real board: the paper's array at 1 kHz.
+        let port = DaqConfig {
+            port: Some("/dev/null".into()),
+            ..DaqConfig::default()
+        };
+        let c = port.check(&ctx).unwrap();
+        assert_eq!((c.layout.len(), c.fs), (16, 1000.0));
+    }
+
+    #[test]
     fn contact_needs_its_run_and_release_its_own_with_hysteresis() {
         let plan = SegmentPlan::Contact {
             contact: 3.0,
@@ -961,7 +1015,7 @@ mod tests {
             port: Some("/dev/null".into()),
             release_v: 2.0,
             segment: SegmentMode::Fixed,
-            sample_rate_hz: -1.0,
+            sample_rate_hz: Some(-1.0),
             ..DaqConfig::default()
         };
         let e = cfg.build(&ctx).err().unwrap().to_string();
