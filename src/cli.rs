@@ -806,10 +806,7 @@ fn sibling_layout(rec: &std::path::Path) -> Result<Option<crate::stages::io::Lay
         }
         if let Some(l) = crate::stages::io::common::read_sidecar_layout(&p)? {
             eprintln!("layout from {}", p.display());
-            let json = serde_json::to_value(&l).map_err(|e| e.to_string())?;
-            return serde_json::from_value::<LayoutConfig>(json)
-                .map(Some)
-                .map_err(|e| format!("{}: `layout`: {e}", p.display()));
+            return Ok(Some(LayoutConfig::from(&l)));
         }
     }
     Ok(None)

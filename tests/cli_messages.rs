@@ -185,24 +185,26 @@ fn an_emulated_recording_plays_the_array_its_label_file_declares() {
         csv.push('\n');
     }
     std::fs::write(d.path().join("t0.csv"), csv).unwrap();
-    let mut emu = palpate_in(d.path())
-        .args([
-            "daq",
-            "emulate",
-            "--recording",
-            "t0.csv",
-            "--speed",
-            "100",
-            "--delay",
-            "0",
-        ])
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
+    let emulate = || {
+        palpate_in(d.path())
+            .args([
+                "daq",
+                "emulate",
+                "--recording",
+                "t0.csv",
+                "--speed",
+                "100",
+                "--delay",
+                "0",
+            ])
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap()
+    };
     // Without a label file: read as the default 4 x 4, the 9 columns are an
     // error that says where the layout is declared.
-    let out = emu.wait_with_output().unwrap();
+    let out = emulate().wait_with_output().unwrap();
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success() && err.contains("[layout]"), "{err}");
     std::fs::write(
@@ -210,21 +212,7 @@ fn an_emulated_recording_plays_the_array_its_label_file_declares() {
         "[layout]\nkind = \"grid\"\nrows = 3\ncols = 3\npitch_mm = 3.0\ntaxel_mm = 2.0\n[trials.t0]\nangle_deg = 30.0\n",
     )
     .unwrap();
-    emu = palpate_in(d.path())
-        .args([
-            "daq",
-            "emulate",
-            "--recording",
-            "t0.csv",
-            "--speed",
-            "100",
-            "--delay",
-            "0",
-        ])
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
+    let mut emu = emulate();
     let mut first = String::new();
     {
         use std::io::BufRead;

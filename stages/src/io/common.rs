@@ -87,6 +87,32 @@ impl Default for LayoutConfig {
     }
 }
 
+impl From<&TaxelLayout> for LayoutConfig {
+    /// The key that describes `l` (the same fields).
+    fn from(l: &TaxelLayout) -> Self {
+        match l.clone() {
+            TaxelLayout::Grid {
+                rows,
+                cols,
+                pitch_mm,
+                taxel_mm,
+            } => LayoutConfig::Grid {
+                rows,
+                cols,
+                pitch_mm,
+                taxel_mm,
+            },
+            TaxelLayout::Positions {
+                positions_mm,
+                taxel_mm,
+            } => LayoutConfig::Positions {
+                positions_mm,
+                taxel_mm,
+            },
+        }
+    }
+}
+
 impl LayoutConfig {
     /// The checked layout, or an error naming `key`.
     pub fn to_layout(&self, key: &str) -> Result<TaxelLayout, ConfigError> {
@@ -425,7 +451,9 @@ pub fn merge_consistent(into: &mut TrialLabels, other: &TrialLabels, what: &str)
 #[serde(deny_unknown_fields)]
 struct TomlSidecar {
     trials: BTreeMap<String, TrialLabels>,
-    /// The array the files were recorded with (read by [`read_sidecar_layout`]).
+    /// The array the files were recorded with: accepted here so that
+    /// `deny_unknown_fields` lets it through, read and checked by
+    /// [`read_sidecar_layout`].
     #[serde(default)]
     #[allow(dead_code)]
     layout: Option<TaxelLayout>,

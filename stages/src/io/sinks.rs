@@ -48,8 +48,8 @@ use super::common::{file_stem_for, sidecar_toml};
 use super::spike_file::TimeUnit;
 use palpate_core::output::write_atomic;
 use palpate_core::{
-    register_stage, BuildContext, ConfigError, InputSpec, Item, PayloadKind, Signals, Sink, SinkContext,
-    SinkInput, SinkReport, Stage, StageConfig, StageError, TaxelLayout, TrialMeta,
+    register_stage, BuildContext, ConfigError, InputSpec, Item, Payload, PayloadKind, Signals, Sink,
+    SinkContext, SinkInput, SinkReport, Stage, StageConfig, StageError, TaxelLayout, TrialMeta,
 };
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
@@ -241,10 +241,7 @@ impl Sink for SignalsSink {
                 })
             });
         }
-        let layout = items
-            .first()
-            .and_then(|it| it.payload.signals().ok())
-            .map(|s| &s.layout);
+        let layout = items.first().and_then(|it| payload_layout(&it.payload));
         finish_with_sidecar(files, &rows, info, layout, "signals")
     }
 }
@@ -271,6 +268,16 @@ pub fn signals_csv(s: &Signals) -> String {
         out.push('\n');
     }
     out
+}
+
+/// The layout a signals, spikes or images payload carries (estimates carry none).
+fn payload_layout(p: &Payload) -> Option<&TaxelLayout> {
+    match p {
+        Payload::Signals(s) => Some(&s.layout),
+        Payload::Spikes(s) => Some(&s.layout),
+        Payload::Images(im) => Some(&im.layout),
+        Payload::Estimate(_) => None,
+    }
 }
 
 fn finish_with_sidecar(
@@ -339,10 +346,7 @@ impl Sink for ImagesSink {
             let stems: Vec<&str> = rows.iter().map(|(s, _, _)| s.as_str()).collect();
             o.insert("trials".into(), serde_json::json!(stems));
         }
-        let layout = items
-            .first()
-            .and_then(|it| it.payload.images().ok())
-            .map(|im| &im.layout);
+        let layout = items.first().and_then(|it| payload_layout(&it.payload));
         finish_with_sidecar(files, &rows, info, layout, "spike images")
     }
 }
@@ -501,10 +505,7 @@ impl Sink for SpikesSink {
                 "npy_layout": self.cfg.npy_layout,
             })
         });
-        let layout = items
-            .first()
-            .and_then(|it| it.payload.spikes().ok())
-            .map(|s| &s.layout);
+        let layout = items.first().and_then(|it| payload_layout(&it.payload));
         finish_with_sidecar(files, &rows, info, layout, "spikes")
     }
 }
