@@ -181,6 +181,97 @@ fn csv_custom_column_names_and_time_in_seconds() {
     assert_eq!(s.data, vec![vec![2.0, 4.0, 6.0], vec![1.0, 3.0, 5.0]]);
 }
 
+/// Files as spreadsheets and loggers write them: `;`- or tab-separated (the
+/// delimiter is sniffed from the header), with columns palpate has no use for
+/// (`ignore_columns`), or with host time stamps that jitter (the time column
+/// ignored, the rate given). Each reads the same samples as the plain file;
+/// what it cannot read is an error that says what to do.
+#[test]
+fn spreadsheet_and_logger_csv_variants_read_the_same_samples() {
+    let d = tempfile::tempdir().unwrap();
+    let p = d.path();
+    let plain = csv_trial(0, 4, 12, 1000.0);
+    let src = |file: &str, extra: &str| format!("path = \"{file}\"\n{GRID2}\n{extra}");
+    let read = |file: &str, extra: &str| -> palpate_core::Signals {
+        let r = run_graph(
+            p,
+            &format!("[stages.src]\ntype = \"signal_file\"\n{}\n", src(file, extra)),
+        )
+        .unwrap_or_else(|e| panic!("{file}: {e}"));
+        signals(&items(&r, "src")[0]).clone()
+    };
+    for (name, sep) in [("semi.csv", ";"), ("tab.csv", "\t")] {
+        std::fs::write(p.join(name), plain.replace(',', sep)).unwrap();
+        let s = read(name, "");
+        assert_data(&s, 0, 12);
+        assert!((s.sample_rate_hz - 1000.0).abs() < 1e-9, "{name}");
+    }
+    // A force channel beside the taxels: an error naming the key that skips it.
+    let with_force: String = plain
+        .lines()
+        .enumerate()
+        .map(|(k, l)| {
+            format!(
+                "{l},{}\n",
+                if k == 0 {
+                    "force".to_string()
+                } else {
+                    format!("{k}")
+                }
+            )
+        })
+        .collect();
+    std::fs::write(p.join("force.csv"), &with_force).unwrap();
+    let e = source_error(p, &src("force.csv", ""));
+    assert!(
+        e.contains("unknown column `force`") && e.contains("ignore_columns"),
+        "{e}"
+    );
+    assert_data(&read("force.csv", "ignore_columns = [\"force\"]"), 0, 12);
+    // A taxel column cannot be skipped: that would drop a taxel silently.
+    let e = source_error(p, &src("force.csv", "ignore_columns = [\"force\", \"taxel_2\"]"));
+    assert!(
+        e.contains("`taxel_2` is taxel 2") && e.contains("ignore_columns"),
+        "{e}"
+    );
+    // Host time stamps jittering by 30 % of a sample: refused (a missing row
+    // looks the same), with the way out in the message; taken with it.
+    let jitter: String = plain
+        .lines()
+        .enumerate()
+        .map(|(k, l)| {
+            if k == 0 {
+                format!("{l}\n")
+            } else {
+                let (_, rest) = l.split_once(',').unwrap();
+                let t = (k - 1) as f64 + if k % 2 == 0 { 0.3 } else { -0.3 };
+                format!("{t},{rest}\n")
+            }
+        })
+        .collect();
+    std::fs::write(p.join("jitter.csv"), jitter).unwrap();
+    let e = source_error(p, &src("jitter.csv", ""));
+    assert!(
+        e.contains("off the uniform grid") && e.contains("ignore_columns") && e.contains("sample_rate_hz"),
+        "{e}"
+    );
+    let s = read(
+        "jitter.csv",
+        "ignore_columns = [\"time_ms\"]\nsample_rate_hz = 1000.0",
+    );
+    assert_data(&s, 0, 12);
+    // A decimal comma in a `;`-separated file: an error that names it.
+    let comma = plain
+        .replace(',', ";")
+        .replacen(&format!("{}", val(0, 1, 0)), "1,85", 1);
+    std::fs::write(p.join("comma.csv"), comma).unwrap();
+    let e = source_error(p, &src("comma.csv", ""));
+    assert!(
+        e.contains("line 2") && e.contains("`1,85`") && e.contains("decimal comma"),
+        "{e}"
+    );
+}
+
 fn flat(trials: &[usize], taxels: usize, samples: usize, taxel_major: bool) -> Vec<f64> {
     let mut v = Vec::new();
     for &t in trials {

@@ -345,6 +345,53 @@ impl TrialLabels {
     }
 }
 
+/// The field delimiter of a user's CSV file, sniffed from its header (the
+/// first line that is not a `#` comment): `,` if the header has one, else a
+/// tab, else `;`, else `,`. Why: spreadsheets in locales with a decimal
+/// comma save `;`-separated files, and many loggers (LabVIEW among them)
+/// write tab-separated ones; read as `,`-separated, such a header is one
+/// long unknown column.
+pub fn sniff_delimiter(bytes: &[u8]) -> u8 {
+    let header = bytes
+        .split(|&b| b == b'\n')
+        .find(|l| !l.starts_with(b"#"))
+        .unwrap_or(&[]);
+    if header.contains(&b',') {
+        b','
+    } else if header.contains(&b'\t') {
+        b'\t'
+    } else if header.contains(&b';') {
+        b';'
+    } else {
+        b','
+    }
+}
+
+/// A reader for a user's CSV file: fields trimmed, lines starting with `#`
+/// skipped, the delimiter [sniffed](sniff_delimiter) from the header.
+pub fn user_csv_reader(bytes: &[u8]) -> csv::Reader<&[u8]> {
+    csv::ReaderBuilder::new()
+        .trim(csv::Trim::All)
+        .comment(Some(b'#'))
+        .delimiter(sniff_delimiter(bytes))
+        .from_reader(bytes)
+}
+
+/// `what: cannot read `cell` as a number`, with a hint when the cell is a
+/// number written with a decimal comma (`1,75`), as `;`-separated files from
+/// such locales hold.
+pub fn number_error(what: &str, cell: &str, noun: &str) -> String {
+    let comma = cell.contains(',') && cell.replacen(',', ".", 1).parse::<f64>().is_ok();
+    format!(
+        "{what}: cannot read `{cell}` as {noun}{}",
+        if comma {
+            " (a decimal comma? palpate reads numbers written with a decimal point)"
+        } else {
+            ""
+        }
+    )
+}
+
 /// Reads `edge`, `ridge` or `unknown` (any case).
 pub fn parse_stimulus(s: &str) -> Result<Stimulus, String> {
     match s.trim().to_ascii_lowercase().as_str() {
@@ -369,9 +416,7 @@ pub fn set_label_cell(labels: &mut TrialLabels, column: &str, cell: &str, what: 
     }
     match column {
         "angle_deg" | "duration_ms" | "speed_mm_s" => {
-            let v: f64 = cell
-                .parse()
-                .map_err(|_| format!("{what}: cannot read `{cell}` as a number"))?;
+            let v: f64 = cell.parse().map_err(|_| number_error(what, cell, "a number"))?;
             if !v.is_finite() {
                 return Err(format!("{what}: `{cell}` is not a finite number"));
             }
@@ -389,7 +434,7 @@ pub fn set_label_cell(labels: &mut TrialLabels, column: &str, cell: &str, what: 
         "group" => {
             let v: f64 = cell
                 .parse()
-                .map_err(|_| format!("{what}: cannot read `{cell}` as a group number"))?;
+                .map_err(|_| number_error(what, cell, "a group number"))?;
             if !(v.is_finite() && v >= 0.0 && v.fract() == 0.0) {
                 return Err(format!("{what}: group must be a whole number >= 0, got `{cell}`"));
             }
@@ -601,10 +646,7 @@ pub fn parse_sidecar(
             Ok(s.trials)
         }
         "csv" => {
-            let mut rdr = csv::ReaderBuilder::new()
-                .trim(csv::Trim::All)
-                .comment(Some(b'#'))
-                .from_reader(text.as_bytes());
+            let mut rdr = user_csv_reader(text.as_bytes());
             let headers = rdr
                 .headers()
                 .map_err(|e| StageError::new(format!("label sidecar {shown}: {e}")))?

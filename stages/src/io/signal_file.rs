@@ -17,7 +17,10 @@
 //! | `trial` | optional trial name: rows with the same value form one trial (many trials per file) |
 //! | `angle_deg`, `stimulus`, `group` | optional labels, constant within a trial |
 //!
-//! Any other column is an error (it would otherwise be silently ignored). The
+//! Any other column is an error (it would otherwise be silently ignored),
+//! unless `ignore_columns` lists it. The delimiter is `,`, or `;` or a tab
+//! when the header has no comma (spreadsheets in decimal-comma locales,
+//! loggers writing TSV); numbers use a decimal point. The
 //! file must end with a line end: a last line without one is taken as a file
 //! cut while being written (its last number may have lost digits).
 //! Lines starting with `#` are comments.
@@ -64,8 +67,8 @@
 
 use super::arrays::{read_mat, read_npy_plain, read_npz, NdArray, NpyContent};
 use super::common::{
-    apply_sidecar, build_metas, expand_paths, file_ids, merge_consistent, read_sidecar, resolve_layout,
-    set_label_cell, LayoutConfig, TrialLabels, LABEL_COLUMNS,
+    apply_sidecar, build_metas, expand_paths, file_ids, merge_consistent, number_error, read_sidecar,
+    resolve_layout, set_label_cell, user_csv_reader, LayoutConfig, TrialLabels, LABEL_COLUMNS,
 };
 use palpate_core::{
     check_positive, register_stage, BuildContext, ConfigChecks, ConfigError, InputSpec, Inspection,
@@ -131,6 +134,12 @@ pub struct SignalFileConfig {
     /// CSV: names of the taxel columns in taxel order, instead of `taxel_0..`.
     /// Default empty.
     pub columns: Vec<String>,
+    /// CSV: columns to skip, e.g. a force or trigger channel, or a time
+    /// column stamped by a host clock that jitters (then set
+    /// `sample_rate_hz`). Any other column the reader does not know is an
+    /// error, so a misspelt or surplus taxel column is never dropped
+    /// silently. Default empty.
+    pub ignore_columns: Vec<String>,
     /// NPZ/MAT: names of the data arrays to read; empty = every array that is
     /// not a reserved label or rate variable. Default empty.
     pub variables: Vec<String>,
@@ -162,6 +171,7 @@ impl Default for SignalFileConfig {
             unit: "V".into(),
             labels: None,
             columns: vec![],
+            ignore_columns: vec![],
             variables: vec![],
             taxel_major: false,
             fill_gaps: false,
@@ -776,10 +786,7 @@ fn read_csv_signals(
     n_taxels: usize,
 ) -> Result<Vec<RawTrial>, String> {
     check_csv_complete(bytes, shown)?;
-    let mut rdr = csv::ReaderBuilder::new()
-        .trim(csv::Trim::All)
-        .comment(Some(b'#'))
-        .from_reader(bytes);
+    let mut rdr = user_csv_reader(bytes);
     let headers = rdr.headers().map_err(|e| csv_error(shown, &e))?.clone();
     let names: Vec<String> = if cfg.columns.is_empty() {
         (0..n_taxels).map(|i| format!("taxel_{i}")).collect()
@@ -792,6 +799,7 @@ fn read_csv_signals(
         TimeMs(f64),
         Trial,
         Label,
+        Ignored,
     }
     // Hash lookups: a layout of 160k taxels made matching quadratic (32 s).
     let by_name: std::collections::HashMap<&str, usize> =
@@ -805,8 +813,16 @@ fn read_csv_signals(
                 k + 1
             ));
         }
+        let ignored = cfg.ignore_columns.iter().any(|c| c == h);
         let c = if let Some(&i) = by_name.get(h) {
+            if ignored {
+                return Err(format!(
+                    "{shown}: column `{h}` is taxel {i} of the layout and is listed in `ignore_columns`"
+                ));
+            }
             Col::Taxel(i)
+        } else if ignored {
+            Col::Ignored
         } else {
             match h {
                 "time_ms" => Col::TimeMs(1.0),
@@ -817,7 +833,7 @@ fn read_csv_signals(
                     return Err(format!(
                         "{shown}: unknown column `{h}`; expected {} (the layout has {n_taxels} taxels), \
                          optionally time_ms or time_s, trial, angle_deg, stimulus, group \
-                         (set `columns` to name the taxel columns)",
+                         (set `columns` to name the taxel columns, `ignore_columns` to skip others)",
                         if cfg.columns.is_empty() {
                             format!("taxel_0 .. taxel_{}", n_taxels.saturating_sub(1))
                         } else {
@@ -873,7 +889,7 @@ fn read_csv_signals(
                 Col::Taxel(x) => {
                     let v: f64 = cell
                         .parse()
-                        .map_err(|_| format!("{}: cannot read `{cell}` as a number", what()))?;
+                        .map_err(|_| number_error(&what(), cell, "a number"))?;
                     if !v.is_finite() {
                         return Err(format!(
                             "{}: sample `{cell}` is not finite (NaN or infinite)",
@@ -883,15 +899,13 @@ fn read_csv_signals(
                     t.data[x].push(v);
                 }
                 Col::TimeMs(scale) => {
-                    let v: f64 = cell
-                        .parse()
-                        .map_err(|_| format!("{}: cannot read `{cell}` as a time", what()))?;
+                    let v: f64 = cell.parse().map_err(|_| number_error(&what(), cell, "a time"))?;
                     if !v.is_finite() {
                         return Err(format!("{}: time `{cell}` is not finite", what()));
                     }
                     t.times_ms.push((line, v * scale));
                 }
-                Col::Trial => {}
+                Col::Trial | Col::Ignored => {}
                 Col::Label => set_label_cell(&mut row_labels, &headers[i], cell, &what())?,
             }
         }
@@ -937,7 +951,9 @@ fn rate_from_times(times: &[(u64, f64)], origin: &str) -> Result<Option<f64>, St
         if (t - times[0].1 - k as f64 * dt).abs() > 0.25 * dt {
             return Err(format!(
                 "{origin}, line {line}: time {t} ms is off the uniform grid of {dt} ms \
-                 (a missing or repeated row?)"
+                 (a missing or repeated row? if the times only jitter, e.g. stamped by the \
+                 host, give the rate in `sample_rate_hz` and list the time column in \
+                 `ignore_columns`)"
             ));
         }
     }

@@ -532,10 +532,7 @@ fn read_csv_events(
     mapper: &Mapper<'_>,
 ) -> Result<Vec<RawEvents>, String> {
     check_csv_complete(bytes, shown)?;
-    let mut rdr = csv::ReaderBuilder::new()
-        .trim(csv::Trim::All)
-        .comment(Some(b'#'))
-        .from_reader(bytes);
+    let mut rdr = super::common::user_csv_reader(bytes);
     let headers = rdr.headers().map_err(|e| csv_error(shown, &e))?.clone();
     let find = |n: &str| headers.iter().position(|h| h == n);
     let mut seen = std::collections::HashSet::new();
@@ -570,10 +567,7 @@ fn read_csv_events(
         let num = |i: usize| -> Result<f64, String> {
             let cell = rec.get(i).unwrap_or("");
             cell.parse::<f64>().map_err(|_| {
-                format!(
-                    "{what}, column `{}`: cannot read `{cell}` as a number",
-                    &headers[i]
-                )
+                super::common::number_error(&format!("{what}, column `{}`", &headers[i]), cell, "a number")
             })
         };
         let name = ctrial
