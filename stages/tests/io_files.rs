@@ -272,6 +272,35 @@ fn spreadsheet_and_logger_csv_variants_read_the_same_samples() {
     );
 }
 
+/// A label file may name a one-trial file's trial by the file's name; naming
+/// one trial both ways is an error, as is a name no file holds.
+#[test]
+fn a_label_file_may_name_trials_by_their_file_names() {
+    let d = tempfile::tempdir().unwrap();
+    let p = d.path();
+    std::fs::write(p.join("a.csv"), csv_trial(0, 4, 6, 1000.0)).unwrap();
+    std::fs::write(p.join("b.csv"), csv_trial(1, 4, 6, 1000.0)).unwrap();
+    let graph = format!(
+        "[stages.src]\ntype = \"signal_file\"\npaths = [\"a.csv\", \"b.csv\"]\nlabels = \"l.csv\"\n{GRID2}\n"
+    );
+    std::fs::write(p.join("l.csv"), "trial;angle_deg\na.csv;30\nb;60\n").unwrap();
+    let r = run_graph(p, &graph).unwrap();
+    let angles: Vec<Option<f64>> = items(&r, "src")
+        .iter()
+        .map(|it| it.meta.label.angle_deg)
+        .collect();
+    assert_eq!(angles, [Some(30.0), Some(60.0)]);
+    std::fs::write(p.join("l.csv"), "trial,angle_deg\na.csv,30\na,31\nb,60\n").unwrap();
+    let e = run_graph(p, &graph).err().unwrap();
+    assert!(
+        e.contains("names trial `a` twice") && e.contains("`a.csv`"),
+        "{e}"
+    );
+    std::fs::write(p.join("l.csv"), "trial,angle_deg\na,30\nb,60\nc.csv,90\n").unwrap();
+    let e = run_graph(p, &graph).err().unwrap();
+    assert!(e.contains("do not hold: `c.csv`"), "{e}");
+}
+
 fn flat(trials: &[usize], taxels: usize, samples: usize, taxel_major: bool) -> Vec<f64> {
     let mut v = Vec::new();
     for &t in trials {

@@ -758,15 +758,33 @@ fn read_trials_json(text: &str) -> Result<BTreeMap<String, TrialLabels>, String>
 }
 
 /// Applies a sidecar to trials read from files: every trial must have an entry
-/// and every entry a trial.
+/// and every entry a trial. An entry may name a one-trial file's trial by the
+/// file's name (`trial01.csv` for the trial `trial01`).
 pub fn apply_sidecar(
     trials: &mut [(String, TrialLabels)],
     sidecar: &BTreeMap<String, TrialLabels>,
     path: &Path,
 ) -> Result<(), StageError> {
+    let known: std::collections::HashSet<&str> = trials.iter().map(|(id, _)| id.as_str()).collect();
+    // Each entry under the trial id it names: its key, or the key less a data
+    // file's extension when the key itself is no trial's id.
+    let mut by_id: BTreeMap<&str, (&str, &TrialLabels)> = BTreeMap::new();
+    for (k, l) in sidecar {
+        let id = if known.contains(k.as_str()) {
+            k.as_str()
+        } else {
+            sidecar_key_id(k)
+        };
+        if let Some((first, _)) = by_id.insert(id, (k.as_str(), l)) {
+            return Err(StageError::new(format!(
+                "label sidecar {} names trial `{id}` twice (as `{first}` and as `{k}`)",
+                path.display()
+            )));
+        }
+    }
     let missing: Vec<&str> = trials
         .iter()
-        .filter(|(id, _)| !sidecar.contains_key(id))
+        .filter(|(id, _)| !by_id.contains_key(id.as_str()))
         .map(|(id, _)| id.as_str())
         .collect();
     if !missing.is_empty() {
@@ -776,11 +794,10 @@ pub fn apply_sidecar(
             preview(&missing)
         )));
     }
-    let known: std::collections::HashSet<&str> = trials.iter().map(|(id, _)| id.as_str()).collect();
-    let extra: Vec<&str> = sidecar
-        .keys()
-        .map(String::as_str)
-        .filter(|k| !known.contains(k))
+    let extra: Vec<&str> = by_id
+        .iter()
+        .filter(|(id, _)| !known.contains(*id))
+        .map(|(_, (k, _))| *k)
         .collect();
     if !extra.is_empty() {
         return Err(StageError::new(format!(
@@ -791,9 +808,26 @@ pub fn apply_sidecar(
         )));
     }
     for (id, labels) in trials.iter_mut() {
-        *labels = labels.overridden_by(&sidecar[id.as_str()]);
+        *labels = labels.overridden_by(by_id[id.as_str()].1);
     }
     Ok(())
+}
+
+/// Extensions of the data files a label sidecar may name its trials by.
+const DATA_EXTENSIONS: [&str; 6] = ["csv", "npy", "npz", "mat", "daq", "bin"];
+
+/// The trial id a sidecar key names: the key, less a data file's extension
+/// (`trial01.csv` -> `trial01`). Why: a file's trial id is its name without
+/// the extension, and a label file written by hand often lists the names.
+fn sidecar_key_id(key: &str) -> &str {
+    match key.rsplit_once('.') {
+        Some((stem, ext))
+            if !stem.is_empty() && DATA_EXTENSIONS.iter().any(|e| e.eq_ignore_ascii_case(ext)) =>
+        {
+            stem
+        }
+        _ => key,
+    }
 }
 
 /// At most five items of a list, for messages.
