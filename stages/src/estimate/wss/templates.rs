@@ -293,6 +293,35 @@ impl ClassShape {
     /// CPU; `vmath::exp` gives the same bits on every x86-64 CPU and a
     /// row's values in one vectorised pass. It is within an ulp of glibc's
     /// (its module docs).
+    /// Templates `0, 1, ...` into the frames of `out` (`n` values each,
+    /// frame-major), each [`Self::template_into`]'s values: the exponent
+    /// arguments of every frame first, then one [`vmath::exp_in_place`]
+    /// pass (the exponential is element-wise, so the same bits). A refining
+    /// search builds a class per probe; one call per 16-value frame was most
+    /// of that.
+    fn templates_into(&self, out: &mut [f64]) {
+        let n = self.offsets.len().max(1);
+        if self.table.is_some() {
+            for (i, t) in out.chunks_exact_mut(n).enumerate() {
+                self.template_into(i, t);
+            }
+            return;
+        }
+        crate::wide::with_avx2(
+            #[inline(always)]
+            || {
+                for (i, t) in out.chunks_exact_mut(n).enumerate() {
+                    let s = self.lo + i as f64 * self.ds;
+                    for (v, &o) in t.iter_mut().zip(&self.offsets) {
+                        let d = ((o - s).abs() - self.half).max(0.0);
+                        *v = -d * d * self.inv_s2;
+                    }
+                }
+            },
+        );
+        vmath::exp_in_place(out);
+    }
+
     fn template_into(&self, i: usize, out: &mut [f64]) {
         let s = self.lo + i as f64 * self.ds;
         match &self.table {
@@ -414,6 +443,59 @@ pub(crate) fn normalize(v: &mut [f64]) -> bool {
     normalize_with_sum(v, sum)
 }
 
+/// [`normalize`] on each `n`-value frame of `v`, with its bits: frames are
+/// taken eight at a time, each in its own lane, so the three sums per frame
+/// (values, squares, squared deviations), each in taxel order as
+/// [`normalize`] adds them, run side by side instead of as one chain of
+/// dependent additions after another (a class's frames are thousands).
+pub(crate) fn normalize_frames(v: &mut [f64], n: usize) {
+    const L: usize = 8;
+    if n == 0 {
+        return;
+    }
+    let whole = v.len() / (n * L) * (n * L);
+    let (head, tail) = v.split_at_mut(whole);
+    crate::wide::with_avx2(
+        #[inline(always)]
+        || {
+            for block in head.chunks_exact_mut(n * L) {
+                let mut sum = [0.0f64; L];
+                let mut energy = [0.0f64; L];
+                for t in 0..n {
+                    for l in 0..L {
+                        let x = block[l * n + t];
+                        sum[l] += x;
+                        energy[l] += x * x;
+                    }
+                }
+                let mut mean = [0.0f64; L];
+                for l in 0..L {
+                    mean[l] = sum[l] / n as f64;
+                }
+                let mut ss = [0.0f64; L];
+                for t in 0..n {
+                    for l in 0..L {
+                        let d = block[l * n + t] - mean[l];
+                        ss[l] += d * d;
+                    }
+                }
+                for (l, frame) in block.chunks_exact_mut(n).enumerate() {
+                    if !ss[l].is_finite() || ss[l] <= 1e-20 * energy[l] {
+                        frame.iter_mut().for_each(|x| *x = 0.0);
+                    } else {
+                        let inv = 1.0 / ss[l].sqrt();
+                        let m = mean[l];
+                        frame.iter_mut().for_each(|x| *x = (*x - m) * inv);
+                    }
+                }
+            }
+        },
+    );
+    for frame in tail.chunks_exact_mut(n) {
+        normalize(frame);
+    }
+}
+
 /// [`normalize`] given `v.iter().sum()` (a frame's spike count, which the
 /// caller has already summed in that order: the same bits).
 pub(crate) fn normalize_with_sum(v: &mut [f64], sum: f64) -> bool {
@@ -455,10 +537,8 @@ impl Templates {
                 let (crossing_frames, len) = lengths(layout, hop_ms, params, a);
                 let mut data = vec![0.0; len * n];
                 let shape = ClassShape::new(layout, hop_ms, params, a);
-                for (i, t) in data.chunks_exact_mut(n.max(1)).enumerate() {
-                    shape.template_into(i, t);
-                    normalize(t);
-                }
+                shape.templates_into(&mut data);
+                normalize_frames(&mut data, n);
                 ClassTemplates {
                     angle_deg: a,
                     crossing_frames,
@@ -592,6 +672,67 @@ impl Templates {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use proptest::prelude::*;
+
+    proptest! {
+        /// Eight frames at a time in lanes gives each frame's bits, for any
+        /// frame width, frame count (with a tail) and values, constant and
+        /// all-zero frames included.
+        #[test]
+        fn frames_in_lanes_are_normalised_as_one_by_one(
+            n in 1usize..20,
+            frames in 0usize..30,
+            seed in any::<u64>(),
+            constant in any::<bool>(),
+        ) {
+            let mut x = seed | 1;
+            let mut next = || {
+                x ^= x << 13;
+                x ^= x >> 7;
+                x ^= x << 17;
+                (x >> 11) as f64 / (1u64 << 53) as f64
+            };
+            let mut v: Vec<f64> = (0..n * frames).map(|_| next() * 3.0).collect();
+            if constant && frames > 2 {
+                v[n..2 * n].iter_mut().for_each(|x| *x = 0.7);
+                v[2 * n..3 * n].iter_mut().for_each(|x| *x = 0.0);
+            }
+            let mut one = v.clone();
+            for f in one.chunks_exact_mut(n) {
+                normalize(f);
+            }
+            normalize_frames(&mut v, n);
+            let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+            prop_assert_eq!(bits(&v), bits(&one));
+        }
+    }
+
+    /// The batched build gives every class the bits of building each
+    /// template by itself (`template_into`, then `normalize`), for both
+    /// distances.
+    #[test]
+    fn batched_templates_are_the_bits_of_one_at_a_time() {
+        let layout = TaxelLayout::paper();
+        for distance in [Distance::Centre, Distance::Area] {
+            let params = WssParams {
+                distance,
+                ..WssParams::default()
+            };
+            for a in [7.5, 33.3, 90.0, 151.0] {
+                let t = Templates::for_angles(&layout, 10.0, &params, &[a]).unwrap();
+                let cls = &t.classes()[0];
+                let shape = ClassShape::new(&layout, 10.0, &params, a);
+                let n = layout.len();
+                for (i, frame) in cls.data.chunks_exact(n).enumerate() {
+                    let mut one = vec![0.0; n];
+                    shape.template_into(i, &mut one);
+                    normalize(&mut one);
+                    let same = frame.iter().zip(&one).all(|(x, y)| x.to_bits() == y.to_bits());
+                    assert!(same, "{distance:?} {a} frame {i}: {frame:?} vs {one:?}");
+                }
+            }
+        }
+    }
 
     /// Brute-force mean over the taxel's square on a fine grid.
     fn brute(c: f64, n: [f64; 2], a: f64, h: f64, sigma: f64) -> f64 {
