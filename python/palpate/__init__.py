@@ -720,7 +720,18 @@ class Model:
 def fit(type: str, train: Sequence[Any], labels: Optional[Sequence[float]] = None, seed: int = 1, **config: Any) -> Model:
     """Fits the registered estimator ``type`` (``ann``, ``edbn``, ``knn``, ``svm``,
     ``wss`` ...) with keys ``config`` on training payloads; ``labels`` are their
-    true angles (default: each payload's ``meta``). Returns a ``Model``."""
+    true angles (default: each payload's ``meta``), one per payload. Returns a
+    ``Model``."""
+    train = list(train)
+    if labels is not None:
+        labels = list(labels)
+        if len(labels) != len(train):
+            # Unchecked, a short list failed inside NumPy indexing and a long
+            # one was cut without a word.
+            raise ValueError(
+                f"fit: `labels` has {len(labels)} entries but `train` has {len(train)} payloads "
+                "(one label per training payload)"
+            )
     raws = []
     for i, p in enumerate(train):
         r = dict(_to_raw(p))

@@ -193,3 +193,10 @@ def test_trained_baseline_fit_predict_matches_its_graph():
     assert np.isfinite(pred).all()
     # Refitting with the same seed gives the same model.
     assert np.array_equal(pred, palpate.fit("knn", train, seed=1).predict_angles(test))
+    # One label per training payload: a list of another length is refused by
+    # name, not cut short or failed inside NumPy.
+    angles = [im.meta["angle_deg"] for im in train]
+    assert np.array_equal(pred, palpate.fit("knn", iter(train), labels=np.array(angles), seed=1).predict_angles(test))
+    for wrong in (angles[:-1], angles + [45.0]):
+        with pytest.raises(ValueError, match="`labels` has .* entries but `train` has"):
+            palpate.fit("knn", train, labels=wrong)
