@@ -264,11 +264,18 @@ pub fn run_batch(path: &Path, workers: usize, threads: usize, fresh: bool, times
     // One pool per worker, not one pool for all: see `threads_per_job`.
     let per = threads_per_job(threads, workers, cores);
     let mut pools = Vec::with_capacity(workers);
+    if workers.saturating_mul(per) > palpate_core::MAX_THREADS {
+        eprintln!(
+            "--jobs {workers} x {per} threads each is over the cap of {} worker threads",
+            palpate_core::MAX_THREADS
+        );
+        return ExitCode::FAILURE;
+    }
     for _ in 0..workers {
-        match rayon::ThreadPoolBuilder::new().num_threads(per).build() {
+        match palpate_core::thread_pool(per, "--threads") {
             Ok(p) => pools.push(p),
             Err(e) => {
-                eprintln!("cannot start worker threads: {e}");
+                eprintln!("{e}");
                 return ExitCode::FAILURE;
             }
         }

@@ -36,7 +36,7 @@ enum Command {
         /// Output directory (default: `[run] out`, else out/<graph name>).
         #[arg(long)]
         out: Option<PathBuf>,
-        /// Worker threads (default: all cores). Results do not depend on it.
+        /// Worker threads (default: all cores; at most 4096). Results do not depend on it.
         #[arg(long)]
         threads: Option<usize>,
         /// Sweeps: run only these points (numbers from `palpate sweep list`),
@@ -211,7 +211,9 @@ enum DaqCommand {
         /// `labels.toml` or `trials.json` beside it declares (as `palpate simulate` writes), else 4 x 4.
         #[arg(long)]
         recording: Option<PathBuf>,
-        /// Sample rate of the recording, Hz, when the file does not carry it.
+        /// Sample rate of the recording, Hz, when the file does not carry it
+        /// (with `--recording` only: a scene's rate is its
+        /// `motion.sample_rate_hz`, and a flag that changes nothing is refused).
         #[arg(long)]
         sample_rate_hz: Option<f64>,
         /// Playback speed: 1 = real time.
@@ -587,13 +589,10 @@ fn cmd_run(
     let Some(graph) = load(&path, set.clone(), out) else {
         return ExitCode::FAILURE;
     };
-    let pool = match rayon::ThreadPoolBuilder::new()
-        .num_threads(threads.unwrap_or(0))
-        .build()
-    {
+    let pool = match palpate_core::thread_pool(threads.unwrap_or(0), "--threads") {
         Ok(p) => p,
         Err(e) => {
-            eprintln!("cannot start worker threads: {e}");
+            eprintln!("{e}");
             return ExitCode::FAILURE;
         }
     };
@@ -824,6 +823,13 @@ fn cmd_daq(command: DaqCommand) -> ExitCode {
             speed,
             delay,
         } => {
+            if recording.is_none() && sample_rate_hz.is_some() {
+                eprintln!(
+                    "--sample-rate-hz is the rate of a --recording; a scene's rate is its \
+                     motion.sample_rate_hz (edit the scene file)"
+                );
+                return ExitCode::from(2);
+            }
             let signals = match (scene, recording) {
                 (Some(scene), None) => match daq::simulate_trial(&scene, angle, seed) {
                     Ok(s) => s,

@@ -60,3 +60,47 @@ fn a_live_run_that_stops_before_its_emulator_exits() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(!err.contains("panicked"), "{err}");
 }
+
+/// A mistyped thread count (`--threads 99999999999`) used to hang while the
+/// pool tried to start that many threads; now it is refused before any work.
+#[test]
+fn a_thread_count_over_the_cap_is_refused_at_once() {
+    for args in [
+        vec!["run", "graphs/quickstart.toml", "--threads", "99999999999"],
+        vec!["run", "graphs/quickstart.toml", "--threads", "4097"],
+    ] {
+        let child = palpate()
+            .args(&args)
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap();
+        let out = wait_or_kill(child, Duration::from_secs(60));
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(1), "{args:?}: {err}");
+        assert!(
+            err.contains("--threads") && err.contains("over the cap of 4096"),
+            "{err}"
+        );
+    }
+}
+
+/// `daq emulate --sample-rate-hz` sets a recording's rate; beside a scene it
+/// would change nothing, so it is refused rather than ignored.
+#[test]
+fn a_sample_rate_for_an_emulated_scene_is_refused() {
+    let out = palpate()
+        .args([
+            "daq",
+            "emulate",
+            "--scene",
+            "graphs/scenes/lab.toml",
+            "--sample-rate-hz",
+            "500",
+        ])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{err}");
+    assert!(err.contains("--recording"), "{err}");
+}

@@ -41,7 +41,9 @@ pub use payload::{
     ClassScore, Estimate, Item, Label, Payload, PayloadKind, Provenance, Signals, SpikeEvent, SpikeImages,
     SpikeTrain, Stimulus, TaxelLayout, TrialMeta,
 };
-pub use runtime::{run, Cache, Progress, RunError, RunOptions, RunResult, StageTiming};
+pub use runtime::{
+    run, thread_pool, Cache, Progress, RunError, RunOptions, RunResult, StageTiming, MAX_THREADS,
+};
 pub use stage::{
     check_positive, check_range, derive_seed, fmt_num, BuildContext, ClassMetric, ConfigChecks, ConfigError,
     Estimator, FitContext, InputSpec, Inspection, Map, Model, OutputFacts, Sink, SinkContext, SinkInput,

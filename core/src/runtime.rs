@@ -577,6 +577,27 @@ fn timed<T>(f: impl FnOnce() -> T) -> Timed<T> {
     (v, t0.elapsed())
 }
 
+/// Most worker threads one pool starts (`palpate run --threads`, a batch's
+/// threads per job, Python's `run(threads=)`): far above any machine's core
+/// count, so that a mistyped count (an extra digit or two) is an error
+/// rather than a pool of billions of threads that never finishes starting.
+pub const MAX_THREADS: usize = 4096;
+
+/// A pool of `threads` worker threads (0: one per core), or an error naming
+/// `what` (the flag or argument) when the count is over [`MAX_THREADS`] or
+/// the threads cannot be started.
+pub fn thread_pool(threads: usize, what: &str) -> Result<rayon::ThreadPool, String> {
+    if threads > MAX_THREADS {
+        return Err(format!(
+            "{what} {threads} is over the cap of {MAX_THREADS} worker threads (0 or none: one per core)"
+        ));
+    }
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .map_err(|e| format!("cannot start {threads} worker threads ({what}): {e}"))
+}
+
 /// Runs a graph to the end.
 pub fn run(graph: &Graph, opts: &RunOptions<'_>) -> Result<RunResult, RunError> {
     let n = graph.nodes.len();

@@ -524,7 +524,7 @@ def run(
     """Runs a graph (a path, a TOML string or a dict) as ``palpate run`` does, with
     the same report files in its output folder. ``set`` overrides keys
     (``{"stages.wss.weighting": "constant"}``), ``threads`` caps the worker
-    threads (default: all cores), ``out`` replaces ``[run] out``. The GIL is
+    threads (default: all cores; at most 4096), ``out`` replaces ``[run] out``. The GIL is
     released while it runs; progress goes to stderr. Raises ``GraphError``
     (with ``diagnostics``) when the graph does not load, ``RunError`` when a
     stage fails.

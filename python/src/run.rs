@@ -206,10 +206,8 @@ pub fn run<'py>(
     let text = graph.text.clone();
     let base_dir = graph.base_dir.clone();
     let (graph, opts) = load(py, &graph, set, out)?;
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(threads.unwrap_or(0))
-        .build()
-        .map_err(|e| PalpateError::new_err(format!("cannot start worker threads: {e}")))?;
+    let pool = palpate_core::thread_pool(threads.unwrap_or(0), "threads=")
+        .map_err(pyo3::exceptions::PyValueError::new_err)?;
     use std::io::IsTerminal;
     let bars = Bars {
         bar: Mutex::new(None),

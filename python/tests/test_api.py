@@ -56,6 +56,9 @@ def test_run_accepts_a_dict_and_set_overrides(tmp_path):
     b = palpate.run(g, set={"stages.wss.weighting": "one_minus_sr"}, progress=False)
     assert len(a.estimates["wss"]) == 2
     assert a.record["stages"]["wss"]["wss"]["weighting"] != b.record["stages"]["wss"]["wss"]["weighting"]
+    # A mistyped thread count is refused at once (it used to hang starting them).
+    with pytest.raises(ValueError, match="over the cap of 4096"):
+        palpate.run(g, threads=10**11, progress=False)
 
 
 def test_check_gives_diagnostics_with_line_stage_and_key():
