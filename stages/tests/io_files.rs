@@ -140,10 +140,10 @@ fn a_label_file_declares_each_trials_speed() {
 #[test]
 fn csv_many_trials_per_file_with_labels_in_columns() {
     let d = tempfile::tempdir().unwrap();
-    let mut s = String::from("# exported by the lab rig\ntrial,angle_deg,taxel_0,taxel_1\n");
-    for (name, angle) in [("a", 10.0), ("b", 20.0), ("c", 10.0)] {
+    let mut s = String::from("# exported by the lab rig\ntrial,angle_deg,speed_mm_s,taxel_0,taxel_1\n");
+    for (name, angle, speed) in [("a", 10.0, 2.0), ("b", 20.0, 2.0), ("c", 10.0, 4.5)] {
         for k in 0..5 {
-            s.push_str(&format!("{name},{angle},{},{}\n", k as f64, -(k as f64)));
+            s.push_str(&format!("{name},{angle},{speed},{},{}\n", k as f64, -(k as f64)));
         }
     }
     std::fs::write(d.path().join("all.csv"), s).unwrap();
@@ -158,6 +158,12 @@ fn csv_many_trials_per_file_with_labels_in_columns() {
     assert_eq!(ids, ["all-a", "all-b", "all-c"]);
     let groups: Vec<usize> = it.iter().map(|i| i.meta.group).collect();
     assert_eq!(groups, [0, 0, 1], "c is the second repetition of 10 degrees");
+    let speeds: Vec<Option<f64>> = it.iter().map(|i| i.meta.speed_mm_s).collect();
+    assert_eq!(
+        speeds,
+        [Some(2.0), Some(2.0), Some(4.5)],
+        "each trial's declared speed"
+    );
     assert_eq!(signals(&it[1]).data[1], vec![0.0, -1.0, -2.0, -3.0, -4.0]);
     assert!(matches!(signals(&it[0]).layout, TaxelLayout::Positions { .. }));
 }

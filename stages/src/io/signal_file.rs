@@ -15,7 +15,7 @@
 //! | `taxel_0` ... `taxel_{N-1}` | one per taxel of `layout` (any order); or the names listed in `columns`, in taxel order |
 //! | `time_ms` or `time_s` | optional sample time; gives the sample rate (checked uniform to a quarter sample) |
 //! | `trial` | optional trial name: rows with the same value form one trial (many trials per file) |
-//! | `angle_deg`, `stimulus`, `group` | optional labels, constant within a trial |
+//! | `angle_deg`, `stimulus`, `group`, `speed_mm_s` | optional labels, constant within a trial |
 //!
 //! Any other column is an error (it would otherwise be silently ignored),
 //! unless `ignore_columns` lists it. The delimiter is `,`, or `;` or a tab
@@ -828,11 +828,13 @@ fn read_csv_signals(
                 "time_ms" => Col::TimeMs(1.0),
                 "time_s" => Col::TimeMs(1000.0),
                 "trial" => Col::Trial,
-                h if LABEL_COLUMNS[..3].contains(&h) => Col::Label,
+                // A signal's duration is its samples over its rate, so
+                // `duration_ms` (a spike file's column) is not one of them.
+                h if h != "duration_ms" && LABEL_COLUMNS.contains(&h) => Col::Label,
                 _ => {
                     return Err(format!(
                         "{shown}: unknown column `{h}`; expected {} (the layout has {n_taxels} taxels), \
-                         optionally time_ms or time_s, trial, angle_deg, stimulus, group \
+                         optionally time_ms or time_s, trial, angle_deg, stimulus, group, speed_mm_s \
                          (set `columns` to name the taxel columns, `ignore_columns` to skip others)",
                         if cfg.columns.is_empty() {
                             format!("taxel_0 .. taxel_{}", n_taxels.saturating_sub(1))
