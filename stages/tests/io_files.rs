@@ -234,6 +234,17 @@ fn spreadsheet_and_logger_csv_variants_read_the_same_samples() {
         "{e}"
     );
     assert_data(&read("force.csv", "ignore_columns = [\"force\"]"), 0, 12);
+    // A taxel column past the layout's is a larger array, not a column to skip.
+    let wide = plain
+        .replacen("taxel_3\n", "taxel_3,taxel_4\n", 1)
+        .replace('\n', ",9\n")
+        .replacen("taxel_4,9\n", "taxel_4\n", 1);
+    std::fs::write(p.join("wide.csv"), wide).unwrap();
+    let e = source_error(p, &src("wide.csv", ""));
+    assert!(
+        e.contains("`taxel_4` is past the layout's 4 taxels") && !e.contains("ignore_columns"),
+        "{e}"
+    );
     // A taxel column cannot be skipped: that would drop a taxel silently.
     let e = source_error(p, &src("force.csv", "ignore_columns = [\"force\", \"taxel_2\"]"));
     assert!(

@@ -831,6 +831,18 @@ fn read_csv_signals(
                 // A signal's duration is its samples over its rate, so
                 // `duration_ms` (a spike file's column) is not one of them.
                 h if h != "duration_ms" && LABEL_COLUMNS.contains(&h) => Col::Label,
+                // A taxel column past the layout's last: the file's array is
+                // larger, which `ignore_columns` must not be suggested for.
+                h if cfg.columns.is_empty()
+                    && h.strip_prefix("taxel_")
+                        .is_some_and(|i| i.parse::<usize>().is_ok()) =>
+                {
+                    return Err(format!(
+                        "{shown}: column `{h}` is past the layout's {n_taxels} taxels (taxel_0 .. taxel_{}): \
+                         the file holds a larger array{LAYOUT_HINT}",
+                        n_taxels.saturating_sub(1)
+                    ));
+                }
                 _ => {
                     return Err(format!(
                         "{shown}: unknown column `{h}`; expected {} (the layout has {n_taxels} taxels), \
