@@ -377,9 +377,9 @@ pub fn user_csv_reader(bytes: &[u8]) -> csv::Reader<&[u8]> {
         .from_reader(bytes)
 }
 
-/// `what: cannot read `cell` as a number`, with a hint when the cell is a
-/// number written with a decimal comma (`1,75`), as `;`-separated files from
-/// such locales hold.
+/// The error for a cell that is not a number (`noun`, e.g. "a number" or
+/// "a time"), with a hint when the cell is one written with a decimal comma
+/// (`1,75`), as `;`-separated files from such locales hold.
 pub fn number_error(what: &str, cell: &str, noun: &str) -> String {
     let comma = cell.contains(',') && cell.replacen(',', ".", 1).parse::<f64>().is_ok();
     format!(
