@@ -450,6 +450,11 @@ fn effects_out_of_phase_order_or_with_bad_values_are_errors() {
     assert!(e.contains("grid"), "{e}");
     let e = load_err("effects = [{ kind = \"piezo\", v_contact = 4 }]");
     assert!(e.contains("v_contact"), "{e}");
+    // A file source's layout table reads here too; a grid is `array`.
+    let it = items("angles = [45]\ntrials_per_angle = 1\nlayout = { kind = \"positions\", positions_mm = [[0, 0], [3, 0], [0, 3]] }");
+    assert_eq!(data(&it[0]).len(), 3);
+    let e = load_err("layout = { kind = \"grid\", positions_mm = [[0, 0], [3, 0]] }");
+    assert!(e.contains("layout.kind") && e.contains("`array`"), "{e}");
 }
 
 #[test]

@@ -229,6 +229,11 @@ pub struct ArrayKeys {
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields, default)]
 pub struct LayoutKeys {
+    /// `positions`, or unset: accepted so that a layout table written for a
+    /// file source (`layout = { kind = "positions", ... }`) reads here too;
+    /// a grid is the `array` table. Default unset.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub kind: Option<String>,
     /// Taxel centres `[x, y]`, mm. Required when `layout` is given.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub positions_mm: Option<Vec<[f64; 2]>>,
@@ -615,6 +620,17 @@ impl SceneConfig {
                     angles.len()
                 ),
             ));
+        }
+        if let Some(k) = self.layout.as_ref().and_then(|l| l.kind.as_deref()) {
+            if k != "positions" {
+                c.push(ConfigError::key(
+                    "layout.kind",
+                    format!(
+                        "a scene's `layout` lists taxel positions (`kind = \"positions\"`, or no `kind`); \
+                         got `{k}`: a grid is the `array` table (rows, cols, pitch_mm, taxel_mm)"
+                    ),
+                ));
+            }
         }
         let layout = match &self.layout {
             Some(l) => match l.positions_mm.clone() {
