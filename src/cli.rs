@@ -491,7 +491,7 @@ pub fn main() -> ExitCode {
 
 /// Loads every point of a graph's sweep (checking them), printing errors.
 fn load_sweep_points(path: &std::path::Path, set: Vec<(String, toml::Value)>, base: &Graph) -> Option<usize> {
-    let text = std::fs::read_to_string(path).ok()?;
+    let text = palpate_core::input::read_text(path).ok()?;
     let opts = LoadOptions {
         overrides: set,
         out: Some(base.out_dir.clone()),
@@ -907,7 +907,7 @@ fn cmd_daq(command: DaqCommand) -> ExitCode {
             seconds,
         } => {
             let (text, file) = match &config {
-                Some(path) => match std::fs::read_to_string(path) {
+                Some(path) => match palpate_core::input::read_text(path) {
                     Ok(t) => (t, path.display().to_string()),
                     Err(e) => {
                         eprintln!("cannot read {}: {e}", path.display());

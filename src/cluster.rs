@@ -36,7 +36,7 @@ impl SweepJob<'_> {
         let (text, base_dir) = match self.source {
             Some((text, base)) => (text.to_string(), absolute(base)),
             None => (
-                std::fs::read_to_string(self.path)
+                palpate_core::input::read_text(self.path)
                     .map_err(|e| format!("{}: cannot read the graph file: {e}", self.path.display()))?,
                 absolute(self.path.parent().unwrap_or(Path::new(""))),
             ),

@@ -545,7 +545,7 @@ impl Graph {
 /// Loads and validates a graph file.
 pub fn load_file(path: &Path, opts: &LoadOptions) -> Result<Graph, LoadErrors> {
     let file = path.display().to_string();
-    let text = std::fs::read_to_string(path).map_err(|e| {
+    let text = crate::input::read_text(path).map_err(|e| {
         LoadErrors(vec![Diagnostic {
             severity: Severity::Error,
             file: file.clone(),

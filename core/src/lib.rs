@@ -23,6 +23,7 @@
 
 pub mod geometry;
 pub mod graph;
+pub mod input;
 pub mod output;
 pub mod payload;
 pub mod protocol;

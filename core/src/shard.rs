@@ -369,7 +369,7 @@ impl PointRecord {
     /// Reads `dir/point.json` if it is there, whole, and stands for `graph` as
     /// point `point`, repeat `repeat`; `None` otherwise (the point must run).
     pub fn read_matching(dir: &Path, graph: &Graph, point: usize, repeat: usize) -> Option<PointRecord> {
-        let bytes = std::fs::read(dir.join(MARKER)).ok()?;
+        let bytes = crate::input::read_capped(&dir.join(MARKER), crate::input::MAX_TEXT_FILE_BYTES).ok()?;
         let rec: PointRecord = serde_json::from_slice(&bytes).ok()?;
         (rec.format == FORMAT
             && rec.point == point
@@ -410,7 +410,7 @@ impl Manifest {
     /// Reads `out/sweep-manifest.json`.
     pub fn read(out: &Path) -> Result<Manifest, String> {
         let path = out.join(MANIFEST);
-        let bytes = std::fs::read(&path).map_err(|e| {
+        let bytes = crate::input::read_capped(&path, crate::input::MAX_TEXT_FILE_BYTES).map_err(|e| {
             format!(
                 "cannot read {}: {e} (is {} the output folder of a sweep run by `palpate run`?)",
                 path.display(),

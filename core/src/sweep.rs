@@ -172,7 +172,7 @@ pub fn run_file(
     base: &Graph,
     run_opts: &RunOptions<'_>,
 ) -> Result<Vec<SweepRun>, SweepError> {
-    let text = std::fs::read_to_string(path).map_err(|e| {
+    let text = crate::input::read_text(path).map_err(|e| {
         SweepError::Load(LoadErrors(vec![Diagnostic {
             severity: Severity::Error,
             file: path.display().to_string(),

@@ -496,3 +496,50 @@ fn mat_dimensions_whose_product_overflows_are_an_error() {
     let r = read_signal_bytes(bytes, "crash.mat", "crash", SignalFormat::Mat, &cfg, 16);
     assert!(r.is_err(), "accepted: {:?}", r.map(|t| t.len()));
 }
+
+/// `/dev/zero` (a file that never ends, with no length to check first) as
+/// every kind of file a graph names: each read stops at its cap with an error
+/// naming it (graph, scene, saved model), or the path is refused at check as
+/// not a regular file (data files, label files). Before, reading it grew
+/// memory until the process was killed.
+#[cfg(unix)]
+#[test]
+fn endless_files_are_refused_not_read_forever() {
+    use palpate_core::{load_str, LoadOptions};
+    palpate_stages::link();
+    let d = tempfile::tempdir().unwrap();
+    let zero = d.path().join("zero");
+    std::os::unix::fs::symlink("/dev/zero", &zero).unwrap();
+    let load = |toml: &str| -> String {
+        let opts = LoadOptions {
+            base_dir: Some(d.path().to_path_buf()),
+            ..Default::default()
+        };
+        match load_str(toml, "g.toml", "g", &opts) {
+            Ok(g) => match palpate_core::run(&g, &Default::default()) {
+                Ok(_) => panic!("expected an error for {toml}"),
+                Err(e) => e.to_string(),
+            },
+            Err(e) => e.to_string(),
+        }
+    };
+    let e = palpate_core::load_file(&zero, &LoadOptions::default())
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("cap of 67108864 bytes"), "graph: {e}");
+    let e = load("[stages.scene]\ntype = \"scene\"\nfile = \"zero\"\n");
+    assert!(e.contains("cap of 67108864 bytes"), "scene: {e}");
+    let e = load("[stages.src]\ntype = \"signal_file\"\npath = \"zero\"\nsample_rate_hz = 100.0\n");
+    assert!(e.contains("not a regular file"), "data: {e}");
+    std::fs::write(d.path().join("a.csv"), "taxel_0\n1\n2\n").unwrap();
+    let e = load(
+        "[stages.src]\ntype = \"signal_file\"\npath = \"a.csv\"\nsample_rate_hz = 100.0\nlabels = \"zero\"\n\
+         layout = { kind = \"grid\", rows = 1, cols = 1, pitch_mm = 3.0, taxel_mm = 2.0 }\n",
+    );
+    assert!(e.contains("zero is not a regular file"), "labels: {e}");
+    let e = palpate_stages::estimate::features::load_model(&zero)
+        .err()
+        .unwrap()
+        .to_string();
+    assert!(e.contains("cap of 1073741824 bytes"), "model: {e}");
+}

@@ -950,17 +950,14 @@ pub fn save_model(model: &FittedModel, path: &Path) -> Result<(), StageError> {
 
 /// Reads a fitted model written by [`save_model`].
 pub fn load_model(path: &Path) -> Result<FittedModel, StageError> {
-    let len = std::fs::metadata(path)
-        .map_err(|e| StageError::new(format!("reading {}: {e}", path.display())))?
-        .len();
-    if len > MAX_MODEL_BYTES {
-        return Err(StageError::new(format!(
-            "{}: {len} bytes, more than the {MAX_MODEL_BYTES} a model file may have",
+    // Capped while reading: a length check first missed devices and pipes,
+    // which report none.
+    let bytes = palpate_core::input::read_capped(path, MAX_MODEL_BYTES).map_err(|e| {
+        StageError::new(format!(
+            "reading {}: {e} (a model file may have at most {MAX_MODEL_BYTES} bytes)",
             path.display()
-        )));
-    }
-    let bytes =
-        std::fs::read(path).map_err(|e| StageError::new(format!("reading {}: {e}", path.display())))?;
+        ))
+    })?;
     let m: FittedModel = serde_json::from_slice(&bytes)
         .map_err(|e| StageError::new(format!("{}: not a palpate baseline model: {e}", path.display())))?;
     if m.format != MODEL_FORMAT {

@@ -141,6 +141,35 @@ impl LayoutConfig {
     }
 }
 
+/// `Ok` when `p` is a regular file; else an error on `key` saying what it is:
+/// missing, a folder (with the glob that lists its files), or a device,
+/// pipe or socket. Why the last: files are read whole, and `/dev/zero`
+/// would never end.
+pub fn check_regular_file(p: &Path, key: &str) -> Result<(), ConfigError> {
+    if p.is_file() {
+        Ok(())
+    } else if p.is_dir() {
+        Err(ConfigError::key(
+            key,
+            format!(
+                "{} is a folder: give its files, e.g. the pattern `{}`",
+                p.display(),
+                p.join("*.csv").display()
+            ),
+        ))
+    } else if p.exists() {
+        Err(ConfigError::key(
+            key,
+            format!(
+                "{} is not a regular file (a device, pipe or socket?)",
+                p.display()
+            ),
+        ))
+    } else {
+        Err(ConfigError::key(key, format!("file {} not found", p.display())))
+    }
+}
+
 /// Expands a list of paths, each resolved against the graph's directory; an
 /// entry with a glob metacharacter (`*`, `?`, `[`) is a pattern whose matches are
 /// taken in sorted order. Every literal path must exist, every pattern must match.
@@ -168,10 +197,9 @@ pub fn expand_paths(
             }
             found.sort();
             out.extend(found);
-        } else if p.is_file() {
-            out.push(p);
         } else {
-            return Err(ConfigError::key(key, format!("file {} not found", p.display())));
+            check_regular_file(&p, key)?;
+            out.push(p);
         }
     }
     let mut seen = std::collections::HashSet::new();
@@ -524,7 +552,7 @@ pub fn read_sidecar_layout(path: &Path) -> Result<Option<TaxelLayout>, String> {
     if ext != "toml" && ext != "json" {
         return Ok(None);
     }
-    let text = std::fs::read_to_string(path).map_err(|e| format!("cannot read {shown}: {e}"))?;
+    let text = palpate_core::input::read_text(path).map_err(|e| format!("cannot read {shown}: {e}"))?;
     parse_sidecar_layout(&text, &ext, &shown.to_string())
 }
 
@@ -618,7 +646,7 @@ pub fn describe_layout(l: &TaxelLayout) -> String {
 /// simulate`, by extension): trial id -> labels.
 pub fn read_sidecar(path: &Path) -> Result<BTreeMap<String, TrialLabels>, StageError> {
     let shown = path.display();
-    let text = std::fs::read_to_string(path)
+    let text = palpate_core::input::read_text(path)
         .map_err(|e| StageError::new(format!("cannot read label sidecar {shown}: {e}")))?;
     let ext = path
         .extension()

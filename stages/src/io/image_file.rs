@@ -131,7 +131,7 @@ impl ImageFileConfig {
         }
         let info_path = dir.join("info.json");
         let info: Info = if info_path.is_file() {
-            let text = std::fs::read_to_string(&info_path)
+            let text = palpate_core::input::read_text(&info_path)
                 .map_err(|e| ConfigError::key("dir", format!("cannot read {}: {e}", info_path.display())))?;
             serde_json::from_str(&text)
                 .map_err(|e| ConfigError::key("dir", format!("{}: {e}", info_path.display())))?
@@ -183,12 +183,7 @@ impl ImageFileConfig {
         let labels = match &self.labels {
             Some(l) => {
                 let p = ctx.resolve(Path::new(l));
-                if !p.is_file() {
-                    c.push(ConfigError::key(
-                        "labels",
-                        format!("file {} not found", p.display()),
-                    ));
-                }
+                c.take(super::common::check_regular_file(&p, "labels"));
                 Some(p)
             }
             None => Some(dir.join("labels.toml")).filter(|p| p.is_file()),
@@ -285,7 +280,8 @@ impl ImageFileSource {
         let shown = path.display().to_string();
         let n = self.layout.len();
         let (n_frames, counts) = if path.extension().and_then(|e| e.to_str()) == Some("npy") {
-            let bytes = std::fs::read(path).map_err(|e| format!("cannot read {shown}: {e}"))?;
+            let bytes =
+                palpate_core::input::read_data(path).map_err(|e| format!("cannot read {shown}: {e}"))?;
             let NdArray { shape, data } = read_npy_plain(&bytes, &shown)?;
             let frames_of = |shape: &[usize]| -> Option<usize> {
                 match (shape, self.layout.grid()) {
@@ -328,10 +324,10 @@ impl ImageFileSource {
     /// Reads `frame, t_start_ms, taxel_0 ..` CSV.
     fn read_csv(&self, path: &Path, shown: &str) -> Result<(usize, Vec<f64>), String> {
         let n = self.layout.len();
+        let bytes = palpate_core::input::read_data(path).map_err(|e| format!("cannot read {shown}: {e}"))?;
         let mut rdr = csv::ReaderBuilder::new()
             .trim(csv::Trim::All)
-            .from_path(path)
-            .map_err(|e| format!("cannot read {shown}: {e}"))?;
+            .from_reader(bytes.as_slice());
         let headers = rdr.headers().map_err(|e| format!("{shown}: {e}"))?.clone();
         let expected: Vec<String> = ["frame".to_string(), "t_start_ms".to_string()]
             .into_iter()

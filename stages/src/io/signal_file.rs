@@ -230,12 +230,7 @@ impl SignalFileConfig {
         }
         let labels = self.labels.as_ref().map(|l| ctx.resolve(Path::new(l)));
         if let Some(l) = &labels {
-            if !l.is_file() {
-                c.push(ConfigError::key(
-                    "labels",
-                    format!("file {} not found", l.display()),
-                ));
-            }
+            c.take(super::common::check_regular_file(l, "labels"));
         }
         // A signal file's column count checks the layout: no default to flag.
         let layout = c
@@ -431,7 +426,7 @@ pub fn read_signal_file(
 ) -> Result<Vec<RawTrial>, String> {
     let shown = path.display().to_string();
     let fmt = format_of(cfg.format, path)?;
-    let bytes = std::fs::read(path).map_err(|e| format!("cannot read {shown}: {e}"))?;
+    let bytes = palpate_core::input::read_data(path).map_err(|e| format!("cannot read {shown}: {e}"))?;
     read_signal_bytes(&bytes, &shown, file_id, fmt, cfg, n_taxels)
 }
 

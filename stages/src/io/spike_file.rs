@@ -184,12 +184,7 @@ impl StageConfig for SpikeFileConfig {
         }
         let labels = self.labels.as_ref().map(|l| ctx.resolve(Path::new(l)));
         if let Some(l) = &labels {
-            if !l.is_file() {
-                c.push(ConfigError::key(
-                    "labels",
-                    format!("file {} not found", l.display()),
-                ));
-            }
+            c.take(super::common::check_regular_file(l, "labels"));
         }
         let layout = c.take(resolve_layout("layout", self.layout.as_ref(), labels.as_deref()));
         c.finish()?;
@@ -436,7 +431,7 @@ fn read_spike_file(
 ) -> Result<Vec<RawEvents>, String> {
     let shown = path.display().to_string();
     let fmt = spike_format_of(cfg.format, path)?;
-    let bytes = std::fs::read(path).map_err(|e| format!("cannot read {shown}: {e}"))?;
+    let bytes = palpate_core::input::read_data(path).map_err(|e| format!("cannot read {shown}: {e}"))?;
     read_spike_bytes(&bytes, &shown, file_id, fmt, cfg, layout).map(|t| {
         t.into_iter()
             .map(|(id, labels, events, origin)| RawEvents {

@@ -345,7 +345,7 @@ impl SceneConfig {
     /// Reads a scene file: the same keys as the stage, without `type`, `inputs`
     /// or `file`. Errors name the file and the offending key.
     pub fn from_file(path: &Path) -> Result<SceneConfig, ConfigError> {
-        let text = std::fs::read_to_string(path).map_err(|e| {
+        let text = palpate_core::input::read_text(path).map_err(|e| {
             ConfigError::key("file", format!("cannot read scene file {}: {e}", path.display()))
         })?;
         Self::from_toml_str(&text, path)

@@ -711,7 +711,8 @@ pub fn signals_from_recording(
     offset: f64,
     fill_gaps: bool,
 ) -> Result<(Signals, DaqStats), String> {
-    let bytes = std::fs::read(path).map_err(|e| format!("cannot read {}: {e}", path.display()))?;
+    let bytes =
+        palpate_core::input::read_data(path).map_err(|e| format!("cannot read {}: {e}", path.display()))?;
     let rec = super::protocol::decode_recording(&bytes, scale, offset, fill_gaps)
         .map_err(|e| format!("{}: {e}", path.display()))?;
     if rec.data.len() != layout.len() {
