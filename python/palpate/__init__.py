@@ -320,6 +320,10 @@ def _to_raw(p: Any) -> dict:
 # ---------------------------------------------------------------- graphs
 
 
+#: Largest graph file read (bytes), as ``palpate_core::input::MAX_TEXT_FILE_BYTES``.
+_MAX_TEXT_FILE_BYTES = 64 << 20
+
+
 def _graph_text(graph: Any) -> dict:
     """(text, file, stem, base_dir) of a graph given as a path, TOML text or dict."""
     if isinstance(graph, dict):
@@ -330,8 +334,17 @@ def _graph_text(graph: Any) -> dict:
     ):
         path = pathlib.Path(graph)
         try:
-            text = path.read_text(encoding="utf-8")
-        except OSError as e:
+            # Capped as the CLI caps it (64 MiB): /dev/zero or an endless pipe
+            # would otherwise be read until memory ran out.
+            with open(path, "rb") as f:
+                raw = f.read(_MAX_TEXT_FILE_BYTES + 1)
+            if len(raw) > _MAX_TEXT_FILE_BYTES:
+                raise GraphError(
+                    f"{graph}: cannot read the graph file: it is larger than the cap of "
+                    f"{_MAX_TEXT_FILE_BYTES} bytes (or never ends)"
+                )
+            text = raw.decode("utf-8")
+        except (OSError, UnicodeDecodeError) as e:
             raise GraphError(f"{graph}: cannot read the graph file: {e}") from None
         return {"text": text, "file": str(graph), "stem": path.stem, "base_dir": str(path.parent)}
     if isinstance(graph, str):

@@ -2,6 +2,7 @@
 
 import json
 import math
+import os
 
 import numpy as np
 import pytest
@@ -56,6 +57,10 @@ def test_run_accepts_a_dict_and_set_overrides(tmp_path):
     b = palpate.run(g, set={"stages.wss.weighting": "one_minus_sr"}, progress=False)
     assert len(a.estimates["wss"]) == 2
     assert a.record["stages"]["wss"]["wss"]["weighting"] != b.record["stages"]["wss"]["wss"]["weighting"]
+    # A graph "file" that never ends is refused at the cap, not read forever.
+    if os.path.exists("/dev/zero"):
+        with pytest.raises(palpate.GraphError, match="cap of 67108864 bytes"):
+            palpate.run("/dev/zero", progress=False)
     # A mistyped thread count is refused at once (it used to hang starting them).
     with pytest.raises(ValueError, match="over the cap of 4096"):
         palpate.run(g, threads=10**11, progress=False)
