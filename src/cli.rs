@@ -116,10 +116,10 @@ enum Command {
         /// Slurm partition (default: the cluster's default).
         #[arg(long)]
         partition: Option<String>,
-        /// Time limit per task, Slurm's format.
+        /// Time limit per task, in a form `sbatch --time` takes: M, M:S, H:M:S, D-H, D-H:M, D-H:M:S or UNLIMITED.
         #[arg(long, default_value = "01:00:00")]
         time: String,
-        /// CPUs per task (and worker threads per shard).
+        /// CPUs per task (and worker threads per shard; at most 4096).
         #[arg(long, default_value_t = 2)]
         cpus: usize,
     },

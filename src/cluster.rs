@@ -422,6 +422,23 @@ pub struct SlurmOptions {
 }
 
 /// Quotes a string for a POSIX shell.
+/// Whether `t` is one of the forms of time limit `sbatch --time` accepts:
+/// `M`, `M:S`, `H:M:S`, `D-H`, `D-H:M`, `D-H:M:S` (digits), or `UNLIMITED` /
+/// `INFINITE`. Checked here so that a typo fails when the scripts are
+/// written, not when the array is submitted.
+fn slurm_time_ok(t: &str) -> bool {
+    if t.eq_ignore_ascii_case("unlimited") || t.eq_ignore_ascii_case("infinite") {
+        return true;
+    }
+    let digits = |s: &str| !s.is_empty() && s.bytes().all(|b| b.is_ascii_digit());
+    let (days, rest) = match t.split_once('-') {
+        Some((d, r)) => (Some(d), r),
+        None => (None, t),
+    };
+    let parts: Vec<&str> = rest.split(':').collect();
+    days.is_none_or(digits) && (1..=3).contains(&parts.len()) && parts.iter().all(|p| digits(p))
+}
+
 fn sh(s: &str) -> String {
     format!("'{}'", s.replace('\'', r"'\''"))
 }
@@ -433,8 +450,20 @@ pub fn slurm_scripts(job: &SweepJob<'_>, o: &SlurmOptions) -> Result<Vec<PathBuf
     if o.array_size == 0 || o.cpus == 0 {
         return Err("--array-size and --cpus must be at least 1".into());
     }
-    if o.time.is_empty() || o.time.contains(char::is_whitespace) {
-        return Err(format!("--time `{}`: give Slurm's form, e.g. 01:00:00", o.time));
+    // Each task runs `palpate run --threads <cpus>`, which refuses more.
+    if o.cpus > core::MAX_THREADS {
+        return Err(format!(
+            "--cpus {} is over the cap of {} worker threads a task's run may start",
+            o.cpus,
+            core::MAX_THREADS
+        ));
+    }
+    if !slurm_time_ok(&o.time) {
+        return Err(format!(
+            "--time `{}`: give one of Slurm's forms: minutes, minutes:seconds, hours:minutes:seconds, \
+             days-hours, days-hours:minutes, days-hours:minutes:seconds (e.g. 01:00:00), or UNLIMITED",
+            o.time
+        ));
     }
     if let Some(p) = &o.partition {
         if p.is_empty() || !p.chars().all(|c| c.is_ascii_alphanumeric() || "-_.,".contains(c)) {

@@ -326,4 +326,27 @@ fn slurm_writes_an_array_and_a_dependent_merge() {
     assert!(out.join("sweep-manifest.json").is_file());
     let o = palpate(&["slurm", GRAPH, "--out", s(&out), "--partition", "a b"]);
     assert!(!o.status.success());
+    // Slurm's time forms pass; a typo, or a CPU count no run would accept,
+    // fails now rather than at submission or in every task.
+    for t in [
+        "90",
+        "10:30",
+        "01:00:00",
+        "2-12",
+        "2-12:30",
+        "2-12:30:15",
+        "UNLIMITED",
+    ] {
+        ok(&["slurm", GRAPH, "--out", s(&out), "--time", t]);
+    }
+    for (flag, v, says) in [
+        ("--time", "1h", "Slurm's forms"),
+        ("--time", "01:00:00:00", "Slurm's forms"),
+        ("--time", "-5", "Slurm's forms"),
+        ("--cpus", "99999999999", "cap of 4096"),
+    ] {
+        let o = palpate(&["slurm", GRAPH, "--out", s(&out), &format!("{flag}={v}")]);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(!o.status.success() && err.contains(says), "{flag} {v}: {err}");
+    }
 }
