@@ -421,7 +421,6 @@ pub struct SlurmOptions {
     pub cpus: usize,
 }
 
-/// Quotes a string for a POSIX shell.
 /// Whether `t` is one of the forms of time limit `sbatch --time` accepts:
 /// `M`, `M:S`, `H:M:S`, `D-H`, `D-H:M`, `D-H:M:S` (digits), or `UNLIMITED` /
 /// `INFINITE`. Checked here so that a typo fails when the scripts are
@@ -439,6 +438,7 @@ fn slurm_time_ok(t: &str) -> bool {
     days.is_none_or(digits) && (1..=3).contains(&parts.len()) && parts.iter().all(|p| digits(p))
 }
 
+/// Quotes a string for a POSIX shell.
 fn sh(s: &str) -> String {
     format!("'{}'", s.replace('\'', r"'\''"))
 }

@@ -39,24 +39,35 @@ fn duration_flags_refuse_nan_infinite_and_huge_values() {
     }
 }
 
+/// Runs `palpate args`, killing it (and failing) if it outlives `limit`.
+fn run_within(args: &[&str], limit: Duration) -> std::process::Output {
+    let child = palpate()
+        .args(args)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    wait_or_kill(child, limit)
+}
+
 #[test]
 fn a_live_run_that_stops_before_its_emulator_exits() {
-    let child = palpate()
-        .args(["daq", "run", "--emulate-scene", "graphs/scenes/lab.toml"])
-        .args([
+    // The emulator gives up 10 s after the reader stops taking bytes.
+    let out = run_within(
+        &[
+            "daq",
+            "run",
+            "--emulate-scene",
+            "graphs/scenes/lab.toml",
             "--speed",
             "1000",
             "--seconds",
             "0.01",
             "--config",
             "graphs/live.toml",
-        ])
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    // The emulator gives up 10 s after the reader stops taking bytes.
-    let out = wait_or_kill(child, Duration::from_secs(120));
+        ],
+        Duration::from_secs(120),
+    );
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(!err.contains("panicked"), "{err}");
 }
@@ -69,13 +80,7 @@ fn a_thread_count_over_the_cap_is_refused_at_once() {
         vec!["run", "graphs/quickstart.toml", "--threads", "99999999999"],
         vec!["run", "graphs/quickstart.toml", "--threads", "4097"],
     ] {
-        let child = palpate()
-            .args(&args)
-            .stdout(Stdio::piped())
-            .stderr(Stdio::piped())
-            .spawn()
-            .unwrap();
-        let out = wait_or_kill(child, Duration::from_secs(60));
+        let out = run_within(&args, Duration::from_secs(60));
         let err = String::from_utf8_lossy(&out.stderr);
         assert_eq!(out.status.code(), Some(1), "{args:?}: {err}");
         assert!(

@@ -283,16 +283,6 @@ impl ClassShape {
         v
     }
 
-    /// [`Self::template`] into `out` (one value per taxel), without
-    /// allocating: a refining search builds a class's templates per probe.
-    ///
-    /// The Gaussian profile's exponential is [`vmath::exp`], not `f64::exp`:
-    /// glibc's is a call per value that picks an FMA or a non-FMA variant
-    /// at run time, so a template's last bits (and, through a refining
-    /// search's comparisons, in rare ties an estimate's) depended on the
-    /// CPU; `vmath::exp` gives the same bits on every x86-64 CPU and a
-    /// row's values in one vectorised pass. It is within an ulp of glibc's
-    /// (its module docs).
     /// Templates `0, 1, ...` into the frames of `out` (`n` values each,
     /// frame-major), each [`Self::template_into`]'s values: the exponent
     /// arguments of every frame first, then one [`vmath::exp_in_place`]
@@ -313,8 +303,7 @@ impl ClassShape {
                 for (i, t) in out.chunks_exact_mut(n).enumerate() {
                     let s = self.lo + i as f64 * self.ds;
                     for (v, &o) in t.iter_mut().zip(&self.offsets) {
-                        let d = ((o - s).abs() - self.half).max(0.0);
-                        *v = -d * d * self.inv_s2;
+                        *v = self.exponent(o, s);
                     }
                 }
             },
@@ -322,6 +311,26 @@ impl ClassShape {
         vmath::exp_in_place(out);
     }
 
+    /// The Gaussian profile's exponent `−d²/σ²` for a taxel at offset `o`
+    /// from the line at `s` (`d` past the line's half width): one
+    /// expression for [`Self::template_into`] and [`Self::templates_into`],
+    /// so the two give the same bits.
+    #[inline(always)]
+    fn exponent(&self, o: f64, s: f64) -> f64 {
+        let d = ((o - s).abs() - self.half).max(0.0);
+        -d * d * self.inv_s2
+    }
+
+    /// [`Self::template`] into `out` (one value per taxel), without
+    /// allocating: a refining search builds a class's templates per probe.
+    ///
+    /// The Gaussian profile's exponential is [`vmath::exp`], not `f64::exp`:
+    /// glibc's is a call per value that picks an FMA or a non-FMA variant
+    /// at run time, so a template's last bits (and, through a refining
+    /// search's comparisons, in rare ties an estimate's) depended on the
+    /// CPU; `vmath::exp` gives the same bits on every x86-64 CPU and a
+    /// row's values in one vectorised pass. It is within an ulp of glibc's
+    /// (its module docs).
     fn template_into(&self, i: usize, out: &mut [f64]) {
         let s = self.lo + i as f64 * self.ds;
         match &self.table {
@@ -334,8 +343,7 @@ impl ClassShape {
                 #[inline(always)]
                 || {
                     for (v, &o) in out.iter_mut().zip(&self.offsets) {
-                        let d = ((o - s).abs() - self.half).max(0.0);
-                        *v = vmath::exp(-d * d * self.inv_s2);
+                        *v = vmath::exp(self.exponent(o, s));
                     }
                 },
             ),
