@@ -1,6 +1,7 @@
 //! WSS benches: one paper-like trial's estimate (17 classes, 10 ms hop, 4x4
 //! array, 2 s holds, crossing at 2 mm/s) by the fast batch path, the streaming
-//! cost per frame, and the direct reference on a short trial for scale.
+//! cost per frame, the direct reference on a short trial for scale, and the
+//! templates of one angle (what each probe of a refining search builds).
 //!
 //! Trials are ideal spike images built from the geometry (each taxel's count
 //! proportional to the time the edge spends over its area in the frame).
@@ -64,6 +65,18 @@ fn bench(c: &mut Criterion) {
         });
         g.finish();
     }
+    let mut g = c.benchmark_group("wss_templates_one_angle");
+    for theta in [12.3, 52.1] {
+        let frames = Templates::for_angles(&layout, 10.0, &params, &[theta])
+            .unwrap()
+            .classes()[0]
+            .len;
+        g.throughput(Throughput::Elements((frames * layout.len()) as u64));
+        g.bench_function(format!("{theta}deg_{frames}frames"), |b| {
+            b.iter(|| Templates::for_angles(&layout, 10.0, &params, black_box(&[theta])).unwrap())
+        });
+    }
+    g.finish();
     let mut g = c.benchmark_group("wss_reference");
     g.sample_size(10);
     let im = ideal(&layout, 60.0, 2.0, 500.0);
