@@ -47,9 +47,16 @@ inputs = ["enc"]
 type = "knn"
 inputs = ["bins"]
 
+# Model-based: scored on the `test` trials only, as the trained `knn` is,
+# whether the chain runs depth-first (alone) or stage-at-a-time (the sweep).
+[stages.wss]
+type = "wss"
+inputs = ["bins"]
+angles = { from = 30, to = 60, step = 30 }
+
 [stages.mae]
 type = "mae"
-inputs = ["knn"]
+inputs = ["knn", "wss"]
 
 [sweep]
 # The normal force: a shift the trials' metadata (crossing times) does not
@@ -143,7 +150,7 @@ fn trials_served_from_the_cache_are_the_bits_of_running_each_point_alone() {
             },
         )
         .unwrap_or_else(|e| panic!("{e}"));
-        for id in ["scene", "filter", "enc", "bins", "knn"] {
+        for id in ["scene", "filter", "enc", "bins", "knn", "wss"] {
             let (a, b) = (&alone.outputs[id], &r.result.outputs[id]);
             assert_eq!(a.len(), b.len(), "{id} at {}", r.label);
             for (x, y) in a.iter().zip(b.iter()) {
@@ -160,6 +167,15 @@ fn trials_served_from_the_cache_are_the_bits_of_running_each_point_alone() {
             }
         }
         assert_eq!(alone.reports, r.result.reports, "{}", r.label);
+        // Under train/test, WSS estimates the 4 `test` trials and no
+        // `train` one, in either path (alone, the depth-first chain once
+        // estimated all 8 and scored WSS on the training trials too).
+        let ids = |o: &core::RunResult| -> Vec<String> {
+            o.outputs["wss"].iter().map(|i| i.meta.trial_id.clone()).collect()
+        };
+        assert_eq!(ids(&alone), ids(&r.result), "{}", r.label);
+        assert_eq!(ids(&alone).len(), 4, "{}", r.label);
+        assert!(ids(&alone).iter().all(|t| t.starts_with("test-")), "{}", r.label);
     }
     // The shifted condition differs between the points; the other does not.
     let scene = |k: usize, t: &str| {

@@ -32,7 +32,7 @@
 //!   and see no training trial (the paper's case for WSS: nothing to retrain
 //!   when the conditions change). Only the test trials are scored.
 
-use crate::payload::Item;
+use crate::payload::{Item, TrialMeta};
 use crate::stage::derive_seed;
 use rand::seq::SliceRandom;
 use rand_chacha::rand_core::SeedableRng;
@@ -94,8 +94,7 @@ pub const CONDITION_KEYS: [&str; 3] = ["group", "angle", "stimulus"];
 
 /// The value of label `key` for a trial: a built-in key ([`CONDITION_KEYS`])
 /// or one of its `conditions`.
-fn label_value(item: &Item, key: &str) -> Option<String> {
-    let m = &item.meta;
+fn label_value(m: &TrialMeta, key: &str) -> Option<String> {
     match key {
         "group" => Some(m.group.to_string()),
         "angle" => Some(
@@ -110,16 +109,16 @@ fn label_value(item: &Item, key: &str) -> Option<String> {
 
 /// Every trial's value of `key`, or an error naming the key, a trial without
 /// it and the condition keys the trials do have.
-fn label_values(items: &[Item], key: &str, protocol: &str) -> Result<Vec<String>, String> {
-    items
+fn label_values(metas: &[&TrialMeta], key: &str, protocol: &str) -> Result<Vec<String>, String> {
+    metas
         .iter()
-        .map(|it| {
-            label_value(it, key).ok_or_else(|| {
+        .map(|m| {
+            label_value(m, key).ok_or_else(|| {
                 let mut have: Vec<&str> = CONDITION_KEYS.to_vec();
-                have.extend(it.meta.conditions.keys().map(String::as_str));
+                have.extend(m.conditions.keys().map(String::as_str));
                 format!(
                     "protocol.{protocol}.key: trial `{}` has no label `{key}`; its labels are {}",
-                    it.meta.trial_id,
+                    m.trial_id,
                     have.iter()
                         .map(|k| format!("`{k}`"))
                         .collect::<Vec<_>>()
@@ -164,8 +163,8 @@ impl Protocol {
 }
 
 /// A trial's class for stratification: stimulus and angle (to 1e-6 degree).
-fn class_key(item: &Item) -> (String, i64) {
-    let l = &item.meta.label;
+fn class_key(m: &TrialMeta) -> (String, i64) {
+    let l = &m.label;
     (
         format!("{:?}", l.stimulus),
         l.angle_deg.map_or(i64::MIN, |a| (a * 1e6).round() as i64),
@@ -173,11 +172,11 @@ fn class_key(item: &Item) -> (String, i64) {
 }
 
 /// Trial indices grouped by class, classes in order of first appearance.
-fn by_class(items: &[Item]) -> Vec<Vec<usize>> {
+fn by_class(metas: &[&TrialMeta]) -> Vec<Vec<usize>> {
     let mut keys: Vec<(String, i64)> = Vec::new();
     let mut groups: Vec<Vec<usize>> = Vec::new();
-    for (i, it) in items.iter().enumerate() {
-        let k = class_key(it);
+    for (i, m) in metas.iter().enumerate() {
+        let k = class_key(m);
         match keys.iter().position(|x| *x == k) {
             Some(j) => groups[j].push(i),
             None => {
@@ -194,18 +193,27 @@ fn by_class(items: &[Item]) -> Vec<Vec<usize>> {
 /// trial. Errors (naming the key) on an invalid protocol or one the data
 /// cannot satisfy (more folds than trials).
 pub fn folds(trained: bool, protocol: &Protocol, items: &[Item]) -> Result<Vec<Fold>, String> {
+    let metas: Vec<&TrialMeta> = items.iter().map(|it| &*it.meta).collect();
+    folds_of(trained, protocol, &metas)
+}
+
+/// [`folds`] from the trials' metadata alone: a protocol reads labels,
+/// groups and conditions, never data, so the folds are known before any
+/// stage has run (the depth-first chains use this to skip the trials a
+/// hold-out does not score).
+pub fn folds_of(trained: bool, protocol: &Protocol, metas: &[&TrialMeta]) -> Result<Vec<Fold>, String> {
     protocol.check()?;
     if !trained {
         // A model-based estimator is scored on every trial a trained one is:
         // all of them, except under a hold-out (the held-out trials only).
         let test = if protocol.scores_a_subset() {
-            folds(true, protocol, items)?.remove(0).1
+            folds_of(true, protocol, metas)?.remove(0).1
         } else {
-            (0..items.len()).collect()
+            (0..metas.len()).collect()
         };
         return Ok(vec![(Vec::new(), test)]);
     }
-    let n = items.len();
+    let n = metas.len();
     let partition = |fold_of: &dyn Fn(usize) -> usize, n_folds: usize| -> Vec<Fold> {
         (0..n_folds)
             .map(|f| {
@@ -216,12 +224,12 @@ pub fn folds(trained: bool, protocol: &Protocol, items: &[Item]) -> Result<Vec<F
             .collect()
     };
     Ok(match protocol {
-        Protocol::LeaveOneTrialOut => condition_folds(label_values(items, "group", "leave_one_trial_out")?),
+        Protocol::LeaveOneTrialOut => condition_folds(label_values(metas, "group", "leave_one_trial_out")?),
         Protocol::LeaveOneConditionOut { key } => {
-            condition_folds(label_values(items, key, "leave_one_condition_out")?)
+            condition_folds(label_values(metas, key, "leave_one_condition_out")?)
         }
         Protocol::TrainTest { key, train } => {
-            let values = label_values(items, key, "train_test")?;
+            let values = label_values(metas, key, "train_test")?;
             let (tr, te): (Vec<usize>, Vec<usize>) = (0..n).partition(|&t| train.contains(&values[t]));
             if tr.is_empty() {
                 let mut seen = values.clone();
@@ -247,7 +255,7 @@ pub fn folds(trained: bool, protocol: &Protocol, items: &[Item]) -> Result<Vec<F
             let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(derive_seed(*seed, &["k_fold"]));
             let mut fold = vec![0usize; n];
             let mut next = 0;
-            for mut class in by_class(items) {
+            for mut class in by_class(metas) {
                 class.shuffle(&mut rng);
                 for t in class {
                     fold[t] = next % k;
@@ -259,7 +267,7 @@ pub fn folds(trained: bool, protocol: &Protocol, items: &[Item]) -> Result<Vec<F
         Protocol::HoldOut { test_share, seed } => {
             let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(derive_seed(*seed, &["hold_out"]));
             let (mut train, mut test) = (Vec::new(), Vec::new());
-            for mut class in by_class(items) {
+            for mut class in by_class(metas) {
                 class.shuffle(&mut rng);
                 let m = class.len();
                 let mut n_test = (test_share * m as f64).round() as usize;

@@ -18,6 +18,12 @@
 //! is O(threads x one trial's chain) plus the kept outputs, instead of
 //! O(trials x samples) for every stage's output at once.
 //!
+//! Under a protocol that scores a subset of the trials (hold-out,
+//! train/test), a model-based estimator in a chain skips the trials the
+//! protocol does not score, and so does every stage below it on those
+//! trials: the same estimates as stage-at-a-time, where the estimator gets
+//! the held-out trials only ([`crate::protocol::folds`]).
+//!
 //! Results do not change: every per-trial computation is the same pure
 //! function of (config, inputs, seed) with the same seeds, gathered in trial
 //! order. When several trials fail, the first failing trial in trial order is
@@ -196,6 +202,33 @@ pub(super) fn run_chain(
     }
     let n_trials = first.and_then(|f| metas[f].as_ref()).map_or(0, Vec::len);
 
+    // Under a hold-out or train/test split a model-based estimator is scored
+    // on the held-out trials only, as stage-at-a-time (`protocol::folds`):
+    // it skips the others, and so does every stage of the trial below it.
+    // The split reads only labels and conditions, which the sources list
+    // before anything runs.
+    let mut scored: Option<Vec<bool>> = None;
+    if graph.run.protocol.scores_a_subset() {
+        if let Some(&e) = chain
+            .nodes
+            .iter()
+            .find(|&&i| matches!(graph.nodes[i].stage, Stage::Estimator(_)))
+        {
+            let listed: Vec<&TrialMeta> = first
+                .and_then(|f| metas[f].as_ref())
+                .into_iter()
+                .flatten()
+                .collect();
+            let folds = crate::protocol::folds_of(false, &graph.run.protocol, &listed)
+                .map_err(|msg| RunError::new(&graph.nodes[e].id, None, msg))?;
+            let mut mask = vec![false; n_trials];
+            for t in folds.into_iter().flat_map(|(_, test)| test) {
+                mask[t] = true;
+            }
+            scored = Some(mask);
+        }
+    }
+
     // Model-based estimators fit once, on nothing (fold 0, as in a batch run).
     let mut models: Vec<Option<Box<dyn Model>>> = Vec::with_capacity(len);
     let mut fit_times: Vec<Option<Duration>> = vec![None; len];
@@ -241,12 +274,40 @@ pub(super) fn run_chain(
         slots: Vec<Option<Item>>,
         left: Vec<usize>,
         times: Vec<Duration>,
+        /// Positions this trial skips: an estimator on a trial it does not
+        /// score, and every stage that reads a skipped one.
+        skipped: Vec<bool>,
     }
     let step = |t: usize, p: usize, st: &mut State| -> Result<(), RunError> {
-        let State { slots, left, times } = st;
+        let State {
+            slots,
+            left,
+            times,
+            skipped,
+        } = st;
         let i = chain.nodes[p];
         let node = &graph.nodes[i];
         let id = node.id.as_str();
+        let unscored = matches!(node.stage, Stage::Estimator(_)) && scored.as_ref().is_some_and(|m| !m[t]);
+        let mut skip = unscored;
+        for &j in &graph.input_index[i] {
+            skip |= skipped[at(j)?];
+        }
+        // Frees what no later stage of this trial reads (unless kept).
+        let release = |slots: &mut [Option<Item>], left: &mut [usize]| -> Result<(), RunError> {
+            for &j in &graph.input_index[i] {
+                let q = at(j)?;
+                left[q] -= 1;
+                if left[q] == 0 && !keep[j] {
+                    slots[q] = None;
+                }
+            }
+            Ok(())
+        };
+        if skip {
+            skipped[p] = true;
+            return release(slots, left);
+        }
         let (item, dt) = match &node.stage {
             Stage::Source(src) => {
                 let meta = metas[p]
@@ -318,14 +379,7 @@ pub(super) fn run_chain(
             }
         };
         times[p] = dt;
-        // Free what no later stage of this trial reads (unless kept).
-        for &j in &graph.input_index[i] {
-            let q = at(j)?;
-            left[q] -= 1;
-            if left[q] == 0 && !keep[j] {
-                slots[q] = None;
-            }
-        }
+        release(slots, left)?;
         if readers[p] > 0 || keep[i] {
             slots[p] = Some(item);
         }
@@ -340,6 +394,7 @@ pub(super) fn run_chain(
                     slots: vec![None; len],
                     left: readers.clone(),
                     times: vec![Duration::ZERO; len],
+                    skipped: vec![false; len],
                 };
                 for p in 0..first_estimator {
                     step(t, p, &mut st)?;
