@@ -176,6 +176,14 @@ fn trials_served_from_the_cache_are_the_bits_of_running_each_point_alone() {
         assert_eq!(ids(&alone), ids(&r.result), "{}", r.label);
         assert_eq!(ids(&alone).len(), 4, "{}", r.label);
         assert!(ids(&alone).iter().all(|t| t.starts_with("test-")), "{}", r.label);
+        // Their timings hold the 4 estimates, not 8 entries padded with
+        // zeros (which made the median and the estimates per second wrong).
+        for o in [&alone, &r.result] {
+            for id in ["wss", "knn"] {
+                let t = o.timings.iter().find(|t| t.id == id).unwrap();
+                assert_eq!(t.per_trial.len(), 4, "{id} at {}", r.label);
+            }
+        }
     }
     // The shifted condition differs between the points; the other does not.
     let scene = |k: usize, t: &str| {

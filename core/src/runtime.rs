@@ -523,7 +523,9 @@ pub struct StageTiming {
     pub type_name: String,
     /// Its role (source, map, estimator, sink).
     pub role: &'static str,
-    /// Per trial, in trial order: producing, processing or predicting it.
+    /// Per trial the stage ran on, in trial order: producing, processing or
+    /// predicting it (under a hold-out or train/test protocol an estimator
+    /// runs on the held-out trials only).
     pub per_trial: Vec<Duration>,
     /// Per fold: fitting (trained estimators), or the single fit of a model-based one.
     pub fits: Vec<Duration>,
@@ -896,7 +898,10 @@ pub fn run(graph: &Graph, opts: &RunOptions<'_>) -> Result<RunResult, RunError> 
                     }
                     _ => None,
                 };
-                let mut per_trial = vec![Duration::ZERO; items.len()];
+                // Only the trials a fold tests are timed: under a hold-out the
+                // others are not estimated, and a zero for each of them made
+                // the median and the estimates per second wrong.
+                let mut per_trial: Vec<Option<Duration>> = vec![None; items.len()];
                 let mut estimates: Vec<Option<Item>> = vec![None; items.len()];
                 let fold_results: Vec<FoldOutcome> = folds
                     .par_iter()
@@ -957,11 +962,11 @@ pub fn run(graph: &Graph, opts: &RunOptions<'_>) -> Result<RunResult, RunError> 
                     let (fit_time, preds) = r?;
                     timing.fits.push(fit_time);
                     for (t, (item, dt)) in preds {
-                        per_trial[t] = dt;
+                        per_trial[t] = Some(dt);
                         estimates[t] = Some(item);
                     }
                 }
-                timing.per_trial = per_trial;
+                timing.per_trial = per_trial.into_iter().flatten().collect();
                 let mut out = Vec::with_capacity(estimates.len());
                 for (t, e) in estimates.into_iter().enumerate() {
                     // Under a hold-out only the held-out trials are scored.

@@ -124,8 +124,9 @@ pub(super) fn kept(graph: &Graph, keep_all: bool) -> Vec<bool> {
 /// seven warm; eight lab trials' spike images are ~2 MB a thread.
 const TRIAL_BLOCK: usize = 8;
 
-/// A trial's kept items (by chain position) and every chain node's time on it.
-type TrialOutcome = Result<(Vec<Option<Item>>, Vec<Duration>), RunError>;
+/// A trial's kept items (by chain position) and every chain node's time on
+/// it (`None`: the node skipped the trial, see the module docs).
+type TrialOutcome = Result<(Vec<Option<Item>>, Vec<Option<Duration>>), RunError>;
 
 /// Runs a chain depth-first, trial by trial (see the module docs).
 pub(super) fn run_chain(
@@ -273,25 +274,20 @@ pub(super) fn run_chain(
     struct State {
         slots: Vec<Option<Item>>,
         left: Vec<usize>,
-        times: Vec<Duration>,
-        /// Positions this trial skips: an estimator on a trial it does not
-        /// score, and every stage that reads a skipped one.
-        skipped: Vec<bool>,
+        /// Each position's time on the trial; `None` where the trial is
+        /// skipped: an estimator on a trial it does not score, and every
+        /// stage that reads a skipped one.
+        times: Vec<Option<Duration>>,
     }
     let step = |t: usize, p: usize, st: &mut State| -> Result<(), RunError> {
-        let State {
-            slots,
-            left,
-            times,
-            skipped,
-        } = st;
+        let State { slots, left, times } = st;
         let i = chain.nodes[p];
         let node = &graph.nodes[i];
         let id = node.id.as_str();
         let unscored = matches!(node.stage, Stage::Estimator(_)) && scored.as_ref().is_some_and(|m| !m[t]);
         let mut skip = unscored;
         for &j in &graph.input_index[i] {
-            skip |= skipped[at(j)?];
+            skip |= times[at(j)?].is_none();
         }
         // Frees what no later stage of this trial reads (unless kept).
         let release = |slots: &mut [Option<Item>], left: &mut [usize]| -> Result<(), RunError> {
@@ -305,7 +301,7 @@ pub(super) fn run_chain(
             Ok(())
         };
         if skip {
-            skipped[p] = true;
+            times[p] = None;
             return release(slots, left);
         }
         let (item, dt) = match &node.stage {
@@ -378,7 +374,7 @@ pub(super) fn run_chain(
                 ))
             }
         };
-        times[p] = dt;
+        times[p] = Some(dt);
         release(slots, left)?;
         if readers[p] > 0 || keep[i] {
             slots[p] = Some(item);
@@ -393,8 +389,7 @@ pub(super) fn run_chain(
                 let mut st = State {
                     slots: vec![None; len],
                     left: readers.clone(),
-                    times: vec![Duration::ZERO; len],
-                    skipped: vec![false; len],
+                    times: vec![Some(Duration::ZERO); len],
                 };
                 for p in 0..first_estimator {
                     step(t, p, &mut st)?;
@@ -454,7 +449,7 @@ pub(super) fn run_chain(
             }
         }
         for (p, dt) in times.into_iter().enumerate() {
-            timings[p].per_trial.push(dt);
+            timings[p].per_trial.extend(dt);
         }
     }
     for (t, fit) in timings.iter_mut().zip(fit_times) {
