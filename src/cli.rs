@@ -41,15 +41,15 @@ enum Command {
         threads: Option<usize>,
         /// Sweeps: run only these points (numbers from `palpate sweep list`),
         /// e.g. `3,7-9`.
-        #[arg(long, conflicts_with = "shard", value_parser = Selection::parse_points)]
+        #[arg(long, conflicts_with_all = ["shard", "live"], value_parser = Selection::parse_points)]
         points: Option<Selection>,
         /// Sweeps: run only shard K of N (1-based; contiguous blocks of points),
         /// e.g. `2/4`.
-        #[arg(long, value_parser = Selection::parse_shard)]
+        #[arg(long, conflicts_with = "live", value_parser = Selection::parse_shard)]
         shard: Option<Selection>,
         /// Sweeps: run every selected point again, even those with a completion
         /// marker from an earlier run.
-        #[arg(long)]
+        #[arg(long, conflicts_with = "live")]
         fresh: bool,
         /// After the reports, print what each reported number means (accuracy,
         /// MAE, SD, no edge, decision time, ...).

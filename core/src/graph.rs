@@ -898,9 +898,35 @@ impl<'t> Loader<'t> {
                 "in [sweep]: give either `key` and `values` or [[sweep.series]] tables, not both".into(),
             );
         }
+        // Two values with one label would share a point folder: the second
+        // overwrites the first, and the sweep never counts as complete.
+        let repeated = |values: &[toml::Value]| -> Option<String> {
+            let labels: Vec<String> = values.iter().map(crate::sweep::label).collect();
+            labels
+                .iter()
+                .enumerate()
+                .find(|(i, l)| labels[..*i].contains(l))
+                .map(|(_, l)| l.clone())
+        };
+        if let Some(l) = repeated(&sweep.values) {
+            self.error(
+                line,
+                None,
+                Some("values"),
+                format!("in [sweep]: `values` lists {l} twice (each value is one point, reported in its own folder)"),
+            );
+        }
         let mut names: Vec<&str> = Vec::new();
         for s in &sweep.series {
             let what = format!("in [sweep] series `{}`", s.name);
+            if let Some(l) = repeated(&s.values) {
+                self.error(
+                    line,
+                    None,
+                    Some("values"),
+                    format!("{what}: `values` lists {l} twice (each value is one point, reported in its own folder)"),
+                );
+            }
             let name_ok = !s.name.is_empty()
                 && s.name
                     .chars()
@@ -1196,7 +1222,20 @@ impl<'t> Loader<'t> {
             return RunSettings::default();
         };
         match serde_path_to_error::deserialize::<_, RunSettings>(value.clone()) {
-            Ok(r) => r,
+            Ok(r) => {
+                // The protocol's values (k, test_share, an empty key) are
+                // checked here, so `palpate check` reports them, not only
+                // the run that reaches the first trained estimator.
+                if let Err(msg) = r.protocol.check() {
+                    let line = lines
+                        .run
+                        .get("protocol")
+                        .copied()
+                        .or(lines.top.get("run").copied());
+                    self.error(line, None, Some("protocol"), format!("in [run]: {msg}"));
+                }
+                r
+            }
             Err(e) => {
                 let key = e
                     .path()

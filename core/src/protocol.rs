@@ -81,8 +81,41 @@ pub enum Protocol {
         /// `conditions` (e.g. "condition").
         key: String,
         /// The values of `key` trained on; every other value is tested.
+        /// Strings or numbers (`train = [0, 1]` for groups); for `angle`,
+        /// degrees (`train = [30, 45]`).
+        #[serde(deserialize_with = "label_strings")]
         train: Vec<String>,
     },
+}
+
+/// `train_test`'s values as strings: a number is written as TOML would
+/// show it (`0`, `32.5`), so `train = [0]` names group "0".
+fn label_strings<'de, D: serde::Deserializer<'de>>(d: D) -> Result<Vec<String>, D::Error> {
+    #[derive(Deserialize)]
+    #[serde(untagged)]
+    enum Value {
+        Text(String),
+        Int(i64),
+        Float(f64),
+    }
+    Ok(Vec::<Value>::deserialize(d)?
+        .into_iter()
+        .map(|v| match v {
+            Value::Text(s) => s,
+            Value::Int(i) => i.to_string(),
+            Value::Float(f) => crate::fmt_num(f),
+        })
+        .collect())
+}
+
+/// A trial's `angle` label value (micro-degrees, see [`label_value`]) for
+/// a `train` value given in degrees; other keys' values, and values that
+/// are not numbers, unchanged.
+fn train_value(key: &str, v: &str) -> String {
+    match (key, v.trim().parse::<f64>()) {
+        ("angle", Ok(a)) if a.is_finite() => format!("{}", (a * 1e6).round() as i64),
+        _ => v.to_string(),
+    }
 }
 
 /// One fold: trial indices to train on and to test.
@@ -230,9 +263,18 @@ pub fn folds_of(trained: bool, protocol: &Protocol, metas: &[&TrialMeta]) -> Res
         }
         Protocol::TrainTest { key, train } => {
             let values = label_values(metas, key, "train_test")?;
-            let (tr, te): (Vec<usize>, Vec<usize>) = (0..n).partition(|&t| train.contains(&values[t]));
+            let wanted: Vec<String> = train.iter().map(|v| train_value(key, v)).collect();
+            let (tr, te): (Vec<usize>, Vec<usize>) = (0..n).partition(|&t| wanted.contains(&values[t]));
             if tr.is_empty() {
-                let mut seen = values.clone();
+                // Angles as degrees, as `train` takes them.
+                let mut seen: Vec<String> = if key == "angle" {
+                    values
+                        .iter()
+                        .map(|v| v.parse::<f64>().map_or(v.clone(), |m| crate::fmt_num(m / 1e6)))
+                        .collect()
+                } else {
+                    values.clone()
+                };
                 seen.sort();
                 seen.dedup();
                 return Err(format!(
@@ -467,6 +509,41 @@ mod tests {
         assert_eq!(r.protocol, Protocol::LeaveOneTrialOut);
         let r: R = toml::from_str("protocol = { k_fold = { k = 5, seed = 2 } }").unwrap();
         assert_eq!(r.protocol, Protocol::KFold { k: 5, seed: 2 });
+    }
+
+    #[test]
+    fn train_test_takes_numbers_and_angles_in_degrees() {
+        #[derive(Deserialize)]
+        struct R {
+            protocol: Protocol,
+        }
+        let read = |t: &str| toml::from_str::<R>(t).unwrap().protocol;
+        // Groups as integers: the same split as the strings.
+        let items = data(3, 4);
+        let by_text = read("protocol = { train_test = { key = \"group\", train = [\"0\", \"1\"] } }");
+        let by_number = read("protocol = { train_test = { key = \"group\", train = [0, 1] } }");
+        assert_eq!(by_text, by_number);
+        let f = folds(true, &by_number, &items).unwrap();
+        assert_eq!(f[0].0.len(), 6);
+        assert!(f[0].0.iter().all(|&t| items[t].meta.group < 2));
+        // Angles in degrees (integer or not), where the label compares them
+        // in micro-degrees.
+        let odd: Vec<Item> = [30.0, 32.5, 45.0, 30.0, 32.5, 45.0]
+            .iter()
+            .enumerate()
+            .map(|(i, &a)| item(i / 3, a, &format!("t{i}")))
+            .collect();
+        let p = read("protocol = { train_test = { key = \"angle\", train = [30, 32.5] } }");
+        let f = folds(true, &p, &odd).unwrap();
+        assert_eq!(f, vec![(vec![0, 1, 3, 4], vec![2, 5])]);
+        // An angle no trial has: the error lists the trials' angles in degrees.
+        let e = folds(
+            true,
+            &read("protocol = { train_test = { key = \"angle\", train = [60] } }"),
+            &odd,
+        )
+        .unwrap_err();
+        assert!(e.contains("\"32.5\"") && e.contains("\"45\""), "{e}");
     }
 
     proptest! {

@@ -873,11 +873,13 @@ pub fn run(graph: &Graph, opts: &RunOptions<'_>) -> Result<RunResult, RunError> 
                 // other protocol needs two.
                 let hold_out = graph.run.protocol.scores_a_subset();
                 if est.trained() && folds.len() < 2 && !hold_out {
-                    return Err(RunError::new(
-                        id,
-                        None,
-                        "a trained estimator needs at least two repetitions (groups) of its classes for leave-one-trial-out",
-                    ));
+                    let why = match &graph.run.protocol {
+                        crate::Protocol::LeaveOneConditionOut { key } => format!(
+                            "protocol leave_one_condition_out needs at least two values of `{key}` (one to test, the rest to train on), and every trial has the same one"
+                        ),
+                        _ => "a trained estimator needs at least two repetitions (groups) of its classes for leave-one-trial-out".to_string(),
+                    };
+                    return Err(RunError::new(id, None, why));
                 }
                 // Progress counts folds, each a fit plus its test trials: a
                 // fit dominates a fold's time, so counting trials (ticked

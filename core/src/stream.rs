@@ -234,6 +234,14 @@ pub struct LiveProblem {
 
 impl std::fmt::Display for LiveProblem {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        if self.stage.is_empty() {
+            // A problem of the graph as a whole, not of one stage.
+            return write!(
+                f,
+                "the graph cannot run live: {}; instead: {}",
+                self.why, self.instead
+            );
+        }
         write!(
             f,
             "stage `{}` ({}) cannot stream: {}; instead: {}",
@@ -296,15 +304,36 @@ pub fn plan(graph: &crate::Graph) -> Result<LivePlan, Vec<LiveProblem>> {
             Err(e) => problems.push(problem(e.to_string(), "a valid setting")),
         }
     }
+    // A live run scores every trial as it streams, and runs one graph.
+    let whole = |why: String, instead: &str| LiveProblem {
+        stage: String::new(),
+        type_name: String::new(),
+        why,
+        instead: instead.to_string(),
+    };
+    if graph.run.protocol.scores_a_subset() {
+        problems.push(whole(
+            format!(
+                "[run] protocol {:?} scores a held-out subset of the trials, chosen from the whole \
+                 trial list, which a live stream does not have before it ends",
+                graph.run.protocol
+            ),
+            "no protocol (a live run scores every trial), or run without --live",
+        ));
+    }
+    if graph.sweep.is_some() {
+        problems.push(whole(
+            "a live run streams one graph, and this one has a [sweep] table".into(),
+            "run the sweep without --live, or remove [sweep] to stream the base graph",
+        ));
+    }
     match (source, problems.is_empty()) {
         (Some(source), true) => Ok(LivePlan { source, stages }),
         (None, _) => {
-            problems.push(LiveProblem {
-                stage: String::new(),
-                type_name: String::new(),
-                why: "the graph has no source".into(),
-                instead: "a source stage (a scene, a recording, the DAQ)".into(),
-            });
+            problems.push(whole(
+                "the graph has no source".into(),
+                "a source stage (a scene, a recording, the DAQ)",
+            ));
             Err(problems)
         }
         (_, false) => Err(problems),

@@ -248,6 +248,16 @@ set = { "stages.ghost.inputs" = ["a"] }
         "{bad_set}"
     );
 
+    // A value listed twice would be two points in one folder.
+    let twice = load_error(&with_sweep(
+        "[sweep]\nkey = \"stages.b.factor\"\nvalues = [1.0, 0.7, 1.0]\n",
+    ));
+    assert!(twice.contains("`values` lists 1.0 twice"), "{twice}");
+    let twice = load_error(&with_sweep(
+        "[sweep]\n[[sweep.series]]\nname = \"s\"\nkey = \"stages.b.factor\"\nvalues = [2.0, 2.0]\n",
+    ));
+    assert!(twice.contains("series `s`: `values` lists 2.0 twice"), "{twice}");
+
     let no_values = load_error(&with_sweep("[sweep]\nrepeats = 1\n"));
     assert!(no_values.contains("`values` lists no value"), "{no_values}");
 
@@ -315,8 +325,14 @@ values = [1.0, 3.0]
     let text = with_sweep(
         r#"
 [sweep]
+[[sweep.series]]
+name = "once"
 key = "stages.b.factor"
-values = [2.0, 2.0]
+values = [2.0]
+[[sweep.series]]
+name = "again"
+key = "stages.b.factor"
+values = [2.0]
 "#,
     );
     let runs = run_all(&text, &Cache::default());

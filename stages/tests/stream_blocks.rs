@@ -573,3 +573,41 @@ fn a_trained_estimator_without_model_in_names_model_in_as_its_alternative() {
     assert!(problems[0].instead.contains("model_in"), "{}", problems[0]);
     assert!(problems[0].to_string().contains("save_model"), "{}", problems[0]);
 }
+
+/// A live run scores every trial as it streams and runs one graph: a
+/// protocol that scores a held-out subset (chosen from the whole trial list)
+/// or a `[sweep]` table is refused by the plan, as the graph as a whole, and
+/// so by `check --live` too (before, `run --live` scored every trial, the
+/// batch run only the held-out ones, and a sweep ran its base graph alone).
+#[test]
+fn a_hold_out_protocol_or_a_sweep_cannot_run_live() {
+    let base = live_graph();
+    assert!(stream::plan(&load(&base)).is_ok());
+    for (extra, what) in [
+        ("protocol = { hold_out = { test_share = 0.3 } }", "hold_out"),
+        (
+            "protocol = { train_test = { key = \"group\", train = [0] } }",
+            "TrainTest",
+        ),
+    ] {
+        let text = base.replacen("[run]\n", &format!("[run]\n{extra}\n"), 1);
+        assert_ne!(text, base, "the live graph has a [run] table");
+        let problems = match stream::plan(&load(&text)) {
+            Ok(_) => panic!("{what}: a held-out protocol cannot stream"),
+            Err(p) => p,
+        };
+        assert_eq!(problems.len(), 1, "{problems:?}");
+        let msg = problems[0].to_string();
+        assert!(msg.starts_with("the graph cannot run live"), "{msg}");
+        assert!(
+            msg.contains("protocol") && msg.contains("without --live"),
+            "{msg}"
+        );
+    }
+    let text = format!("{base}\n[sweep]\nkey = \"stages.bins.hop_ms\"\nvalues = [10.0, 20.0]\n");
+    let problems = match stream::plan(&load(&text)) {
+        Ok(_) => panic!("a sweep cannot stream"),
+        Err(p) => p,
+    };
+    assert!(problems[0].to_string().contains("[sweep]"), "{}", problems[0]);
+}
