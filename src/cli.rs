@@ -458,14 +458,9 @@ pub fn main() -> ExitCode {
             Ok(files) => {
                 let n = files.len();
                 println!(
-                        "wrote {n} file{} to {d}\nread them back with a `signal_file` stage: path = \"{d}/*.{}\", labels = \"{d}/labels.toml\"{}",
+                        "wrote {n} file{} to {d}\nread them back with a `signal_file` stage: path = \"{d}/*.{}\", labels = \"{d}/labels.toml\" (it declares the layout and the sample rate)",
                         if n == 1 { "" } else { "s" },
                         if csv { "csv" } else { "npy" },
-                        if csv {
-                            ""
-                        } else {
-                            ", and sample_rate_hz as in trials.json"
-                        },
                         d = out.display()
                     );
                 ExitCode::SUCCESS

@@ -780,20 +780,23 @@ fn signals_round_trip_through_csv_and_npy_sinks() {
         .unwrap();
         let first = items(&r, "src").to_vec();
         assert!(p.join(format!("out/save/edge-1.{format}")).is_file());
-        let rate = if format == "npy" {
-            "sample_rate_hz = 1000.0\n"
-        } else {
-            ""
-        };
-        // No `layout` key: the sidecar the sink wrote declares the 2 x 2 array.
+        // No `layout` or `sample_rate_hz` key: the sidecar the sink wrote
+        // declares the 2 x 2 array and the rate (NPY files carry none).
         let back_graph = |layout: &str| {
             run_graph(
                 p,
                 &format!(
-                    "[stages.back]\ntype = \"signal_file\"\npath = \"out/save/*.{format}\"\nlabels = \"out/save/labels.toml\"\n{rate}{layout}\n"
+                    "[stages.back]\ntype = \"signal_file\"\npath = \"out/save/*.{format}\"\nlabels = \"out/save/labels.toml\"\n{layout}\n"
                 ),
             )
         };
+        // The same rate set again is fine; another one names the label file.
+        assert!(back_graph("sample_rate_hz = 1000.0").is_ok());
+        let e = back_graph("sample_rate_hz = 500.0").unwrap_err();
+        assert!(
+            e.contains("500") && e.contains("labels.toml") && e.contains("1000"),
+            "{e}"
+        );
         let r2 = back_graph("").unwrap();
         let back = items(&r2, "back");
         assert_eq!(signals(&back[0]).layout, signals(&first[0]).layout);

@@ -530,6 +530,10 @@ struct TomlSidecar {
     #[serde(default)]
     #[allow(dead_code)]
     layout: Option<TaxelLayout>,
+    /// The files' sample rate: read by [`read_sidecar_rate`].
+    #[serde(default)]
+    #[allow(dead_code)]
+    sample_rate_hz: Option<f64>,
 }
 
 /// The part of a sidecar (TOML or `trials.json`) that declares the layout;
@@ -538,13 +542,34 @@ struct TomlSidecar {
 struct SidecarLayout {
     #[serde(default)]
     layout: Option<TaxelLayout>,
+    #[serde(default)]
+    sample_rate_hz: Option<f64>,
 }
 
-/// The taxel layout a label sidecar declares (its `[layout]` table, or a
-/// `trials.json`'s `layout`), checked; `None` when it declares none (a CSV
-/// sidecar never does).
-pub fn read_sidecar_layout(path: &Path) -> Result<Option<TaxelLayout>, String> {
+/// The sample rate a label sidecar declares (a top-level `sample_rate_hz`:
+/// `palpate simulate`'s `labels.toml` and `trials.json`, `write_signals`'
+/// `labels.toml`), checked finite and positive; `None` when it declares
+/// none (a CSV sidecar never does).
+pub fn read_sidecar_rate(path: &Path) -> Result<Option<f64>, String> {
+    let Some((text, ext)) = sidecar_text(path)? else {
+        return Ok(None);
+    };
     let shown = path.display();
+    let parsed: SidecarLayout = match ext.as_str() {
+        "toml" => toml::from_str(&text).map_err(|e| format!("{shown}: {e}"))?,
+        _ => serde_json::from_str(&text).map_err(|e| format!("{shown}: {e}"))?,
+    };
+    match parsed.sample_rate_hz {
+        Some(r) if !(r.is_finite() && r > 0.0) => Err(format!(
+            "{shown}: `sample_rate_hz` must be a positive number of Hz, not {r}"
+        )),
+        r => Ok(r),
+    }
+}
+
+/// A TOML or JSON sidecar's text and extension (lower case); `None` for any
+/// other kind of file (a CSV sidecar declares no layout or rate).
+fn sidecar_text(path: &Path) -> Result<Option<(String, String)>, String> {
     let ext = path
         .extension()
         .map(|e| e.to_string_lossy().to_ascii_lowercase())
@@ -552,8 +577,19 @@ pub fn read_sidecar_layout(path: &Path) -> Result<Option<TaxelLayout>, String> {
     if ext != "toml" && ext != "json" {
         return Ok(None);
     }
-    let text = palpate_core::input::read_text(path).map_err(|e| format!("cannot read {shown}: {e}"))?;
-    parse_sidecar_layout(&text, &ext, &shown.to_string())
+    let text =
+        palpate_core::input::read_text(path).map_err(|e| format!("cannot read {}: {e}", path.display()))?;
+    Ok(Some((text, ext)))
+}
+
+/// The taxel layout a label sidecar declares (its `[layout]` table, or a
+/// `trials.json`'s `layout`), checked; `None` when it declares none (a CSV
+/// sidecar never does).
+pub fn read_sidecar_layout(path: &Path) -> Result<Option<TaxelLayout>, String> {
+    match sidecar_text(path)? {
+        Some((text, ext)) => parse_sidecar_layout(&text, &ext, &path.display().to_string()),
+        None => Ok(None),
+    }
 }
 
 /// [`read_sidecar_layout`] on a sidecar's text: `ext` (`toml` or `json`;
@@ -933,8 +969,17 @@ pub fn loaded_trial<T>(
 /// the file sources read the files with, see the module docs). TOML rather
 /// than CSV so that a `*.csv` glob over the data files does not pick the
 /// sidecar up. Numbers use Rust's round-trip form.
-pub fn sidecar_toml(rows: &[(String, &TrialMeta, Option<f64>)], layout: Option<&TaxelLayout>) -> String {
+pub fn sidecar_toml(
+    rows: &[(String, &TrialMeta, Option<f64>)],
+    layout: Option<&TaxelLayout>,
+    sample_rate_hz: Option<f64>,
+) -> String {
     let mut s = String::from("# Labels of the trials in this folder (palpate label sidecar).\n");
+    if let Some(r) = sample_rate_hz {
+        s.push_str(&format!(
+            "# The files' sample rate (NPY and MAT files carry none).\nsample_rate_hz = {r:?}\n"
+        ));
+    }
     if let Some(l) = layout {
         #[derive(Serialize)]
         struct L<'a> {
@@ -1024,7 +1069,11 @@ mod tests {
             trial_id: "t0".into(),
             ..TrialMeta::default()
         };
-        std::fs::write(&toml, sidecar_toml(&[("t0".into(), &meta, None)], Some(&grid))).unwrap();
+        std::fs::write(
+            &toml,
+            sidecar_toml(&[("t0".into(), &meta, None)], Some(&grid), None),
+        )
+        .unwrap();
         // The sidecar the writer makes parses as labels and declares the grid.
         assert_eq!(read_sidecar(&toml).unwrap().len(), 1);
         assert_eq!(read_sidecar_layout(&toml).unwrap(), Some(grid.clone()));

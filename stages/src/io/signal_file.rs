@@ -59,11 +59,14 @@
 //! NPZ/MAT array name, or, within a stack, the 0-based index (`<file>-<array>-<k>`
 //! when an archive has several stacks). Ids must be unique across all files.
 //!
-//! The sample rate is the `sample_rate_hz` key if given; a file that carries
-//! its own rate (a time column, a `sample_rate_hz` variable, DAQ timestamps)
-//! must agree with it (within 0.1 %). Without the key, every file must carry
-//! a rate and all must agree: mixing rates in one source is an error, since
-//! downstream stages assume one rate.
+//! The sample rate is the `sample_rate_hz` key if given, else the one the
+//! `labels` file declares (a top-level `sample_rate_hz`, which the
+//! `labels.toml` of `palpate simulate` and `write_signals` and a
+//! `trials.json` carry; a key and a label file that disagree are an error).
+//! A file that carries its own rate (a time column, a `sample_rate_hz`
+//! variable, DAQ timestamps) must agree with it (within 0.1 %). Without
+//! either, every file must carry a rate and all must agree: mixing rates in
+//! one source is an error, since downstream stages assume one rate.
 
 use super::arrays::{read_mat, read_npy_plain, read_npz, NdArray, NpyContent};
 use super::common::{
@@ -116,8 +119,10 @@ pub struct SignalFileConfig {
     pub paths: Vec<String>,
     /// File format: `auto` (by extension), `csv`, `npy`, `npz`, `mat`, `daq`. Default auto.
     pub format: SignalFormat,
-    /// Sample rate, Hz. Required unless every file carries its own (a time
-    /// column, a `sample_rate_hz` variable, DAQ timestamps). Default none.
+    /// Sample rate, Hz. Required unless the `labels` file declares it (as
+    /// `palpate simulate` and `write_signals` write it) or every file
+    /// carries its own (a time column, a `sample_rate_hz` variable, DAQ
+    /// timestamps). Default none.
     pub sample_rate_hz: Option<f64>,
     /// Taxel layout; its taxel count must match the files'. Default: the one
     /// the label sidecar declares (its `[layout]` table, or a `trials.json`'s
@@ -342,13 +347,31 @@ impl SignalFileSource {
         for r in per_file {
             raw.extend(r.map_err(StageError::new)?);
         }
-        // Settle the sample rate.
+        // Settle the sample rate: the key, else the label file's (as
+        // `palpate simulate` and `write_signals` write it), else the files'.
         let tol = |a: f64, b: f64| (a - b).abs() <= 1e-3 * a.abs().max(b.abs());
-        let rate = match self.cfg.sample_rate_hz {
-            Some(r) => {
+        let side = match &self.labels {
+            Some(p) => super::common::read_sidecar_rate(p)
+                .map_err(StageError::new)?
+                .map(|r| (r, format!("the label file {}", p.display()))),
+            None => None,
+        };
+        let declared = match (self.cfg.sample_rate_hz, side) {
+            // Like the layout: a key and a label file that disagree describe
+            // two recordings; neither is chosen silently.
+            (Some(r), Some((sr, from))) if !tol(r, sr) => {
+                return Err(StageError::new(format!(
+                    "`sample_rate_hz` is {r} Hz but {from} declares {sr} Hz; remove the key or correct it"
+                )))
+            }
+            (Some(r), _) => Some((r, "`sample_rate_hz`".to_string())),
+            (None, side) => side,
+        };
+        let rate = match declared {
+            Some((r, from)) => {
                 if let Some(t) = raw.iter().find(|t| t.rate_hz.is_some_and(|fr| !tol(fr, r))) {
                     return Err(StageError::new(format!(
-                        "{} has a sample rate of {} Hz but `sample_rate_hz` is {r} Hz",
+                        "{} has a sample rate of {} Hz but {from} says {r} Hz",
                         t.origin,
                         t.rate_hz.unwrap_or(f64::NAN)
                     )));
@@ -358,7 +381,8 @@ impl SignalFileSource {
             None => {
                 if let Some(t) = raw.iter().find(|t| t.rate_hz.is_none()) {
                     return Err(StageError::new(format!(
-                        "{} carries no sample rate; set `sample_rate_hz`",
+                        "{} carries no sample rate; set `sample_rate_hz` (or give `labels` a label \
+                         file that declares it, as `palpate simulate` and `write_signals` write)",
                         t.origin
                     )));
                 }

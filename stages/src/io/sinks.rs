@@ -242,7 +242,15 @@ impl Sink for SignalsSink {
             });
         }
         let layout = items.first().and_then(|it| payload_layout(&it.payload));
-        finish_with_sidecar(files, &rows, info, layout, "signals")
+        // The rate goes into labels.toml too, so that `signal_file` reads
+        // NPY files back without a `sample_rate_hz` key (when every trial
+        // has the same rate; one source has one rate).
+        let rates: Vec<f64> = items
+            .iter()
+            .filter_map(|it| it.payload.signals().ok().map(|s| s.sample_rate_hz))
+            .collect();
+        let rate = rates.first().copied().filter(|r| rates.iter().all(|x| x == r));
+        finish_with_sidecar(files, &rows, info, layout, rate, "signals")
     }
 }
 
@@ -285,9 +293,13 @@ fn finish_with_sidecar(
     rows: &[(String, &TrialMeta, Option<f64>)],
     info: Option<serde_json::Value>,
     layout: Option<&TaxelLayout>,
+    sample_rate_hz: Option<f64>,
     what: &str,
 ) -> Result<SinkReport, StageError> {
-    files.add("labels.toml".into(), sidecar_toml(rows, layout).into_bytes())?;
+    files.add(
+        "labels.toml".into(),
+        sidecar_toml(rows, layout, sample_rate_hz).into_bytes(),
+    )?;
     if let Some(info) = info {
         files.add("info.json".into(), json(&info))?;
     }
@@ -347,7 +359,7 @@ impl Sink for ImagesSink {
             o.insert("trials".into(), serde_json::json!(stems));
         }
         let layout = items.first().and_then(|it| payload_layout(&it.payload));
-        finish_with_sidecar(files, &rows, info, layout, "spike images")
+        finish_with_sidecar(files, &rows, info, layout, None, "spike images")
     }
 }
 
@@ -506,7 +518,7 @@ impl Sink for SpikesSink {
             })
         });
         let layout = items.first().and_then(|it| payload_layout(&it.payload));
-        finish_with_sidecar(files, &rows, info, layout, "spikes")
+        finish_with_sidecar(files, &rows, info, layout, None, "spikes")
     }
 }
 

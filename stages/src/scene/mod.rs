@@ -269,7 +269,7 @@ pub fn simulate_to_dir(
     // The files `write_signals` writes, so `signal_file` reads them back:
     // NPY `(samples, taxels)`, or CSV `time_ms, taxel_0 ..`; one per trial,
     // named after the trial id (scene ids are safe file names).
-    let written: Vec<PathBuf> = metas
+    let written: Vec<(PathBuf, f64)> = metas
         .par_iter()
         .map(|meta| {
             let ctx = TrialContext {
@@ -287,17 +287,23 @@ pub fn simulate_to_dir(
                 (path, crate::io::sinks::signals_npy(sig)?)
             };
             write_file(&path, &bytes)?;
-            Ok(path)
+            Ok((path, sig.sample_rate_hz))
         })
         .collect::<Result<_, StageError>>()?;
-    let mut files = written;
+    // One rate for every trial (a condition may set its own): labels.toml
+    // declares it, so the NPY files read back without a `sample_rate_hz` key.
+    let one_rate = written
+        .first()
+        .map(|w: &(PathBuf, f64)| w.1)
+        .filter(|r| written.iter().all(|w| w.1 == *r));
+    let mut files: Vec<PathBuf> = written.into_iter().map(|w| w.0).collect();
     let rows: Vec<(String, &TrialMeta, Option<f64>)> =
         metas.iter().map(|m| (m.trial_id.clone(), m, None)).collect();
     let labels = out.join("labels.toml");
     let layout = &source.simulator().scene.layout;
     write_file(
         &labels,
-        crate::io::common::sidecar_toml(&rows, Some(layout)).as_bytes(),
+        crate::io::common::sidecar_toml(&rows, Some(layout), one_rate).as_bytes(),
     )?;
     files.push(labels);
 
