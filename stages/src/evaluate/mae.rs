@@ -35,6 +35,12 @@
 //!   median, not the mean, because crossing times grow like `1/sin θ` and a few
 //!   shallow angles would dominate a mean.
 //!
+//! * true angles outside an estimator's classes (the angles its estimates
+//!   score) by more than half the grid's step: counted in a note of the
+//!   report, since the estimator answers within its classes and such a
+//!   trial is wrong whatever it does (the usual cause: a scene or recording
+//!   with angles above 90° against the paper's 10..90 grid).
+//!
 //! * accuracy: the share of labelled trials answered within
 //!   `correct_within_deg` (default 0: the exact class) of the truth, and the
 //!   count of the others ("wrong", "no edge" included). With classes 5° apart
@@ -564,6 +570,52 @@ pub fn render(stats: &MaeStats, per_class: bool) -> String {
     s
 }
 
+/// A report line when labelled trials lie outside an estimator's classes
+/// (the angles its estimates score, sorted), by more than half the grid's
+/// step: it answers within its classes, so such a trial is wrong however
+/// well it works (an edge at 3 degrees against a 10..170 grid may come out
+/// at the grid's far end, where the edge's orientation is nearly the same).
+/// `None` when every true angle is covered or there is no grid.
+fn outside_note(id: &str, classes: &[f64], pairs: &[(Option<f64>, Option<f64>)]) -> Option<String> {
+    let mut grid: Vec<f64> = classes.iter().copied().filter(|a| a.is_finite()).collect();
+    grid.sort_by(f64::total_cmp);
+    let (&lo, &hi) = (grid.first()?, grid.last()?);
+    let step = grid
+        .windows(2)
+        .map(|w| w[1] - w[0])
+        .filter(|d| *d > 0.0)
+        .fold(f64::INFINITY, f64::min);
+    let half = if step.is_finite() { step / 2.0 } else { 0.0 };
+    let outside: Vec<f64> = pairs
+        .iter()
+        .filter_map(|(t, _)| *t)
+        .filter(|t| *t < lo - half - 1e-9 || *t > hi + half + 1e-9)
+        .collect();
+    if outside.is_empty() {
+        return None;
+    }
+    let mut shown: Vec<f64> = Vec::new();
+    for a in &outside {
+        if !shown.contains(a) && shown.len() < 5 {
+            shown.push(*a);
+        }
+    }
+    Some(format!(
+        "  note: {} trial{} with a true angle outside `{id}`'s classes ({}° to {}°), e.g. {}: it answers \
+         within its classes; cover them (wss: its `angles`; a trained estimator: training trials at \
+         those angles)\n",
+        outside.len(),
+        if outside.len() == 1 { "" } else { "s" },
+        palpate_core::fmt_num(lo),
+        palpate_core::fmt_num(hi),
+        shown
+            .iter()
+            .map(|a| format!("{}°", palpate_core::fmt_num(*a)))
+            .collect::<Vec<_>>()
+            .join(", ")
+    ))
+}
+
 impl Sink for MaeSink {
     fn scores_estimates(&self) -> bool {
         true
@@ -577,8 +629,14 @@ impl Sink for MaeSink {
             let mut pairs = Vec::with_capacity(input.items.len());
             let mut times = Vec::with_capacity(input.items.len());
             let mut uncertain = 0;
+            let mut classes: Vec<f64> = Vec::new();
             for item in input.items {
                 let est = item.payload.estimate()?;
+                for c in &est.scores {
+                    if !classes.contains(&c.angle_deg) {
+                        classes.push(c.angle_deg);
+                    }
+                }
                 pairs.push((item.meta.label.angle_deg, est.angle_deg));
                 let time = decision_from_contact(est.decision_time_ms, item.meta.crossing_ms);
                 times.extend(time);
@@ -599,6 +657,9 @@ impl Sink for MaeSink {
             stats.uncertain = uncertain;
             report.text.push_str(&render(&stats, self.per_class));
             let id = input.stage_id;
+            if let Some(note) = outside_note(id, &classes, &pairs) {
+                report.text.push_str(&note);
+            }
             if let Some(m) = stats.mae_deg {
                 report.metrics.push((format!("{id}.mae_deg"), m));
             }
@@ -845,5 +906,29 @@ mod tests {
         assert_eq!(lines[1], "wss,a,45,50,5,false,1500,false");
         assert_eq!(lines[2], "wss,\"b,c\",45,,,false,1500,false");
         assert_eq!(lines[3], "wss,d,,30,,,1500,true");
+    }
+
+    #[test]
+    fn true_angles_outside_the_classes_are_noted() {
+        let grid = [30.0, 10.0, 20.0];
+        // Within half a step of the grid's ends: covered (the nearest class).
+        let covered = [
+            (Some(5.0), Some(10.0)),
+            (Some(34.9), Some(30.0)),
+            (None, Some(20.0)),
+        ];
+        assert_eq!(outside_note("wss", &grid, &covered), None);
+        let far = [
+            (Some(40.0), Some(30.0)),
+            (Some(2.0), Some(10.0)),
+            (Some(40.0), None),
+        ];
+        let note = outside_note("wss", &grid, &far).unwrap();
+        assert!(
+            note.contains("3 trials") && note.contains("(10° to 30°)") && note.contains("e.g. 40°, 2°"),
+            "{note}"
+        );
+        // No grid (estimates without class scores): nothing to say.
+        assert_eq!(outside_note("x", &[], &far), None);
     }
 }
