@@ -83,6 +83,19 @@
 //!   numerator) or comparing every probed angle on the same interior
 //!   frames of the best class's match removes most of the bias at 20 to 70
 //!   degrees but moves 84.1 by about −1.2 degrees; neither is the default.
+//! * The same end effect on smaller arrays reaches the class itself: the
+//!   activity is a larger share shorter than the template's span when there
+//!   are fewer taxels to cross. On the ideal scene with constant weighting,
+//!   one trial per class 10 to 90 by 5 (`palpate run graphs/quickstart.toml`
+//!   with `file` set to `scenes/ideal.toml`, `--set
+//!   stages.scene.trials_per_angle=1 --set 'stages.wss.weighting="constant"'
+//!   --set stages.scene.array.rows=R --set stages.scene.array.cols=C`), every
+//!   class is exact on 4 x 4, 5 x 5 and 6 x 6 arrays, but 5 of 17 go one
+//!   class (5 degrees) towards 90 on 3 x 3 (45 to 75), 2 on 3 x 5 and 8 on
+//!   2 x 6. `refine = "timing"` has no such bias: MAE 0.00 and 0.03 degrees
+//!   on the same 3 x 3 and 2 x 6 trials. On arrays of three rows or fewer,
+//!   prefer it (or a finer grid with `refine = "search"`, whose bias is the
+//!   `+1.9·sin 2θ` above).
 //! * `refine = "timing"` leaves the score curve alone: the continuous angle
 //!   is that of the plane fitted through the taxels' arrival times
 //!   ([`timing`]: `t = a + b·x + c·y`, `θ = atan2(−b, c)`). A response that
