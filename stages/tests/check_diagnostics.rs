@@ -186,3 +186,42 @@ fn old_range_names_give_the_same_graph_with_a_deprecation_warning() {
     .unwrap_err();
     assert_eq!(errors(&d)[0].key.as_deref(), Some("angles.start"), "{d:#?}");
 }
+
+/// A WSS key set to a value of its own that the other keys leave unused is
+/// a warning naming the key and what it needs; the same key where it acts,
+/// or left at its default, is not.
+#[test]
+fn wss_keys_that_the_other_keys_make_unused_are_warnings() {
+    let with_wss = |keys: &str| {
+        format!(
+            "{}\n[stages.wss]\ntype = \"wss\"\ninputs = [\"bins\"]\n{keys}\n",
+            graph("angles = [45]", "cutoff_hz = 10.0", "")
+        )
+    };
+    let warned = |keys: &str| -> Vec<String> {
+        let g = load(&with_wss(keys)).unwrap_or_else(|d| panic!("{d:#?}"));
+        g.warnings
+            .iter()
+            .filter(|w| w.stage.as_deref() == Some("wss") && w.key.is_some())
+            .map(|w| format!("{}: {}", w.key.as_deref().unwrap_or(""), w.message))
+            .collect()
+    };
+    let w = warned("speed_steps = 9\nrefine_tol_deg = 0.1\ntiming_window_ms = 500.0");
+    assert_eq!(w.len(), 3, "{w:#?}");
+    assert!(
+        w[0].starts_with("speed_steps:") && w[0].contains("speed_tolerance"),
+        "{w:#?}"
+    );
+    assert!(
+        w[1].starts_with("refine_tol_deg:") && w[1].contains("search"),
+        "{w:#?}"
+    );
+    assert!(
+        w[2].starts_with("timing_window_ms:") && w[2].contains("timing"),
+        "{w:#?}"
+    );
+    assert!(warned("speed_steps = 9\nspeed_tolerance = 0.2").is_empty());
+    assert!(warned("refine = \"search\"\nrefine_tol_deg = 0.1").is_empty());
+    assert!(warned("refine = \"timing\"\ntiming_window_ms = 500.0").is_empty());
+    assert!(warned("").is_empty());
+}

@@ -203,8 +203,8 @@ pub use stream::WssStream;
 pub use templates::{raw_template, ClassTemplates, Templates};
 
 use palpate_core::{
-    register_stage, BuildContext, ConfigError, Estimate, Estimator, FitContext, InputSpec, Item, Model,
-    PayloadKind, Stage, StageConfig, StageError, TrialContext,
+    register_stage, BuildContext, ConfigError, Estimate, Estimator, FitContext, InputSpec, Inspection, Item,
+    Model, OutputFacts, PayloadKind, Stage, StageConfig, StageError, TrialContext,
 };
 use std::sync::{Arc, Mutex};
 
@@ -219,6 +219,35 @@ impl StageConfig for WssConfig {
     fn build(&self, _ctx: &BuildContext) -> Result<Stage, ConfigError> {
         let params = self.params()?;
         Ok(Stage::Estimator(Box::new(WssEstimator { params })))
+    }
+    /// Warnings for keys set to a value of their own that the other keys
+    /// make unused: a typo'd experiment (`speed_steps` without a
+    /// `speed_tolerance`) would otherwise run as if they were not set.
+    fn inspect(&self, _ctx: &BuildContext, _inputs: &[OutputFacts]) -> Inspection {
+        let mut out = Inspection::default();
+        let d = WssConfig::default();
+        let mut unused = |key: &str, set: bool, needs: &str| {
+            if set {
+                out.warnings
+                    .push(ConfigError::key(key, format!("has no effect without {needs}")));
+            }
+        };
+        unused(
+            "speed_steps",
+            self.speed_steps != d.speed_steps && self.speed_tolerance == 0.0,
+            "`speed_tolerance` > 0 (the speed grid is searched only then)",
+        );
+        unused(
+            "refine_tol_deg",
+            self.refine_tol_deg != d.refine_tol_deg && self.refine != Refine::Search,
+            "`refine = \"search\"`",
+        );
+        unused(
+            "timing_window_ms",
+            self.timing_window_ms != d.timing_window_ms && self.refine != Refine::Timing,
+            "`refine = \"timing\"`",
+        );
+        out
     }
 }
 register_stage!("wss", WssConfig);
