@@ -400,6 +400,7 @@ fn npz_arrays_per_trial_and_stacks_with_labels_and_rate() {
             ("second", vec![20, 4], flat(&[1], 4, 20, false)),
             ("angle_deg", vec![2], vec![15.0, 90.0]),
             ("group", vec![2], vec![3.0, 4.0]),
+            ("speed_mm_s", vec![2], vec![5.0, 2.5]),
         ],
         true,
     );
@@ -425,6 +426,10 @@ fn npz_arrays_per_trial_and_stacks_with_labels_and_rate() {
     }
     assert_eq!(it[1].meta.label.angle_deg, Some(90.0));
     assert_eq!(it[1].meta.group, 4);
+    // Each trial's declared speed (what WSS builds its templates for).
+    assert_eq!(it[0].meta.speed_mm_s, Some(5.0));
+    assert_eq!(it[1].meta.speed_mm_s, Some(2.5));
+    assert_eq!(it[2].meta.speed_mm_s, None);
     assert_eq!(it[2].meta.label.stimulus, Stimulus::Unknown);
 }
 

@@ -30,8 +30,8 @@
 //! `taxel_major = true` the last two axes swap: `(taxels, samples)`.
 //!
 //! **NPZ** (`.npz`, `np.savez` or `np.savez_compressed`): reserved arrays
-//! `sample_rate_hz` (one value), `angle_deg` and `group` (one value per trial,
-//! in trial order); every other array (or only those named in `variables`) is
+//! `sample_rate_hz` (one value), `angle_deg`, `group` and `speed_mm_s` (one
+//! value per trial, in trial order); every other array (or only those named in `variables`) is
 //! data: 2-D = one trial, 3-D = a stack of trials, shaped as for NPY.
 //!
 //! **MAT** (`.mat`, MATLAB v5/v7; v7.3 is HDF5 and not supported): the same
@@ -534,7 +534,7 @@ pub fn read_signal_bytes(
     Ok(trials)
 }
 
-const RESERVED: [&str; 4] = ["sample_rate_hz", "fs", "angle_deg", "group"];
+const RESERVED: [&str; 5] = ["sample_rate_hz", "fs", "angle_deg", "group", "speed_mm_s"];
 
 fn named_arrays_to_trials(
     arrays: Vec<(String, NdArray)>,
@@ -547,6 +547,7 @@ fn named_arrays_to_trials(
     let mut rate = None;
     let mut angles = None;
     let mut groups = None;
+    let mut speeds = None;
     let mut data = Vec::new();
     for (name, a) in arrays {
         match name.as_str() {
@@ -565,6 +566,7 @@ fn named_arrays_to_trials(
             }
             "angle_deg" => angles = Some(a.data),
             "group" => groups = Some(a.data),
+            "speed_mm_s" => speeds = Some(a.data),
             _ => {
                 if cfg.variables.is_empty() || cfg.variables.contains(&name) {
                     data.push((name, a));
@@ -597,7 +599,11 @@ fn named_arrays_to_trials(
         TrialLabels::default(),
         rate,
     )?;
-    for (name, vals) in [("angle_deg", &angles), ("group", &groups)] {
+    for (name, vals) in [
+        ("angle_deg", &angles),
+        ("group", &groups),
+        ("speed_mm_s", &speeds),
+    ] {
         if let Some(v) = vals {
             if v.len() != trials.len() {
                 return Err(format!(
