@@ -30,7 +30,8 @@ enum Command {
     Run {
         /// The graph file.
         graph: PathBuf,
-        /// Override a key: `stages.<id>.<key>=<value>` or `run.<key>=<value>` (TOML value).
+        /// Override a key: `stages.<id>.<key>=<value>` or `run.<key>=<value>` (TOML value;
+        /// a table is merged into the key's table, except `run.protocol`, which it replaces).
         #[arg(long = "set", value_name = "PATH=VALUE", value_parser = LoadOptions::parse_set)]
         set: Vec<(String, toml::Value)>,
         /// Output directory (default: `[run] out`, else out/<graph name>).

@@ -1199,7 +1199,17 @@ impl<'t> Loader<'t> {
                     let run = doc
                         .entry("run")
                         .or_insert_with(|| toml::Value::Table(toml::Table::new()));
-                    run.as_table_mut().map(|t| (t, key.to_vec()))
+                    // A protocol is one of several kinds, so a new one
+                    // replaces the old rather than merging into it: merged,
+                    // `{ k_fold = { k = 5 } }` over a hold-out was two
+                    // protocols at once, and one of the same kind kept the
+                    // old one's other keys (its seed).
+                    run.as_table_mut().map(|t| {
+                        if key == ["protocol"] {
+                            t.remove("protocol");
+                        }
+                        (t, key.to_vec())
+                    })
                 }
                 _ => {
                     self.error(

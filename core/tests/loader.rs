@@ -269,6 +269,41 @@ fn set_overrides_keys_and_rejects_unknown_stages() {
     assert!(e.0[0].message.contains("does not declare"), "{e}");
 }
 
+/// `--set run.protocol=...` replaces the graph's protocol: merged into it,
+/// another kind made two protocols at once (a load error pointing at the
+/// file) and the same kind kept the old one's other keys.
+#[test]
+fn set_replaces_the_protocol_rather_than_merging_into_it() {
+    let text = GOOD.replace(
+        "seed = 3",
+        "seed = 3\nprotocol = { hold_out = { test_share = 0.3, seed = 7 } }",
+    );
+    let load = |set: &str| {
+        let opts = palpate_core::LoadOptions {
+            overrides: vec![palpate_core::LoadOptions::parse_set(set).unwrap()],
+            ..Default::default()
+        };
+        palpate_core::load_str(&text, "t.toml", "t", &opts).unwrap_or_else(|e| panic!("{set}: {e}"))
+    };
+    assert_eq!(
+        load("run.protocol={ k_fold = { k = 5 } }").run.protocol,
+        palpate_core::Protocol::KFold { k: 5, seed: 0 }
+    );
+    assert_eq!(
+        load("run.protocol={ hold_out = { test_share = 0.5 } }")
+            .run
+            .protocol,
+        palpate_core::Protocol::HoldOut {
+            test_share: 0.5,
+            seed: 0
+        }
+    );
+    assert_eq!(
+        load("run.protocol=leave_one_trial_out").run.protocol,
+        palpate_core::Protocol::LeaveOneTrialOut
+    );
+}
+
 #[test]
 fn typetag_and_schema_registries_agree() {
     let schema: Vec<&str> = palpate_core::registry::registrations()
