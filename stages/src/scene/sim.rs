@@ -143,8 +143,13 @@ impl Simulator {
             return Err(ConfigError::key(
                 "effects",
                 format!(
-                    "the placement-angle variation ({} degrees SD) is too large for the angle {theta_deg}: the edge could start under the array",
-                    sd_a.to_degrees()
+                    "the placement-angle variation ({} degrees SD) is too large for the angle {theta_deg}: the edge could start under the array; \
+                     keep the variations' `angle_sd_deg` (summed) at or under {:.3} degrees for this angle, or use angles of at least {:.2} degrees \
+                     (3 SD of rotation must stay under half the sine of the edge's angle)",
+                    sd_a.to_degrees(),
+                    // Rounded towards the side that works.
+                    ((sin / 6.0).to_degrees() * 1e3).floor() / 1e3,
+                    ((6.0 * sd_a).min(1.0).asin().to_degrees() * 1e2).ceil() / 1e2 + 0.01,
                 ),
             ));
         }

@@ -176,6 +176,29 @@ fn placement_variation_too_large_for_a_grazing_angle_is_a_config_error() {
     let e = cfg.build(&ctx).err().expect("an error");
     assert_eq!(e.key.as_deref(), Some("effects"));
     assert!(e.message.contains("too large for the angle 2"), "{e}");
+    // It names both ways out, and each works: the largest SD for the angle
+    // (sin 2° / 6 rad = 0.333°), or the smallest angle for the SD.
+    assert!(
+        e.message.contains("at or under 0.333 degrees") && e.message.contains("at least 6.0"),
+        "{e}"
+    );
+    let ok = |text: &str| toml::from_str::<SceneConfig>(text).unwrap().build(&ctx).is_ok();
+    assert!(ok(
+        "angles = [2]\neffects = [{ kind = \"variation\", angle_sd_deg = 0.333 }]"
+    ));
+    let min_angle: f64 = e
+        .message
+        .split("at least ")
+        .nth(1)
+        .unwrap()
+        .split(' ')
+        .next()
+        .unwrap()
+        .parse()
+        .unwrap();
+    assert!(ok(&format!(
+        "angles = [{min_angle}]\neffects = [{{ kind = \"variation\", angle_sd_deg = 1.0 }}]"
+    )));
 }
 
 #[test]
