@@ -306,7 +306,15 @@ values = ["x", "y", "z"]"#,
     let effects = text.replace("type = \"t_estimator\"", "type = \"t_estimator\"\neffects = true");
     let (_, n) = fits(&effects);
     assert_eq!(n, 9);
-    let unchanged = effects.replace(r#"values = ["x", "y", "z"]"#, r#"values = ["x", "x", "x"]"#);
+    // Three points that set the same value (three series: one series may
+    // not list a value twice).
+    let unchanged = effects.replace(
+        "key = \"stages.a.note\"\nvalues = [\"x\", \"y\", \"z\"]",
+        &["p", "q", "r"]
+            .map(|s| format!("[[sweep.series]]\nname = \"{s}\"\nkey = \"stages.a.note\"\nvalues = [\"x\"]\n"))
+            .concat(),
+    );
+    assert_ne!(unchanged, effects);
     let (_, n) = fits(&unchanged);
     assert_eq!(
         n, 9,
