@@ -906,26 +906,18 @@ impl<'t> Loader<'t> {
                 .iter()
                 .enumerate()
                 .find(|(i, l)| labels[..*i].contains(l))
-                .map(|(_, l)| l.clone())
+                .map(|(_, l)| {
+                    format!("`values` lists {l} twice (each value is one point, reported in its own folder)")
+                })
         };
-        if let Some(l) = repeated(&sweep.values) {
-            self.error(
-                line,
-                None,
-                Some("values"),
-                format!("in [sweep]: `values` lists {l} twice (each value is one point, reported in its own folder)"),
-            );
+        if let Some(msg) = repeated(&sweep.values) {
+            self.error(line, None, Some("values"), format!("in [sweep]: {msg}"));
         }
         let mut names: Vec<&str> = Vec::new();
         for s in &sweep.series {
             let what = format!("in [sweep] series `{}`", s.name);
-            if let Some(l) = repeated(&s.values) {
-                self.error(
-                    line,
-                    None,
-                    Some("values"),
-                    format!("{what}: `values` lists {l} twice (each value is one point, reported in its own folder)"),
-                );
+            if let Some(msg) = repeated(&s.values) {
+                self.error(line, None, Some("values"), format!("{what}: {msg}"));
             }
             let name_ok = !s.name.is_empty()
                 && s.name

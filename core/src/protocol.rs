@@ -108,12 +108,19 @@ fn label_strings<'de, D: serde::Deserializer<'de>>(d: D) -> Result<Vec<String>, 
         .collect())
 }
 
+/// An angle in whole micro-degrees: how the `angle` label and the
+/// stratification compare angles (exact, where degrees in `f64` may differ
+/// in the last bit).
+fn micro_degrees(a: f64) -> i64 {
+    (a * 1e6).round() as i64
+}
+
 /// A trial's `angle` label value (micro-degrees, see [`label_value`]) for
 /// a `train` value given in degrees; other keys' values, and values that
 /// are not numbers, unchanged.
 fn train_value(key: &str, v: &str) -> String {
     match (key, v.trim().parse::<f64>()) {
-        ("angle", Ok(a)) if a.is_finite() => format!("{}", (a * 1e6).round() as i64),
+        ("angle", Ok(a)) if a.is_finite() => micro_degrees(a).to_string(),
         _ => v.to_string(),
     }
 }
@@ -133,7 +140,7 @@ fn label_value(m: &TrialMeta, key: &str) -> Option<String> {
         "angle" => Some(
             m.label
                 .angle_deg
-                .map_or("none".into(), |a| format!("{}", (a * 1e6).round() as i64)),
+                .map_or("none".into(), |a| micro_degrees(a).to_string()),
         ),
         "stimulus" => Some(format!("{:?}", m.label.stimulus)),
         _ => m.conditions.get(key).cloned(),
@@ -188,6 +195,17 @@ impl Protocol {
         }
     }
 
+    /// The protocol's name as a graph writes it (`hold_out`, ...).
+    pub fn name(&self) -> &'static str {
+        match self {
+            Protocol::LeaveOneTrialOut => "leave_one_trial_out",
+            Protocol::KFold { .. } => "k_fold",
+            Protocol::HoldOut { .. } => "hold_out",
+            Protocol::LeaveOneConditionOut { .. } => "leave_one_condition_out",
+            Protocol::TrainTest { .. } => "train_test",
+        }
+    }
+
     /// True when only some trials are scored (hold-out, train/test): one fold
     /// by design, and the runtime passes on only the scored trials.
     pub fn scores_a_subset(&self) -> bool {
@@ -200,7 +218,7 @@ fn class_key(m: &TrialMeta) -> (String, i64) {
     let l = &m.label;
     (
         format!("{:?}", l.stimulus),
-        l.angle_deg.map_or(i64::MIN, |a| (a * 1e6).round() as i64),
+        l.angle_deg.map_or(i64::MIN, micro_degrees),
     )
 }
 

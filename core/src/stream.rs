@@ -314,9 +314,9 @@ pub fn plan(graph: &crate::Graph) -> Result<LivePlan, Vec<LiveProblem>> {
     if graph.run.protocol.scores_a_subset() {
         problems.push(whole(
             format!(
-                "[run] protocol {:?} scores a held-out subset of the trials, chosen from the whole \
+                "[run] protocol `{}` scores a held-out subset of the trials, chosen from the whole \
                  trial list, which a live stream does not have before it ends",
-                graph.run.protocol
+                graph.run.protocol.name()
             ),
             "no protocol (a live run scores every trial), or run without --live",
         ));

@@ -567,6 +567,14 @@ pub fn read_sidecar_rate(path: &Path) -> Result<Option<f64>, String> {
     }
 }
 
+/// The one sample rate of `rates` (`None` when they differ, or there are
+/// none): what a `labels.toml` declares for the files written beside it.
+pub fn shared_rate(rates: impl IntoIterator<Item = f64>) -> Option<f64> {
+    let mut rates = rates.into_iter();
+    let first = rates.next()?;
+    rates.all(|r| r == first).then_some(first)
+}
+
 /// A TOML or JSON sidecar's text and extension (lower case); `None` for any
 /// other kind of file (a CSV sidecar declares no layout or rate).
 fn sidecar_text(path: &Path) -> Result<Option<(String, String)>, String> {

@@ -245,11 +245,11 @@ impl Sink for SignalsSink {
         // The rate goes into labels.toml too, so that `signal_file` reads
         // NPY files back without a `sample_rate_hz` key (when every trial
         // has the same rate; one source has one rate).
-        let rates: Vec<f64> = items
-            .iter()
-            .filter_map(|it| it.payload.signals().ok().map(|s| s.sample_rate_hz))
-            .collect();
-        let rate = rates.first().copied().filter(|r| rates.iter().all(|x| x == r));
+        let rate = super::common::shared_rate(
+            items
+                .iter()
+                .filter_map(|it| it.payload.signals().ok().map(|s| s.sample_rate_hz)),
+        );
         finish_with_sidecar(files, &rows, info, layout, rate, "signals")
     }
 }

@@ -292,10 +292,7 @@ pub fn simulate_to_dir(
         .collect::<Result<_, StageError>>()?;
     // One rate for every trial (a condition may set its own): labels.toml
     // declares it, so the NPY files read back without a `sample_rate_hz` key.
-    let one_rate = written
-        .first()
-        .map(|w: &(PathBuf, f64)| w.1)
-        .filter(|r| written.iter().all(|w| w.1 == *r));
+    let one_rate = crate::io::common::shared_rate(written.iter().map(|w| w.1));
     let mut files: Vec<PathBuf> = written.into_iter().map(|w| w.0).collect();
     let rows: Vec<(String, &TrialMeta, Option<f64>)> =
         metas.iter().map(|m| (m.trial_id.clone(), m, None)).collect();
