@@ -57,7 +57,9 @@
 //! When the node's rows span few ranks of the feature (at most
 //! `HIST · rows / classes`, e.g. spike counts at the nodes near the root),
 //! the rows are not ordered at all: one pass adds each row's bootstrap
-//! weight to a histogram over (rank, class), and the sweep runs over the
+//! weight to a histogram over (rank, class) (two histograms, alternate rows
+//! to each, then summed: consecutive rows of one trial often hit one cell,
+//! which made one histogram a chain of load-add-stores), and the sweep runs over the
 //! ranks, adding a rank's class weights at once (`(L + W)² − L² =
 //! W (2L + W)`, the same integers as row by row) and scoring the boundary
 //! between each pair of consecutive ranks present, in the same order as the
@@ -557,7 +559,7 @@ pub fn grow_prepared(p: &Prepared, g: &Growth, rng: &mut ChaCha8Rng) -> Tree {
         keys: vec![0; len],
         spill: Vec::with_capacity(len),
         bins: vec![0; LANES * widest],
-        hist: vec![0; HIST * len + p.k],
+        hist: vec![0; 2 * (HIST * len + p.k)],
         counts: vec![0; p.k],
         left: vec![0; p.k],
     };
@@ -752,12 +754,29 @@ impl Builder<'_> {
                 if span * k <= HIST * len {
                     // Few ranks for the rows: sweep a histogram of the ranks
                     // instead of the rows in order (module docs).
-                    let h = &mut hist[..span * k];
-                    h.iter_mut().for_each(|e| *e = 0);
-                    for (&r, &i) in ranks.iter().zip(rows) {
-                        let rw = cw[i as usize];
-                        h[(r - lo) as usize * k + rw as u32 as usize] += 1 << 32 | rw >> 32;
+                    // Two histograms, rows alternating between them, then
+                    // summed: consecutive rows often fall in one cell (rows
+                    // of a trial share a class and, near the root, a spike
+                    // count), and one histogram made them a chain of
+                    // load-add-stores through that cell. The sums are the
+                    // same integers.
+                    let cells = span * k;
+                    let (h, h2) = hist[..2 * cells].split_at_mut(cells);
+                    h.fill(0);
+                    h2.fill(0);
+                    let cell = |r: u32, rw: u64| (r - lo) as usize * k + rw as u32 as usize;
+                    let add = |rw: u64| 1 << 32 | rw >> 32;
+                    let (pairs, rest) = ranks.split_at(len & !1);
+                    for (r, i) in pairs.chunks_exact(2).zip(rows.chunks_exact(2)) {
+                        let (a, b) = (cw[i[0] as usize], cw[i[1] as usize]);
+                        h[cell(r[0], a)] += add(a);
+                        h2[cell(r[1], b)] += add(b);
                     }
+                    for (&r, &i) in rest.iter().zip(&rows[len & !1..]) {
+                        let rw = cw[i as usize];
+                        h[cell(r, rw)] += add(rw);
+                    }
+                    h.iter_mut().zip(&*h2).for_each(|(a, b)| *a += b);
                     left.iter_mut().for_each(|c| *c = 0);
                     let (mut s_left, mut cross, mut n_left, mut rows_left) = (0u64, 0u64, 0u64, 0usize);
                     let mut prev: Option<usize> = None;
