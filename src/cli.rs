@@ -725,13 +725,23 @@ fn run_live_graph(graph: &Graph, block: usize) -> ExitCode {
         }
     });
     match result {
-        Ok(reports) => {
-            for (id, report) in &reports {
+        Ok(run) => {
+            for (id, report) in &run.reports {
                 println!("== {id}");
                 crate::report::print_lines(&report.text);
             }
-            println!("live replay: {:.2} s wall", t0.elapsed().as_secs_f64());
-            ExitCode::SUCCESS
+            let live = crate::report::LiveRecord::new(&run, t0.elapsed());
+            println!("{}", live.summary());
+            match crate::report::write_live_run_file(graph, &run, live) {
+                Ok(path) => {
+                    println!("run record in {}", path.display());
+                    ExitCode::SUCCESS
+                }
+                Err(e) => {
+                    eprintln!("{e}");
+                    ExitCode::FAILURE
+                }
+            }
         }
         Err(e) => {
             eprintln!("{}: live run failed: {e}", graph.file);

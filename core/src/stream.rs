@@ -528,9 +528,121 @@ pub struct LiveUpdate {
     pub last: bool,
 }
 
+/// Wall time of each block's trip through a live chain (the stages' pushes,
+/// not the caller's `on_update`), summarised in constant memory whatever the
+/// number of blocks: an exact count, mean and maximum, and quantiles from a
+/// histogram of 8 bins per octave of nanoseconds (a quantile is its bin's
+/// upper edge, capped at the maximum: at most 12.5 % above the exact value,
+/// never below it).
+#[derive(Clone, Debug, PartialEq)]
+pub struct BlockLatency {
+    /// Blocks per bin (see [`BlockLatency::bin`]).
+    counts: Box<[u64; LATENCY_BINS]>,
+    blocks: u64,
+    sum_ns: u128,
+    max_ns: u64,
+}
+
+/// Bins of [`BlockLatency`]: 16 one-nanosecond bins, then 8 per octave up to 2^64 ns.
+const LATENCY_BINS: usize = 16 + 60 * 8;
+
+impl Default for BlockLatency {
+    fn default() -> Self {
+        BlockLatency {
+            counts: Box::new([0; LATENCY_BINS]),
+            blocks: 0,
+            sum_ns: 0,
+            max_ns: 0,
+        }
+    }
+}
+
+impl BlockLatency {
+    /// The bin of `ns`: `ns` itself below 16, else 8 bins per octave.
+    fn bin(ns: u64) -> usize {
+        if ns < 16 {
+            return ns as usize;
+        }
+        let e = ns.ilog2() as usize; // 4..=63
+        let sub = ((ns >> (e - 3)) & 7) as usize;
+        16 + (e - 4) * 8 + sub
+    }
+
+    /// The largest value of bin `b`.
+    fn upper(b: usize) -> u64 {
+        if b < 16 {
+            return b as u64;
+        }
+        let (e, sub) = ((b - 16) / 8 + 4, ((b - 16) % 8) as u64);
+        // Bin (e, sub) holds [2^e + sub 2^(e-3), 2^e + (sub + 1) 2^(e-3)).
+        let lo = (1u64 << e) + (sub << (e - 3));
+        lo.saturating_add((1u64 << (e - 3)) - 1)
+    }
+
+    /// Records one block that took `ns` nanoseconds.
+    pub fn add(&mut self, ns: u64) {
+        self.counts[Self::bin(ns)] += 1;
+        self.blocks += 1;
+        self.sum_ns += u128::from(ns);
+        self.max_ns = self.max_ns.max(ns);
+    }
+
+    /// Blocks recorded.
+    pub fn blocks(&self) -> u64 {
+        self.blocks
+    }
+
+    /// Mean nanoseconds per block (0 for none).
+    pub fn mean_ns(&self) -> f64 {
+        if self.blocks == 0 {
+            return 0.0;
+        }
+        self.sum_ns as f64 / self.blocks as f64
+    }
+
+    /// The slowest block, ns.
+    pub fn max_ns(&self) -> u64 {
+        self.max_ns
+    }
+
+    /// The `q`-quantile (`q` in `[0, 1]`, clamped) in ns: the upper edge of
+    /// the bin holding the `ceil(q · blocks)`-th fastest block (at least the
+    /// first), capped at the maximum; 0 for no block.
+    pub fn quantile_ns(&self, q: f64) -> u64 {
+        if self.blocks == 0 {
+            return 0;
+        }
+        let q = if q.is_nan() { 1.0 } else { q.clamp(0.0, 1.0) };
+        let rank = ((q * self.blocks as f64).ceil() as u64).clamp(1, self.blocks);
+        let mut seen = 0u64;
+        for (b, &c) in self.counts.iter().enumerate() {
+            seen += c;
+            if seen >= rank {
+                return Self::upper(b).min(self.max_ns);
+            }
+        }
+        self.max_ns
+    }
+}
+
+/// What a live replay gives: the sinks' reports, and how fast the chain ran.
+#[derive(Clone, Debug)]
+pub struct LiveRun {
+    /// Each sink's report, in graph order.
+    pub reports: Vec<(String, crate::SinkReport)>,
+    /// Trials streamed.
+    pub trials: usize,
+    /// Stream time fed (samples over their rate, summed over trials), s.
+    pub stream_s: f64,
+    /// Wall time per block through the chain.
+    pub latency: BlockLatency,
+}
+
 /// Streams every trial of a graph's source through its [`LivePlan`], trial
 /// after trial; `on_update` sees every estimate as it changes. Then the sinks
-/// get each estimator's final estimates, as after a batch run.
+/// get each estimator's final estimates, as after a batch run. Each block's
+/// wall time through the stages (the `on_update` calls left out) is
+/// recorded in the result's [`BlockLatency`].
 ///
 /// A source with a live form ([`LiveSource`], e.g. the DAQ) is followed as
 /// it produces its blocks (a board: frame by frame, as they arrive; `block`
@@ -542,7 +654,7 @@ pub fn replay(
     plan: &LivePlan,
     block: usize,
     mut on_update: impl FnMut(&LiveUpdate),
-) -> Result<Vec<(String, crate::SinkReport)>, crate::RunError> {
+) -> Result<LiveRun, crate::RunError> {
     use crate::stage::Stage;
     let src_id = graph.nodes[plan.source].id.as_str();
     let Stage::Source(src) = &graph.nodes[plan.source].stage else {
@@ -572,8 +684,11 @@ pub fn replay(
         fed: usize,
         fs: f64,
     }
+    let mut latency = BlockLatency::default();
+    let (mut trials, mut stream_s) = (0usize, 0.0f64);
     let push = |open: &mut Open<'_>,
                 b: Payload,
+                latency: &mut BlockLatency,
                 on_update: &mut dyn FnMut(&LiveUpdate)|
      -> Result<(), crate::RunError> {
         if let Ok(s) = b.signals() {
@@ -582,8 +697,12 @@ pub fn replay(
         }
         let t_ms = open.fed as f64 * 1000.0 / open.fs;
         let meta = &open.meta;
-        open.stream.push(b, &mut |node, out| {
+        let t0 = std::time::Instant::now();
+        // The caller's time (printing the estimate) is not the chain's.
+        let mut theirs = std::time::Duration::ZERO;
+        let r = open.stream.push(b, &mut |node, out| {
             if let (true, Ok(e)) = (estimators.contains(&node), out.estimate()) {
+                let u0 = std::time::Instant::now();
                 on_update(&LiveUpdate {
                     trial_id: meta.trial_id.clone(),
                     stage: graph.nodes[node].id.clone(),
@@ -591,11 +710,17 @@ pub fn replay(
                     estimate: (**e).clone(),
                     last: false,
                 });
+                theirs += u0.elapsed();
             }
-        })
+        });
+        let ns = t0.elapsed().saturating_sub(theirs).as_nanos();
+        latency.add(u64::try_from(ns).unwrap_or(u64::MAX));
+        r
     };
     let finish = |open: Open<'_>,
                   finals: &mut Vec<Vec<crate::Item>>,
+                  trials: &mut usize,
+                  stream_s: &mut f64,
                   on_update: &mut dyn FnMut(&LiveUpdate)|
      -> Result<(), crate::RunError> {
         let t_ms = if open.fs > 0.0 {
@@ -603,6 +728,8 @@ pub fn replay(
         } else {
             0.0
         };
+        *trials += 1;
+        *stream_s += t_ms / 1000.0;
         let kept = open.stream.finish(&mut |_, _| {})?;
         for (node, blocks) in kept {
             if let (true, Some(last)) = (estimators.contains(&node), blocks.last()) {
@@ -630,7 +757,7 @@ pub fn replay(
             live.stream(&mut |ev| match ev {
                 SourceEvent::Start(mut meta) => {
                     if let Some(o) = open.take() {
-                        finish(o, &mut finals, &mut on_update)?;
+                        finish(o, &mut finals, &mut trials, &mut stream_s, &mut on_update)?;
                     }
                     meta.index = index;
                     index += 1;
@@ -643,7 +770,7 @@ pub fn replay(
                     Ok(())
                 }
                 SourceEvent::Block(b) => match open.as_mut() {
-                    Some(o) => push(o, b, &mut on_update),
+                    Some(o) => push(o, b, &mut latency, &mut on_update),
                     None => Err(crate::RunError {
                         stage: src_id.to_string(),
                         trial: None,
@@ -651,12 +778,12 @@ pub fn replay(
                     }),
                 },
                 SourceEvent::End => match open.take() {
-                    Some(o) => finish(o, &mut finals, &mut on_update),
+                    Some(o) => finish(o, &mut finals, &mut trials, &mut stream_s, &mut on_update),
                     None => Ok(()),
                 },
             })?;
             if let Some(o) = open.take() {
-                finish(o, &mut finals, &mut on_update)?;
+                finish(o, &mut finals, &mut trials, &mut stream_s, &mut on_update)?;
             }
         }
         None => {
@@ -683,9 +810,9 @@ pub fn replay(
                     fs: signals.sample_rate_hz,
                 };
                 for b in signal_blocks(signals, block) {
-                    push(&mut open, b, &mut on_update)?;
+                    push(&mut open, b, &mut latency, &mut on_update)?;
                 }
-                finish(open, &mut finals, &mut on_update)?;
+                finish(open, &mut finals, &mut trials, &mut stream_s, &mut on_update)?;
             }
         }
     }
@@ -718,5 +845,62 @@ pub fn replay(
         let report = sink.consume(&inputs, &ctx).map_err(|e| rerr(&node.id, None, e))?;
         reports.push((node.id.clone(), report));
     }
-    Ok(reports)
+    Ok(LiveRun {
+        reports,
+        trials,
+        stream_s,
+        latency,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::BlockLatency;
+    use proptest::prelude::*;
+
+    /// The exact `q`-quantile as [`BlockLatency::quantile_ns`] defines its rank.
+    fn exact(sorted: &[u64], q: f64) -> u64 {
+        let rank = ((q * sorted.len() as f64).ceil() as usize).clamp(1, sorted.len());
+        sorted[rank - 1]
+    }
+
+    #[test]
+    fn bins_cover_every_value_in_order() {
+        let mut last = 0;
+        for ns in (0..4096u64).chain([u64::MAX / 3, u64::MAX - 1, u64::MAX]) {
+            let b = BlockLatency::bin(ns);
+            assert!(b >= last && b < super::LATENCY_BINS, "{ns}");
+            assert!(BlockLatency::upper(b) >= ns, "{ns} above its bin's edge");
+            last = b;
+        }
+        assert_eq!(BlockLatency::upper(BlockLatency::bin(u64::MAX)), u64::MAX);
+    }
+
+    #[test]
+    fn no_block_gives_zeros() {
+        let l = BlockLatency::default();
+        assert_eq!((l.blocks(), l.quantile_ns(0.5), l.max_ns()), (0, 0, 0));
+        assert_eq!(l.mean_ns(), 0.0);
+    }
+
+    proptest! {
+        /// A quantile is never below the exact one and at most 12.5 % above
+        /// it; the mean and maximum are exact.
+        #[test]
+        fn quantiles_bound_the_exact_ones(
+            mut v in proptest::collection::vec(0u64..50_000_000_000, 1..300),
+            q in 0.0f64..=1.0,
+        ) {
+            let mut l = BlockLatency::default();
+            v.iter().for_each(|&x| l.add(x));
+            v.sort_unstable();
+            let (got, want) = (l.quantile_ns(q), exact(&v, q));
+            prop_assert!(got >= want, "{got} < {want}");
+            prop_assert!(got as f64 <= want as f64 * 1.125 + 1.0, "{got} vs {want}");
+            prop_assert_eq!(l.max_ns(), *v.last().unwrap_or(&0));
+            prop_assert_eq!(l.quantile_ns(1.0), l.max_ns());
+            let mean = v.iter().map(|&x| x as f64).sum::<f64>() / v.len() as f64;
+            prop_assert!((l.mean_ns() - mean).abs() <= 1e-9 * mean.max(1.0));
+        }
+    }
 }
