@@ -62,7 +62,7 @@ fn templates(
 impl StreamStage for WssStage {
     fn open(&self, ctx: &TrialContext<'_>) -> Result<Box<dyn StreamState>, StageError> {
         Ok(Box::new(WssState {
-            params: self.params.for_trial(ctx.meta.speed_mm_s),
+            params: self.params.for_trial(ctx.meta.speed_mm_s, ctx.stage_id),
             cache: self.templates.clone(),
             stream: None,
             first: None,

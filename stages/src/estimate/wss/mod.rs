@@ -143,7 +143,8 @@
 //! The speed is "known beforehand" (the robot's command): unless the config
 //! sets `speed_mm_s`, each trial's templates are built for the speed the
 //! trial declares ([`palpate_core::TrialMeta::speed_mm_s`]: a scene's
-//! `motion.speed_mm_s`, a recording's label), else 2 mm/s. So a scene run
+//! `motion.speed_mm_s`, a recording's label), else 2 mm/s (warned on
+//! stderr, once per stage). So a scene run
 //! at another speed needs no second key, and trials of several speeds mix.
 //! Templates for the wrong speed cost much: the quickstart at 4 mm/s scores
 //! 0.15 degrees MAE, and 25.7 with `--set stages.wss.speed_mm_s=2`
@@ -332,9 +333,9 @@ impl WssModel {
 }
 
 impl Model for WssModel {
-    fn predict(&self, item: &Item, _ctx: &TrialContext<'_>) -> Result<Estimate, StageError> {
+    fn predict(&self, item: &Item, ctx: &TrialContext<'_>) -> Result<Estimate, StageError> {
         let images = item.payload.images()?;
-        let params = self.params.for_trial(item.meta.speed_mm_s);
+        let params = self.params.for_trial(item.meta.speed_mm_s, ctx.stage_id);
         let sets = self.templates(images, &params)?;
         let e = match params.stop_margin {
             None => {

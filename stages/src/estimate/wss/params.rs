@@ -342,6 +342,25 @@ impl WssConfig {
 /// mm/s: the paper's.
 pub const DEFAULT_SPEED_MM_S: f64 = 2.0;
 
+/// Stage ids already warned that a trial declared no speed.
+static WARNED_SPEED: std::sync::Mutex<Vec<String>> = std::sync::Mutex::new(Vec::new());
+
+/// Warns, the first time for `stage_id`, that a trial declared no speed.
+/// Returns whether it warned (for the tests).
+fn warn_default_speed(stage_id: &str) -> bool {
+    let mut w = WARNED_SPEED.lock().unwrap_or_else(|e| e.into_inner());
+    if w.iter().any(|s| s == stage_id) {
+        return false;
+    }
+    w.push(stage_id.to_string());
+    eprintln!(
+        "warning: wss `{stage_id}`: a trial declares no palpation speed (a recording whose labels \
+         omit `speed_mm_s`?); its templates assume {DEFAULT_SPEED_MM_S} mm/s. Set the stage's \
+         `speed_mm_s` to the speed the array slid at."
+    );
+    true
+}
+
 impl WssParams {
     /// The speed the templates are built for, mm/s: `speed_mm_s`, else
     /// [`DEFAULT_SPEED_MM_S`].
@@ -352,9 +371,21 @@ impl WssParams {
     /// These parameters for a trial whose declared speed is `declared`: the
     /// configured speed when there is one (it overrides the trial's), else
     /// the trial's, else the default. Always with a speed set.
-    pub fn for_trial(&self, declared: Option<f64>) -> WssParams {
+    ///
+    /// Falling back to the default warns on stderr, once per stage id in a
+    /// process: templates for the wrong speed cost tens of degrees (module
+    /// docs), and a recording whose labels omit `speed_mm_s` would
+    /// otherwise be scored at 2 mm/s without a word.
+    pub fn for_trial(&self, declared: Option<f64>, stage_id: &str) -> WssParams {
+        let speed = match self.speed_mm_s.or(declared) {
+            Some(v) => v,
+            None => {
+                warn_default_speed(stage_id);
+                DEFAULT_SPEED_MM_S
+            }
+        };
         WssParams {
-            speed_mm_s: Some(self.speed_mm_s.or(declared).unwrap_or(DEFAULT_SPEED_MM_S)),
+            speed_mm_s: Some(speed),
             ..self.clone()
         }
     }
@@ -437,5 +468,32 @@ impl WssParams {
             ));
         }
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod speed_tests {
+    use super::*;
+
+    #[test]
+    fn the_default_speed_is_used_and_warned_once_per_stage_only_when_nothing_declares_one() {
+        let p = WssParams {
+            speed_mm_s: None,
+            ..WssParams::default()
+        };
+        // A declared speed: used, no warning (the id is still unwarned after).
+        assert_eq!(p.for_trial(Some(3.0), "wss-declared").speed_mm_s, Some(3.0));
+        assert!(warn_default_speed("wss-declared"));
+        // A configured speed overrides the trial's, without a warning.
+        let fixed = WssParams {
+            speed_mm_s: Some(1.5),
+            ..WssParams::default()
+        };
+        assert_eq!(fixed.for_trial(None, "wss-fixed").speed_mm_s, Some(1.5));
+        assert_eq!(fixed.for_trial(Some(3.0), "wss-fixed").speed_mm_s, Some(1.5));
+        assert!(warn_default_speed("wss-fixed"));
+        // Neither: the default, warned at the first trial only.
+        assert_eq!(p.for_trial(None, "wss-none").speed_mm_s, Some(DEFAULT_SPEED_MM_S));
+        assert!(!warn_default_speed("wss-none"));
     }
 }
