@@ -171,6 +171,9 @@ pub fn lab_trials(n: usize) -> Vec<Item> {
     r.outputs["scene"].as_ref().clone()
 }
 
+/// The lab scene's palpation speed (graphs/scenes/lab.toml), mm/s.
+const LAB_SPEED_MM_S: f64 = 2.0;
+
 /// Samples of the touch-down ramp between palpations (1 s at 1 kHz).
 pub const RAMP: usize = 1000;
 
@@ -338,6 +341,9 @@ pub fn stream_peak(live: &core::Graph, sig: &Signals) -> StreamMemory {
     let plan = core::stream::plan(live).expect("graphs/live.toml streams");
     let meta = core::TrialMeta {
         trial_id: "long".into(),
+        // The lab scene's palpation speed, as its trials declare it (WSS
+        // warns once, allocating, when a trial declares none).
+        speed_mm_s: Some(LAB_SPEED_MM_S),
         ..core::TrialMeta::default()
     };
     let mut t = plan.start_trial(live, &meta, false).expect("open");
@@ -377,7 +383,10 @@ pub fn stream_peak(live: &core::Graph, sig: &Signals) -> StreamMemory {
 pub fn stream_split(live: &core::Graph) -> (usize, usize) {
     let base = live_bytes();
     let plan = core::stream::plan(live).expect("graphs/live.toml streams");
-    let meta = core::TrialMeta::default();
+    let meta = core::TrialMeta {
+        speed_mm_s: Some(LAB_SPEED_MM_S),
+        ..core::TrialMeta::default()
+    };
     // The first trial builds the templates' streaming spectra (cached).
     drop(plan.start_trial(live, &meta, false).expect("open"));
     let templates = live_bytes() - base;

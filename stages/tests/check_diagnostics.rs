@@ -225,3 +225,31 @@ fn wss_keys_that_the_other_keys_make_unused_are_warnings() {
     assert!(warned("refine = \"timing\"\ntiming_window_ms = 500.0").is_empty());
     assert!(warned("").is_empty());
 }
+
+#[test]
+fn a_grid_beside_an_explicit_layout_is_a_warning_naming_array() {
+    let layout = "layout = { positions_mm = [[0.0, 0.0], [3.0, 0.0]] }";
+    let keys = |g: &palpate_core::Graph| -> Vec<String> {
+        g.warnings
+            .iter()
+            .filter(|w| w.message.contains("`layout` is given"))
+            .map(|w| w.key.clone().unwrap_or_default())
+            .collect()
+    };
+    let both = format!("angles = [45]\narray = {{ rows = 8 }}\n{layout}");
+    let g = load(&graph(&both, "cutoff_hz = 10.0", "")).unwrap();
+    assert_eq!(keys(&g), ["array"], "{:#?}", g.warnings);
+    assert!(g.warnings.iter().all(|w| w.severity == Severity::Warning));
+    // Either alone: no warning.
+    for one in [
+        "angles = [45]\narray = { rows = 8 }".to_string(),
+        format!("angles = [45]\n{layout}"),
+    ] {
+        let g = load(&graph(&one, "cutoff_hz = 10.0", "")).unwrap();
+        assert!(keys(&g).is_empty(), "{one}: {:#?}", g.warnings);
+    }
+    // A condition whose layout meets the scene's grid: named under it.
+    let cond = format!("angles = [45]\narray = {{ rows = 8 }}\n[stages.scene.conditions.b]\n{layout}\n[stages.scene.conditions.a]");
+    let g = load(&graph(&cond, "cutoff_hz = 10.0", "")).unwrap();
+    assert_eq!(keys(&g), ["conditions.b.array"], "{:#?}", g.warnings);
+}

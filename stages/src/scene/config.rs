@@ -412,6 +412,19 @@ impl SceneConfig {
         Ok(cfg)
     }
 
+    /// A warning when both `array` and `layout` are given (after merging a
+    /// file and a condition): the explicit layout wins, and a grid key set
+    /// beside it (`--set stages.scene.array.rows=8` on a scene with a
+    /// `layout`) would otherwise change nothing without a word.
+    fn grid_ignored(&self) -> Option<ConfigError> {
+        (self.array.is_some() && self.layout.is_some()).then(|| {
+            ConfigError::key(
+                "array",
+                "is ignored: `layout` is given, and an explicit layout replaces the grid (give one of them)",
+            )
+        })
+    }
+
     /// Moves deprecated key spellings to the current ones (see
     /// [`AngleRange::normalize_spelling`]), returning their warnings.
     pub fn normalize_spelling(&mut self) -> Result<Vec<ConfigError>, ConfigError> {
@@ -534,6 +547,8 @@ impl SceneConfig {
         ctx: &BuildContext,
     ) -> Result<(Vec<(Option<String>, SceneConfig, Scene)>, Vec<ConfigError>), ConfigError> {
         let (mut merged, mut warnings) = self.merged_with_warnings(ctx)?;
+        let base_both = merged.grid_ignored();
+        warnings.extend(base_both.clone());
         let Some(conditions) = merged.conditions.take() else {
             let scene = merged.check()?;
             return Ok((vec![(None, merged, scene)], warnings));
@@ -571,6 +586,9 @@ impl SceneConfig {
             }
             warnings.extend(cond.normalize_spelling().map_err(prefix)?.into_iter().map(prefix));
             let mut cfg = cond.over(&merged)?;
+            if base_both.is_none() {
+                warnings.extend(cfg.grid_ignored().map(prefix));
+            }
             cfg.apply_adjust().map_err(prefix)?;
             let scene = cfg.check().map_err(prefix)?;
             out.push((Some(name), cfg, scene));
