@@ -946,7 +946,7 @@ fn cmd_daq(command: DaqCommand) -> ExitCode {
                     set.push((key("angles"), toml::Value::Array(vec![angle.into()])));
                     set.push((key("trials_per_angle"), 1.into()));
                     set.push((key("speed"), speed.into()));
-                    set.push(("run.seed".into(), (seed as i64).into()));
+                    set.push(("run.seed".into(), core::graph::seed_value(seed)));
                 }
                 (Some(p), None) => {
                     set.push((key("port"), p.into()));

@@ -44,12 +44,63 @@ use std::path::{Path, PathBuf};
 
 pub use crate::protocol::Protocol;
 
+/// The schema of `[run] seed`: an integer, or a string of decimal digits.
+#[derive(schemars::JsonSchema)]
+#[serde(untagged)]
+#[allow(dead_code)]
+enum SeedSchema {
+    /// 0 to 9223372036854775807 (TOML's integers).
+    Int(u64),
+    /// Decimal digits, up to 18446744073709551615.
+    Digits(String),
+}
+
+/// Reads a seed: a non-negative integer, or a string of decimal digits (for
+/// seeds above TOML's largest integer), with an error that says so.
+fn seed_from_toml<'de, D: serde::Deserializer<'de>>(d: D) -> Result<u64, D::Error> {
+    struct V;
+    const WHAT: &str = "a whole number from 0 to 18446744073709551615 (above \
+                        9223372036854775807, TOML's largest integer, write it as a string: \
+                        seed = \"18446744073709551615\")";
+    impl serde::de::Visitor<'_> for V {
+        type Value = u64;
+        fn expecting(&self, f: &mut fmt::Formatter) -> fmt::Result {
+            f.write_str(WHAT)
+        }
+        fn visit_u64<E: serde::de::Error>(self, v: u64) -> Result<u64, E> {
+            Ok(v)
+        }
+        fn visit_i64<E: serde::de::Error>(self, v: i64) -> Result<u64, E> {
+            u64::try_from(v).map_err(|_| E::custom(format!("seed {v}: a seed is {WHAT}")))
+        }
+        fn visit_str<E: serde::de::Error>(self, v: &str) -> Result<u64, E> {
+            let t = v.trim();
+            if t.is_empty() || !t.bytes().all(|b| b.is_ascii_digit()) {
+                return Err(E::custom(format!("seed \"{v}\": a seed is {WHAT}")));
+            }
+            t.parse()
+                .map_err(|_| E::custom(format!("seed \"{v}\" is too large: a seed is {WHAT}")))
+        }
+    }
+    d.deserialize_any(V)
+}
+
+/// `seed` as a `[run] seed` value: an integer, or above TOML's largest
+/// integer the string of its digits (which the seed key reads alike).
+pub fn seed_value(seed: u64) -> toml::Value {
+    i64::try_from(seed).map_or_else(|_| toml::Value::String(seed.to_string()), toml::Value::Integer)
+}
+
 /// Run-wide settings: the graph file's `[run]` table.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields, default)]
 pub struct RunSettings {
     /// Seed of every random generator in the run (each stage and trial derives
-    /// its own from it). Default 0.
+    /// its own from it): a whole number from 0 to 18446744073709551615. TOML
+    /// integers stop at 9223372036854775807; a larger seed is written as a
+    /// string (`seed = "18446744073709551615"`). Default 0.
+    #[serde(deserialize_with = "seed_from_toml")]
+    #[schemars(with = "SeedSchema")]
     pub seed: u64,
     /// Evaluation protocol for trained estimators. Default "leave_one_trial_out".
     pub protocol: Protocol,

@@ -132,14 +132,18 @@ pub fn load_points(
             o.overrides.push((point.key.clone(), value.clone()));
             // Repeat r shifts the seed by r; when the point is over the seed itself,
             // the swept value is the base (else the repeat's override would hide it).
+            // A swept seed that is no seed (negative, not digits) is left as
+            // written: loading the point then names it.
             let seed = match (point.key.as_str(), value) {
-                ("run.seed", toml::Value::Integer(v)) => *v as u64,
-                _ => base.run.seed,
+                ("run.seed", toml::Value::Integer(v)) => u64::try_from(*v).ok(),
+                ("run.seed", toml::Value::String(v)) => v.trim().parse::<u64>().ok(),
+                ("run.seed", _) => None,
+                _ => Some(base.run.seed),
             };
-            o.overrides.push((
-                "run.seed".into(),
-                toml::Value::Integer(seed.wrapping_add(r as u64) as i64),
-            ));
+            if let Some(seed) = seed {
+                let v = crate::graph::seed_value(seed.wrapping_add(r as u64));
+                o.overrides.push(("run.seed".into(), v));
+            }
             o.out = Some(point_dir(&base.out_dir, &lbl, (sweep.repeats > 1).then_some(r)));
             match load_str(text, file, stem, &o) {
                 Ok(g) => graphs.push((p, r, g)),

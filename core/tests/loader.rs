@@ -412,3 +412,30 @@ fn a_run_time_alias_stands_for_its_target_type() {
     assert_eq!(d.stage.as_deref(), Some("gain"));
     assert!(d.message.contains("factr"), "{}", d.message);
 }
+
+#[test]
+fn a_seed_takes_the_whole_u64_range_and_a_wrong_one_says_what_a_seed_is() {
+    let with = |seed: &str| GOOD.replace("seed = 3", &format!("seed = {seed}"));
+    assert_eq!(
+        load(&with("9223372036854775807")).unwrap().run.seed,
+        i64::MAX as u64
+    );
+    // Above TOML's integers, as a string of digits.
+    assert_eq!(
+        load(&with("\"18446744073709551615\"")).unwrap().run.seed,
+        u64::MAX
+    );
+    assert_eq!(load(&with("\"7\"")).unwrap().run.seed, 7);
+    for bad in ["-1", "\"18446744073709551616\"", "\"12a\"", "\"\"", "1.5"] {
+        let d = only(&with(bad));
+        assert!(
+            d.message.contains("a seed is a whole number") || d.message.contains("whole number from 0"),
+            "{bad}: {d}"
+        );
+    }
+    // The value `--set`, a sweep and `daq run` write for a seed reads back.
+    for s in [0, 3, i64::MAX as u64, i64::MAX as u64 + 1, u64::MAX] {
+        let v = palpate_core::graph::seed_value(s);
+        assert_eq!(load(&with(&v.to_string())).unwrap().run.seed, s);
+    }
+}

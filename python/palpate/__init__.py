@@ -359,7 +359,9 @@ def _palpate_toml(d: dict) -> str:
         if isinstance(v, bool):
             return "true" if v else "false"
         if isinstance(v, (int, np.integer)):
-            return str(int(v))
+            # TOML's integers stop at 2**63 - 1; a seed above it is read from
+            # its digits as a string.
+            return str(int(v)) if -(2**63) <= int(v) < 2**63 else json.dumps(str(int(v)))
         if isinstance(v, (float, np.floating)):
             return repr(float(v))
         if isinstance(v, (str, pathlib.PurePath)):

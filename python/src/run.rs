@@ -78,9 +78,16 @@ fn overrides(set: Option<&Bound<'_, PyAny>>) -> PyResult<Vec<(String, toml::Valu
         let value = match v.extract::<String>() {
             // A string is read as `--set` reads it: a TOML value if it parses.
             Ok(s) => palpate_core::graph::parse_value(&s),
-            Err(_) => toml::Value::try_from(py_to_json(&v)?).map_err(|e| {
-                pyo3::exceptions::PyValueError::new_err(format!("`set` value of `{key}`: {e}"))
-            })?,
+            Err(_) => match py_to_json(&v)? {
+                // Above TOML's integers (a seed up to 2^64 - 1): its digits,
+                // which `run.seed` reads alike.
+                serde_json::Value::Number(n) if n.as_u64().is_some_and(|u| i64::try_from(u).is_err()) => {
+                    toml::Value::String(n.to_string())
+                }
+                j => toml::Value::try_from(j).map_err(|e| {
+                    pyo3::exceptions::PyValueError::new_err(format!("`set` value of `{key}`: {e}"))
+                })?,
+            },
         };
         out.push((key, value));
     }

@@ -208,3 +208,21 @@ def test_trained_baseline_fit_predict_matches_its_graph():
     for wrong in (angles[:-1], angles + [45.0]):
         with pytest.raises(ValueError, match="`labels` has .* entries but `train` has"):
             palpate.fit("knn", train, labels=wrong)
+
+
+def test_a_seed_above_tomls_integers_is_accepted_from_a_dict_and_from_set():
+    g = {
+        "run": {"seed": 2**64 - 1},
+        "stages": {
+            "scene": {"type": "scene", "file": str(GRAPHS / "scenes" / "ideal.toml"), "angles": [45.0], "trials_per_angle": 1},
+            "drive": {"type": "drive", "inputs": ["scene"], "kind": "fa_i"},
+            "enc": {"type": "izhikevich", "inputs": ["drive"]},
+            "bins": {"type": "bin", "inputs": ["enc"]},
+            "wss": {"type": "wss", "inputs": ["bins"]},
+            "mae": {"type": "mae", "inputs": ["wss"]},
+        },
+    }
+    assert [d for d in palpate.check(g) if d.severity == "error"] == []
+    assert [d for d in palpate.check(g, set={"run.seed": 2**63}) if d.severity == "error"] == []
+    bad = palpate.check(g, set={"run.seed": -1})
+    assert any("a seed is a whole number" in d.message for d in bad), bad
