@@ -76,6 +76,33 @@ pub enum LayoutConfig {
     },
 }
 
+/// Reads a source's `layout` key: a [`LayoutConfig`] whose `kind` may be
+/// left out when its keys say it (`positions_mm`: positions; `rows` or
+/// `cols`: a grid), as a scene's `layout` is written. Used with
+/// `#[serde(default, deserialize_with = "...")]` on the sources' fields.
+pub fn layout_with_inferred_kind<'de, D: serde::Deserializer<'de>>(
+    d: D,
+) -> Result<Option<LayoutConfig>, D::Error> {
+    use serde::de::Error;
+    let mut v = serde_json::Value::deserialize(d)?;
+    if let Some(m) = v.as_object_mut() {
+        if !m.contains_key("kind") {
+            let kind = if m.contains_key("positions_mm") {
+                "positions"
+            } else if m.contains_key("rows") || m.contains_key("cols") {
+                "grid"
+            } else {
+                return Err(D::Error::custom(
+                    "a layout needs `kind` (\"grid\" with rows, cols, pitch_mm, taxel_mm; \
+                     or \"positions\" with positions_mm, taxel_mm)",
+                ));
+            };
+            m.insert("kind".into(), kind.into());
+        }
+    }
+    LayoutConfig::deserialize(v).map(Some).map_err(D::Error::custom)
+}
+
 impl Default for LayoutConfig {
     fn default() -> Self {
         LayoutConfig::Grid {
@@ -1031,6 +1058,36 @@ pub fn sidecar_toml(
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn a_source_layout_without_kind_is_read_from_its_keys() {
+        use crate::io::signal_file::SignalFileConfig;
+        let read = |t: &str| toml::from_str::<SignalFileConfig>(t).map(|c| c.layout);
+        let positions = read("layout = { positions_mm = [[0.0, 0.0], [3, 0]], taxel_mm = 2.0 }").unwrap();
+        assert_eq!(
+            positions,
+            Some(super::LayoutConfig::Positions {
+                positions_mm: vec![[0.0, 0.0], [3.0, 0.0]],
+                taxel_mm: 2.0
+            })
+        );
+        let grid = read("layout = { rows = 2, cols = 3, pitch_mm = 3.0, taxel_mm = 2.0 }").unwrap();
+        let tagged =
+            read("layout = { kind = \"grid\", rows = 2, cols = 3, pitch_mm = 3.0, taxel_mm = 2.0 }").unwrap();
+        assert_eq!(grid, tagged);
+        assert!(matches!(
+            grid,
+            Some(super::LayoutConfig::Grid { rows: 2, cols: 3, .. })
+        ));
+        assert_eq!(read("path = \"x.csv\"").unwrap(), None);
+        // Neither kind nor keys that tell it; an unknown key still refused.
+        let e = read("layout = { taxel_mm = 2.0 }").unwrap_err().to_string();
+        assert!(e.contains("a layout needs `kind`"), "{e}");
+        let e = read("layout = { positions_mm = [[0.0, 0.0]], taxel_mm = 2.0, pitch = 1 }")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("pitch"), "{e}");
+    }
+
     use super::*;
 
     #[test]

@@ -86,6 +86,9 @@ pub struct ImageFileConfig {
     /// Time between frame starts, ms; default: `info.json`'s `hop_ms`.
     pub hop_ms: Option<f64>,
     /// Taxel layout; default: `info.json`'s `layout`.
+    /// (`kind = "grid"` or `"positions"` may be left out: `positions_mm` or
+    /// `rows`/`cols` tell it.)
+    #[serde(default, deserialize_with = "crate::io::common::layout_with_inferred_kind")]
     pub layout: Option<LayoutConfig>,
     /// Label sidecar (TOML, CSV or `trials.json`), relative to the graph
     /// file's folder; default: the folder's `labels.toml` when present.

@@ -129,6 +129,9 @@ pub struct SignalFileConfig {
     /// `layout`: `palpate simulate`, `write_signals` and `write_spikes` write
     /// it), else the paper's 4 x 4 grid, 3 mm pitch, 2 mm taxels. Set and
     /// unlike the sidecar's, an error.
+    /// (`kind = "grid"` or `"positions"` may be left out: `positions_mm` or
+    /// `rows`/`cols` tell it.)
+    #[serde(default, deserialize_with = "crate::io::common::layout_with_inferred_kind")]
     pub layout: Option<LayoutConfig>,
     /// Unit of the samples, e.g. `V`. Default `V`.
     pub unit: String,

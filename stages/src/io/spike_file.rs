@@ -138,6 +138,9 @@ pub struct SpikeFileConfig {
     /// `layout`: `palpate simulate`, `write_signals` and `write_spikes` write
     /// it), else the paper's 4 x 4 grid, 3 mm pitch, 2 mm taxels. Set and
     /// unlike the sidecar's, an error.
+    /// (`kind = "grid"` or `"positions"` may be left out: `positions_mm` or
+    /// `rows`/`cols` tell it.)
+    #[serde(default, deserialize_with = "crate::io::common::layout_with_inferred_kind")]
     pub layout: Option<LayoutConfig>,
     /// Label sidecar (TOML, CSV, or a `trials.json` from `palpate simulate`).
     /// Default none.

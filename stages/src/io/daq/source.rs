@@ -108,6 +108,9 @@ pub struct DaqConfig {
     /// Taxel layout; channel `i` is taxel `i`. Default: with `scene` (and no
     /// `port` or `recording`), the emulated scene's array; else the paper's
     /// 4x4 grid (3 mm pitch, 2 mm taxels).
+    /// (`kind = "grid"` or `"positions"` may be left out: `positions_mm` or
+    /// `rows`/`cols` tell it.)
+    #[serde(default, deserialize_with = "crate::io::common::layout_with_inferred_kind")]
     pub layout: Option<LayoutConfig>,
     /// Frame rate of the board, Hz (an emulated scene must sample at it).
     /// Default: with `scene` alone, the scene's rate; else 1000.
