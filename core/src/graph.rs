@@ -74,15 +74,19 @@ fn seed_from_toml<'de, D: serde::Deserializer<'de>>(d: D) -> Result<u64, D::Erro
             u64::try_from(v).map_err(|_| E::custom(format!("seed {v}: a seed is {WHAT}")))
         }
         fn visit_str<E: serde::de::Error>(self, v: &str) -> Result<u64, E> {
-            let t = v.trim();
-            if t.is_empty() || !t.bytes().all(|b| b.is_ascii_digit()) {
-                return Err(E::custom(format!("seed \"{v}\": a seed is {WHAT}")));
-            }
-            t.parse()
-                .map_err(|_| E::custom(format!("seed \"{v}\" is too large: a seed is {WHAT}")))
+            seed_from_digits(v).ok_or_else(|| E::custom(format!("seed \"{v}\": a seed is {WHAT}")))
         }
     }
     d.deserialize_any(V)
+}
+
+/// A seed written as a string: decimal digits only (spaces around them
+/// allowed), at most 18446744073709551615; `None` otherwise.
+pub fn seed_from_digits(v: &str) -> Option<u64> {
+    let t = v.trim();
+    (!t.is_empty() && t.bytes().all(|b| b.is_ascii_digit()))
+        .then(|| t.parse().ok())
+        .flatten()
 }
 
 /// `seed` as a `[run] seed` value: an integer, or above TOML's largest

@@ -684,11 +684,16 @@ pub fn replay(
         fed: usize,
         fs: f64,
     }
-    let mut latency = BlockLatency::default();
-    let (mut trials, mut stream_s) = (0usize, 0.0f64);
+    // Filled as trials stream; the sinks' reports are added at the end.
+    let mut run = LiveRun {
+        reports: Vec::new(),
+        trials: 0,
+        stream_s: 0.0,
+        latency: BlockLatency::default(),
+    };
     let push = |open: &mut Open<'_>,
                 b: Payload,
-                latency: &mut BlockLatency,
+                run: &mut LiveRun,
                 on_update: &mut dyn FnMut(&LiveUpdate)|
      -> Result<(), crate::RunError> {
         if let Ok(s) = b.signals() {
@@ -714,13 +719,12 @@ pub fn replay(
             }
         });
         let ns = t0.elapsed().saturating_sub(theirs).as_nanos();
-        latency.add(u64::try_from(ns).unwrap_or(u64::MAX));
+        run.latency.add(u64::try_from(ns).unwrap_or(u64::MAX));
         r
     };
     let finish = |open: Open<'_>,
                   finals: &mut Vec<Vec<crate::Item>>,
-                  trials: &mut usize,
-                  stream_s: &mut f64,
+                  run: &mut LiveRun,
                   on_update: &mut dyn FnMut(&LiveUpdate)|
      -> Result<(), crate::RunError> {
         let t_ms = if open.fs > 0.0 {
@@ -728,8 +732,8 @@ pub fn replay(
         } else {
             0.0
         };
-        *trials += 1;
-        *stream_s += t_ms / 1000.0;
+        run.trials += 1;
+        run.stream_s += t_ms / 1000.0;
         let kept = open.stream.finish(&mut |_, _| {})?;
         for (node, blocks) in kept {
             if let (true, Some(last)) = (estimators.contains(&node), blocks.last()) {
@@ -757,7 +761,7 @@ pub fn replay(
             live.stream(&mut |ev| match ev {
                 SourceEvent::Start(mut meta) => {
                     if let Some(o) = open.take() {
-                        finish(o, &mut finals, &mut trials, &mut stream_s, &mut on_update)?;
+                        finish(o, &mut finals, &mut run, &mut on_update)?;
                     }
                     meta.index = index;
                     index += 1;
@@ -770,7 +774,7 @@ pub fn replay(
                     Ok(())
                 }
                 SourceEvent::Block(b) => match open.as_mut() {
-                    Some(o) => push(o, b, &mut latency, &mut on_update),
+                    Some(o) => push(o, b, &mut run, &mut on_update),
                     None => Err(crate::RunError {
                         stage: src_id.to_string(),
                         trial: None,
@@ -778,12 +782,12 @@ pub fn replay(
                     }),
                 },
                 SourceEvent::End => match open.take() {
-                    Some(o) => finish(o, &mut finals, &mut trials, &mut stream_s, &mut on_update),
+                    Some(o) => finish(o, &mut finals, &mut run, &mut on_update),
                     None => Ok(()),
                 },
             })?;
             if let Some(o) = open.take() {
-                finish(o, &mut finals, &mut trials, &mut stream_s, &mut on_update)?;
+                finish(o, &mut finals, &mut run, &mut on_update)?;
             }
         }
         None => {
@@ -810,14 +814,13 @@ pub fn replay(
                     fs: signals.sample_rate_hz,
                 };
                 for b in signal_blocks(signals, block) {
-                    push(&mut open, b, &mut latency, &mut on_update)?;
+                    push(&mut open, b, &mut run, &mut on_update)?;
                 }
-                finish(open, &mut finals, &mut trials, &mut stream_s, &mut on_update)?;
+                finish(open, &mut finals, &mut run, &mut on_update)?;
             }
         }
     }
     // Sinks, as after a batch run, on the estimators' final answers.
-    let mut reports = Vec::new();
     for &i in &graph.order {
         let node = &graph.nodes[i];
         let Stage::Sink(sink) = &node.stage else { continue };
@@ -843,14 +846,9 @@ pub fn replay(
             out_dir: &graph.out_dir,
         };
         let report = sink.consume(&inputs, &ctx).map_err(|e| rerr(&node.id, None, e))?;
-        reports.push((node.id.clone(), report));
+        run.reports.push((node.id.clone(), report));
     }
-    Ok(LiveRun {
-        reports,
-        trials,
-        stream_s,
-        latency,
-    })
+    Ok(run)
 }
 
 #[cfg(test)]

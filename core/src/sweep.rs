@@ -136,7 +136,7 @@ pub fn load_points(
             // written: loading the point then names it.
             let seed = match (point.key.as_str(), value) {
                 ("run.seed", toml::Value::Integer(v)) => u64::try_from(*v).ok(),
-                ("run.seed", toml::Value::String(v)) => v.trim().parse::<u64>().ok(),
+                ("run.seed", toml::Value::String(v)) => crate::graph::seed_from_digits(v),
                 ("run.seed", _) => None,
                 _ => Some(base.run.seed),
             };

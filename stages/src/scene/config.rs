@@ -547,8 +547,7 @@ impl SceneConfig {
         ctx: &BuildContext,
     ) -> Result<(Vec<(Option<String>, SceneConfig, Scene)>, Vec<ConfigError>), ConfigError> {
         let (mut merged, mut warnings) = self.merged_with_warnings(ctx)?;
-        let base_both = merged.grid_ignored();
-        warnings.extend(base_both.clone());
+        let base_warned = merged.grid_ignored().map(|w| warnings.push(w)).is_some();
         let Some(conditions) = merged.conditions.take() else {
             let scene = merged.check()?;
             return Ok((vec![(None, merged, scene)], warnings));
@@ -586,7 +585,7 @@ impl SceneConfig {
             }
             warnings.extend(cond.normalize_spelling().map_err(prefix)?.into_iter().map(prefix));
             let mut cfg = cond.over(&merged)?;
-            if base_both.is_none() {
+            if !base_warned {
                 warnings.extend(cfg.grid_ignored().map(prefix));
             }
             cfg.apply_adjust().map_err(prefix)?;
