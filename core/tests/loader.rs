@@ -426,7 +426,14 @@ fn a_seed_takes_the_whole_u64_range_and_a_wrong_one_says_what_a_seed_is() {
         u64::MAX
     );
     assert_eq!(load(&with("\"7\"")).unwrap().run.seed, 7);
-    for bad in ["-1", "\"18446744073709551616\"", "\"12a\"", "\"+5\"", "\"\"", "1.5"] {
+    for bad in [
+        "-1",
+        "\"18446744073709551616\"",
+        "\"12a\"",
+        "\"+5\"",
+        "\"\"",
+        "1.5",
+    ] {
         let d = only(&with(bad));
         assert!(
             d.message.contains("a seed is a whole number") || d.message.contains("whole number from 0"),
