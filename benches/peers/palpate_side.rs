@@ -391,6 +391,8 @@ struct TestSet {
     x: Vec<f64>,
     y: Vec<usize>,
     trial: Vec<usize>,
+    /// Each row's frame (its window's index in the trial), as the stage votes it.
+    frame: Vec<usize>,
     trial_angle: Vec<f64>,
 }
 
@@ -411,8 +413,13 @@ fn predict(model: &FittedModel, t: &TestSet) -> (Vec<f64>, Vec<Option<f64>>) {
         .classifier
         .scores_batch(&t.x, t.dim, k, &mut rng, &mut scores);
     let mut accs: Vec<Accumulator> = (0..t.trial_angle.len()).map(|_| Accumulator::new(k)).collect();
-    for (i, (&tr, s)) in t.trial.iter().zip(scores.chunks_exact(k)).enumerate() {
-        accs[tr].add(i, s, model.vote);
+    // Each trial's frames are one run of the test set: voted a run at a time.
+    let mut start = 0;
+    while start < t.trial.len() {
+        let tr = t.trial[start];
+        let end = start + t.trial[start..].iter().take_while(|&&x| x == tr).count();
+        accs[tr].add_rows(&t.frame[start..end], &scores[start * k..end * k], model.vote);
+        start = end;
     }
     let answers = accs
         .iter()
@@ -473,6 +480,7 @@ fn baselines(args: &Args) -> Res<Value> {
             x: Vec::new(),
             y: Vec::new(),
             trial: Vec::new(),
+            frame: Vec::new(),
             trial_angle: Vec::new(),
         };
         for (k, it) in test.iter().enumerate() {
@@ -483,7 +491,7 @@ fn baselines(args: &Args) -> Res<Value> {
                 .iter()
                 .position(|a| (a - angle).abs() < 1e-9)
                 .ok_or("a test class is missing from training")?;
-            for (_, v) in set
+            for (f, v) in set
                 .spec
                 .trial_vectors(images, &it.meta.trial_id)
                 .map_err(|e| e.message)?
@@ -491,6 +499,7 @@ fn baselines(args: &Args) -> Res<Value> {
                 t.x.extend_from_slice(&v);
                 t.y.push(c);
                 t.trial.push(k);
+                t.frame.push(f);
             }
             t.trial_angle.push(angle);
         }

@@ -1084,14 +1084,25 @@ impl Dbn {
             // The input rows are read in place (a copy of them was 3% of a
             // prediction).
             let mut v = &x[b0 * dim..(b0 + rows) * dim];
+            // The first product reads the features, mostly zeros (spike
+            // counts): it skips them, with the same bits
+            // ([`dense::gemm_nt_sparse`]); the layers above are dense.
+            let mut first = true;
+            let mut product = |v: &[f64], w: &[f64], k: usize, h: &mut [f64]| {
+                if std::mem::take(&mut first) {
+                    dense::gemm_nt_sparse(v, w, k, h);
+                } else {
+                    dense::gemm_nt(v, w, k, h);
+                }
+            };
             for (r, h) in below.iter().zip(acts.iter_mut()) {
                 let h = &mut h[..rows * r.n_hid];
-                dense::gemm_nt(v, &r.w, r.n_vis, h);
+                product(v, &r.w, r.n_vis, h);
                 dense::add_bias_map(h, &r.b, vmath::sigmoid);
                 v = h;
             }
             let base = &mut base[..rows * top.n_hid];
-            dense::gemm_nt(v, &wc, nb, base);
+            product(v, &wc, nb, base);
             dense::add_bias_map(base, &top.b, |z| z);
             top.posterior_rows(base, &mut d, o, k);
         }

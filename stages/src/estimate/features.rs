@@ -923,9 +923,7 @@ impl FittedModel {
         self.classifier
             .scores_batch(&x, self.features.dim(), classes, &mut rng, &mut scores);
         let mut acc = Accumulator::new(classes);
-        for (&k, s) in anchors.iter().zip(scores.chunks_exact(classes.max(1))) {
-            acc.add(k, s, self.vote);
-        }
+        acc.add_rows(&anchors, &scores, self.vote);
         Ok(acc.estimate(&self.classes, &self.features))
     }
 }
@@ -1056,6 +1054,127 @@ impl Accumulator {
     /// Adds frame `k`'s scores. Non-finite scores (never produced by the
     /// classifiers here) would poison the sums, so such a frame is skipped.
     pub fn add(&mut self, k: usize, scores: &[f64], vote: Vote) {
+        self.add_one(k, scores, vote);
+    }
+
+    /// [`Self::add`] of each frame `frames[i]` with the `i`-th row of
+    /// `scores` (rows as wide as the vote's classes), in order: the same
+    /// state as those calls one by one.
+    ///
+    /// With AVX-512 and at most 32 classes, [`Self::add_rows512`]: a row's
+    /// test, maximum, first index of the maximum and peaks in a few vector
+    /// operations, where the frame-by-frame form took ~13 ns a frame of 17
+    /// classes (a tenth of an ANN (S) prediction of the peers test set).
+    pub fn add_rows(&mut self, frames: &[usize], scores: &[f64], vote: Vote) {
+        let n = self.totals.len().max(1);
+        #[cfg(target_arch = "x86_64")]
+        if n <= 32 && crate::wide::avx512() {
+            // SAFETY: the CPU supports AVX-512 F/VL/DQ (checked above).
+            unsafe { self.add_rows512(frames, scores, vote) };
+            return;
+        }
+        crate::wide::with_avx2(
+            #[inline(always)]
+            || {
+                for (&k, row) in frames.iter().zip(scores.chunks_exact(n)) {
+                    self.add_one(k, row, vote);
+                }
+            },
+        );
+    }
+
+    /// [`Self::add_rows`] for at most 32 classes, in up to four 512-bit
+    /// vectors a row: the same state as [`Self::add`] row by row. A row
+    /// with an infinite or NaN score is skipped (`vfpclasspd`); the maximum
+    /// of a finite row does not depend on the order it is taken in, and
+    /// the winner is the first class equal to it (`-0.0 == 0.0`, as
+    /// [`argmax`]); a peak moves where the score is greater (ordered `>`).
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,fma,avx512f,avx512vl,avx512dq")]
+    unsafe fn add_rows512(&mut self, frames: &[usize], scores: &[f64], vote: Vote) {
+        use std::arch::x86_64::*;
+        let n = self.totals.len();
+        assert!(
+            (1..=32).contains(&n) && self.peak.len() == n && self.peak_frame.len() == n,
+            "a vote over {n} classes"
+        );
+        let chunks = n.div_ceil(8);
+        let masks: [__mmask8; 4] =
+            std::array::from_fn(|c| ((1u16 << n.saturating_sub(8 * c).min(8)) - 1) as __mmask8);
+        let (tp, pp, fp) = (
+            self.totals.as_mut_ptr(),
+            self.peak.as_mut_ptr(),
+            self.peak_frame.as_mut_ptr().cast::<i64>(),
+        );
+        const _: () = assert!(std::mem::size_of::<usize>() == 8);
+        // The peaks, their frames and (for a sum) the totals stay in
+        // registers over the rows: stored and reloaded per row, each masked
+        // store stalled the next row's load (no forwarding from it).
+        // SAFETY (these loads and the stores after the loop): lanes 8c.. < n
+        // of each vector; `usize`s are 8-byte, read and written as the same bits.
+        let mut peak: [__m512d; 4] =
+            std::array::from_fn(|c| unsafe { _mm512_maskz_loadu_pd(masks[c], pp.add(8 * c)) });
+        let mut frame: [__m512i; 4] =
+            std::array::from_fn(|c| unsafe { _mm512_maskz_loadu_epi64(masks[c], fp.add(8 * c)) });
+        let mut total: [__m512d; 4] =
+            std::array::from_fn(|c| unsafe { _mm512_maskz_loadu_pd(masks[c], tp.add(8 * c)) });
+        let mut winner_adds = false;
+        for (&k, row) in frames.iter().zip(scores.chunks_exact(n)) {
+            let rp = row.as_ptr();
+            let mut v = [_mm512_setzero_pd(); 4];
+            let mut bad = 0u8;
+            let mut top = _mm512_set1_pd(f64::NEG_INFINITY);
+            for c in 0..chunks {
+                // SAFETY: the unmasked lanes are entries 8c.. < n of the row.
+                v[c] = unsafe { _mm512_mask_loadu_pd(top, masks[c], rp.add(8 * c)) };
+                // QNaN, +inf, -inf, SNaN.
+                bad |= _mm512_mask_fpclass_pd_mask::<0x99>(masks[c], v[c]);
+                top = _mm512_max_pd(top, v[c]);
+            }
+            if bad != 0 {
+                continue;
+            }
+            let kv = _mm512_set1_epi64(k as i64);
+            for c in 0..chunks {
+                let up = _mm512_mask_cmp_pd_mask::<_CMP_GT_OQ>(masks[c], v[c], peak[c]);
+                peak[c] = _mm512_mask_mov_pd(peak[c], up, v[c]);
+                frame[c] = _mm512_mask_mov_epi64(frame[c], up, kv);
+            }
+            match vote {
+                Vote::Winner => {
+                    let top = _mm512_set1_pd(_mm512_reduce_max_pd(top));
+                    let mut hits = 0u32;
+                    for c in 0..chunks {
+                        let eq = _mm512_mask_cmp_pd_mask::<_CMP_EQ_OQ>(masks[c], v[c], top);
+                        hits |= u32::from(eq) << (8 * c);
+                    }
+                    let w = hits.trailing_zeros() as usize;
+                    self.totals[w] += row[w];
+                    winner_adds = true;
+                }
+                Vote::Sum => {
+                    for c in 0..chunks {
+                        total[c] = _mm512_add_pd(total[c], v[c]);
+                    }
+                }
+            }
+            self.used += 1;
+            self.last_frame = Some(k);
+        }
+        for c in 0..chunks {
+            // SAFETY: as for the loads above.
+            unsafe {
+                _mm512_mask_storeu_pd(pp.add(8 * c), masks[c], peak[c]);
+                _mm512_mask_storeu_epi64(fp.add(8 * c), masks[c], frame[c]);
+                if !winner_adds {
+                    _mm512_mask_storeu_pd(tp.add(8 * c), masks[c], total[c]);
+                }
+            }
+        }
+    }
+
+    #[inline(always)]
+    fn add_one(&mut self, k: usize, scores: &[f64], vote: Vote) {
         // Without an early exit, so the test vectorises.
         if !scores.iter().fold(true, |ok, s| ok & s.is_finite()) {
             return;
@@ -1431,6 +1550,47 @@ mod tests {
             4 => -1e3f64..1e3,
             1 => prop::sample::select(vec![f64::NAN, 0.0, -0.0, f64::INFINITY, f64::NEG_INFINITY]),
         ]
+    }
+
+    proptest! {
+        /// [`Accumulator::add_rows`] leaves the state that [`Accumulator::add`]
+        /// frame by frame leaves (totals, peaks and their frames, frames
+        /// used, last frame), bit for bit, for 1 to 40 classes (the
+        /// AVX-512 form up to 32, the other above), both votes, ties, ±0,
+        /// and rows with NaN or infinite scores; with AVX-512 off too.
+        #[test]
+        fn add_rows_is_add_frame_by_frame(
+            n in 1usize..41,
+            rows in prop::collection::vec(prop::collection::vec(score(), 40), 0..12),
+            sum in any::<bool>(),
+            first in 0usize..1000,
+        ) {
+            let vote = if sum { Vote::Sum } else { Vote::Winner };
+            let scores: Vec<f64> = rows.iter().flat_map(|r| r[..n].iter().copied()).collect();
+            let frames: Vec<usize> = (0..rows.len()).map(|i| first + 3 * i).collect();
+            let mut want = Accumulator::new(n);
+            for (&k, r) in frames.iter().zip(scores.chunks_exact(n)) {
+                want.add(k, r, vote);
+            }
+            let bits = |a: &Accumulator| {
+                (
+                    a.totals.iter().map(|x| x.to_bits()).collect::<Vec<_>>(),
+                    a.peak.iter().map(|x| x.to_bits()).collect::<Vec<_>>(),
+                    a.peak_frame.clone(),
+                    a.used,
+                    a.last_frame,
+                )
+            };
+            for no512 in [false, true] {
+                let mut got = Accumulator::new(n);
+                if no512 {
+                    crate::wide::without_avx512(|| got.add_rows(&frames, &scores, vote));
+                } else {
+                    got.add_rows(&frames, &scores, vote);
+                }
+                prop_assert_eq!(bits(&got), bits(&want), "no512 {}", no512);
+            }
+        }
     }
 
     /// Counts of a 4x4 image sequence: mostly 0 (so vectors near the
