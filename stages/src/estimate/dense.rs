@@ -35,6 +35,9 @@
 //! each tile's four sums per row are reduced in registers (`hadd` and a
 //! lane swap, the same additions), 17-20 GFLOP/s at the EDBN's layer shapes
 //! on a loaded 2-core host.
+//! [`gemm_nt_sparse`] is [`gemm_nt`] for rows that are mostly zeros (the
+//! EDBN's spike-count features): it skips their zero terms, which leaves
+//! every partial sum as it was, so it has the same bits.
 //! A layer's weights (few rows, short) take a second kernel with the same
 //! bits, the outputs across the lanes instead of `k` ([`gemm_nt`]); where
 //! the CPU has AVX-512 (F, VL, DQ), a third, that kernel with 512-bit
