@@ -1051,12 +1051,6 @@ impl Accumulator {
         }
     }
 
-    /// Adds frame `k`'s scores. Non-finite scores (never produced by the
-    /// classifiers here) would poison the sums, so such a frame is skipped.
-    pub fn add(&mut self, k: usize, scores: &[f64], vote: Vote) {
-        self.add_one(k, scores, vote);
-    }
-
     /// [`Self::add`] of each frame `frames[i]` with the `i`-th row of
     /// `scores` (rows as wide as the vote's classes), in order: the same
     /// state as those calls one by one.
@@ -1077,7 +1071,7 @@ impl Accumulator {
             #[inline(always)]
             || {
                 for (&k, row) in frames.iter().zip(scores.chunks_exact(n)) {
-                    self.add_one(k, row, vote);
+                    self.add(k, row, vote);
                 }
             },
         );
@@ -1118,7 +1112,6 @@ impl Accumulator {
             std::array::from_fn(|c| unsafe { _mm512_maskz_loadu_epi64(masks[c], fp.add(8 * c)) });
         let mut total: [__m512d; 4] =
             std::array::from_fn(|c| unsafe { _mm512_maskz_loadu_pd(masks[c], tp.add(8 * c)) });
-        let mut winner_adds = false;
         for (&k, row) in frames.iter().zip(scores.chunks_exact(n)) {
             let rp = row.as_ptr();
             let mut v = [_mm512_setzero_pd(); 4];
@@ -1150,7 +1143,6 @@ impl Accumulator {
                     }
                     let w = hits.trailing_zeros() as usize;
                     self.totals[w] += row[w];
-                    winner_adds = true;
                 }
                 Vote::Sum => {
                     for c in 0..chunks {
@@ -1166,15 +1158,19 @@ impl Accumulator {
             unsafe {
                 _mm512_mask_storeu_pd(pp.add(8 * c), masks[c], peak[c]);
                 _mm512_mask_storeu_epi64(fp.add(8 * c), masks[c], frame[c]);
-                if !winner_adds {
+                // A winner vote added to `totals` itself.
+                if vote == Vote::Sum {
                     _mm512_mask_storeu_pd(tp.add(8 * c), masks[c], total[c]);
                 }
             }
         }
     }
 
+    /// Adds frame `k`'s scores. Non-finite scores (never produced by the
+    /// classifiers here) would poison the sums, so such a frame is skipped.
+    /// Inlined, so [`Self::add_rows`]'s loop runs it with AVX2.
     #[inline(always)]
-    fn add_one(&mut self, k: usize, scores: &[f64], vote: Vote) {
+    pub fn add(&mut self, k: usize, scores: &[f64], vote: Vote) {
         // Without an early exit, so the test vectorises.
         if !scores.iter().fold(true, |ok, s| ok & s.is_finite()) {
             return;
