@@ -468,6 +468,101 @@ pub fn gemm_nt_sparse(a: &[f64], b: &[f64], k: usize, out: &mut [f64]) {
     gemm_nt(a, b, k, out)
 }
 
+/// A row-major `k x n` right operand of [`gemm_nn_sparse`], kept in the
+/// layout its kernel reads: rows padded with zeros to a multiple of
+/// [`SPARSE_COLS`] columns when the kernel can run (AVX-512, `k` at most
+/// [`NARROW_K512`]), as they are otherwise. Filled once and used for several
+/// products (the RBMs' training takes three products a minibatch with one
+/// transposed weight matrix).
+#[derive(Clone, Debug, Default)]
+pub struct SparseRhs {
+    data: Vec<f64>,
+    k: usize,
+    n: usize,
+    np: usize,
+}
+
+impl SparseRhs {
+    /// Sets the operand to `b`, row-major `k x n`.
+    pub fn set_rows(&mut self, b: &[f64], k: usize, n: usize) {
+        self.shape(k, n);
+        let np = self.np;
+        for (d, s) in self
+            .data
+            .chunks_exact_mut(np.max(1))
+            .zip(b[..k * n].chunks_exact(n.max(1)))
+        {
+            d[..n].copy_from_slice(s);
+        }
+    }
+
+    /// Sets the operand to the transpose of `src`, row-major `rows x cols`
+    /// (so `k = cols`, `n = rows`).
+    pub fn set_transpose(&mut self, src: &[f64], rows: usize, cols: usize) {
+        self.shape(cols, rows);
+        transpose_into(src, rows, cols, &mut self.data, self.np);
+    }
+
+    /// The padded width for `k x n` and room for it, the padding zero.
+    fn shape(&mut self, k: usize, n: usize) {
+        let np = if sparse_kernel(k, n) {
+            n.div_ceil(SPARSE_COLS) * SPARSE_COLS
+        } else {
+            n
+        };
+        if (self.k, self.n, self.np) != (k, n, np) {
+            self.data.clear();
+            self.data.resize(k * np, 0.0);
+            (self.k, self.n, self.np) = (k, n, np);
+        }
+    }
+}
+
+/// Whether [`sparse512`] takes a `k`-deep product with `n` outputs a row.
+fn sparse_kernel(k: usize, n: usize) -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        (1..=NARROW_K512).contains(&k) && n > 0 && crate::wide::avx512()
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        let _ = (k, n);
+        false
+    }
+}
+
+/// `out = a · b` for a row-major `a` (`m x k`, `m = a.len() / k`) with
+/// many zero entries and `b` as a [`SparseRhs`]: the bits of [`gemm_nn`]
+/// on the same operands (each entry [`dot`]'s) for a finite `b`, with the
+/// zero terms skipped by [`gemm_nt_sparse`]'s kernel ([`sparse512`]) when
+/// the operand was padded for it, else [`gemm_nn`] itself. Unlike
+/// [`gemm_nt_sparse`], for any number of rows: the operand is laid out
+/// once by its owner, so a small batch does not pay for a transpose.
+///
+/// # Panics
+/// If `out` holds fewer than `m·n` values.
+pub fn gemm_nn_sparse(a: &[f64], b: &SparseRhs, out: &mut [f64]) {
+    let (k, n, np) = (b.k, b.n, b.np);
+    let m = a.len() / k.max(1);
+    assert!(out.len() >= m * n, "gemm_nn_sparse: short out");
+    #[cfg(target_arch = "x86_64")]
+    if np.is_multiple_of(SPARSE_COLS) && sparse_kernel(k, n) {
+        // SAFETY: the CPU supports AVX-512 F/VL/DQ (`sparse_kernel`); `k`
+        // is within `NARROW_K512` and `np` a multiple of `SPARSE_COLS` at
+        // least `n`, with `k·np` values: the shapes `sparse512` asserts.
+        unsafe { sparse512(&a[..m * k], &b.data, k, n, np, &mut out[..m * n]) };
+        return;
+    }
+    if np == n {
+        gemm_nn(View::rows_of(a, m, k), &b.data, n, out);
+    } else {
+        // Padded for a kernel the thread may no longer use (AVX-512 turned
+        // off for a test): the unpadded rows.
+        let rows: Vec<f64> = b.data.chunks_exact(np).flat_map(|r| &r[..n]).copied().collect();
+        gemm_nn(View::rows_of(a, m, k), &rows, n, out);
+    }
+}
+
 /// Outputs per pass of [`sparse512`] over a row's non-zero entries: four
 /// 512-bit vectors, each with its four partial sums, 16 of the 32 registers.
 const SPARSE_COLS: usize = 32;
@@ -1267,21 +1362,30 @@ unsafe fn sq_cols512(a: View<'_>, bt: &[f64], n: usize, c0: usize, w: usize, out
 /// # Panics
 /// If `src` or `dst` holds fewer than `rows · cols` values.
 pub fn transpose(src: &[f64], rows: usize, cols: usize, dst: &mut [f64]) {
+    transpose_into(src, rows, cols, dst, rows);
+}
+
+/// [`transpose`] into rows `ld` apart (`ld >= rows`): `dst[j·ld + i] =
+/// src[i·cols + j]`, the rest of each row untouched.
+fn transpose_into(src: &[f64], rows: usize, cols: usize, dst: &mut [f64], ld: usize) {
     let len = rows * cols;
-    assert!(src.len() >= len && dst.len() >= len, "transpose: short buffers");
-    let (src, dst) = (&src[..len], &mut dst[..len]);
+    assert!(
+        ld >= rows && src.len() >= len && dst.len() >= (cols.max(1) - 1) * ld + rows,
+        "transpose: short buffers"
+    );
+    let src = &src[..len];
     let mut i0 = 0;
     while i0 + 4 <= rows {
         let r: [&[f64]; 4] = std::array::from_fn(|q| &src[(i0 + q) * cols..(i0 + q + 1) * cols]);
         for j in 0..cols {
-            let d = &mut dst[j * rows + i0..j * rows + i0 + 4];
+            let d = &mut dst[j * ld + i0..j * ld + i0 + 4];
             d.copy_from_slice(&[r[0][j], r[1][j], r[2][j], r[3][j]]);
         }
         i0 += 4;
     }
     for i in i0..rows {
         for (j, &v) in src[i * cols..(i + 1) * cols].iter().enumerate() {
-            dst[j * rows + i] = v;
+            dst[j * ld + i] = v;
         }
     }
 }
@@ -1310,10 +1414,33 @@ pub fn add_bias_map(out: &mut [f64], bias: &[f64], f: impl Fn(f64) -> f64) {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
+
+    /// `n` values, each `±0` (either sign) with probability `zeros`, else
+    /// uniform on `range`: operands for the products that skip zeros.
+    pub(crate) fn with_zeros(
+        rng: &mut ChaCha8Rng,
+        n: usize,
+        zeros: f64,
+        range: std::ops::Range<f64>,
+    ) -> Vec<f64> {
+        (0..n)
+            .map(|_| {
+                if rng.random::<f64>() < zeros {
+                    if rng.random::<bool>() {
+                        0.0
+                    } else {
+                        -0.0
+                    }
+                } else {
+                    rng.random_range(range.clone())
+                }
+            })
+            .collect()
+    }
 
     /// Every entry of [`sq_dists_cols`] is [`sq_dist`] of its two vectors,
     /// bit for bit: row counts around the three-row blocks, widths around
@@ -1382,19 +1509,7 @@ mod tests {
             (70, 5, 17),
         ] {
             for zeros in [0.0, 0.5, 0.8, 1.0] {
-                let mut a: Vec<f64> = (0..m * k)
-                    .map(|_| {
-                        if rng.random::<f64>() < zeros {
-                            if rng.random::<bool>() {
-                                0.0
-                            } else {
-                                -0.0
-                            }
-                        } else {
-                            rng.random_range(-2.0..2.0)
-                        }
-                    })
-                    .collect();
+                let mut a = with_zeros(&mut rng, m * k, zeros, -2.0..2.0);
                 a[k / 2] = f64::NAN;
                 let b: Vec<f64> = (0..n * k).map(|_| rng.random_range(-2.0..2.0)).collect();
                 let mut want = vec![0.0; m * n];
@@ -1413,6 +1528,68 @@ mod tests {
                         );
                     }
                     assert!(got[m * n..].iter().all(|x| x.is_nan()), "wrote past m·n");
+                }
+            }
+        }
+    }
+
+    /// [`gemm_nn_sparse`] gives [`gemm_nn`]'s bits for any share of zero
+    /// entries (signed zeros, a NaN), any row count (the RBMs' batches of
+    /// 20 rows and fewer), widths with and without padding, `k` with and
+    /// without a remainder of four, the operand set from rows or from a
+    /// transpose, on the kernel and the fallback; and an operand padded for
+    /// the kernel still gives them when AVX-512 is then turned off.
+    #[test]
+    fn gemm_nn_sparse_is_gemm_nn_bit_for_bit() {
+        let mut rng = ChaCha8Rng::seed_from_u64(13);
+        for &(m, k, n) in &[
+            (20, 80, 60),
+            (1, 7, 1),
+            (3, 13, 33),
+            (20, 60, 80),
+            (5, 128, 64),
+            (70, 4, 32),
+            (0, 5, 3),
+        ] {
+            for zeros in [0.0, 0.5, 0.8, 1.0] {
+                let mut a = with_zeros(&mut rng, m * k, zeros, -2.0..2.0);
+                if m > 0 {
+                    a[k / 2] = f64::NAN;
+                }
+                let b: Vec<f64> = (0..k * n).map(|_| rng.random_range(-2.0..2.0)).collect();
+                let mut bt = vec![0.0; k * n];
+                transpose(&b, k, n, &mut bt);
+                let mut want = vec![0.0; m * n];
+                gemm_nn(View::rows_of(&a, m, k), &b, n, &mut want);
+                for (set512, run512) in [(true, true), (false, false), (true, false)] {
+                    for from_transpose in [false, true] {
+                        let mut rhs = SparseRhs::default();
+                        let set = |rhs: &mut SparseRhs| {
+                            if from_transpose {
+                                rhs.set_transpose(&bt, n, k);
+                            } else {
+                                rhs.set_rows(&b, k, n);
+                            }
+                        };
+                        if set512 {
+                            set(&mut rhs);
+                        } else {
+                            crate::wide::without_avx512(|| set(&mut rhs));
+                        }
+                        let mut got = vec![f64::NAN; m * n + 3];
+                        if run512 {
+                            gemm_nn_sparse(&a, &rhs, &mut got);
+                        } else {
+                            crate::wide::without_avx512(|| gemm_nn_sparse(&a, &rhs, &mut got));
+                        }
+                        for (i, (w, g)) in want.iter().zip(&got).enumerate() {
+                            assert!(
+                                w.to_bits() == g.to_bits() || (w.is_nan() && g.is_nan()),
+                                "m {m} k {k} n {n} zeros {zeros} 512 {set512}/{run512} transpose {from_transpose}: entry {i} {w} vs {g}"
+                            );
+                        }
+                        assert!(got[m * n..].iter().all(|x| x.is_nan()), "wrote past m·n");
+                    }
                 }
             }
         }

@@ -36,7 +36,14 @@
 //! (`Uniforms`, the same stream as one draw at a time); the gradient and
 //! update loops run vectorised with the same operations. So the fitted
 //! weights are bit for bit those of the straightforward loops, and the
-//! peers EDBN fit fell from ~0.55 to ~0.37 s (docs/benches.md). The training log records each layer-epoch's mean squared
+//! peers EDBN fit fell from ~0.55 to ~0.37 s (docs/benches.md). On a
+//! layer whose training vectors are mostly zeros (the bottom one: spike
+//! counts, four in five zero), the products with the rows and the chains'
+//! visible samples skip the zero terms ([`dense::gemm_nn_sparse`], the same
+//! bits); the chains' visible step (bias, sigmoid, one draw for the whole
+//! batch) and the hidden probabilities of the reconstruction subset and of
+//! the next layer's vectors are each one pass over the batch, also with
+//! the same bits: the peers fit 356-360 -> 322 ms (docs/benches.md). The training log records each layer-epoch's mean squared
 //! reconstruction error `‖v - p(v | p(h | v))‖² / D` after the epoch, on a fixed
 //! evenly spaced subset of at most 256 training vectors.
 //!
@@ -273,6 +280,15 @@ impl Outer {
             g.iter_mut().zip(&self.sums).for_each(|(g, s)| *g += scale * s);
         }
     }
+}
+
+/// Whether at least half of `data` is zero: then an RBM's products with
+/// these rows (and with its chains, whose samples follow them) skip zeros
+/// ([`dense::gemm_nn_sparse`], the same bits). True of the bottom layer's
+/// spike counts (four in five zero on the lab set), not of the mean-field
+/// activities above it.
+fn mostly_zeros(data: &[f64]) -> bool {
+    2 * data.iter().filter(|&&x| x == 0.0).count() >= data.len()
 }
 
 /// `p ← 1[u < p]` entry by entry: Bernoulli samples of the probabilities
@@ -532,10 +548,29 @@ impl Rbm {
     /// `p(h | v)` of every row of `v` (row-major, `n_vis` wide) into the rows
     /// of `out`, as one product with `wt`, the transpose of the weights
     /// (`n_vis x n_hid`): [`dense::gemm_nn`], [`dense::dot`]'s bits.
-    fn hid_prob_rows(&self, v: &[f64], wt: &[f64], out: &mut [f64]) {
+    fn hid_prob_rows(&self, v: &[f64], wt: &[f64], sparse: Option<&dense::SparseRhs>, out: &mut [f64]) {
         let m = v.len() / self.n_vis.max(1);
-        dense::gemm_nn(dense::View::rows_of(v, m, self.n_vis), wt, self.n_hid, out);
+        match sparse {
+            Some(b) => dense::gemm_nn_sparse(v, b, out),
+            None => dense::gemm_nn(dense::View::rows_of(v, m, self.n_vis), wt, self.n_hid, out),
+        }
         dense::add_bias_map(&mut out[..m * self.n_hid], &self.b, vmath::sigmoid);
+    }
+
+    /// `p(h | v)` of every row of `data` (`n_vis` wide) into `out`, as
+    /// [`Self::hid_prob`] gives each (the same bits): one product over all
+    /// rows, skipping zeros when `sparse` (see [`Self::train_pcd`]).
+    fn hid_probs(&self, data: &[f64], sparse: bool, out: &mut [f64]) {
+        let (nv, nh) = (self.n_vis, self.n_hid);
+        if sparse {
+            let mut wts = dense::SparseRhs::default();
+            wts.set_transpose(&self.w, nh, nv);
+            self.hid_prob_rows(data, &[], Some(&wts), out);
+        } else {
+            let mut wt = vec![0.0; nv * nh];
+            dense::transpose(&self.w, nh, nv, &mut wt);
+            self.hid_prob_rows(data, &wt, None, out);
+        }
     }
 
     /// Turns visible net inputs `out` (biases included) into probabilities:
@@ -551,8 +586,19 @@ impl Rbm {
     /// Samples `v` from its probabilities in place (Bernoulli, and one label),
     /// with the uniforms drawn in bulk ([`Uniforms`]).
     fn sample_vis(&self, p: &mut [f64], rng: &mut ChaCha8Rng, uni: &mut Uniforms) {
+        let u = uni.draw(rng, self.vis_draws());
+        self.sample_vis_with(p, u);
+    }
+
+    /// Uniforms [`Self::sample_vis`] draws for one row: one per Bernoulli
+    /// unit, and one for the label.
+    fn vis_draws(&self) -> usize {
+        self.n_vis - self.labels + usize::from(self.labels > 0)
+    }
+
+    /// [`Self::sample_vis`] with its uniforms `u` given.
+    fn sample_vis_with(&self, p: &mut [f64], u: &[f64]) {
         let nb = self.n_vis - self.labels;
-        let u = uni.draw(rng, nb + usize::from(self.labels > 0));
         bernoulli_in_place(&mut p[..nb], u);
         if self.labels > 0 {
             let u = u[nb];
@@ -570,6 +616,30 @@ impl Rbm {
                 .enumerate()
                 .for_each(|(k, x)| *x = f64::from(u8::from(k == pick)));
         }
+    }
+
+    /// The chains' step to the visible side: rows of visible net inputs
+    /// without their biases (`n_vis` wide) to samples, with the bits of
+    /// adding `a`, [`Self::vis_activate`] and [`Self::sample_vis`] row by
+    /// row: the uniforms of all rows drawn at once (the stream's values in
+    /// the same order), and without labels the bias and sigmoid over the
+    /// whole batch ([`dense::add_bias_map`]) and one Bernoulli pass.
+    fn sample_vis_rows(&self, rows: &mut [f64], rng: &mut ChaCha8Rng, uni: &mut Uniforms) {
+        let nv = self.n_vis;
+        let n = rows.len() / nv.max(1);
+        let rows = &mut rows[..n * nv];
+        let draws = self.vis_draws();
+        let u = uni.draw(rng, n * draws);
+        if self.labels > 0 {
+            for (v, u) in rows.chunks_exact_mut(nv.max(1)).zip(u.chunks_exact(draws.max(1))) {
+                v.iter_mut().zip(&self.a).for_each(|(v, a)| *v += a);
+                self.vis_activate(v);
+                self.sample_vis_with(v, u);
+            }
+            return;
+        }
+        dense::add_bias_map(rows, &self.a, vmath::sigmoid);
+        bernoulli_in_place(rows, u);
     }
 
     /// Label posterior `p(y | x)` of a label-augmented RBM, exactly (free
@@ -903,7 +973,7 @@ impl Rbm {
         let mut ga = vec![0.0; nv];
         let mut gb = vec![0.0; nh];
         let (mut vw, mut va, mut vb) = (vec![0.0; nh * nv], vec![0.0; nv], vec![0.0; nh]);
-        let mut h = vec![0.0; nh];
+        let mut recon_h = Vec::new();
         let mut vbuf = vec![0.0; nv];
         let mut disc = Disc::new(self.labels, nh);
         // Batch buffers: the batch's rows, hidden probabilities or samples,
@@ -911,6 +981,11 @@ impl Rbm {
         let mut rows: Vec<f64> = Vec::with_capacity(bs * nv);
         let mut hb = vec![0.0; bs * nh];
         let mut outer = Outer::new(nv, nh);
+        // Mostly-zero visible vectors (the bottom layer's spike counts; its
+        // chains' samples follow them) take the products that skip zeros,
+        // with the same bits.
+        let sparse = mostly_zeros(data);
+        let mut wts = dense::SparseRhs::default();
         let mut wt = vec![0.0; nv * nh];
         let mut bases = vec![0.0; bs * nh];
         let mut order: Vec<usize> = (0..n).collect();
@@ -933,8 +1008,13 @@ impl Rbm {
                     .iter()
                     .for_each(|&i| rows.extend_from_slice(&data[i * nv..(i + 1) * nv]));
                 // The weights' transpose, for the products with W below.
-                dense::transpose(&self.w, nh, nv, &mut wt);
-                self.hid_prob_rows(&rows, &wt, &mut hb[..m * nh]);
+                if sparse {
+                    wts.set_transpose(&self.w, nh, nv);
+                }
+                if !sparse || self.labels > 0 {
+                    dense::transpose(&self.w, nh, nv, &mut wt);
+                }
+                self.hid_prob_rows(&rows, &wt, sparse.then_some(&wts), &mut hb[..m * nh]);
                 outer.add(&hb[..m * nh], &rows, 1.0, &mut gw, &mut gb, &mut ga);
                 if self.labels > 0 && cfg.discriminative > 0.0 {
                     // The weights change only after the minibatch: every
@@ -955,15 +1035,11 @@ impl Rbm {
                 // Negative phase: one Gibbs step of every persistent chain:
                 // sample h ~ p(h | v) (chain by chain), v ~ p(v | h), then p(h | v).
                 let scale_neg = m as f64 / bs as f64;
-                self.hid_prob_rows(&chains, &wt, &mut hb);
+                self.hid_prob_rows(&chains, &wt, sparse.then_some(&wts), &mut hb);
                 bernoulli_in_place(&mut hb, uni.draw(rng, bs * nh));
                 dense::gemm_nn(dense::View::rows_of(&hb, bs, nh), &self.w, nv, &mut chains);
-                for v in chains.chunks_exact_mut(nv) {
-                    v.iter_mut().zip(&self.a).for_each(|(v, a)| *v += a);
-                    self.vis_activate(v);
-                    self.sample_vis(v, rng, &mut uni);
-                }
-                self.hid_prob_rows(&chains, &wt, &mut hb);
+                self.sample_vis_rows(&mut chains, rng, &mut uni);
+                self.hid_prob_rows(&chains, &wt, sparse.then_some(&wts), &mut hb);
                 outer.add(&hb, &chains, -scale_neg, &mut gw, &mut gb, &mut ga);
                 let inv = 1.0 / batch.len() as f64;
                 // Vectorised (the same operations entry by entry).
@@ -987,13 +1063,18 @@ impl Rbm {
             }
             // Reconstruction error for the log, on a fixed evenly spaced subset
             // (at most RECON_SAMPLE vectors): a per-step error doubled the cost.
+            // The subset's hidden probabilities in one product.
             let m = n.min(RECON_SAMPLE);
-            let mut err = 0.0;
-            for s in 0..m {
+            rows.clear();
+            (0..m).for_each(|s| {
                 let i = s * n / m;
-                let v = &data[i * nv..(i + 1) * nv];
-                self.hid_prob(v, &mut h);
-                self.vis_prob(&h, &mut vbuf);
+                rows.extend_from_slice(&data[i * nv..(i + 1) * nv]);
+            });
+            recon_h.resize(m * nh, 0.0);
+            self.hid_probs(&rows, sparse, &mut recon_h);
+            let mut err = 0.0;
+            for (v, h) in rows.chunks_exact(nv).zip(recon_h.chunks_exact(nh.max(1))) {
+                self.vis_prob(h, &mut vbuf);
                 err += v.iter().zip(&vbuf).map(|(a, b)| (a - b) * (a - b)).sum::<f64>() / nv as f64;
             }
             errors.push(err / m.max(1) as f64);
@@ -1284,9 +1365,7 @@ impl EdbnConfig {
             log.loss.extend(rbm.train_pcd(&data, self, rng));
             if !top {
                 let mut next = vec![0.0; n * nh];
-                for i in 0..n {
-                    rbm.hid_prob(&data[i * nv..(i + 1) * nv], &mut next[i * nh..(i + 1) * nh]);
-                }
+                rbm.hid_probs(&data, mostly_zeros(&data), &mut next);
                 data = next;
                 dim = nh;
             }
@@ -1456,6 +1535,69 @@ mod tests {
                 let (x, y): (u32, u32) = (a.random(), b.random());
                 assert_eq!(x, y);
             }
+        }
+    }
+
+    /// A batch's hidden probabilities (one product, zeros skipped or not)
+    /// have the bits of [`Rbm::hid_prob`] row by row, on mostly-zero rows
+    /// (with an all-zero row and signed zeros) and on dense ones.
+    #[test]
+    fn batched_hidden_probabilities_are_the_bits_of_row_by_row() {
+        for (nv, nh, rows, zeros) in [
+            (80, 60, 37, 0.8),
+            (80, 60, 20, 0.0),
+            (13, 5, 3, 0.5),
+            (60, 30, 1, 1.0),
+        ] {
+            let r = top_rbm(nv, nh, 0, 1.1, nv as u64);
+            let mut rng = ChaCha8Rng::seed_from_u64(4);
+            let mut data = crate::estimate::dense::tests::with_zeros(&mut rng, rows * nv, zeros, 0.0..3.0);
+            data[..nv].iter_mut().for_each(|x| *x = 0.0);
+            assert_eq!(mostly_zeros(&data), zeros >= 0.5 || rows == 1);
+            let mut want = vec![0.0; rows * nh];
+            for (v, h) in data.chunks_exact(nv).zip(want.chunks_exact_mut(nh)) {
+                r.hid_prob(v, h);
+            }
+            for sparse in [false, true] {
+                let mut got = vec![f64::NAN; rows * nh];
+                r.hid_probs(&data, sparse, &mut got);
+                let same = want.iter().zip(&got).all(|(w, g)| w.to_bits() == g.to_bits());
+                assert!(same, "nv {nv} rows {rows} zeros {zeros} sparse {sparse}");
+            }
+        }
+    }
+
+    /// The chains' visible step over a whole batch has the bits of the
+    /// row-by-row step it replaced (bias, activation, one draw per row),
+    /// with and without label units, and leaves the stream where it did.
+    #[test]
+    fn batched_visible_samples_are_the_bits_of_row_by_row() {
+        for (nb, nh, k, rows) in [(80, 60, 0, 20), (60, 30, 17, 20), (7, 5, 3, 1), (9, 4, 0, 3)] {
+            let mut r = top_rbm(nb, nh, k, 1.3, 7 + nb as u64);
+            r.labels = k;
+            let mut rng = ChaCha8Rng::seed_from_u64(9);
+            r.a.iter_mut().for_each(|a| *a = rng.random_range(-1.0..1.0));
+            let inputs: Vec<f64> = (0..rows * (nb + k))
+                .map(|_| rng.random_range(-4.0..4.0))
+                .collect();
+            let (mut a, mut b) = (ChaCha8Rng::seed_from_u64(5), ChaCha8Rng::seed_from_u64(5));
+            let mut uni = Uniforms::default();
+            let mut want = inputs.clone();
+            for v in want.chunks_exact_mut(nb + k) {
+                v.iter_mut().zip(&r.a).for_each(|(v, a)| *v += a);
+                r.vis_activate(v);
+                r.sample_vis(v, &mut a, &mut uni);
+            }
+            let mut got = inputs.clone();
+            r.sample_vis_rows(&mut got, &mut b, &mut uni);
+            let same = want.iter().zip(&got).all(|(w, g)| w.to_bits() == g.to_bits());
+            assert!(same, "nb {nb} k {k}: {want:?} vs {got:?}");
+            assert!(got.contains(&1.0) && got.contains(&0.0));
+            assert_eq!(
+                a.random::<u64>(),
+                b.random::<u64>(),
+                "nb {nb} k {k}: stream moved"
+            );
         }
     }
 
