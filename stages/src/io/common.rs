@@ -103,6 +103,24 @@ pub fn layout_with_inferred_kind<'de, D: serde::Deserializer<'de>>(
     LayoutConfig::deserialize(v).map(Some).map_err(D::Error::custom)
 }
 
+/// The JSON schema of a source's `layout` key as [`layout_with_inferred_kind`]
+/// reads it: [`LayoutConfig`]'s, with `kind` optional in each variant (the
+/// variants' other required keys and `additionalProperties = false` still
+/// tell them apart), so an editor checking a graph against
+/// `graphs/palpate-graph.schema.json` accepts the layouts the sources accept.
+/// Used with `#[schemars(schema_with = "...")]` on the sources' fields.
+pub fn layout_schema_kind_optional(g: &mut schemars::SchemaGenerator) -> schemars::Schema {
+    let mut schema = <LayoutConfig as JsonSchema>::json_schema(g);
+    if let Some(variants) = schema.get_mut("oneOf").and_then(|v| v.as_array_mut()) {
+        for v in variants {
+            if let Some(req) = v.get_mut("required").and_then(|r| r.as_array_mut()) {
+                req.retain(|k| k != "kind");
+            }
+        }
+    }
+    schema
+}
+
 impl Default for LayoutConfig {
     fn default() -> Self {
         LayoutConfig::Grid {
@@ -1086,6 +1104,40 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("pitch"), "{e}");
+    }
+
+    /// The sources' `layout` schema lets `kind` out, as their reader does,
+    /// and keeps every other required key; the DAQ's (plain) one keeps it.
+    #[test]
+    fn the_sources_layout_schema_leaves_kind_optional() {
+        let mut g = schemars::SchemaGenerator::default();
+        let required = |s: &schemars::Schema| -> Vec<Vec<String>> {
+            s.get("oneOf")
+                .and_then(|v| v.as_array())
+                .expect("a oneOf of the two kinds")
+                .iter()
+                .map(|v| {
+                    v["required"]
+                        .as_array()
+                        .expect("required keys")
+                        .iter()
+                        .map(|k| k.as_str().unwrap_or_default().to_string())
+                        .collect()
+                })
+                .collect()
+        };
+        let sources = required(&layout_schema_kind_optional(&mut g));
+        assert_eq!(
+            sources,
+            [
+                vec!["rows", "cols", "pitch_mm", "taxel_mm"],
+                vec!["positions_mm", "taxel_mm"]
+            ]
+        );
+        let plain = required(&<LayoutConfig as JsonSchema>::json_schema(&mut g));
+        assert!(plain
+            .iter()
+            .all(|r| r.first().map(String::as_str) == Some("kind")));
     }
 
     use super::*;

@@ -89,6 +89,7 @@ pub struct ImageFileConfig {
     /// (`kind = "grid"` or `"positions"` may be left out: `positions_mm` or
     /// `rows`/`cols` tell it.)
     #[serde(default, deserialize_with = "crate::io::common::layout_with_inferred_kind")]
+    #[schemars(schema_with = "crate::io::common::layout_schema_kind_optional")]
     pub layout: Option<LayoutConfig>,
     /// Label sidecar (TOML, CSV or `trials.json`), relative to the graph
     /// file's folder; default: the folder's `labels.toml` when present.

@@ -132,6 +132,7 @@ pub struct SignalFileConfig {
     /// (`kind = "grid"` or `"positions"` may be left out: `positions_mm` or
     /// `rows`/`cols` tell it.)
     #[serde(default, deserialize_with = "crate::io::common::layout_with_inferred_kind")]
+    #[schemars(schema_with = "crate::io::common::layout_schema_kind_optional")]
     pub layout: Option<LayoutConfig>,
     /// Unit of the samples, e.g. `V`. Default `V`.
     pub unit: String,

@@ -141,6 +141,7 @@ pub struct SpikeFileConfig {
     /// (`kind = "grid"` or `"positions"` may be left out: `positions_mm` or
     /// `rows`/`cols` tell it.)
     #[serde(default, deserialize_with = "crate::io::common::layout_with_inferred_kind")]
+    #[schemars(schema_with = "crate::io::common::layout_schema_kind_optional")]
     pub layout: Option<LayoutConfig>,
     /// Label sidecar (TOML, CSV, or a `trials.json` from `palpate simulate`).
     /// Default none.
