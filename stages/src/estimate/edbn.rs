@@ -282,6 +282,14 @@ impl Outer {
     }
 }
 
+/// The transposed weights of [`Rbm::hid_prob_rows`]: plain (`n_vis x
+/// n_hid`) or laid out for the product that skips zeros.
+#[derive(Clone, Copy)]
+enum Wt<'a> {
+    Dense(&'a [f64]),
+    Sparse(&'a dense::SparseRhs),
+}
+
 /// Whether at least half of `data` is zero: then an RBM's products with
 /// these rows (and with its chains, whose samples follow them) skip zeros
 /// ([`dense::gemm_nn_sparse`], the same bits). True of the bottom layer's
@@ -547,12 +555,13 @@ impl Rbm {
 
     /// `p(h | v)` of every row of `v` (row-major, `n_vis` wide) into the rows
     /// of `out`, as one product with `wt`, the transpose of the weights
-    /// (`n_vis x n_hid`): [`dense::gemm_nn`], [`dense::dot`]'s bits.
-    fn hid_prob_rows(&self, v: &[f64], wt: &[f64], sparse: Option<&dense::SparseRhs>, out: &mut [f64]) {
+    /// (`n_vis x n_hid`): [`dense::gemm_nn`] or, skipping zeros,
+    /// [`dense::gemm_nn_sparse`]; [`dense::dot`]'s bits either way.
+    fn hid_prob_rows(&self, v: &[f64], wt: Wt<'_>, out: &mut [f64]) {
         let m = v.len() / self.n_vis.max(1);
-        match sparse {
-            Some(b) => dense::gemm_nn_sparse(v, b, out),
-            None => dense::gemm_nn(dense::View::rows_of(v, m, self.n_vis), wt, self.n_hid, out),
+        match wt {
+            Wt::Sparse(b) => dense::gemm_nn_sparse(v, b, out),
+            Wt::Dense(wt) => dense::gemm_nn(dense::View::rows_of(v, m, self.n_vis), wt, self.n_hid, out),
         }
         dense::add_bias_map(&mut out[..m * self.n_hid], &self.b, vmath::sigmoid);
     }
@@ -565,11 +574,11 @@ impl Rbm {
         if sparse {
             let mut wts = dense::SparseRhs::default();
             wts.set_transpose(&self.w, nh, nv);
-            self.hid_prob_rows(data, &[], Some(&wts), out);
+            self.hid_prob_rows(data, Wt::Sparse(&wts), out);
         } else {
             let mut wt = vec![0.0; nv * nh];
             dense::transpose(&self.w, nh, nv, &mut wt);
-            self.hid_prob_rows(data, &wt, None, out);
+            self.hid_prob_rows(data, Wt::Dense(&wt), out);
         }
     }
 
@@ -954,8 +963,11 @@ impl Rbm {
     }
 
     /// Trains with PCD on rows of `data` (each `n_vis` long); returns the
-    /// reconstruction error per epoch.
-    fn train_pcd(&mut self, data: &[f64], cfg: &EdbnConfig, rng: &mut ChaCha8Rng) -> Vec<f64> {
+    /// reconstruction error per epoch. `sparse`: `data` is
+    /// [mostly zeros](mostly_zeros), so the products with its rows and the
+    /// chains' visible samples (which follow them) skip zeros, with the
+    /// same bits.
+    fn train_pcd(&mut self, data: &[f64], sparse: bool, cfg: &EdbnConfig, rng: &mut ChaCha8Rng) -> Vec<f64> {
         let nv = self.n_vis;
         let nh = self.n_hid;
         let n = data.len() / nv;
@@ -981,10 +993,6 @@ impl Rbm {
         let mut rows: Vec<f64> = Vec::with_capacity(bs * nv);
         let mut hb = vec![0.0; bs * nh];
         let mut outer = Outer::new(nv, nh);
-        // Mostly-zero visible vectors (the bottom layer's spike counts; its
-        // chains' samples follow them) take the products that skip zeros,
-        // with the same bits.
-        let sparse = mostly_zeros(data);
         let mut wts = dense::SparseRhs::default();
         let mut wt = vec![0.0; nv * nh];
         let mut bases = vec![0.0; bs * nh];
@@ -1014,7 +1022,8 @@ impl Rbm {
                 if !sparse || self.labels > 0 {
                     dense::transpose(&self.w, nh, nv, &mut wt);
                 }
-                self.hid_prob_rows(&rows, &wt, sparse.then_some(&wts), &mut hb[..m * nh]);
+                let wv = if sparse { Wt::Sparse(&wts) } else { Wt::Dense(&wt) };
+                self.hid_prob_rows(&rows, wv, &mut hb[..m * nh]);
                 outer.add(&hb[..m * nh], &rows, 1.0, &mut gw, &mut gb, &mut ga);
                 if self.labels > 0 && cfg.discriminative > 0.0 {
                     // The weights change only after the minibatch: every
@@ -1035,11 +1044,11 @@ impl Rbm {
                 // Negative phase: one Gibbs step of every persistent chain:
                 // sample h ~ p(h | v) (chain by chain), v ~ p(v | h), then p(h | v).
                 let scale_neg = m as f64 / bs as f64;
-                self.hid_prob_rows(&chains, &wt, sparse.then_some(&wts), &mut hb);
+                self.hid_prob_rows(&chains, wv, &mut hb);
                 bernoulli_in_place(&mut hb, uni.draw(rng, bs * nh));
                 dense::gemm_nn(dense::View::rows_of(&hb, bs, nh), &self.w, nv, &mut chains);
                 self.sample_vis_rows(&mut chains, rng, &mut uni);
-                self.hid_prob_rows(&chains, &wt, sparse.then_some(&wts), &mut hb);
+                self.hid_prob_rows(&chains, wv, &mut hb);
                 outer.add(&hb, &chains, -scale_neg, &mut gw, &mut gb, &mut ga);
                 let inv = 1.0 / batch.len() as f64;
                 // Vectorised (the same operations entry by entry).
@@ -1362,10 +1371,12 @@ impl EdbnConfig {
                 mean.iter_mut().zip(row).for_each(|(m, x)| *m += x / n as f64);
             }
             let mut rbm = Rbm::new(nv, nh, if top { k } else { 0 }, &mean, rng);
-            log.loss.extend(rbm.train_pcd(&data, self, rng));
+            // Decided once per layer, from its training vectors.
+            let sparse = mostly_zeros(&data);
+            log.loss.extend(rbm.train_pcd(&data, sparse, self, rng));
             if !top {
                 let mut next = vec![0.0; n * nh];
-                rbm.hid_probs(&data, mostly_zeros(&data), &mut next);
+                rbm.hid_probs(&data, sparse, &mut next);
                 data = next;
                 dim = nh;
             }
