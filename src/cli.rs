@@ -58,7 +58,8 @@ enum Command {
         explain: bool,
         /// Stream every trial through the stages' streaming forms, block by
         /// block as a board delivers them, printing estimates as they change
-        /// (every stage must stream: see `check --live`).
+        /// (every stage must stream: see `check --live`); then the time per
+        /// block and each stage's share (also in live_timing.md / .csv).
         #[arg(long)]
         live: bool,
         /// With --live: samples per block (1 = frame by frame).
@@ -730,11 +731,13 @@ fn run_live_graph(graph: &Graph, block: usize) -> ExitCode {
                 println!("== {id}");
                 crate::report::print_lines(&report.text);
             }
-            let live = crate::report::LiveRecord::new(&run, t0.elapsed());
+            let live = crate::report::LiveRecord::new(graph, &run, t0.elapsed());
             println!("{}", live.summary());
-            match crate::report::write_live_run_file(graph, &run, live) {
-                Ok(path) => {
-                    println!("run record in {}", path.display());
+            print!("{}", live.stage_table());
+            match crate::report::write_live_run_files(graph, &run, live) {
+                Ok(files) => {
+                    let names: Vec<String> = files.iter().map(|p| p.display().to_string()).collect();
+                    println!("run record and per-stage timing in {}", names.join(", "));
                     ExitCode::SUCCESS
                 }
                 Err(e) => {

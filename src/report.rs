@@ -249,6 +249,40 @@ pub struct LiveRecord {
     /// median, 95th and 99th percentile (each at most 12.5 % above the exact
     /// value, from a histogram) and maximum.
     pub block_us: LatencyUs,
+    /// Per stage of the chain, in order: its share of the blocks' time.
+    pub stages: Vec<LiveStageRow>,
+}
+
+/// One stage's time in a live run (see [`LiveRecord::stages`]): per block
+/// pushed through the chain (and per trial's final flush), the wall time the
+/// stage spent on it.
+#[derive(Serialize)]
+pub struct LiveStageRow {
+    /// Stage id.
+    pub stage: String,
+    /// Stage type.
+    pub type_name: String,
+    /// Blocks timed (the chain's blocks plus one flush per trial).
+    pub blocks: u64,
+    /// Per block, µs: mean, median, 95th and 99th percentile, maximum.
+    pub block_us: LatencyUs,
+    /// The stage's whole time, s.
+    pub total_s: f64,
+    /// Its share of the summed stage times, percent.
+    pub share_pct: f64,
+}
+
+impl LatencyUs {
+    fn of(l: &palpate_core::stream::BlockLatency) -> LatencyUs {
+        let us = |ns: u64| ns as f64 / 1e3;
+        LatencyUs {
+            mean: l.mean_ns() / 1e3,
+            median: us(l.quantile_ns(0.5)),
+            p95: us(l.quantile_ns(0.95)),
+            p99: us(l.quantile_ns(0.99)),
+            max: us(l.max_ns()),
+        }
+    }
 }
 
 /// Block latencies in µs (see [`LiveRecord::block_us`]).
@@ -267,23 +301,115 @@ pub struct LatencyUs {
 }
 
 impl LiveRecord {
-    /// The record of a live run that took `wall` in all.
-    pub fn new(run: &palpate_core::stream::LiveRun, wall: std::time::Duration) -> LiveRecord {
+    /// The record of a live run of `graph` that took `wall` in all.
+    pub fn new(graph: &Graph, run: &palpate_core::stream::LiveRun, wall: std::time::Duration) -> LiveRecord {
         let l = &run.latency;
-        let us = |ns: u64| ns as f64 / 1e3;
+        let sum: u128 = run.stages.iter().map(|(_, l)| l.total_ns()).sum();
+        let stages = run
+            .stages
+            .iter()
+            .map(|(id, l)| LiveStageRow {
+                stage: id.clone(),
+                type_name: graph
+                    .nodes
+                    .iter()
+                    .find(|n| &n.id == id)
+                    .map_or_else(String::new, |n| n.type_name.clone()),
+                blocks: l.blocks(),
+                block_us: LatencyUs::of(l),
+                total_s: l.total_ns() as f64 / 1e9,
+                share_pct: if sum > 0 {
+                    100.0 * l.total_ns() as f64 / sum as f64
+                } else {
+                    0.0
+                },
+            })
+            .collect();
         LiveRecord {
             trials: run.trials,
             stream_s: run.stream_s,
             wall_s: wall.as_secs_f64(),
             blocks: l.blocks(),
-            block_us: LatencyUs {
-                mean: l.mean_ns() / 1e3,
-                median: us(l.quantile_ns(0.5)),
-                p95: us(l.quantile_ns(0.95)),
-                p99: us(l.quantile_ns(0.99)),
-                max: us(l.max_ns()),
-            },
+            block_us: LatencyUs::of(l),
+            stages,
         }
+    }
+
+    /// The per-stage table for the terminal: stage, type, blocks, mean,
+    /// median, p95 and max µs per block, total s and share of the chain.
+    pub fn stage_table(&self) -> String {
+        let mut s = format!(
+            "{:<14} {:<14} {:>10} {:>10} {:>10} {:>10} {:>10} {:>9} {:>7}\n",
+            "stage", "type", "blocks", "mean us", "median us", "p95 us", "max us", "total s", "share"
+        );
+        for r in &self.stages {
+            let b = &r.block_us;
+            let _ = writeln!(
+                s,
+                "{:<14} {:<14} {:>10} {:>10.2} {:>10.2} {:>10.2} {:>10.1} {:>9.3} {:>6.1}%",
+                r.stage, r.type_name, r.blocks, b.mean, b.median, b.p95, b.max, r.total_s, r.share_pct
+            );
+        }
+        s
+    }
+
+    /// The per-stage table as Markdown (`live_timing.md`).
+    pub fn stage_markdown(&self) -> String {
+        let mut s = format!(
+            "Live run: {} trials, {:.1} s of stream in {:.2} s of wall time; {} blocks through the \
+             chain (per block mean {:.2} us, median {:.2} us, p95 {:.2} us, max {:.1} us).\n\n\
+             Wall time each stage spent per block (its pushes; one flush per trial counted as a \
+             block), and its share of the summed stage times.\n\n\
+             | stage | type | blocks | mean us | median us | p95 us | p99 us | max us | total s | share % |\n\
+             |---|---|---|---|---|---|---|---|---|---|\n",
+            self.trials,
+            self.stream_s,
+            self.wall_s,
+            self.blocks,
+            self.block_us.mean,
+            self.block_us.median,
+            self.block_us.p95,
+            self.block_us.max
+        );
+        for c in self.stage_cells(true) {
+            let _ = writeln!(s, "| {} |", c.join(" | "));
+        }
+        s
+    }
+
+    /// Each stage's cells: stage, type, blocks, mean, median, p95, p99 and
+    /// max µs, total s, share % (`round`: as the Markdown table shows them;
+    /// else every digit, for the CSV).
+    fn stage_cells(&self, round: bool) -> Vec<[String; 10]> {
+        let f = |v: f64, d: usize| if round { format!("{v:.d$}") } else { v.to_string() };
+        self.stages
+            .iter()
+            .map(|r| {
+                let b = &r.block_us;
+                [
+                    r.stage.clone(),
+                    r.type_name.clone(),
+                    r.blocks.to_string(),
+                    f(b.mean, 3),
+                    f(b.median, 3),
+                    f(b.p95, 3),
+                    f(b.p99, 3),
+                    f(b.max, 1),
+                    f(r.total_s, 3),
+                    f(r.share_pct, 1),
+                ]
+            })
+            .collect()
+    }
+
+    /// The per-stage table as CSV (`live_timing.csv`).
+    pub fn stage_csv(&self) -> String {
+        let mut s =
+            String::from("stage,type,blocks,mean_us,median_us,p95_us,p99_us,max_us,total_s,share_pct\n");
+        for c in self.stage_cells(false) {
+            let _ = writeln!(s, "{}", c.join(","));
+        }
+        s
     }
 
     /// One line for the terminal.
@@ -343,21 +469,33 @@ fn record<'a>(
     }
 }
 
-/// Writes a live run's `run.json` (its `live` record, no per-stage timing)
-/// into the graph's output directory; returns the file written.
-pub fn write_live_run_file(
+/// Writes a live run's `run.json` (its `live` record; the batch timing
+/// table stays empty), `live_timing.md` and `live_timing.csv` (the per-stage
+/// time per block) into the graph's output directory; returns the files
+/// written. (Not `timing.md`: that is a batch run's per-trial table, which
+/// a live run beside it must not overwrite.)
+pub fn write_live_run_files(
     graph: &Graph,
     run: &palpate_core::stream::LiveRun,
     live: LiveRecord,
-) -> Result<std::path::PathBuf, String> {
+) -> Result<Vec<std::path::PathBuf>, String> {
+    let (md, csv) = (live.stage_markdown(), live.stage_csv());
     let rec = record(graph, &run.reports, Vec::new(), Some(live));
     let json = serde_json::to_vec_pretty(&rec).map_err(|e| format!("cannot encode the run record: {e}"))?;
     std::fs::create_dir_all(&graph.out_dir)
         .map_err(|e| format!("cannot create {}: {e}", graph.out_dir.display()))?;
-    let path = graph.out_dir.join("run.json");
-    palpate_core::output::write_atomic(&path, &json)
-        .map_err(|e| format!("cannot write {}: {e}", path.display()))?;
-    Ok(path)
+    let mut files = Vec::new();
+    for (name, bytes) in [
+        ("run.json", json),
+        ("live_timing.md", md.into_bytes()),
+        ("live_timing.csv", csv.into_bytes()),
+    ] {
+        let path = graph.out_dir.join(name);
+        palpate_core::output::write_atomic(&path, &bytes)
+            .map_err(|e| format!("cannot write {}: {e}", path.display()))?;
+        files.push(path);
+    }
+    Ok(files)
 }
 
 /// Prints a sweep's reports and summary, and writes into the graph's output

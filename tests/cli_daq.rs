@@ -37,7 +37,8 @@ fn daq_run_on_an_emulated_board_finds_the_edge() {
 }
 
 /// `run --live` leaves a run record as a batch run does: the graph, seed,
-/// metrics, and the live speed (blocks through the chain, their latency).
+/// metrics, and the live speed (blocks through the chain, their latency,
+/// and each stage's share in `live_timing.md` / `.csv`).
 #[test]
 fn a_live_run_writes_its_run_record_with_block_latency() {
     let root = env!("CARGO_MANIFEST_DIR");
@@ -74,4 +75,33 @@ fn a_live_run_writes_its_run_record_with_block_latency() {
     let [median, p95, max] = ["median", "p95", "max"].map(|k| us[k].as_f64().unwrap());
     assert!(0.0 < median && median <= p95 && p95 <= max, "{us}");
     assert_eq!(rec["timing"].as_array().map(Vec::len), Some(0));
+    // Per stage of the chain, in order: every block and each trial's flush
+    // timed, the stage times within the chain's and their shares summing
+    // to 100 %.
+    let stages = live["stages"].as_array().expect("live.stages");
+    let ids: Vec<&str> = stages.iter().map(|s| s["stage"].as_str().unwrap()).collect();
+    assert_eq!(ids, ["filter", "norm", "drive", "enc", "bins", "wss"], "{live}");
+    assert_eq!(stages[5]["type_name"], "wss");
+    let chain_s = live["block_us"]["mean"].as_f64().unwrap() * blocks as f64 / 1e6;
+    let mut total_s = 0.0;
+    let mut share = 0.0;
+    for s in stages {
+        assert_eq!(s["blocks"].as_u64(), Some(blocks + 2), "{s}");
+        let t = s["total_s"].as_f64().unwrap();
+        assert!(t > 0.0, "{s}");
+        total_s += t;
+        share += s["share_pct"].as_f64().unwrap();
+    }
+    // The flushes are outside the chain's per-block time: a little slack.
+    assert!(
+        total_s <= chain_s * 1.05 + 0.05,
+        "{total_s} s of stages, {chain_s} s of chain"
+    );
+    assert!((share - 100.0).abs() < 1e-6, "{share}");
+    let csv = std::fs::read_to_string(dir.path().join("live_timing.csv")).unwrap();
+    assert_eq!(csv.lines().count(), 7, "{csv}");
+    assert!(csv.lines().nth(6).unwrap().starts_with("wss,wss,"), "{csv}");
+    let md = std::fs::read_to_string(dir.path().join("live_timing.md")).unwrap();
+    assert!(md.contains("| enc | izhikevich |"), "{md}");
+    assert!(stdout.contains("share"), "{stdout}");
 }
