@@ -231,7 +231,7 @@ pub struct RunRecord<'a> {
     /// A live run's speed (`run --live`, `daq run`), absent for a batch run
     /// (whose `timing` is per stage; a live run's `timing` is empty).
     #[serde(skip_serializing_if = "Option::is_none")]
-    pub live: Option<LiveRecord>,
+    pub live: Option<&'a LiveRecord>,
 }
 
 /// How fast a live run went: its blocks' wall times through the chain.
@@ -443,7 +443,7 @@ fn record<'a>(
     graph: &'a Graph,
     reports: &[(String, palpate_core::SinkReport)],
     timing: Vec<TimingRow>,
-    live: Option<LiveRecord>,
+    live: Option<&'a LiveRecord>,
 ) -> RunRecord<'a> {
     RunRecord {
         graph: &graph.file,
@@ -469,6 +469,16 @@ fn record<'a>(
     }
 }
 
+/// The run record of a live run (`run.json`): its `live` section, and an
+/// empty batch timing table.
+pub fn live_run_record<'a>(
+    graph: &'a Graph,
+    run: &palpate_core::stream::LiveRun,
+    live: &'a LiveRecord,
+) -> RunRecord<'a> {
+    record(graph, &run.reports, Vec::new(), Some(live))
+}
+
 /// Writes a live run's `run.json` (its `live` record; the batch timing
 /// table stays empty), `live_timing.md` and `live_timing.csv` (the per-stage
 /// time per block) into the graph's output directory; returns the files
@@ -477,10 +487,10 @@ fn record<'a>(
 pub fn write_live_run_files(
     graph: &Graph,
     run: &palpate_core::stream::LiveRun,
-    live: LiveRecord,
+    live: &LiveRecord,
 ) -> Result<Vec<std::path::PathBuf>, String> {
     let (md, csv) = (live.stage_markdown(), live.stage_csv());
-    let rec = record(graph, &run.reports, Vec::new(), Some(live));
+    let rec = live_run_record(graph, run, live);
     let json = serde_json::to_vec_pretty(&rec).map_err(|e| format!("cannot encode the run record: {e}"))?;
     std::fs::create_dir_all(&graph.out_dir)
         .map_err(|e| format!("cannot create {}: {e}", graph.out_dir.display()))?;

@@ -673,7 +673,8 @@ impl BlockLatency {
     }
 }
 
-/// What a live replay gives: the sinks' reports, and how fast the chain ran.
+/// What a live replay gives: the sinks' reports, the estimators' final answers, and
+/// how fast the chain (and each of its stages) ran.
 #[derive(Clone, Debug)]
 pub struct LiveRun {
     /// Each sink's report, in graph order.
@@ -688,6 +689,9 @@ pub struct LiveRun {
     /// it spent on each block (and on each trial's final flush). The sum
     /// over stages is the chain's time less the run's bookkeeping.
     pub stages: Vec<(String, BlockLatency)>,
+    /// Per estimator (stage id, in the plan's order): its final estimate of
+    /// every trial, in stream order, as the sinks got them.
+    pub estimates: Vec<(String, Vec<crate::Item>)>,
 }
 
 /// Streams every trial of a graph's source through its [`LivePlan`], trial
@@ -747,6 +751,7 @@ pub fn replay(
             .iter()
             .map(|(i, _)| (graph.nodes[*i].id.clone(), BlockLatency::default()))
             .collect(),
+        estimates: Vec::new(),
     };
     let push = |open: &mut Open<'_>,
                 b: Payload,
@@ -912,6 +917,10 @@ pub fn replay(
         let report = sink.consume(&inputs, &ctx).map_err(|e| rerr(&node.id, None, e))?;
         run.reports.push((node.id.clone(), report));
     }
+    run.estimates = estimators
+        .iter()
+        .map(|&i| (graph.nodes[i].id.clone(), std::mem::take(&mut finals[i])))
+        .collect();
     Ok(run)
 }
 

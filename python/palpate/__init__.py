@@ -44,6 +44,7 @@ __all__ = [
     "EstimateTable",
     "GraphError",
     "Images",
+    "LiveResult",
     "Model",
     "PalpateError",
     "Result",
@@ -63,6 +64,7 @@ __all__ = [
     "lowpass",
     "normalize",
     "run",
+    "run_live",
     "simulate",
     "stage",
     "stage_types",
@@ -499,6 +501,23 @@ class Result:
         return f"Result({self.file!r}, metrics={self.metrics})"
 
 
+class LiveResult(Result):
+    """What ``run_live`` returns: as ``Result`` (``metrics``, ``reports``,
+    ``estimates``: each estimator's final answer per trial, ``record``), with
+    ``live``: ``trials``, ``stream_s`` (stream time fed), ``wall_s``,
+    ``blocks``, ``block_us`` (each block's time through the chain: ``mean``,
+    ``median``, ``p95``, ``p99``, ``max``) and ``stages`` (per stage: its time
+    per block and ``share_pct`` of the chain); ``timing_table`` is the CLI's
+    summary line and per-stage table."""
+
+    def __init__(self, raw: dict):
+        super().__init__(raw)
+        self.live: dict = self.record["live"]
+
+    def __repr__(self) -> str:
+        return f"LiveResult({self.file!r}, metrics={self.metrics})"
+
+
 class SweepResult:
     """What ``run`` returns for a graph with a ``[sweep]``: ``text`` (the sweep
     report as the CLI prints it), ``rows`` (per point: ``label``, ``series``,
@@ -552,6 +571,28 @@ def run(
     if "runs" in raw:
         return SweepResult(raw)
     return Result(raw)
+
+
+def run_live(
+    graph: Any,
+    set: Optional[Dict[str, Any]] = None,
+    out: Union[str, os.PathLike, None] = None,
+    block: int = 1,
+    on_update: Optional[Callable[[dict], None]] = None,
+) -> LiveResult:
+    """Streams a graph (a path, a TOML string or a dict) live, as ``palpate run
+    GRAPH --live`` does: every trial of its source, ``block`` samples at a
+    time, through each stage's streaming form (a ``daq`` source: frame by
+    frame as the board delivers them), then the sinks on the final answers;
+    the same report files, plus ``live_timing.md`` / ``.csv``. Every stage
+    must stream (``check`` names those that cannot; a ``PalpateError`` lists
+    them). ``on_update`` gets every estimate as it changes: a dict with
+    ``trial_id``, ``stage``, ``t_ms`` (stream time), ``last`` (the trial's
+    final answer) and ``estimate`` (``kind``, ``angle_deg``, ...); an exception
+    it raises ends its calls and is raised when the run ends. The GIL is
+    released while the stages run."""
+    raw = _palpate.run_live(_graph_text(graph), set, None if out is None else str(out), block, on_update)
+    return LiveResult(raw)
 
 
 def stage_types() -> List[dict]:

@@ -60,6 +60,13 @@ def run(
     progress: bool = True,
     fresh: bool = False,
 ) -> Dict[str, Any]: ...
+def run_live(
+    graph: GraphText,
+    set: Optional[Dict[str, Any]] = None,
+    out: Optional[str] = None,
+    block: int = 1,
+    on_update: Optional[Callable[[Dict[str, Any]], None]] = None,
+) -> Dict[str, Any]: ...
 def stage_types() -> List[Dict[str, Any]]: ...
 def apply(
     type_name: str,

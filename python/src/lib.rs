@@ -95,6 +95,7 @@ fn _palpate(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(version, m)?)?;
     m.add_function(wrap_pyfunction!(run::check, m)?)?;
     m.add_function(wrap_pyfunction!(run::run, m)?)?;
+    m.add_function(wrap_pyfunction!(run::run_live, m)?)?;
     m.add_function(wrap_pyfunction!(run::stage_types, m)?)?;
     m.add_function(wrap_pyfunction!(run::apply, m)?)?;
     m.add_function(wrap_pyfunction!(run::fit, m)?)?;

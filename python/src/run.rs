@@ -261,25 +261,7 @@ pub fn run<'py>(
     let record = palpate::report::run_record(&graph, &result);
     let record_json = serde_json::to_value(&record).unwrap_or(serde_json::Value::Null);
     d.set_item("record", json_to_py(py, &record_json)?)?;
-    let reports = PyDict::new(py);
-    for (id, r) in &result.reports {
-        let x = PyDict::new(py);
-        x.set_item("text", &r.text)?;
-        x.set_item(
-            "files",
-            r.files
-                .iter()
-                .map(|f| f.display().to_string())
-                .collect::<Vec<_>>(),
-        )?;
-        let m = PyDict::new(py);
-        for (k, v) in &r.metrics {
-            m.set_item(k, v)?;
-        }
-        x.set_item("metrics", m)?;
-        reports.set_item(id, x)?;
-    }
-    d.set_item("reports", reports)?;
+    d.set_item("reports", reports_dict(py, &result.reports)?)?;
     d.set_item(
         "run_files",
         files.iter().map(|f| f.display().to_string()).collect::<Vec<_>>(),
@@ -297,6 +279,116 @@ pub fn run<'py>(
         if let Some(items) = result.outputs.get(&node.id) {
             estimates.set_item(&node.id, items_to_list(py, items)?)?;
         }
+    }
+    d.set_item("estimates", estimates)?;
+    Ok(d)
+}
+
+/// Each sink's report (`text`, `files`, `metrics`), by stage id.
+fn reports_dict<'py>(
+    py: Python<'py>,
+    reports: &[(String, palpate_core::SinkReport)],
+) -> PyResult<Bound<'py, PyDict>> {
+    let out = PyDict::new(py);
+    for (id, r) in reports {
+        let x = PyDict::new(py);
+        x.set_item("text", &r.text)?;
+        x.set_item(
+            "files",
+            r.files
+                .iter()
+                .map(|f| f.display().to_string())
+                .collect::<Vec<_>>(),
+        )?;
+        let m = PyDict::new(py);
+        for (k, v) in &r.metrics {
+            m.set_item(k, v)?;
+        }
+        x.set_item("metrics", m)?;
+        out.set_item(id, x)?;
+    }
+    Ok(out)
+}
+
+/// Streams a graph live, as `palpate run GRAPH --live` does: every trial of
+/// its source through the stages' streaming forms, `block` samples at a
+/// time (a DAQ source: frame by frame as the board delivers them), with the
+/// same report files plus `live_timing.md` / `.csv`. `on_update(dict)` is
+/// called with every estimate as it changes (`trial_id`, `stage`, `t_ms`,
+/// `last`, `estimate`); an exception it raises is raised once the run
+/// ends (the stream is not cut mid-trial; later updates are not passed).
+/// Returns the reports, the estimators' final estimates (as `run`'s
+/// `estimates`), the run record with its `live` section (block latency,
+/// per-stage times) and the CLI's per-stage table.
+#[pyfunction]
+#[pyo3(signature = (graph, set=None, out=None, block=1, on_update=None))]
+pub fn run_live<'py>(
+    py: Python<'py>,
+    graph: GraphText,
+    set: Option<&Bound<'py, PyAny>>,
+    out: Option<PathBuf>,
+    block: usize,
+    on_update: Option<PyObject>,
+) -> PyResult<Bound<'py, PyDict>> {
+    if block == 0 {
+        return Err(pyo3::exceptions::PyValueError::new_err(
+            "block: samples per block must be at least 1",
+        ));
+    }
+    let (graph, _) = load(py, &graph, set, out)?;
+    let plan = palpate_core::stream::plan(&graph).map_err(|problems| {
+        let lines: Vec<String> = problems.iter().map(|p| format!("  {p}")).collect();
+        PalpateError::new_err(format!("{}: cannot run live:\n{}", graph.file, lines.join("\n")))
+    })?;
+    let t0 = std::time::Instant::now();
+    let mut raised: Option<PyErr> = None;
+    let result = py.allow_threads(|| {
+        no_panic("running the graph live", || {
+            Ok(palpate_core::stream::replay(&graph, &plan, block, |u| {
+                let (Some(cb), None) = (&on_update, &raised) else {
+                    return;
+                };
+                raised = Python::with_gil(|py| -> PyResult<()> {
+                    let d = PyDict::new(py);
+                    d.set_item("trial_id", &u.trial_id)?;
+                    d.set_item("stage", &u.stage)?;
+                    d.set_item("t_ms", u.t_ms)?;
+                    d.set_item("last", u.last)?;
+                    let e = palpate_core::Payload::Estimate(Arc::new(u.estimate.clone()));
+                    d.set_item("estimate", crate::convert::payload_to_py(py, &e)?)?;
+                    cb.call1(py, (d,))?;
+                    Ok(())
+                })
+                .err();
+            }))
+        })
+    })?;
+    let wall = t0.elapsed();
+    let run = result.map_err(|e| run_error(py, &graph.file, &e))?;
+    if let Some(e) = raised {
+        return Err(e);
+    }
+    let live = palpate::report::LiveRecord::new(&graph, &run, wall);
+    let table = live.stage_table();
+    let summary = live.summary();
+    let files = palpate::report::write_live_run_files(&graph, &run, &live)
+        .map_err(|e| PalpateError::new_err(format!("{}: {e}", graph.file)))?;
+    let record = serde_json::to_value(palpate::report::live_run_record(&graph, &run, &live))
+        .unwrap_or(serde_json::Value::Null);
+    let d = PyDict::new(py);
+    d.set_item("file", &graph.file)?;
+    d.set_item("out_dir", graph.out_dir.display().to_string())?;
+    d.set_item("wall_s", wall.as_secs_f64())?;
+    d.set_item("record", json_to_py(py, &record)?)?;
+    d.set_item("reports", reports_dict(py, &run.reports)?)?;
+    d.set_item(
+        "run_files",
+        files.iter().map(|f| f.display().to_string()).collect::<Vec<_>>(),
+    )?;
+    d.set_item("timing_table", format!("{summary}\n{table}"))?;
+    let estimates = PyDict::new(py);
+    for (id, items) in &run.estimates {
+        estimates.set_item(id, items_to_list(py, items)?)?;
     }
     d.set_item("estimates", estimates)?;
     Ok(d)

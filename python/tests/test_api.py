@@ -226,3 +226,48 @@ def test_a_seed_above_tomls_integers_is_accepted_from_a_dict_and_from_set():
     assert [d for d in palpate.check(g, set={"run.seed": 2**63}) if d.severity == "error"] == []
     bad = palpate.check(g, set={"run.seed": -1})
     assert any("a seed is a whole number" in d.message for d in bad), bad
+
+
+def test_run_live_streams_the_graph_and_times_each_stage(tmp_path):
+    updates = []
+    res = palpate.run_live(
+        str(GRAPHS / "live.toml"),
+        set={"stages.daq.angles": [60.0], "stages.daq.trials_per_angle": 1},
+        out=tmp_path / "live",
+        on_update=updates.append,
+    )
+    assert isinstance(res, palpate.LiveResult)
+    wss = res.estimates["wss"]
+    assert len(wss) == 1 and wss.estimate[0] == pytest.approx(60.0)
+    assert res.metrics["wss.mae_deg"] == pytest.approx(0.0, abs=1e-9)
+    # Every estimate as it changed, then the trial's final one: the answer.
+    assert updates and all(u["stage"] == "wss" for u in updates)
+    assert [u["last"] for u in updates].count(True) == 1 and updates[-1]["last"]
+    assert updates[-1]["estimate"]["angle_deg"] == wss.estimate[0]
+    t = [u["t_ms"] for u in updates]
+    assert t == sorted(t)
+    live = res.live
+    assert live["trials"] == 1 and live["blocks"] == round(live["stream_s"] * 1000)
+    assert [s["stage"] for s in live["stages"]] == ["filter", "norm", "drive", "enc", "bins", "wss"]
+    assert sum(s["share_pct"] for s in live["stages"]) == pytest.approx(100.0)
+    assert "share" in res.timing_table
+    for f in ("run.json", "live_timing.md", "live_timing.csv", "mae.csv"):
+        assert (tmp_path / "live" / f).exists(), f
+
+
+def test_run_live_raises_what_on_update_raised_and_names_stages_that_cannot_stream(tmp_path, small_graph):
+    def boom(u):
+        raise ValueError("stop here")
+
+    with pytest.raises(ValueError, match="stop here"):
+        palpate.run_live(
+            str(GRAPHS / "live.toml"),
+            set={"stages.daq.angles": [60.0], "stages.daq.trials_per_angle": 1},
+            out=tmp_path / "live",
+            on_update=boom,
+        )
+    # The quickstart filters zero-phase: not a live graph.
+    with pytest.raises(palpate.PalpateError, match="filter.*cannot stream"):
+        palpate.run_live(small_graph)
+    with pytest.raises(ValueError, match="block"):
+        palpate.run_live(str(GRAPHS / "live.toml"), block=0)
