@@ -251,6 +251,9 @@ pub struct LiveRecord {
     pub block_us: LatencyUs,
     /// Per stage of the chain, in order: its share of the blocks' time.
     pub stages: Vec<LiveStageRow>,
+    /// The caller stopped the stream (Python's `run_live`: an exception in
+    /// `on_update`, or Ctrl-C); `trials` are those finished before.
+    pub stopped: bool,
 }
 
 /// One stage's time in a live run (see [`LiveRecord::stages`]): per block
@@ -332,6 +335,7 @@ impl LiveRecord {
             blocks: l.blocks(),
             block_us: LatencyUs::of(l),
             stages,
+            stopped: run.stopped,
         }
     }
 

@@ -692,6 +692,9 @@ pub struct LiveRun {
     /// Per estimator (stage id, in the plan's order): its final estimate of
     /// every trial, in stream order, as the sinks got them.
     pub estimates: Vec<(String, Vec<crate::Item>)>,
+    /// The caller stopped the stream ([`replay_until`]); `trials` counts the
+    /// trials finished before.
+    pub stopped: bool,
 }
 
 /// Streams every trial of a graph's source through its [`LivePlan`], trial
@@ -711,7 +714,33 @@ pub fn replay(
     block: usize,
     mut on_update: impl FnMut(&LiveUpdate),
 ) -> Result<LiveRun, crate::RunError> {
+    replay_until(graph, plan, block, |u| {
+        on_update(u);
+        std::ops::ControlFlow::Continue(())
+    })
+}
+
+/// [`replay`] that the caller can stop (a user ending a live session on a
+/// board that would stream forever): when `on_update` returns `Break`, no
+/// further update is passed and the stream stops after the block or trial
+/// end being handled. A trial under way is dropped (its answers are not
+/// final), the sinks report the trials finished before, and the result's
+/// `stopped` is set.
+pub fn replay_until(
+    graph: &crate::Graph,
+    plan: &LivePlan,
+    block: usize,
+    mut on_update: impl FnMut(&LiveUpdate) -> std::ops::ControlFlow<()>,
+) -> Result<LiveRun, crate::RunError> {
     use crate::stage::Stage;
+    let stopped = std::cell::Cell::new(false);
+    let mut on_update = |u: &LiveUpdate| {
+        if !stopped.get() && on_update(u).is_break() {
+            stopped.set(true);
+        }
+    };
+    // What the live source's stream returns when the caller stopped it.
+    const STOP: &str = "stopped by the caller";
     let src_id = graph.nodes[plan.source].id.as_str();
     let Stage::Source(src) = &graph.nodes[plan.source].stage else {
         return Err(crate::RunError {
@@ -752,6 +781,7 @@ pub fn replay(
             .map(|(i, _)| (graph.nodes[*i].id.clone(), BlockLatency::default()))
             .collect(),
         estimates: Vec::new(),
+        stopped: false,
     };
     let push = |open: &mut Open<'_>,
                 b: Payload,
@@ -823,10 +853,19 @@ pub fn replay(
         Some(live) => {
             let mut open: Option<Open<'_>> = None;
             let mut index = 0usize;
-            live.stream(&mut |ev| match ev {
+            let stop_err = || crate::RunError {
+                stage: src_id.to_string(),
+                trial: None,
+                message: STOP.into(),
+            };
+            let r = live.stream(&mut |ev| match ev {
+                _ if stopped.get() => Err(stop_err()),
                 SourceEvent::Start(mut meta) => {
                     if let Some(o) = open.take() {
                         finish(o, &mut finals, &mut run, &mut on_update)?;
+                        if stopped.get() {
+                            return Err(stop_err());
+                        }
                     }
                     meta.index = index;
                     index += 1;
@@ -841,7 +880,13 @@ pub fn replay(
                     Ok(())
                 }
                 SourceEvent::Block(b) => match open.as_mut() {
-                    Some(o) => push(o, b, &mut run, &mut on_update),
+                    Some(o) => {
+                        push(o, b, &mut run, &mut on_update)?;
+                        if stopped.get() {
+                            return Err(stop_err());
+                        }
+                        Ok(())
+                    }
                     None => Err(crate::RunError {
                         stage: src_id.to_string(),
                         trial: None,
@@ -852,9 +897,16 @@ pub fn replay(
                     Some(o) => finish(o, &mut finals, &mut run, &mut on_update),
                     None => Ok(()),
                 },
-            })?;
-            if let Some(o) = open.take() {
-                finish(o, &mut finals, &mut run, &mut on_update)?;
+            });
+            match r {
+                // The trial under way, if any, is dropped.
+                Err(e) if stopped.get() && e.message == STOP => {}
+                Err(e) => return Err(e),
+                Ok(()) => {
+                    if let Some(o) = open.take() {
+                        finish(o, &mut finals, &mut run, &mut on_update)?;
+                    }
+                }
             }
         }
         None => {
@@ -884,11 +936,22 @@ pub fn replay(
                 };
                 for b in signal_blocks(signals, block) {
                     push(&mut open, b, &mut run, &mut on_update)?;
+                    if stopped.get() {
+                        break;
+                    }
+                }
+                if stopped.get() {
+                    // The trial under way is dropped.
+                    break;
                 }
                 finish(open, &mut finals, &mut run, &mut on_update)?;
+                if stopped.get() {
+                    break;
+                }
             }
         }
     }
+    run.stopped = stopped.get();
     // Sinks, as after a batch run, on the estimators' final answers.
     for &i in &graph.order {
         let node = &graph.nodes[i];

@@ -588,9 +588,12 @@ def run_live(
     must stream (``check`` names those that cannot; a ``PalpateError`` lists
     them). ``on_update`` gets every estimate as it changes: a dict with
     ``trial_id``, ``stage``, ``t_ms`` (stream time), ``last`` (the trial's
-    final answer) and ``estimate`` (``kind``, ``angle_deg``, ...); an exception
-    it raises ends its calls and is raised when the run ends. The GIL is
-    released while the stages run."""
+    final answer) and ``estimate`` (``kind``, ``angle_deg``, ...). An exception
+    it raises, or Ctrl-C (checked at each update), stops the stream (how a
+    session on a board that streams forever ends): the trial under way is
+    dropped, the reports and ``run.json`` (``live.stopped``) cover the trials
+    finished, and the exception is raised. The GIL is released while the
+    stages run."""
     raw = _palpate.run_live(_graph_text(graph), set, None if out is None else str(out), block, on_update)
     return LiveResult(raw)
 

@@ -315,8 +315,10 @@ fn reports_dict<'py>(
 /// time (a DAQ source: frame by frame as the board delivers them), with the
 /// same report files plus `live_timing.md` / `.csv`. `on_update(dict)` is
 /// called with every estimate as it changes (`trial_id`, `stage`, `t_ms`,
-/// `last`, `estimate`); an exception it raises is raised once the run
-/// ends (the stream is not cut mid-trial; later updates are not passed).
+/// `last`, `estimate`). An exception it raises, or Ctrl-C (checked at each
+/// update), stops the stream: the trial under way is dropped, the sinks
+/// and the run record cover the trials finished, and the exception is
+/// raised.
 /// Returns the reports, the estimators' final estimates (as `run`'s
 /// `estimates`), the run record with its `live` section (block latency,
 /// per-stage times) and the CLI's per-stage table.
@@ -344,11 +346,13 @@ pub fn run_live<'py>(
     let mut raised: Option<PyErr> = None;
     let result = py.allow_threads(|| {
         no_panic("running the graph live", || {
-            Ok(palpate_core::stream::replay(&graph, &plan, block, |u| {
-                let (Some(cb), None) = (&on_update, &raised) else {
-                    return;
-                };
-                raised = Python::with_gil(|py| -> PyResult<()> {
+            Ok(palpate_core::stream::replay_until(&graph, &plan, block, |u| {
+                use std::ops::ControlFlow;
+                // Ctrl-C (checked at each update) or an exception from
+                // `on_update` stops the stream; it is raised at the end.
+                let r = Python::with_gil(|py| -> PyResult<()> {
+                    py.check_signals()?;
+                    let Some(cb) = &on_update else { return Ok(()) };
                     let d = PyDict::new(py);
                     d.set_item("trial_id", &u.trial_id)?;
                     d.set_item("stage", &u.stage)?;
@@ -358,21 +362,29 @@ pub fn run_live<'py>(
                     d.set_item("estimate", crate::convert::payload_to_py(py, &e)?)?;
                     cb.call1(py, (d,))?;
                     Ok(())
-                })
-                .err();
+                });
+                match r {
+                    Ok(()) => ControlFlow::Continue(()),
+                    Err(e) => {
+                        raised = Some(e);
+                        ControlFlow::Break(())
+                    }
+                }
             }))
         })
     })?;
     let wall = t0.elapsed();
     let run = result.map_err(|e| run_error(py, &graph.file, &e))?;
-    if let Some(e) = raised {
-        return Err(e);
-    }
     let live = palpate::report::LiveRecord::new(&graph, &run, wall);
     let table = live.stage_table();
     let summary = live.summary();
     let files = palpate::report::write_live_run_files(&graph, &run, &live)
         .map_err(|e| PalpateError::new_err(format!("{}: {e}", graph.file)))?;
+    // A stopped run's record is written (the sinks reported the finished
+    // trials) before what stopped it is raised.
+    if let Some(e) = raised {
+        return Err(e);
+    }
     let record = serde_json::to_value(palpate::report::live_run_record(&graph, &run, &live))
         .unwrap_or(serde_json::Value::Null);
     let d = PyDict::new(py);

@@ -255,17 +255,23 @@ def test_run_live_streams_the_graph_and_times_each_stage(tmp_path):
         assert (tmp_path / "live" / f).exists(), f
 
 
-def test_run_live_raises_what_on_update_raised_and_names_stages_that_cannot_stream(tmp_path, small_graph):
-    def boom(u):
-        raise ValueError("stop here")
+def test_run_live_stops_at_an_exception_from_on_update_and_raises_it(tmp_path, small_graph):
+    def enough(u):
+        if u["last"]:
+            raise ValueError("one trial is enough")
 
-    with pytest.raises(ValueError, match="stop here"):
+    with pytest.raises(ValueError, match="one trial is enough"):
         palpate.run_live(
             str(GRAPHS / "live.toml"),
-            set={"stages.daq.angles": [60.0], "stages.daq.trials_per_angle": 1},
+            set={"stages.daq.angles": [30.0, 60.0], "stages.daq.trials_per_angle": 1},
             out=tmp_path / "live",
-            on_update=boom,
+            on_update=enough,
         )
+    # The stream stopped after the first trial; its record says so.
+    record = json.loads((tmp_path / "live" / "run.json").read_text())
+    assert record["live"]["trials"] == 1 and record["live"]["stopped"] is True
+    overall = (tmp_path / "live" / "mae_overall.csv").read_text().splitlines()
+    assert overall[1].startswith("wss,1,"), overall
     # The quickstart filters zero-phase: not a live graph.
     with pytest.raises(palpate.PalpateError, match="filter.*cannot stream"):
         palpate.run_live(small_graph)

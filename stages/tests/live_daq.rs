@@ -419,3 +419,77 @@ fn bad_settings_name_their_key_and_a_missing_port_its_path() {
         .to_string();
     assert!(e.contains("/dev/palpate-no-such-port"), "{e}");
 }
+
+/// `replay_until`: the caller stops the stream (Python's `run_live` on an
+/// exception or Ctrl-C). Stopped at a trial's final answer, that trial
+/// counts and the rest are not streamed; stopped mid-trial, the trial is
+/// dropped. The same from a live source (the `daq` stage simulating the
+/// scene) and from a batch source cut into blocks (the `scene` stage).
+#[test]
+fn a_caller_can_stop_a_live_stream() {
+    use std::ops::ControlFlow;
+    let scene = format!(
+        "[stages.scene]\ntype = \"scene\"\nfile = \"{}\"\nangles = [30.0, 60.0]\ntrials_per_angle = 1\n{}",
+        lab_scene().display(),
+        common::causal_front_end("scene")
+    );
+    let daq = graph_with(
+        &format!(
+            "scene = \"{}\"\nangles = [30.0, 60.0]\ntrials_per_angle = 1",
+            lab_scene().display()
+        ),
+        IZHIKEVICH,
+        &format!("{WSS}\n\n[stages.mae]\ntype = \"mae\"\ninputs = [\"wss\"]"),
+        "palpate-live-stop-daq",
+    );
+    let batch = {
+        let text = format!(
+            "[run]\nseed = 1\n{scene}\n[stages.enc]\ninputs = [\"drive\"]\n{IZHIKEVICH}\n\n\
+             [stages.bins]\ntype = \"bin\"\ninputs = [\"enc\"]\n\n{WSS}\n\n\
+             [stages.mae]\ntype = \"mae\"\ninputs = [\"wss\"]\n"
+        );
+        let opts = LoadOptions {
+            out: Some(std::env::temp_dir().join("palpate-live-stop-scene")),
+            base_dir: Some(root().join("graphs")),
+            ..LoadOptions::default()
+        };
+        palpate_core::load_str(&text, "stop.toml", "stop", &opts).unwrap_or_else(|e| panic!("{e}"))
+    };
+    for g in [&daq, &batch] {
+        let plan = stream::plan(g).unwrap_or_else(|p| panic!("{p:?}"));
+        // Not stopped: both trials.
+        let all = stream::replay(g, &plan, 10, |_| {}).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!((all.trials, all.stopped), (2, false));
+        assert_eq!(all.estimates[0].1.len(), 2);
+        // Stopped at the first trial's final answer.
+        let mut seen = Vec::new();
+        let run = stream::replay_until(g, &plan, 10, |u| {
+            seen.push(u.clone());
+            if u.last {
+                ControlFlow::Break(())
+            } else {
+                ControlFlow::Continue(())
+            }
+        })
+        .unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!((run.trials, run.stopped), (1, true), "{}", g.file);
+        assert_eq!(run.estimates.len(), 1);
+        let (id, finals) = &run.estimates[0];
+        assert_eq!((id.as_str(), finals.len()), ("wss", 1));
+        assert_eq!(finals[0].meta.trial_id, all.estimates[0].1[0].meta.trial_id);
+        // Nothing after the stop, and the sinks saw the one trial.
+        assert!(seen.last().is_some_and(|u| u.last));
+        assert_eq!(seen.iter().filter(|u| u.last).count(), 1);
+        let text = &run.reports[0].1.text;
+        assert!(text.contains("of 1 trials"), "{text}");
+        // Stopped at the first update, mid-trial: that trial is dropped.
+        let mut calls = 0;
+        let run = stream::replay_until(g, &plan, 10, |_| {
+            calls += 1;
+            ControlFlow::Break(())
+        })
+        .unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!((run.trials, run.stopped, calls), (0, true, 1), "{}", g.file);
+        assert!(run.estimates[0].1.is_empty());
+    }
+}
