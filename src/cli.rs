@@ -707,8 +707,21 @@ fn run_live_graph(graph: &Graph, block: usize) -> ExitCode {
             return ExitCode::FAILURE;
         }
     };
+    // Ctrl-C ends the session at the next estimate, with the reports of the
+    // trials finished (a board streams until stopped); a second one quits
+    // at once. (A handler can be set once per process: one live run here.)
+    static INTERRUPTS: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+    let _ = ctrlc::set_handler(|| {
+        if INTERRUPTS.fetch_add(1, std::sync::atomic::Ordering::SeqCst) > 0 {
+            std::process::exit(130);
+        }
+        eprintln!("stopping at the next estimate; the trial under way is dropped (Ctrl-C again to quit now)");
+    });
     let t0 = std::time::Instant::now();
-    let result = core::stream::replay(graph, &plan, block, |u| {
+    let result = core::stream::replay_until(graph, &plan, block, |u| {
+        if INTERRUPTS.load(std::sync::atomic::Ordering::SeqCst) > 0 {
+            return std::ops::ControlFlow::Break(());
+        }
         let what = if u.last { "final" } else { "now" };
         match u.estimate.angle_deg {
             Some(a) => println!(
@@ -724,6 +737,7 @@ fn run_live_graph(graph: &Graph, block: usize) -> ExitCode {
                 u.stage
             ),
         }
+        std::ops::ControlFlow::Continue(())
     });
     match result {
         Ok(run) => {
@@ -738,6 +752,11 @@ fn run_live_graph(graph: &Graph, block: usize) -> ExitCode {
                 Ok(files) => {
                     let names: Vec<String> = files.iter().map(|p| p.display().to_string()).collect();
                     println!("run record and per-stage timing in {}", names.join(", "));
+                    if run.stopped {
+                        println!("stopped by Ctrl-C after {} finished trials", run.trials);
+                        // The shell's code for an interrupted command.
+                        return ExitCode::from(130);
+                    }
                     ExitCode::SUCCESS
                 }
                 Err(e) => {

@@ -105,3 +105,57 @@ fn a_live_run_writes_its_run_record_with_block_latency() {
     assert!(md.contains("| enc | izhikevich |"), "{md}");
     assert!(stdout.contains("share"), "{stdout}");
 }
+
+/// Ctrl-C ends a live session cleanly: the trial under way is dropped, the
+/// reports and run record are written, and the exit code is 130. The board
+/// is emulated at 5x real time (a 20 s trial takes 4 s), so the signal
+/// lands mid-trial.
+#[cfg(all(target_os = "linux", target_env = "gnu"))]
+#[test]
+fn ctrl_c_ends_a_live_session_with_its_reports() {
+    use std::io::BufRead;
+    let root = env!("CARGO_MANIFEST_DIR");
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_palpate"))
+        .current_dir(root)
+        .args(["daq", "run", "--emulate-scene", "graphs/scenes/lab.toml"])
+        .args([
+            "--angle",
+            "60",
+            "--seed",
+            "3",
+            "--speed",
+            "5",
+            "--config",
+            "graphs/live.toml",
+        ])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let stdout = child.stdout.take().unwrap();
+    let mut lines = std::io::BufReader::new(stdout).lines();
+    let mut seen = Vec::new();
+    // The first running estimate: the trial is under way.
+    for line in lines.by_ref() {
+        let line = line.unwrap();
+        let now = line.contains("wss: now ");
+        seen.push(line);
+        if now {
+            break;
+        }
+    }
+    assert!(seen.last().is_some_and(|l| l.contains("wss: now ")), "{seen:?}");
+    // SAFETY: signalling our own child process.
+    let pid = i32::try_from(child.id()).unwrap();
+    assert_eq!(unsafe { libc::kill(pid, libc::SIGINT) }, 0);
+    seen.extend(lines.map(Result::unwrap));
+    let status = child.wait().unwrap();
+    let text = seen.join("\n");
+    assert_eq!(status.code(), Some(130), "{text}");
+    assert!(
+        text.contains("stopped by Ctrl-C after 0 finished trials"),
+        "{text}"
+    );
+    assert!(text.contains("run record and per-stage timing in"), "{text}");
+    assert!(!text.contains("wss: final"), "{text}");
+}
