@@ -251,8 +251,9 @@ pub struct LiveRecord {
     pub block_us: LatencyUs,
     /// Per stage of the chain, in order: its share of the blocks' time.
     pub stages: Vec<LiveStageRow>,
-    /// The caller stopped the stream (Python's `run_live`: an exception in
-    /// `on_update`, or Ctrl-C); `trials` are those finished before.
+    /// The stream was stopped before its end (Ctrl-C in `palpate run
+    /// --live`; in Python's `run_live`, also an exception in `on_update`);
+    /// `trials` are those finished before.
     pub stopped: bool,
 }
 
