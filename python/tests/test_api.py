@@ -272,6 +272,17 @@ def test_run_live_stops_at_an_exception_from_on_update_and_raises_it(tmp_path, s
     assert record["live"]["trials"] == 1 and record["live"]["stopped"] is True
     overall = (tmp_path / "live" / "mae_overall.csv").read_text().splitlines()
     assert overall[1].startswith("wss,1,"), overall
+    # Ctrl-C (here: the signal raised from the callback's thread) stops it too.
+    import _thread
+
+    with pytest.raises(KeyboardInterrupt):
+        palpate.run_live(
+            str(GRAPHS / "live.toml"),
+            set={"stages.daq.angles": [30.0, 60.0], "stages.daq.trials_per_angle": 1},
+            out=tmp_path / "live2",
+            on_update=lambda u: _thread.interrupt_main(),
+        )
+    assert json.loads((tmp_path / "live2" / "run.json").read_text())["live"]["stopped"] is True
     # The quickstart filters zero-phase: not a live graph.
     with pytest.raises(palpate.PalpateError, match="filter.*cannot stream"):
         palpate.run_live(small_graph)
