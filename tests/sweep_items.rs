@@ -197,3 +197,83 @@ fn trials_served_from_the_cache_are_the_bits_of_running_each_point_alone() {
     assert_ne!(scene(0, "test-edge-30deg-r00"), scene(1, "test-edge-30deg-r00"));
     let _ = std::fs::remove_dir_all(&out);
 }
+
+/// A progress receiver that asks the run to stop after `after` ticks.
+struct StopAfter {
+    ticks: std::sync::atomic::AtomicUsize,
+    after: usize,
+}
+
+impl Progress for StopAfter {
+    fn start(&self, _stage: &str, _total: usize) {}
+    fn tick(&self) {
+        self.ticks.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+    }
+    fn finish(&self, _stage: &str) {}
+    fn cancelled(&self) -> bool {
+        self.ticks.load(std::sync::atomic::Ordering::SeqCst) >= self.after
+    }
+}
+
+/// A cancelled run (Python's Ctrl-C) stops with an `interrupted` error, in
+/// the depth-first chain and in a sweep's stage-at-a-time runs, before
+/// doing all its work; a receiver that never cancels changes nothing.
+#[test]
+fn a_cancelled_run_stops_with_an_interrupted_error() {
+    palpate::link();
+    let out = out_dir("cancel");
+    let opts = LoadOptions {
+        out: Some(out.clone()),
+        ..Default::default()
+    };
+    let g = core::load_str(GRAPH, "items.toml", "items", &opts).unwrap_or_else(|e| panic!("{e}"));
+    // The graph without its sweep: one run, depth-first.
+    let plain = GRAPH.split("[sweep]").next().unwrap_or(GRAPH);
+    let point = core::load_str(plain, "items.toml", "items", &opts).unwrap_or_else(|e| panic!("{e}"));
+    for after in [0, 3] {
+        let stop = StopAfter {
+            ticks: Default::default(),
+            after,
+        };
+        let e = core::run(
+            &point,
+            &RunOptions {
+                progress: Some(&stop),
+                ..Default::default()
+            },
+        )
+        .expect_err("the run stops");
+        assert_eq!(e.message, core::INTERRUPTED, "{e}");
+        // 8 trials through 6 per-trial stages, 2 estimators and a sink: far
+        // fewer ticks before the stop took.
+        assert!(stop.ticks.into_inner() < 8, "after {after}");
+        let cache = core::Cache::default();
+        let stop = StopAfter {
+            ticks: Default::default(),
+            after,
+        };
+        let run_opts = RunOptions {
+            cache: Some(&cache),
+            keep_outputs: false,
+            progress: Some(&stop),
+        };
+        let e = core::sweep::run_text(GRAPH, "items.toml", "items", &opts, &g, &run_opts)
+            .expect_err("the sweep stops");
+        assert!(e.to_string().contains(core::INTERRUPTED), "{e}");
+    }
+    let never = StopAfter {
+        ticks: Default::default(),
+        after: usize::MAX,
+    };
+    let a = core::run(
+        &point,
+        &RunOptions {
+            progress: Some(&never),
+            ..Default::default()
+        },
+    )
+    .unwrap_or_else(|e| panic!("{e}"));
+    let b = core::run(&point, &RunOptions::default()).unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!(a.reports, b.reports);
+    let _ = std::fs::remove_dir_all(&out);
+}

@@ -43,7 +43,7 @@ pub use payload::{
     SpikeTrain, Stimulus, TaxelLayout, TrialMeta,
 };
 pub use runtime::{
-    run, thread_pool, Cache, Progress, RunError, RunOptions, RunResult, StageTiming, MAX_THREADS,
+    run, thread_pool, Cache, Progress, RunError, RunOptions, RunResult, StageTiming, INTERRUPTED, MAX_THREADS,
 };
 pub use stage::{
     check_positive, check_range, derive_seed, fmt_num, BuildContext, ClassMetric, ConfigChecks, ConfigError,

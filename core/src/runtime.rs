@@ -61,6 +61,24 @@ pub trait Progress: Sync {
     fn tick(&self);
     /// The stage is done.
     fn finish(&self, stage: &str);
+    /// Whether the run should stop (a user's Ctrl-C): checked before each
+    /// stage's work on each trial and before each fold's fit; the run then
+    /// fails with a [`RunError`] whose message is [`INTERRUPTED`]. Default:
+    /// never.
+    fn cancelled(&self) -> bool {
+        false
+    }
+}
+
+/// The message of a run stopped by its [`Progress::cancelled`].
+pub const INTERRUPTED: &str = "interrupted";
+
+/// `Err` (naming stage `id`) once the run's progress says it is cancelled.
+pub(crate) fn interrupted(opts: &RunOptions<'_>, id: &str) -> Result<(), RunError> {
+    match opts.progress {
+        Some(p) if p.cancelled() => Err(RunError::new(id, None, INTERRUPTED)),
+        _ => Ok(()),
+    }
 }
 
 /// Outputs kept across runs (the points of a sweep), keyed by a hash of each
@@ -829,6 +847,7 @@ pub fn run(graph: &Graph, opts: &RunOptions<'_>) -> Result<RunResult, RunError> 
                 let done: Vec<Result<Timed<Item>, RunError>> = metas
                     .into_par_iter()
                     .map(|meta| {
+                        interrupted(opts, id)?;
                         let ctx = TrialContext {
                             stage_id: id,
                             meta: &meta,
@@ -849,6 +868,7 @@ pub fn run(graph: &Graph, opts: &RunOptions<'_>) -> Result<RunResult, RunError> 
                 let done: Vec<Result<Timed<Item>, RunError>> = (0..trials)
                     .into_par_iter()
                     .map(|t| {
+                        interrupted(opts, id)?;
                         let items: Vec<&Item> = inputs.iter().map(|v| &v[t]).collect();
                         let meta = &items[0].meta;
                         let ctx = TrialContext {
@@ -909,6 +929,7 @@ pub fn run(graph: &Graph, opts: &RunOptions<'_>) -> Result<RunResult, RunError> 
                     .par_iter()
                     .enumerate()
                     .map(|(f, (train, test))| {
+                        interrupted(opts, id)?;
                         let fold_name = format!("fold{f}");
                         let fctx = FitContext {
                             stage_id: id,
@@ -1310,6 +1331,7 @@ fn run_item_stage(
         let done: Vec<Result<Timed<Payload>, RunError>> = todo
             .par_iter()
             .map(|&t| {
+                interrupted(opts, id)?;
                 let trial_id = metas[t].trial_id.as_str();
                 let (payload, dt) = match &node.stage {
                     Stage::Source(src) => {

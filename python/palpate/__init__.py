@@ -559,7 +559,8 @@ def run(
     the same report files in its output folder. ``set`` overrides keys
     (``{"stages.wss.weighting": "constant"}``), ``threads`` caps the worker
     threads (default: all cores; at most 4096), ``out`` replaces ``[run] out``. The GIL is
-    released while it runs; progress goes to stderr. Raises ``GraphError``
+    released while it runs; progress goes to stderr. Ctrl-C stops it at the
+    next trial or fold and raises ``KeyboardInterrupt``. Raises ``GraphError``
     (with ``diagnostics``) when the graph does not load, ``RunError`` when a
     stage fails.
 

@@ -142,14 +142,67 @@ pub fn check<'py>(
 }
 
 /// Progress on stderr: indicatif bars when stderr is a terminal, otherwise one
-/// line per stage as it finishes (so a notebook or a log still shows it).
+/// line per stage as it finishes (so a notebook or a log still shows it);
+/// nothing when not `shown`. Also the run's cancel flag ([`watched`]).
 struct Bars {
     bar: Mutex<Option<(indicatif::ProgressBar, String, std::time::Instant)>>,
     tty: bool,
+    shown: bool,
+    cancel: std::sync::atomic::AtomicBool,
+}
+
+impl Bars {
+    fn new(shown: bool) -> Bars {
+        use std::io::IsTerminal;
+        Bars {
+            bar: Mutex::new(None),
+            tty: std::io::stderr().is_terminal(),
+            shown,
+            cancel: std::sync::atomic::AtomicBool::new(false),
+        }
+    }
+}
+
+/// Runs `f` (a graph or sweep) on a thread of its own while this thread,
+/// Python's main thread, looks for Ctrl-C every 20 ms (the interpreter
+/// runs signal handlers only there): a signal sets `bars`' cancel flag, the
+/// engine stops at its next trial or fold ([`Progress::cancelled`]), and
+/// the signal's exception (`KeyboardInterrupt`) is raised once `f` has
+/// returned. Without this a long run could not be interrupted from a
+/// notebook.
+fn watched<T: Send>(py: Python<'_>, bars: &Bars, f: impl FnOnce() -> PyResult<T> + Send) -> PyResult<T> {
+    let mut signal: Option<PyErr> = None;
+    let out = std::thread::scope(|s| {
+        let h = s.spawn(f);
+        while !h.is_finished() {
+            if signal.is_none() {
+                if let Err(e) = py.check_signals() {
+                    bars.cancel.store(true, std::sync::atomic::Ordering::SeqCst);
+                    signal = Some(e);
+                }
+            }
+            py.allow_threads(|| std::thread::sleep(std::time::Duration::from_millis(20)));
+        }
+        h.join()
+    });
+    if let Some(e) = signal {
+        return Err(e);
+    }
+    out.unwrap_or_else(|_| {
+        Err(PalpateError::new_err(
+            "the run's thread panicked (a bug in palpate, please report it)",
+        ))
+    })
 }
 
 impl Progress for Bars {
+    fn cancelled(&self) -> bool {
+        self.cancel.load(std::sync::atomic::Ordering::SeqCst)
+    }
     fn start(&self, stage: &str, total: usize) {
+        if !self.shown {
+            return;
+        }
         let bar = if self.tty {
             indicatif::ProgressBar::new(total as u64)
         } else {
@@ -166,6 +219,9 @@ impl Progress for Bars {
         }
     }
     fn tick(&self) {
+        if !self.shown {
+            return;
+        }
         if let Ok(b) = self.bar.lock() {
             if let Some((bar, _, _)) = b.as_ref() {
                 bar.inc(1);
@@ -215,34 +271,22 @@ pub fn run<'py>(
     let (graph, opts) = load(py, &graph, set, out)?;
     let pool = palpate_core::thread_pool(threads.unwrap_or(0), "threads=")
         .map_err(pyo3::exceptions::PyValueError::new_err)?;
-    use std::io::IsTerminal;
-    let bars = Bars {
-        bar: Mutex::new(None),
-        tty: std::io::stderr().is_terminal(),
-    };
+    let bars = Bars::new(progress);
     if graph.sweep.is_some() {
         let base = match base_dir {
             Some(b) => b,
             None => std::env::current_dir()
                 .map_err(|e| PalpateError::new_err(format!("cannot read the working folder: {e}")))?,
         };
-        return run_sweep(
-            py,
-            &graph,
-            (&text, &base),
-            &opts.overrides,
-            &pool,
-            progress.then_some(&bars as &dyn Progress),
-            fresh,
-        );
+        return run_sweep(py, &graph, (&text, &base), &opts.overrides, &pool, &bars, fresh);
     }
     let t0 = std::time::Instant::now();
-    // The GIL is released while the graph runs; Python-defined stages take it
-    // back for their own calls.
-    let result = py.allow_threads(|| {
+    // The graph runs on its own thread without the GIL (Python-defined
+    // stages take it back for their own calls); Ctrl-C stops it.
+    let result = watched(py, &bars, || {
         no_panic("running the graph", || {
             let opts = RunOptions {
-                progress: progress.then_some(&bars as &dyn Progress),
+                progress: Some(&bars as &dyn Progress),
                 keep_outputs: true,
                 cache: None,
             };
@@ -417,7 +461,7 @@ fn run_sweep<'py>(
     source: (&str, &std::path::Path),
     set: &[(String, toml::Value)],
     pool: &rayon::ThreadPool,
-    progress: Option<&dyn Progress>,
+    bars: &Bars,
     fresh: bool,
 ) -> PyResult<Bound<'py, PyDict>> {
     let path = PathBuf::from(&graph.file);
@@ -429,14 +473,14 @@ fn run_sweep<'py>(
     };
     let t0 = std::time::Instant::now();
     let announce = |i: usize, n: usize, what: &str| {
-        if progress.is_some() {
+        if bars.shown {
             eprintln!("{what}: {}/{n}", i + 1);
         }
     };
-    let outcome = py.allow_threads(|| {
+    let outcome = watched(py, bars, || {
         no_panic("running the sweep", || {
             let opts = RunOptions {
-                progress,
+                progress: Some(bars as &dyn Progress),
                 keep_outputs: false,
                 cache: None,
             };

@@ -288,3 +288,22 @@ def test_run_live_stops_at_an_exception_from_on_update_and_raises_it(tmp_path, s
         palpate.run_live(small_graph)
     with pytest.raises(ValueError, match="block"):
         palpate.run_live(str(GRAPHS / "live.toml"), block=0)
+
+
+def test_ctrl_c_interrupts_a_running_graph(tmp_path):
+    import _thread
+    import threading
+
+    # The quickstart on the whole lab scene (170 trials): seconds of work.
+    text = (GRAPHS / "quickstart.toml").read_text()
+    text = text.replace('file = "scenes/lab.toml"', f'file = "{GRAPHS / "scenes" / "lab.toml"}"')
+    text = text.replace("[run]\nseed = 1", f'[run]\nseed = 1\nout = "{tmp_path / "out"}"')
+    timer = threading.Timer(0.3, _thread.interrupt_main)
+    timer.start()
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            palpate.run(text, progress=False)
+    finally:
+        timer.cancel()
+    # Stopped before its sinks: no report was written.
+    assert not (tmp_path / "out" / "mae.csv").exists()

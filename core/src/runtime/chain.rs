@@ -284,6 +284,7 @@ pub(super) fn run_chain(
         let i = chain.nodes[p];
         let node = &graph.nodes[i];
         let id = node.id.as_str();
+        super::interrupted(opts, id)?;
         let unscored = matches!(node.stage, Stage::Estimator(_)) && scored.as_ref().is_some_and(|m| !m[t]);
         let mut skip = unscored;
         for &j in &graph.input_index[i] {
