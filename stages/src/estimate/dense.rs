@@ -429,6 +429,58 @@ pub fn gemm_nt(a: &[f64], b: &[f64], k: usize, out: &mut [f64]) {
     pairwise_any::<false>(a, b, k, out, n);
 }
 
+/// A layer's weights `b` (`n` rows of `k`) laid out once for [`gemm_nt`]'s
+/// AVX-512 kernel ([`panels512`]), for a caller that multiplies by them
+/// block after block: [`gemm_nt`] packs them at every call (the EDBN's
+/// prediction, 7 blocks of 512 rows, packed each layer 7 times).
+#[derive(Clone, Debug, Default)]
+pub struct NarrowRhs {
+    b: Vec<f64>,
+    k: usize,
+    /// [`panels512`] of the first [`panel_columns`] columns, when the
+    /// kernel can take this shape on this CPU; empty otherwise.
+    panels: Vec<f64>,
+}
+
+impl NarrowRhs {
+    /// `b` (`b.len() / k` rows of `k`), packed when [`gemm_nt`] would pack it.
+    pub fn new(b: &[f64], k: usize) -> Self {
+        let n = b.len() / k.max(1);
+        #[cfg(target_arch = "x86_64")]
+        let panels = if (1..=NARROW).contains(&n) && (1..=NARROW_K512).contains(&k) && crate::wide::avx512() {
+            panels512(b, k, panel_columns(n))
+        } else {
+            Vec::new()
+        };
+        #[cfg(not(target_arch = "x86_64"))]
+        let panels = Vec::new();
+        NarrowRhs {
+            b: b[..n * k].to_vec(),
+            k,
+            panels,
+        }
+    }
+}
+
+/// [`gemm_nt`] with its right operand packed beforehand: the same kernels
+/// on the same shapes, so the same bits.
+pub fn gemm_nt_packed(a: &[f64], b: &NarrowRhs, out: &mut [f64]) {
+    let k = b.k;
+    let n = b.b.len() / k.max(1);
+    #[cfg(target_arch = "x86_64")]
+    {
+        let m = (a.len() / k.max(1)).min(out.len() / n.max(1));
+        if !b.panels.is_empty() && m >= ROWS512 && crate::wide::avx512() {
+            // SAFETY: the CPU supports AVX-512 F/VL/DQ (checked above); the
+            // panels are `panels512` of `b` for the shape `narrow512` takes,
+            // as `gemm_nt` makes them.
+            unsafe { narrow512(&a[..m * k], &b.b, &b.panels, k, n, &mut out[..m * n]) };
+            return;
+        }
+    }
+    gemm_nt(a, &b.b, k, out)
+}
+
 /// [`gemm_nt`] for an `a` whose rows are mostly zeros (the EDBN's input
 /// features: spike counts, four in five of them 0 on the lab set), with
 /// [`gemm_nt`]'s bits when `b` is finite: each row's zero entries are

@@ -1168,6 +1168,21 @@ impl Dbn {
         // (A trial's few frames get buffers of their size, not a block's.)
         let block = n.min(BLOCK_ROWS);
         let mut acts: Vec<Vec<f64>> = below.iter().map(|r| vec![0.0; block * r.n_hid]).collect();
+        // Each layer's weights laid out for its product once, not once a
+        // block: the first (sparse) layer's transposed with padding
+        // ([`dense::SparseRhs`]), the dense layers' packed in panels
+        // ([`dense::NarrowRhs`]); the products' bits are the same.
+        let mut first_rhs = dense::SparseRhs::default();
+        match below.first() {
+            Some(r) => first_rhs.set_transpose(&r.w, r.n_hid, r.n_vis),
+            None => first_rhs.set_transpose(&wc, top.n_hid, nb),
+        }
+        // Slot 0 is the first layer's (above).
+        let mut packed = vec![dense::NarrowRhs::default()];
+        packed.extend(below.iter().skip(1).map(|r| dense::NarrowRhs::new(&r.w, r.n_vis)));
+        if !below.is_empty() {
+            packed.push(dense::NarrowRhs::new(&wc, nb));
+        }
         let mut base = vec![0.0; block * top.n_hid];
         for (b0, o) in (0..n)
             .step_by(BLOCK_ROWS)
@@ -1180,22 +1195,23 @@ impl Dbn {
             // The first product reads the features, mostly zeros (spike
             // counts): it skips them, with the same bits
             // ([`dense::gemm_nt_sparse`]); the layers above are dense.
-            let mut first = true;
-            let mut product = |v: &[f64], w: &[f64], k: usize, h: &mut [f64]| {
-                if std::mem::take(&mut first) {
-                    dense::gemm_nt_sparse(v, w, k, h);
+            let mut layer = 0;
+            let mut product = |v: &[f64], h: &mut [f64]| {
+                if layer == 0 {
+                    dense::gemm_nn_sparse(v, &first_rhs, h);
                 } else {
-                    dense::gemm_nt(v, w, k, h);
+                    dense::gemm_nt_packed(v, &packed[layer], h);
                 }
+                layer += 1;
             };
             for (r, h) in below.iter().zip(acts.iter_mut()) {
                 let h = &mut h[..rows * r.n_hid];
-                product(v, &r.w, r.n_vis, h);
+                product(v, h);
                 dense::add_bias_map(h, &r.b, vmath::sigmoid);
                 v = h;
             }
             let base = &mut base[..rows * top.n_hid];
-            product(v, &wc, nb, base);
+            product(v, base);
             dense::add_bias_map(base, &top.b, |z| z);
             top.posterior_rows(base, &mut d, o, k);
         }
