@@ -410,7 +410,7 @@ pub fn gemm_nt(a: &[f64], b: &[f64], k: usize, out: &mut [f64]) {
     #[cfg(target_arch = "x86_64")]
     let m = (a.len() / k.max(1)).min(out.len() / n.max(1));
     #[cfg(target_arch = "x86_64")]
-    if (1..=NARROW).contains(&n) && (1..=NARROW_K512).contains(&k) && m >= ROWS512 && crate::wide::avx512() {
+    if packs512(n, k) && m >= ROWS512 {
         let panels = panels512(b, k, panel_columns(n));
         // SAFETY: the CPU supports AVX-512 F/VL/DQ (checked above); the
         // shapes are the ones `narrow512` asserts.
@@ -447,7 +447,7 @@ impl NarrowRhs {
     pub fn new(b: &[f64], k: usize) -> Self {
         let n = b.len() / k.max(1);
         #[cfg(target_arch = "x86_64")]
-        let panels = if (1..=NARROW).contains(&n) && (1..=NARROW_K512).contains(&k) && crate::wide::avx512() {
+        let panels = if packs512(n, k) {
             panels512(b, k, panel_columns(n))
         } else {
             Vec::new()
@@ -460,6 +460,13 @@ impl NarrowRhs {
             panels,
         }
     }
+}
+
+/// Whether [`gemm_nt`] packs a right operand of `n` rows of `k` for
+/// [`narrow512`] (given enough rows of `a`, [`ROWS512`]).
+#[cfg(target_arch = "x86_64")]
+fn packs512(n: usize, k: usize) -> bool {
+    (1..=NARROW).contains(&n) && (1..=NARROW_K512).contains(&k) && crate::wide::avx512()
 }
 
 /// [`gemm_nt`] with its right operand packed beforehand: the same kernels

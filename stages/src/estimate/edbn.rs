@@ -1177,9 +1177,13 @@ impl Dbn {
             Some(r) => first_rhs.set_transpose(&r.w, r.n_hid, r.n_vis),
             None => first_rhs.set_transpose(&wc, top.n_hid, nb),
         }
-        // Slot 0 is the first layer's (above).
-        let mut packed = vec![dense::NarrowRhs::default()];
-        packed.extend(below.iter().skip(1).map(|r| dense::NarrowRhs::new(&r.w, r.n_vis)));
+        // The products after the first, in order: the layers above it, then
+        // the top's data columns.
+        let mut packed: Vec<dense::NarrowRhs> = below
+            .iter()
+            .skip(1)
+            .map(|r| dense::NarrowRhs::new(&r.w, r.n_vis))
+            .collect();
         if !below.is_empty() {
             packed.push(dense::NarrowRhs::new(&wc, nb));
         }
@@ -1194,24 +1198,20 @@ impl Dbn {
             let mut v = &x[b0 * dim..(b0 + rows) * dim];
             // The first product reads the features, mostly zeros (spike
             // counts): it skips them, with the same bits
-            // ([`dense::gemm_nt_sparse`]); the layers above are dense.
-            let mut layer = 0;
-            let mut product = |v: &[f64], h: &mut [f64]| {
-                if layer == 0 {
-                    dense::gemm_nn_sparse(v, &first_rhs, h);
-                } else {
-                    dense::gemm_nt_packed(v, &packed[layer], h);
-                }
-                layer += 1;
+            // ([`dense::gemm_nn_sparse`]); the layers above are dense.
+            // Product `i` of the block: the sparse first, then `packed[i − 1]`.
+            let product = |i: usize, v: &[f64], h: &mut [f64]| match i.checked_sub(1) {
+                None => dense::gemm_nn_sparse(v, &first_rhs, h),
+                Some(p) => dense::gemm_nt_packed(v, &packed[p], h),
             };
-            for (r, h) in below.iter().zip(acts.iter_mut()) {
+            for (i, (r, h)) in below.iter().zip(acts.iter_mut()).enumerate() {
                 let h = &mut h[..rows * r.n_hid];
-                product(v, h);
+                product(i, v, h);
                 dense::add_bias_map(h, &r.b, vmath::sigmoid);
                 v = h;
             }
             let base = &mut base[..rows * top.n_hid];
-            product(v, base);
+            product(below.len(), v, base);
             dense::add_bias_map(base, &top.b, |z| z);
             top.posterior_rows(base, &mut d, o, k);
         }
