@@ -439,7 +439,7 @@ pub struct NarrowRhs {
     k: usize,
     /// [`panels512`] of the first [`panel_columns`] columns, when the
     /// kernel can take this shape on this CPU; empty otherwise.
-    panels: Vec<f64>,
+    panels: Aligned,
 }
 
 impl NarrowRhs {
@@ -450,10 +450,10 @@ impl NarrowRhs {
         let panels = if packs512(n, k) {
             panels512(b, k, panel_columns(n))
         } else {
-            Vec::new()
+            Aligned::default()
         };
         #[cfg(not(target_arch = "x86_64"))]
-        let panels = Vec::new();
+        let panels = Aligned::default();
         NarrowRhs {
             b: b[..n * k].to_vec(),
             k,
@@ -535,7 +535,7 @@ pub fn gemm_nt_sparse(a: &[f64], b: &[f64], k: usize, out: &mut [f64]) {
 /// transposed weight matrix).
 #[derive(Clone, Debug, Default)]
 pub struct SparseRhs {
-    data: Vec<f64>,
+    data: Aligned,
     k: usize,
     n: usize,
     np: usize,
@@ -570,8 +570,7 @@ impl SparseRhs {
             n
         };
         if (self.k, self.n, self.np) != (k, n, np) {
-            self.data.clear();
-            self.data.resize(k * np, 0.0);
+            self.data = Aligned::zeros(k * np);
             (self.k, self.n, self.np) = (k, n, np);
         }
     }
@@ -732,8 +731,8 @@ unsafe fn sparse512(a: &[f64], bt: &[f64], k: usize, n: usize, np: usize, out: &
 
 /// `b`'s `k`-wide rows as columns: `bt[t·np + j] = b_j[t]`, zero past the
 /// last row (`np` at least the number of rows).
-fn transposed(b: &[f64], k: usize, np: usize) -> Vec<f64> {
-    let mut bt = vec![0.0; k * np];
+fn transposed(b: &[f64], k: usize, np: usize) -> Aligned {
+    let mut bt = Aligned::zeros(k * np);
     for (j, row) in b.chunks_exact(k.max(1)).enumerate() {
         for (t, &v) in row.iter().enumerate() {
             bt[t * np + j] = v;
@@ -772,8 +771,8 @@ fn panel_width(j0: usize, n: usize) -> usize {
 /// a 16-column slice of the transpose lie 512 bytes apart and map to a
 /// sixteenth of L1's sets, which evicted them (15 against 18 G products/s
 /// at 3154 x 60 x 80 in a throwaway timing, one core, best of 30, not kept).
-fn panels512(b: &[f64], k: usize, n: usize) -> Vec<f64> {
-    let mut p = vec![0.0; n.div_ceil(8) * 8 * k];
+fn panels512(b: &[f64], k: usize, n: usize) -> Aligned {
+    let mut p = Aligned::zeros(n.div_ceil(8) * 8 * k);
     let mut j0 = 0;
     while j0 < n {
         let w = panel_width(j0, n);
@@ -1472,6 +1471,57 @@ pub fn add_bias_map(out: &mut [f64], bias: &[f64], f: impl Fn(f64) -> f64) {
     )
 }
 
+/// 64 bytes on a 64-byte boundary: one cache line of [`Aligned`].
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+#[repr(C, align(64))]
+struct Line([f64; 8]);
+
+/// A zero-initialised `f64` buffer that starts on a cache line: the packed
+/// operands the AVX-512 kernels read in 64-byte vectors ([`panels512`],
+/// [`SparseRhs`], [`transposed`]).
+///
+/// Why: the allocator returns 16-byte-aligned blocks (large ones 16 past a
+/// page), so from a `Vec<f64>` every 64-byte load spans two cache lines and
+/// the load port pays twice for one of its halves. On the EDBN's sparse
+/// first layer (3154 x 80 features, a fifth non-zero, 60 outputs; a
+/// throwaway timing loop, best of 30 passes, three runs each alternated,
+/// 2026-11-29): 445-533 us a pass from a `Vec`, 362-386 us aligned; the
+/// peers predictions, EDBN 1.46-1.54 -> 1.42-1.49 ms and ANN (ST)
+/// 0.62-0.65 -> 0.60-0.61 ms (docs/benches.md). The bits are the same:
+/// the kernels use unaligned loads either way.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub(crate) struct Aligned {
+    lines: Vec<Line>,
+    len: usize,
+}
+
+impl Aligned {
+    /// `len` zeros.
+    pub(crate) fn zeros(len: usize) -> Self {
+        Self {
+            lines: vec![Line::default(); len.div_ceil(8)],
+            len,
+        }
+    }
+}
+
+impl std::ops::Deref for Aligned {
+    type Target = [f64];
+    fn deref(&self) -> &[f64] {
+        // SAFETY: `Line` is `repr(C)` over `[f64; 8]`, 64 bytes without
+        // padding, so the lines are `8 · lines.len() >= len` contiguous,
+        // initialised f64.
+        unsafe { std::slice::from_raw_parts(self.lines.as_ptr().cast(), self.len) }
+    }
+}
+
+impl std::ops::DerefMut for Aligned {
+    fn deref_mut(&mut self) -> &mut [f64] {
+        // SAFETY: as in `deref`, through the unique borrow.
+        unsafe { std::slice::from_raw_parts_mut(self.lines.as_mut_ptr().cast(), self.len) }
+    }
+}
+
 #[cfg(test)]
 pub(crate) mod tests {
     use super::*;
@@ -1833,6 +1883,25 @@ pub(crate) mod tests {
                     assert_eq!(d[i * n + j].to_bits(), sq_dist(x, y).to_bits(), "dist ({i},{j})");
                     assert_eq!(base[i * n + j].to_bits(), g[i * n + j].to_bits());
                 }
+            }
+        }
+    }
+
+    #[test]
+    fn aligned_buffers_start_on_a_line_and_hold_their_values() {
+        for len in [0, 1, 7, 8, 9, 80 * 64, 12_345] {
+            let mut a = Aligned::zeros(len);
+            assert_eq!(a.len(), len);
+            assert!(a.iter().all(|&v| v == 0.0));
+            if len > 0 {
+                assert_eq!(a.as_ptr() as usize % 64, 0, "{len} values");
+            }
+            a.iter_mut().enumerate().for_each(|(i, v)| *v = i as f64);
+            let b = a.clone();
+            assert_eq!(b, a);
+            if len > 0 {
+                assert_eq!(b.as_ptr() as usize % 64, 0, "clone of {len}");
+                assert_eq!(b[len - 1], (len - 1) as f64);
             }
         }
     }
