@@ -48,9 +48,11 @@
 //! RBM stack rather than the 3x a shorter `exp`, `f32` training or a
 //! reciprocal in place of the gradient's divisions might reach: each would
 //! change every EDBN result (the decision is in docs/benches.md,
-//! "Decisions on the speed targets not met"). The training log records each layer-epoch's mean squared
-//! reconstruction error `‖v - p(v | p(h | v))‖² / D` after the epoch, on a fixed
-//! evenly spaced subset of at most 256 training vectors.
+//! "Decisions on the speed targets not met").
+//!
+//! The training log records each layer-epoch's mean squared
+//! reconstruction error `‖v - p(v | p(h | v))‖² / D` after the epoch, on a
+//! fixed evenly spaced subset of at most 256 training vectors.
 //!
 //! # Inference (`inference` key)
 //!
