@@ -707,7 +707,8 @@ fn run_live_graph(graph: &Graph, block: usize) -> ExitCode {
             return ExitCode::FAILURE;
         }
     };
-    // Ctrl-C ends the session at the next estimate, with the reports of the
+    // Ctrl-C ends the session after the block under way (or, with nothing
+    // in contact, the frame or wait under way), with the reports of the
     // trials finished (a board streams until stopped); a second one quits
     // at once. (A handler can be set once per process: one live run here.)
     static INTERRUPTS: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
@@ -715,11 +716,16 @@ fn run_live_graph(graph: &Graph, block: usize) -> ExitCode {
         if INTERRUPTS.fetch_add(1, std::sync::atomic::Ordering::SeqCst) > 0 {
             std::process::exit(130);
         }
-        eprintln!("stopping at the next estimate; the trial under way is dropped (Ctrl-C again to quit now)");
+        eprintln!("stopping; the trial under way is dropped (Ctrl-C again to quit now)");
     });
+    eprintln!(
+        "{}: streaming live; Ctrl-C stops (the trial under way is dropped, the reports are written)",
+        graph.file
+    );
     let t0 = std::time::Instant::now();
-    let result = core::stream::replay_until(graph, &plan, block, |u| {
-        if INTERRUPTS.load(std::sync::atomic::Ordering::SeqCst) > 0 {
+    let interrupted = || INTERRUPTS.load(std::sync::atomic::Ordering::SeqCst) > 0;
+    let on_update = |u: &core::stream::LiveUpdate| {
+        if interrupted() {
             return std::ops::ControlFlow::Break(());
         }
         let what = if u.last { "final" } else { "now" };
@@ -738,7 +744,8 @@ fn run_live_graph(graph: &Graph, block: usize) -> ExitCode {
             ),
         }
         std::ops::ControlFlow::Continue(())
-    });
+    };
+    let result = core::stream::replay_polled(graph, &plan, block, on_update, interrupted);
     match result {
         Ok(run) => {
             for (id, report) in &run.reports {

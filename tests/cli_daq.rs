@@ -2,21 +2,24 @@
 //! (an alias of `palpate run graphs/live.toml --live` with the `daq` source
 //! emulating one trial of the scene) estimates its edge as it streams.
 
+/// `daq run` on a board emulating the lab scene's 60-degree trial, seed 3.
+const DAQ_RUN_60: [&str; 8] = [
+    "daq",
+    "run",
+    "--emulate-scene",
+    "graphs/scenes/lab.toml",
+    "--angle",
+    "60",
+    "--seed",
+    "3",
+];
+
 #[test]
 fn daq_run_on_an_emulated_board_finds_the_edge() {
     let root = env!("CARGO_MANIFEST_DIR");
     let out = std::process::Command::new(env!("CARGO_BIN_EXE_palpate"))
         .current_dir(root)
-        .args([
-            "daq",
-            "run",
-            "--emulate-scene",
-            "graphs/scenes/lab.toml",
-            "--angle",
-            "60",
-            "--seed",
-            "3",
-        ])
+        .args(DAQ_RUN_60)
         .args(["--speed", "50", "--config", "graphs/live.toml"])
         .output()
         .unwrap();
@@ -106,56 +109,105 @@ fn a_live_run_writes_its_run_record_with_block_latency() {
     assert!(stdout.contains("share"), "{stdout}");
 }
 
-/// Ctrl-C ends a live session cleanly: the trial under way is dropped, the
-/// reports and run record are written, and the exit code is 130. The board
-/// is emulated at 5x real time (a 20 s trial takes 4 s), so the signal
-/// lands mid-trial.
+/// Runs `palpate args...`, sends it SIGINT once a line containing `marker`
+/// appears on its stdout (`on_stderr`: its stderr), and returns its exit
+/// code, stdout and stderr (the watched stream's lines before the signal
+/// included).
 #[cfg(all(target_os = "linux", target_env = "gnu"))]
-#[test]
-fn ctrl_c_ends_a_live_session_with_its_reports() {
-    use std::io::BufRead;
-    let root = env!("CARGO_MANIFEST_DIR");
+fn interrupted_at(args: &[&str], on_stderr: bool, marker: &str) -> (Option<i32>, String, String) {
+    use std::io::{BufRead, Read};
     let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_palpate"))
-        .current_dir(root)
-        .args(["daq", "run", "--emulate-scene", "graphs/scenes/lab.toml"])
-        .args([
-            "--angle",
-            "60",
-            "--seed",
-            "3",
-            "--speed",
-            "5",
-            "--config",
-            "graphs/live.toml",
-        ])
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .args(args)
         .stdout(std::process::Stdio::piped())
         .stderr(std::process::Stdio::piped())
         .spawn()
         .unwrap();
-    let stdout = child.stdout.take().unwrap();
-    let mut lines = std::io::BufReader::new(stdout).lines();
+    let watched: Box<dyn Read> = if on_stderr {
+        Box::new(child.stderr.take().unwrap())
+    } else {
+        Box::new(child.stdout.take().unwrap())
+    };
+    let mut lines = std::io::BufReader::new(watched).lines();
     let mut seen = Vec::new();
-    // The first running estimate: the trial is under way.
     for line in lines.by_ref() {
         let line = line.unwrap();
-        let now = line.contains("wss: now ");
+        let hit = line.contains(marker);
         seen.push(line);
-        if now {
+        if hit {
             break;
         }
     }
-    assert!(seen.last().is_some_and(|l| l.contains("wss: now ")), "{seen:?}");
+    assert!(seen.last().is_some_and(|l| l.contains(marker)), "{seen:?}");
     // SAFETY: signalling our own child process.
     let pid = i32::try_from(child.id()).unwrap();
     assert_eq!(unsafe { libc::kill(pid, libc::SIGINT) }, 0);
     seen.extend(lines.map(Result::unwrap));
-    let status = child.wait().unwrap();
-    let text = seen.join("\n");
-    assert_eq!(status.code(), Some(130), "{text}");
+    let out = child.wait_with_output().unwrap();
+    let watched = seen.join("\n");
+    let other = String::from_utf8_lossy(if on_stderr { &out.stdout } else { &out.stderr }).into_owned();
+    let (stdout, stderr) = if on_stderr {
+        (other, watched)
+    } else {
+        (watched, other)
+    };
+    (out.status.code(), stdout, stderr)
+}
+
+/// Ctrl-C ends a live session cleanly: the trial under way is dropped, the
+/// reports and run record are written, and the exit code is 130. The board
+/// is emulated at 5x real time (a 20 s trial takes 4 s), so the signal
+/// lands mid-trial: at the first running estimate.
+#[cfg(all(target_os = "linux", target_env = "gnu"))]
+#[test]
+fn ctrl_c_ends_a_live_session_with_its_reports() {
+    let args = [&DAQ_RUN_60[..], &["--speed", "5", "--config", "graphs/live.toml"]].concat();
+    let (code, text, stderr) = interrupted_at(&args, false, "wss: now ");
+    assert_eq!(code, Some(130), "{text}\n{stderr}");
     assert!(
         text.contains("stopped by Ctrl-C after 0 finished trials"),
         "{text}"
     );
     assert!(text.contains("run record and per-stage timing in"), "{text}");
     assert!(!text.contains("wss: final"), "{text}");
+}
+
+/// Ctrl-C ends a live session with nothing in contact: the board streams
+/// frames but no trial and no estimate comes (here a contact threshold it
+/// never reaches, the scene played in real time, ~25 s), so a stop that
+/// waited for the next estimate never came; it is now seen at the next
+/// frame. Signalled once the session says it is streaming.
+#[cfg(all(target_os = "linux", target_env = "gnu"))]
+#[test]
+fn ctrl_c_ends_a_live_session_with_nothing_in_contact() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().to_str().unwrap();
+    let args = [
+        "run",
+        "graphs/live.toml",
+        "--live",
+        "--out",
+        out,
+        "--set",
+        "stages.daq.angles=[60]",
+        "--set",
+        "stages.daq.trials_per_angle=1",
+        "--set",
+        "stages.daq.contact_v=0.5",
+        "--set",
+        "stages.daq.release_v=0.6",
+        "--set",
+        "stages.daq.speed=1.0",
+    ];
+    let (code, stdout, stderr) = interrupted_at(&args, true, "streaming live; Ctrl-C stops");
+    let text = format!("{stdout}\n{stderr}");
+    assert_eq!(code, Some(130), "{text}");
+    assert!(
+        stdout.contains("stopped by Ctrl-C after 0 finished trials"),
+        "{text}"
+    );
+    let rec: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.path().join("run.json")).unwrap()).unwrap();
+    assert_eq!(rec["live"]["stopped"], true, "{rec}");
+    assert_eq!(rec["live"]["trials"], 0, "{rec}");
 }

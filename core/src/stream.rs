@@ -522,6 +522,12 @@ pub enum SourceEvent {
     Block(Payload),
     /// The trial ends.
     End,
+    /// Nothing for the run to stream, but the source is alive: a frame
+    /// arrived outside any trial (a board with nothing in contact), or a
+    /// wait for data elapsed (a silent board). A live run checks here
+    /// whether its caller wants to stop ([`replay_polled`]); without these
+    /// a session with nothing in contact could not be stopped.
+    Tick,
 }
 
 /// A source that produces its trials as they happen (a DAQ), for live runs:
@@ -733,7 +739,23 @@ pub fn replay_until(
     graph: &crate::Graph,
     plan: &LivePlan,
     block: usize,
+    on_update: impl FnMut(&LiveUpdate) -> std::ops::ControlFlow<()>,
+) -> Result<LiveRun, crate::RunError> {
+    replay_polled(graph, plan, block, on_update, || false)
+}
+
+/// [`replay_until`] that also asks `stop` whether to stop, after every
+/// block and at every [`SourceEvent::Tick`] of a live source (each frame a
+/// board sends outside a trial, each wait for a silent one): a stop asked
+/// for (Ctrl-C) is then seen within a block or a wait even when no
+/// estimate comes, as on a board with nothing in contact. `stop` returning
+/// true stops the stream as a `Break` from `on_update` does.
+pub fn replay_polled(
+    graph: &crate::Graph,
+    plan: &LivePlan,
+    block: usize,
     mut on_update: impl FnMut(&LiveUpdate) -> std::ops::ControlFlow<()>,
+    mut stop: impl FnMut() -> bool,
 ) -> Result<LiveRun, crate::RunError> {
     use crate::stage::Stage;
     let stopped = std::cell::Cell::new(false);
@@ -741,6 +763,13 @@ pub fn replay_until(
         if !stopped.get() && on_update(u).is_break() {
             stopped.set(true);
         }
+    };
+    // Whether to stop now: stopped already, or the caller's `stop` says so.
+    let mut poll = || {
+        if !stopped.get() && stop() {
+            stopped.set(true);
+        }
+        stopped.get()
     };
     // What the live source's stream returns when the caller stopped it.
     const STOP: &str = "stopped by the caller";
@@ -885,7 +914,7 @@ pub fn replay_until(
                 SourceEvent::Block(b) => match open.as_mut() {
                     Some(o) => {
                         push(o, b, &mut run, &mut on_update)?;
-                        if stopped.get() {
+                        if poll() {
                             return Err(stop_err());
                         }
                         Ok(())
@@ -900,6 +929,8 @@ pub fn replay_until(
                     Some(o) => finish(o, &mut finals, &mut run, &mut on_update),
                     None => Ok(()),
                 },
+                SourceEvent::Tick if poll() => Err(stop_err()),
+                SourceEvent::Tick => Ok(()),
             });
             match r {
                 // The trial under way, if any, is dropped.
@@ -918,6 +949,9 @@ pub fn replay_until(
                 m.index = k;
             }
             for meta in &metas {
+                if poll() {
+                    break;
+                }
                 let ctx = TrialContext {
                     stage_id: src_id,
                     meta,
@@ -939,7 +973,7 @@ pub fn replay_until(
                 };
                 for b in signal_blocks(signals, block) {
                     push(&mut open, b, &mut run, &mut on_update)?;
-                    if stopped.get() {
+                    if poll() {
                         break;
                     }
                 }

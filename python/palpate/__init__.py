@@ -590,7 +590,8 @@ def run_live(
     them). ``on_update`` gets every estimate as it changes: a dict with
     ``trial_id``, ``stage``, ``t_ms`` (stream time), ``last`` (the trial's
     final answer) and ``estimate`` (``kind``, ``angle_deg``, ...). An exception
-    it raises, or Ctrl-C (checked at each update), stops the stream (how a
+    it raises, or Ctrl-C (checked at each update and every 50 ms between,
+    so also with nothing in contact), stops the stream (how a
     session on a board that streams forever ends): the trial under way is
     dropped, the reports and ``run.json`` (``live.stopped``) cover the trials
     finished, and the exception is raised. The GIL is released while the

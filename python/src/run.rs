@@ -360,7 +360,7 @@ fn reports_dict<'py>(
 /// same report files plus `live_timing.md` / `.csv`. `on_update(dict)` is
 /// called with every estimate as it changes (`trial_id`, `stage`, `t_ms`,
 /// `last`, `estimate`). An exception it raises, or Ctrl-C (checked at each
-/// update), stops the stream: the trial under way is dropped, the sinks
+/// update and every 50 ms between), stops the stream: the trial under way is dropped, the sinks
 /// and the run record cover the trials finished, and the exception is
 /// raised.
 /// Returns the reports, the estimators' final estimates (as `run`'s
@@ -387,10 +387,13 @@ pub fn run_live<'py>(
         PalpateError::new_err(format!("{}: cannot run live:\n{}", graph.file, lines.join("\n")))
     })?;
     let t0 = std::time::Instant::now();
-    let mut raised: Option<PyErr> = None;
+    // What stopped the stream (an exception from `on_update`, or Ctrl-C),
+    // raised once the record is written. Shared by the two callbacks (a
+    // mutex only because the closure must be `Send`; one thread uses it).
+    let raised: std::sync::Mutex<Option<PyErr>> = std::sync::Mutex::new(None);
     let result = py.allow_threads(|| {
         no_panic("running the graph live", || {
-            Ok(palpate_core::stream::replay_until(&graph, &plan, block, |u| {
+            let updates = |u: &palpate_core::stream::LiveUpdate| {
                 use std::ops::ControlFlow;
                 // Ctrl-C (checked at each update) or an exception from
                 // `on_update` stops the stream; it is raised at the end.
@@ -410,11 +413,32 @@ pub fn run_live<'py>(
                 match r {
                     Ok(()) => ControlFlow::Continue(()),
                     Err(e) => {
-                        raised = Some(e);
+                        *raised.lock().unwrap_or_else(|p| p.into_inner()) = Some(e);
                         ControlFlow::Break(())
                     }
                 }
-            }))
+            };
+            // Between updates (a board with nothing in contact sends
+            // frames but no estimate), Ctrl-C is checked every 50 ms of
+            // the stream: taking the GIL at every 1 kHz frame would cost
+            // the chain more than its stages.
+            let mut last_check = std::time::Instant::now();
+            let stop = || {
+                if last_check.elapsed() < std::time::Duration::from_millis(50) {
+                    return false;
+                }
+                last_check = std::time::Instant::now();
+                match Python::with_gil(|py| py.check_signals()) {
+                    Ok(()) => false,
+                    Err(e) => {
+                        *raised.lock().unwrap_or_else(|p| p.into_inner()) = Some(e);
+                        true
+                    }
+                }
+            };
+            Ok(palpate_core::stream::replay_polled(
+                &graph, &plan, block, updates, stop,
+            ))
         })
     })?;
     let wall = t0.elapsed();
@@ -426,7 +450,7 @@ pub fn run_live<'py>(
         .map_err(|e| PalpateError::new_err(format!("{}: {e}", graph.file)))?;
     // A stopped run's record is written (the sinks reported the finished
     // trials) before what stopped it is raised.
-    if let Some(e) = raised {
+    if let Some(e) = raised.into_inner().unwrap_or_else(|p| p.into_inner()) {
         return Err(e);
     }
     let record = serde_json::to_value(palpate::report::live_run_record(&graph, &run, &live))

@@ -290,6 +290,35 @@ def test_run_live_stops_at_an_exception_from_on_update_and_raises_it(tmp_path, s
         palpate.run_live(str(GRAPHS / "live.toml"), block=0)
 
 
+def test_ctrl_c_stops_a_live_session_with_nothing_in_contact(tmp_path):
+    import _thread
+    import threading
+
+    # A contact threshold the board never reaches (it reads 1.75 V in
+    # contact), played in real time: ~25 s of frames, no trial, no update.
+    # Ctrl-C is checked between updates too, so the session stops.
+    timer = threading.Timer(0.5, _thread.interrupt_main)
+    timer.start()
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            palpate.run_live(
+                str(GRAPHS / "live.toml"),
+                set={
+                    "stages.daq.angles": [60.0],
+                    "stages.daq.trials_per_angle": 1,
+                    "stages.daq.contact_v": 0.5,
+                    "stages.daq.release_v": 0.6,
+                    "stages.daq.speed": 1.0,
+                },
+                out=tmp_path / "live",
+                on_update=lambda u: pytest.fail(f"an update with nothing in contact: {u}"),
+            )
+    finally:
+        timer.cancel()
+    record = json.loads((tmp_path / "live" / "run.json").read_text())
+    assert record["live"]["stopped"] is True and record["live"]["trials"] == 0
+
+
 def test_ctrl_c_interrupts_a_running_graph(tmp_path):
     import _thread
     import threading

@@ -77,7 +77,7 @@ fn corrupted_stream_counts_crc_errors_lost_frames_and_garbage() {
             DaqEvent::CrcError => events.0 += 1,
             DaqEvent::OutOfOrder => events.1 += 1,
             DaqEvent::Lost { count, .. } => events.2.push(count),
-            DaqEvent::Stall { .. } => {}
+            DaqEvent::Stall { .. } | DaqEvent::Waiting { .. } => {}
         }
         ControlFlow::Continue(())
     })
@@ -295,8 +295,9 @@ fn a_device_that_disappears_keeps_what_was_recorded() {
     assert_eq!(e.recorded_bytes, 300 * frame_len(SampleFormat::F32, 16) as u64);
 }
 
-#[test]
-fn a_silent_device_stalls_then_gives_up() {
+/// A pseudo-terminal whose device side has sent 50 frames of 4 channels at
+/// once and then stays silent (keep the returned master open meanwhile).
+fn fifty_frames_then_silence() -> (impl Sized, impl std::io::Read + Send + 'static) {
     let sig = recording(4, 50);
     let pty = open_pty().unwrap();
     let mut master = pty.master;
@@ -309,6 +310,12 @@ fn a_silent_device_stalls_then_gives_up() {
         },
     )
     .unwrap();
+    (master, pty.slave)
+}
+
+#[test]
+fn a_silent_device_stalls_then_gives_up() {
+    let (master, slave) = fifty_frames_then_silence();
     let opts = AcquireOptions {
         channels: Some(4),
         stall_timeout: Duration::from_millis(100),
@@ -316,7 +323,7 @@ fn a_silent_device_stalls_then_gives_up() {
         ..Default::default()
     };
     let mut stalls = 0;
-    let e = acquire(pty.slave, &opts, |ev| {
+    let e = acquire(slave, &opts, |ev| {
         stalls += u64::from(matches!(ev, DaqEvent::Stall { .. }));
         ControlFlow::Continue(())
     })
@@ -327,6 +334,41 @@ fn a_silent_device_stalls_then_gives_up() {
     assert_eq!(e.stats.stalls, 1, "one stall per silence");
     assert_eq!(stalls, 1);
     assert!(e.message.contains("after 50 frames"), "{}", e.message);
+}
+
+/// A caller can stop while the board is silent: between frames the
+/// acquisition reports each wait (`DaqEvent::Waiting`), so a stop asked for
+/// then (Ctrl-C on a live session) is seen without waiting for a frame,
+/// the stall or the give-up.
+#[test]
+fn a_silent_device_can_be_stopped_while_waiting() {
+    let (master, slave) = fifty_frames_then_silence();
+    let opts = AcquireOptions {
+        channels: Some(4),
+        stall_timeout: Duration::from_millis(100),
+        flush_interval: Duration::from_millis(10),
+        give_up_after: Some(Duration::from_secs(30)),
+        ..Default::default()
+    };
+    let (mut frames, mut waits) = (0u64, 0u64);
+    let report = acquire(slave, &opts, |ev| match ev {
+        DaqEvent::Frame(_) => {
+            frames += 1;
+            ControlFlow::Continue(())
+        }
+        // Once every frame is in, the first wait stops it.
+        DaqEvent::Waiting { silent } if frames == 50 => {
+            waits += 1;
+            assert!(silent < Duration::from_secs(30), "{silent:?}");
+            ControlFlow::Break(())
+        }
+        _ => ControlFlow::Continue(()),
+    })
+    .unwrap_or_else(|e| panic!("{}", e.message));
+    drop(master);
+    assert_eq!(report.stopped, StopReason::Callback);
+    assert_eq!((report.stats.frames, frames, waits), (50, 50, 1));
+    assert_eq!(report.stats.stalls, 0, "stopped before the stall");
 }
 
 #[test]

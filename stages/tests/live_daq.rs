@@ -420,8 +420,8 @@ fn bad_settings_name_their_key_and_a_missing_port_its_path() {
     assert!(e.contains("/dev/palpate-no-such-port"), "{e}");
 }
 
-/// `replay_until`: the caller stops the stream (Python's `run_live` on an
-/// exception or Ctrl-C). Stopped at a trial's final answer, that trial
+/// `replay_until` and `replay_polled`: the caller stops the stream
+/// (Python's `run_live` on an exception or Ctrl-C). Stopped at a trial's final answer, that trial
 /// counts and the rest are not streamed; stopped mid-trial, the trial is
 /// dropped. The same from a live source (the `daq` stage simulating the
 /// scene) and from a batch source cut into blocks (the `scene` stage).
@@ -491,5 +491,78 @@ fn a_caller_can_stop_a_live_stream() {
         .unwrap_or_else(|e| panic!("{e}"));
         assert_eq!((run.trials, run.stopped, calls), (0, true, 1), "{}", g.file);
         assert!(run.estimates[0].1.is_empty());
+        // Stopped by the poll (asked after each block, and at each frame
+        // outside a trial), at its 50th answer: in the first trial, or
+        // before it began.
+        let mut polls = 0;
+        let run = stream::replay_polled(
+            g,
+            &plan,
+            10,
+            |_| ControlFlow::Continue(()),
+            || {
+                polls += 1;
+                polls == 50
+            },
+        )
+        .unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!((run.trials, run.stopped, polls), (0, true, 50), "{}", g.file);
+        assert!(run.estimates[0].1.is_empty());
     }
+}
+
+/// `replay_polled`: a stop asked for while nothing is in contact is seen at
+/// once. The `daq` stage emulates the lab scene with a contact threshold
+/// the board never reaches (0.5 V; it reads 1.75 V in contact), so it
+/// streams frames but never a trial and no estimate comes: before
+/// `SourceEvent::Tick`, Ctrl-C on such a session waited for an estimate
+/// that never came. Here the poll is asked at every frame and the stream
+/// stops at its 200th answer; not stopped, the stream runs to its end with
+/// no trial.
+#[test]
+fn a_session_with_nothing_in_contact_can_be_stopped() {
+    let g = graph_with(
+        &format!(
+            "scene = \"{}\"\nangles = [60.0]\ntrials_per_angle = 1\ncontact_v = 0.5\nrelease_v = 0.6",
+            lab_scene().display()
+        ),
+        IZHIKEVICH,
+        &format!("{WSS}\n\n[stages.mae]\ntype = \"mae\"\ninputs = [\"wss\"]"),
+        "palpate-live-stop-no-contact",
+    );
+    let plan = stream::plan(&g).unwrap_or_else(|p| panic!("{p:?}"));
+    let mut polls = 0usize;
+    let mut updates = 0usize;
+    let run = stream::replay_polled(
+        &g,
+        &plan,
+        1,
+        |_| {
+            updates += 1;
+            std::ops::ControlFlow::Continue(())
+        },
+        || {
+            polls += 1;
+            polls == 200
+        },
+    )
+    .unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!((run.trials, run.stopped, updates), (0, true, 0));
+    // Not asked again once stopped.
+    assert_eq!(polls, 200);
+    // Never stopped: the whole stream, one poll per frame, and no trial.
+    let mut polls = 0usize;
+    let run = stream::replay_polled(
+        &g,
+        &plan,
+        1,
+        |_| std::ops::ControlFlow::Continue(()),
+        || {
+            polls += 1;
+            false
+        },
+    )
+    .unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!((run.trials, run.stopped), (0, false));
+    assert!(polls > 10_000, "{polls} polls");
 }

@@ -158,6 +158,14 @@ pub enum DaqEvent<'a> {
         /// How long the stream has been silent.
         silent: Duration,
     },
+    /// No bytes came for one wait (`min(stall_timeout, flush_interval)`,
+    /// at least 1 ms), `silent` since the last frame: the caller may act
+    /// (stop) while the board is silent, which it otherwise could not
+    /// until a frame or the stall.
+    Waiting {
+        /// How long the stream has been silent.
+        silent: Duration,
+    },
 }
 
 /// Why an acquisition stopped without error.
@@ -348,6 +356,10 @@ where
                                 (DaqErrorKind::Record, format!("cannot write the recording: {e}"))
                             })?;
                         }
+                    }
+                    let silent = last_frame.elapsed();
+                    if on_event(DaqEvent::Waiting { silent }).is_break() {
+                        return Ok(StopReason::Callback);
                     }
                 }
             }

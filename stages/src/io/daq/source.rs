@@ -580,7 +580,11 @@ impl DaqSource {
         let mut fail: Option<RunError> = None;
         let mut frames = 0u64;
         let stage = self.stage_id.clone();
-        let mut on_seg = |ev: SegEvent<'_>| -> Result<(), RunError> {
+        // `None`: a tick (see `SourceEvent::Tick`); one closure holds `on`.
+        let mut on_event = |ev: Option<SegEvent<'_>>| -> Result<(), RunError> {
+            let Some(ev) = ev else {
+                return on(SourceEvent::Tick);
+            };
             match ev {
                 SegEvent::Start => {
                     let meta = metas.get(trial).cloned().unwrap_or_else(|| TrialMeta {
@@ -605,7 +609,13 @@ impl DaqSource {
                         )));
                     }
                     frames += 1;
-                    seg.push(&f.samples, &mut on_seg)?;
+                    seg.push(&f.samples, &mut |e| on_event(Some(e)))?;
+                    // A frame outside a trial streams nothing: a tick, so
+                    // that a live run can stop on a board with nothing in
+                    // contact (see `SourceEvent::Tick`).
+                    if !seg.in_trial() {
+                        on_event(None)?;
+                    }
                     match last.as_mut() {
                         Some(l) => l.copy_from_slice(&f.samples),
                         None => last = Some(f.samples.clone()),
@@ -624,7 +634,7 @@ impl DaqSource {
                     );
                     if let Some(l) = last.clone() {
                         for _ in 0..count {
-                            seg.push(&l, &mut on_seg)?;
+                            seg.push(&l, &mut |e| on_event(Some(e)))?;
                         }
                     }
                 }
@@ -639,6 +649,7 @@ impl DaqSource {
                     self.stage_id,
                     silent.as_secs_f64()
                 ),
+                DaqEvent::Waiting { .. } => on_event(None)?,
             }
             Ok(())
         };
@@ -716,7 +727,7 @@ impl DaqSource {
             return Err(e);
         }
         result.map_err(|e| self.error(e.message))?;
-        seg.finish(&mut on_seg)
+        seg.finish(&mut |e| on_event(Some(e)))
     }
 
     /// Plays the scene's trials as frames into `tx`, `gap_ms` at `open_v` after each.
@@ -832,7 +843,7 @@ impl Source for DaqSource {
                             }
                         }
                     }
-                    SourceEvent::End => {}
+                    SourceEvent::End | SourceEvent::Tick => {}
                 }
                 Ok(())
             })
