@@ -325,7 +325,11 @@ pub fn summarize(runs: &[SweepRun], wanted: &[String]) -> Vec<SummaryRow> {
 }
 
 /// The summary as a terminal table: one row per value, one column per metric
-/// (`mean ± sd` when there are repeats).
+/// (`mean ± sd` when there are repeats). With more metrics than values
+/// (a graph of many estimators swept over its seeds: one value, 80
+/// metrics) the table is turned: one row per metric, one column per
+/// value, so it reads down the page instead of as one line hundreds of
+/// characters wide.
 pub fn render(key: &str, rows: &[SummaryRow]) -> String {
     let mut names: Vec<&str> = Vec::new();
     for r in rows {
@@ -335,13 +339,39 @@ pub fn render(key: &str, rows: &[SummaryRow]) -> String {
             }
         }
     }
+    let cell = |r: &SummaryRow, n: &str| match r.metrics.iter().find(|m| m.0 == n) {
+        Some((_, mean, sd, k)) if *k > 1 => format!("{mean:.3} ± {sd:.3}"),
+        Some((_, mean, ..)) => format!("{mean:.3}"),
+        None => "-".into(),
+    };
+    let mut s = String::new();
+    if names.len() > rows.len() {
+        let width = names
+            .iter()
+            .map(|n| n.len())
+            .chain(["metric".len()])
+            .max()
+            .unwrap_or(8);
+        let _ = write!(s, "{:<width$}", "metric");
+        for r in rows {
+            let _ = write!(s, "  {:>20}", format!("{key} = {}", r.label));
+        }
+        s.push('\n');
+        for n in &names {
+            let _ = write!(s, "{n:<width$}");
+            for r in rows {
+                let _ = write!(s, "  {:>20}", cell(r, n));
+            }
+            s.push('\n');
+        }
+        return s;
+    }
     let width = rows
         .iter()
         .map(|r| r.label.len())
         .chain([key.len()])
         .max()
         .unwrap_or(8);
-    let mut s = String::new();
     let _ = write!(s, "{key:<width$}");
     for n in &names {
         let _ = write!(s, "  {n:>20}");
@@ -350,12 +380,7 @@ pub fn render(key: &str, rows: &[SummaryRow]) -> String {
     for r in rows {
         let _ = write!(s, "{:<width$}", r.label);
         for n in &names {
-            let cell = match r.metrics.iter().find(|m| m.0 == *n) {
-                Some((_, mean, sd, k)) if *k > 1 => format!("{mean:.3} ± {sd:.3}"),
-                Some((_, mean, ..)) => format!("{mean:.3}"),
-                None => "-".into(),
-            };
-            let _ = write!(s, "  {cell:>20}");
+            let _ = write!(s, "  {:>20}", cell(r, n));
         }
         s.push('\n');
     }
@@ -367,5 +392,57 @@ pub fn point_dir(base_out: &Path, label: &str, repeat: Option<usize>) -> PathBuf
     match repeat {
         Some(r) => base_out.join(label).join(format!("r{r}")),
         None => base_out.join(label),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{render, SummaryRow};
+
+    fn row(label: &str, metrics: &[(&str, f64, f64, usize)]) -> SummaryRow {
+        SummaryRow {
+            label: label.into(),
+            series: None,
+            x: label.parse().ok(),
+            metrics: metrics.iter().map(|&(n, m, s, k)| (n.into(), m, s, k)).collect(),
+        }
+    }
+
+    /// Few metrics over many values: a row per value. Many metrics over one
+    /// value (a graph's seeds): a row per metric, the value as the column.
+    #[test]
+    fn the_longer_side_of_a_sweep_table_runs_down_the_page() {
+        let rows: Vec<SummaryRow> = (1..=3)
+            .map(|v| row(&v.to_string(), &[("a.mae_deg", v as f64, 0.5, 5)]))
+            .collect();
+        let t = render("speed", &rows);
+        let lines: Vec<&str> = t.lines().collect();
+        assert_eq!(lines.len(), 4, "{t}");
+        assert!(
+            lines[0].starts_with("speed") && lines[0].contains("a.mae_deg"),
+            "{t}"
+        );
+        assert!(
+            lines[2].starts_with('2') && lines[2].contains("2.000 ± 0.500"),
+            "{t}"
+        );
+
+        let many: Vec<(String, f64)> = (0..12).map(|i| (format!("est{i}.mae_deg"), i as f64)).collect();
+        let metrics: Vec<(&str, f64, f64, usize)> =
+            many.iter().map(|(n, v)| (n.as_str(), *v, 0.0, 1)).collect();
+        let one = [row("1", &metrics)];
+        let t = render("run.seed", &one);
+        let lines: Vec<&str> = t.lines().collect();
+        assert_eq!(lines.len(), 13, "{t}");
+        assert!(
+            lines[0].starts_with("metric") && lines[0].contains("run.seed = 1"),
+            "{t}"
+        );
+        assert!(
+            lines[8].starts_with("est7.mae_deg") && lines[8].ends_with("7.000"),
+            "{t}"
+        );
+        // Every line of either form is short.
+        assert!(t.lines().all(|l| l.len() < 80), "{t}");
     }
 }
