@@ -2,6 +2,7 @@
 
 import os
 import pathlib
+import signal
 
 import pytest
 
@@ -12,6 +13,18 @@ GRAPHS = REPO / "graphs"
 @pytest.fixture(scope="session")
 def repo() -> pathlib.Path:
     return REPO
+
+
+@pytest.fixture
+def sigint():
+    """Python's own Ctrl-C handler for the test. A process started in the
+    background by a non-interactive shell (`cmd &` in a script) inherits
+    SIGINT ignored, and then Python installs no handler and
+    `_thread.interrupt_main()` does nothing: the Ctrl-C tests would fail for
+    how they were launched, not for what they test."""
+    old = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, old)
 
 
 @pytest.fixture

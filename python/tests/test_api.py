@@ -255,7 +255,7 @@ def test_run_live_streams_the_graph_and_times_each_stage(tmp_path):
         assert (tmp_path / "live" / f).exists(), f
 
 
-def test_run_live_stops_at_an_exception_from_on_update_and_raises_it(tmp_path, small_graph):
+def test_run_live_stops_at_an_exception_from_on_update_and_raises_it(tmp_path, small_graph, sigint):
     def enough(u):
         if u["last"]:
             raise ValueError("one trial is enough")
@@ -290,7 +290,7 @@ def test_run_live_stops_at_an_exception_from_on_update_and_raises_it(tmp_path, s
         palpate.run_live(str(GRAPHS / "live.toml"), block=0)
 
 
-def test_ctrl_c_stops_a_live_session_with_nothing_in_contact(tmp_path):
+def test_ctrl_c_stops_a_live_session_with_nothing_in_contact(tmp_path, sigint):
     import _thread
     import threading
 
@@ -319,7 +319,7 @@ def test_ctrl_c_stops_a_live_session_with_nothing_in_contact(tmp_path):
     assert record["live"]["stopped"] is True and record["live"]["trials"] == 0
 
 
-def test_ctrl_c_interrupts_a_running_graph(tmp_path):
+def test_ctrl_c_interrupts_a_running_graph(tmp_path, sigint):
     import _thread
     import threading
 
