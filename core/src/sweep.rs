@@ -328,8 +328,8 @@ pub fn summarize(runs: &[SweepRun], wanted: &[String]) -> Vec<SummaryRow> {
 /// (`mean ± sd` when there are repeats). With more metrics than values
 /// (a graph of many estimators swept over its seeds: one value, 80
 /// metrics) the table is turned: one row per metric, one column per
-/// value, so it reads down the page instead of as one line hundreds of
-/// characters wide.
+/// value (the key heads the metric column), so it reads down the page
+/// instead of as one line hundreds of characters wide.
 pub fn render(key: &str, rows: &[SummaryRow]) -> String {
     let mut names: Vec<&str> = Vec::new();
     for r in rows {
@@ -346,21 +346,34 @@ pub fn render(key: &str, rows: &[SummaryRow]) -> String {
     };
     let mut s = String::new();
     if names.len() > rows.len() {
+        // The key heads the metric column; each value heads its own,
+        // as wide as its label or its widest cell.
         let width = names
             .iter()
             .map(|n| n.len())
-            .chain(["metric".len()])
+            .chain([key.len()])
             .max()
             .unwrap_or(8);
-        let _ = write!(s, "{:<width$}", "metric");
-        for r in rows {
-            let _ = write!(s, "  {:>20}", format!("{key} = {}", r.label));
+        let cols: Vec<usize> = rows
+            .iter()
+            .map(|r| {
+                names
+                    .iter()
+                    .map(|n| cell(r, n).chars().count())
+                    .chain([r.label.chars().count()])
+                    .max()
+                    .unwrap_or(0)
+            })
+            .collect();
+        let _ = write!(s, "{key:<width$}");
+        for (r, w) in rows.iter().zip(&cols) {
+            let _ = write!(s, "  {:>w$}", r.label);
         }
         s.push('\n');
         for n in &names {
             let _ = write!(s, "{n:<width$}");
-            for r in rows {
-                let _ = write!(s, "  {:>20}", cell(r, n));
+            for (r, w) in rows.iter().zip(&cols) {
+                let _ = write!(s, "  {:>w$}", cell(r, n));
             }
             s.push('\n');
         }
@@ -435,14 +448,19 @@ mod tests {
         let lines: Vec<&str> = t.lines().collect();
         assert_eq!(lines.len(), 13, "{t}");
         assert!(
-            lines[0].starts_with("metric") && lines[0].contains("run.seed = 1"),
+            lines[0].starts_with("run.seed") && lines[0].ends_with(" 1"),
             "{t}"
         );
         assert!(
             lines[8].starts_with("est7.mae_deg") && lines[8].ends_with("7.000"),
             "{t}"
         );
-        // Every line of either form is short.
+        // Every line of either form is short, and the turned table's
+        // columns line up.
         assert!(t.lines().all(|l| l.len() < 80), "{t}");
+        assert!(
+            t.lines().all(|l| l.chars().count() == lines[0].chars().count()),
+            "{t}"
+        );
     }
 }
