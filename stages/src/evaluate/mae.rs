@@ -499,6 +499,12 @@ fn fmt_opt(v: Option<f64>, prec: usize) -> String {
 /// Renders the statistics as a terminal table.
 pub fn render(stats: &MaeStats, per_class: bool) -> String {
     let mut s = String::new();
+    if stats.trials == 0 {
+        // A live session stopped before its first trial ended: say so
+        // rather than an empty table and a row of dashes.
+        let _ = writeln!(s, "estimator `{}`: no trial to score", stats.estimator);
+        return s;
+    }
     let _ = writeln!(s, "estimator `{}`: {} trials", stats.estimator, stats.trials);
     if per_class {
         let _ = writeln!(
@@ -789,6 +795,17 @@ mod tests {
         assert!(text.contains("MAE 1.67°"), "{text}");
     }
 
+    /// No trial (a live session stopped before its first ended): one line
+    /// saying so, not a table header over nothing and a row of dashes.
+    #[test]
+    fn no_trial_is_said_in_words() {
+        let s = mae_stats("w", &[]);
+        for per_class in [true, false] {
+            let text = render(&s, per_class);
+            assert_eq!(text, "estimator `w`: no trial to score\n");
+        }
+    }
+
     #[test]
     fn coarse_acuity_forgives_confusions_within_a_bin() {
         let pairs = vec![
@@ -833,7 +850,7 @@ mod tests {
         assert_eq!(median(&[4.0, 1.0, 2.0, 3.0]), Some(2.5));
         assert_eq!(median(&[f64::NAN, 1.0]), Some(1.0));
         let s = with_decision(
-            mae_stats("w", &[]),
+            mae_stats("w", &[(Some(30.0), Some(30.0)); 3]),
             &[(100.0, false), (300.0, true), (200.0, false)],
         );
         assert_eq!(s.decision_ms, Some(200.0));
