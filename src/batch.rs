@@ -16,7 +16,7 @@
 //! Every job's runs are announced to the cache before any starts
 //! ([`palpate_core::Cache::expect`]), so it keeps an output exactly while a
 //! run still to come needs it, within its memory budget
-//! ([`palpate_core::DEFAULT_CACHE_BYTES`]). Two jobs that run at the same time and
+//! ([`palpate_core::runtime::DEFAULT_CACHE_BYTES`]). Two jobs that run at the same time and
 //! need the same output may both compute it (the cache does not wait for
 //! an output in progress); ordering the jobs so that graphs sharing a front
 //! end do not start together avoids it.

@@ -182,7 +182,7 @@ pub struct SweepPlot {
     /// name (letters, digits, `-`, `_`, `.`) ending `.svg`, not starting
     /// `sweep_` or `frontier_` (palpate's own plots). Required.
     pub file: String,
-    /// Title above the plot. Default "<metric> across <x>".
+    /// Title above the plot. Default `"<metric> across <x>"`.
     #[serde(default)]
     pub title: Option<String>,
     /// The metric on the y axis, as sinks name it (`wss.mae_deg`); one of the

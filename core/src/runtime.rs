@@ -4,7 +4,7 @@
 //! estimators downstream of them before any trained estimator) runs
 //! **depth-first**: one trial at a time through the whole chain, trials in
 //! parallel on rayon's pool, keeping only the outputs a trained estimator or a
-//! sink reads (see [`chain`]). Peak memory is then O(threads x one trial) plus
+//! sink reads (see `chain`). Peak memory is then O(threads x one trial) plus
 //! what trained estimators must hold (spike images) and the estimates, not
 //! O(trials x samples) for every stage's output. Trained estimators and sinks,
 //! which need every trial of their input, then run one at a time in

@@ -16,7 +16,7 @@
 //! | estimates | the running estimate after the images so far; the last one is the trial's |
 //!
 //! The contract, tested for every streamable stage with blocks of 1, 7 and
-//! 1000 samples: [`concat`] of a stage's output blocks equals its batch output
+//! 1000 samples: [`concat()`] of a stage's output blocks equals its batch output
 //! on the whole trial (bit for bit where the arithmetic is the same; each test
 //! states its tolerance otherwise).
 //!

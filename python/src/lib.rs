@@ -9,7 +9,7 @@
 //! bits.
 //!
 //! Data cross the boundary as "raw" dicts of NumPy arrays and plain values (see
-//! [`convert`]); the pure-Python half (`palpate/__init__.py`) turns them into
+//! `convert`); the pure-Python half (`palpate/__init__.py`) turns them into
 //! the user-facing classes (tonic-convention event arrays among them).
 //!
 //! Errors: every failure becomes a Python exception of the `PalpateError`

@@ -99,7 +99,7 @@ pub fn line_chart(
 
 /// The house style shared by every plot palpate writes: one font family, the
 /// same title, axis-title and tick sizes, and the Tableau-10 colours
-/// ([`tab10`]), so that figures from different sinks sit together in a paper.
+/// (`tab10`), so that figures from different sinks sit together in a paper.
 pub mod style {
     /// Font family of every text.
     pub const FONT: &str = "DejaVu Sans, Helvetica, Arial, sans-serif";

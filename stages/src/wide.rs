@@ -362,7 +362,7 @@ const SCRATCH_KEEP_BYTES: usize = 64 << 20;
 /// afresh for every trial costs a page fault and a page clear per 4 kB,
 /// about as much as the arithmetic of a simple pass. One buffer per thread,
 /// reused trial after trial, keeps memory flat in the number of trials (it
-/// is as large as the longest trial seen, up to [`SCRATCH_KEEP_BYTES`]). A
+/// is as large as the longest trial seen, up to `SCRATCH_KEEP_BYTES`). A
 /// nested call gets a fresh buffer.
 pub fn with_scratch<R>(f: impl FnOnce(&mut Vec<[f64; LANES]>) -> R) -> R {
     SCRATCH.with(|cell| match cell.try_borrow_mut() {

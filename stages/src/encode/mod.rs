@@ -2,7 +2,7 @@
 //!
 //! An encoder reads [`Signals`] whose values are the input current of one
 //! neuron per taxel (usually made by the `drive` stage) and gives a
-//! [`SpikeTrain`] of time-sorted `(taxel, t_ms)` events whose `duration_ms` is
+//! [`palpate_core::SpikeTrain`] of time-sorted `(taxel, t_ms)` events whose `duration_ms` is
 //! the trial's duration.
 //!
 //! | type | neuron |

@@ -273,7 +273,7 @@ pub struct Mlp {
     pub classes: usize,
     /// Flat parameters. Set before the first prediction: the first layer
     /// with the standardisation folded in is made then and kept
-    /// ([`Mlp::folded`]); a network changed after it is a new `Mlp`.
+    /// (`Mlp::folded`); a network changed after it is a new `Mlp`.
     pub params: Vec<f64>,
     /// Input standardisation (set before the first prediction, as `params`).
     pub scaler: Standardizer,
@@ -497,7 +497,7 @@ impl Mlp {
     /// [`Self::frame_scores`] of every row of `x` (row-major, `dim` wide) into
     /// the rows of `out` (`classes` wide): both layers as one tiled product
     /// each over the whole batch ([`dense::gemm_nt`]), the first with the
-    /// standardisation folded into its weights ([`Self::folded`]); the same
+    /// standardisation folded into its weights (`Self::folded`); the same
     /// bits as `forward` row by row (the tests' reference pass), so a frame
     /// scored alone (live) and in a batch give the same answer.
     pub fn scores_batch(&self, x: &[f64], out: &mut [f64]) {

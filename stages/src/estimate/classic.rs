@@ -1018,7 +1018,7 @@ impl Knn {
 
     /// [`Self::frame_scores`] of every row of `x` into the rows of `out`,
     /// with the neighbours of [`Self::neighbours`] found through the `f32`
-    /// scan ([`knn_scan`]) when there is one, else by [`Self::scores_full`].
+    /// scan ([`knn_scan`]) when there is one, else by `Self::scores_full`.
     pub fn scores_batch(&self, x: &[f64], out: &mut [f64]) {
         let dim = self.dim.max(1);
         let kc = self.classes.max(1);

@@ -53,9 +53,9 @@
 //! [`gemm_nn`] is the same product with the second operand as columns
 //! (`b` row-major, `k x n`) and the first read through strides
 //! ([`View`]: a matrix or its transpose without a copy), for the RBMs'
-//! training minibatches: 20 rows, too few for [`narrow512`]'s packing, and
+//! training minibatches: 20 rows, too few for `narrow512`'s packing, and
 //! whose products are `v Wᵀ`, `h W` and `hᵀ v`. Outputs across the lanes
-//! as in [`narrow512`], the same bits as [`gemm_nt`] over the materialised
+//! as in `narrow512`, the same bits as [`gemm_nt`] over the materialised
 //! operands (test `gemm_nn_is_gemm_nt_bit_for_bit`).
 
 /// Rows of `A` per tile.
@@ -401,8 +401,8 @@ fn single<const SQ: bool>(x: &[f64], y: &[f64]) -> f64 {
 /// Three kernels, the same bits: when `b` has few rows (a layer's weights:
 /// at most [`NARROW`]), the outputs go across the vector lanes: with
 /// AVX-512, rows of at most [`NARROW_K512`] values and at least
-/// `ROWS512` (64) rows of `a`, [`narrow512`]; with AVX2 and rows of at
-/// most [`NARROW_K`] values, [`narrow_avx`]; otherwise the register tiles
+/// `ROWS512` (64) rows of `a`, `narrow512`; with AVX2 and rows of at
+/// most [`NARROW_K`] values, `narrow_avx`; otherwise the register tiles
 /// across `k`.
 pub fn gemm_nt(a: &[f64], b: &[f64], k: usize, out: &mut [f64]) {
     let n = b.len() / k.max(1);
@@ -430,7 +430,7 @@ pub fn gemm_nt(a: &[f64], b: &[f64], k: usize, out: &mut [f64]) {
 }
 
 /// A layer's weights `b` (`n` rows of `k`) laid out once for [`gemm_nt`]'s
-/// AVX-512 kernel ([`panels512`]), for a caller that multiplies by them
+/// AVX-512 kernel (`panels512`), for a caller that multiplies by them
 /// block after block: [`gemm_nt`] packs them at every call (the EDBN's
 /// prediction, 7 blocks of 512 rows, packed each layer 7 times).
 #[derive(Clone, Debug, Default)]
@@ -503,8 +503,8 @@ pub fn gemm_nt_packed(a: &[f64], b: &NarrowRhs, out: &mut [f64]) {
 /// `b` entry against a zero would have made the reference NaN; this
 /// skips it.
 ///
-/// With AVX-512, at least [`ROWS512`] rows, `b` of at most [`NARROW`] rows
-/// and rows of at most [`NARROW_K512`] values, [`sparse512`]; otherwise
+/// With AVX-512, at least `ROWS512` rows, `b` of at most [`NARROW`] rows
+/// and rows of at most [`NARROW_K512`] values, `sparse512`; otherwise
 /// [`gemm_nt`] itself.
 pub fn gemm_nt_sparse(a: &[f64], b: &[f64], k: usize, out: &mut [f64]) {
     #[cfg(target_arch = "x86_64")]
@@ -529,7 +529,7 @@ pub fn gemm_nt_sparse(a: &[f64], b: &[f64], k: usize, out: &mut [f64]) {
 
 /// A row-major `k x n` right operand of [`gemm_nn_sparse`], kept in the
 /// layout its kernel reads: rows padded with zeros to a multiple of
-/// [`SPARSE_COLS`] columns when the kernel can run (AVX-512, `k` at most
+/// `SPARSE_COLS` columns when the kernel can run (AVX-512, `k` at most
 /// [`NARROW_K512`]), as they are otherwise. Filled once and used for several
 /// products (the RBMs' training takes three products a minibatch with one
 /// transposed weight matrix).
@@ -592,7 +592,7 @@ fn sparse_kernel(k: usize, n: usize) -> bool {
 /// `out = a · b` for a row-major `a` (`m x k`, `m = a.len() / k`) with
 /// many zero entries and `b` as a [`SparseRhs`]: the bits of [`gemm_nn`]
 /// on the same operands (each entry [`dot`]'s) for a finite `b`, with the
-/// zero terms skipped by [`gemm_nt_sparse`]'s kernel ([`sparse512`]) when
+/// zero terms skipped by [`gemm_nt_sparse`]'s kernel (`sparse512`) when
 /// the operand was padded for it, else [`gemm_nn`] itself. Unlike
 /// [`gemm_nt_sparse`], for any number of rows: the operand is laid out
 /// once by its owner, so a small batch does not pay for a transpose.
@@ -741,8 +741,8 @@ fn transposed(b: &[f64], k: usize, np: usize) -> Aligned {
     bt
 }
 
-/// Widest rows for [`narrow512`]: the EDBN's input layer (80 values) and
-/// the ANN (ST)'s. Its packed `b` ([`panels512`], `k x 64` at most, 40 KB
+/// Widest rows for `narrow512`: the EDBN's input layer (80 values) and
+/// the ANN (ST)'s. Its packed `b` (`panels512`, `k x 64` at most, 40 KB
 /// at 80) is read one 16-column panel at a time (10 KB at 80), in L1.
 pub const NARROW_K512: usize = 128;
 
@@ -942,10 +942,10 @@ fn panel_columns(n: usize) -> usize {
 /// `k/4` 256-bit ones and a reduction, so up to two columns win.
 const FEW_COLUMNS: usize = 2;
 
-/// Most rows of `b` for [`narrow_avx`]: its transposed copy (`k x n`) is
+/// Most rows of `b` for `narrow_avx`: its transposed copy (`k x n`) is
 /// then at most `k · 64` doubles, in L1 for the widths used here.
 pub const NARROW: usize = 64;
-/// Widest rows for [`narrow_avx`]. In a throwaway timing of both kernels
+/// Widest rows for `narrow_avx`. In a throwaway timing of both kernels
 /// (thread CPU time, one core, not kept) it was ahead at the ANN's shapes
 /// (2848 rows x 30 x 16, x 17 x 30) and behind at 3154 x 30 x 80: with
 /// long rows the tiles' horizontal sums are amortised and their fewer loads

@@ -1128,7 +1128,7 @@ impl Dbn {
     /// [`Self::frame_scores`] of every row of `x` (row-major, `dim` wide) into
     /// the rows of `out` (`classes` wide), in row order: the same bits as row
     /// by row. Rate inference runs the network over blocks of
-    /// [`BLOCK_ROWS`] rows, each layer over a block as one tiled product
+    /// `BLOCK_ROWS` rows, each layer over a block as one tiled product
     /// ([`dense::gemm_nt`], the bits of a row's dot products).
     pub fn scores_batch(&self, x: &[f64], dim: usize, rng: &mut ChaCha8Rng, out: &mut [f64]) {
         let k = self.classes.max(1);

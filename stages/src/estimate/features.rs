@@ -79,7 +79,7 @@
 //! a loaded model predicts the same bits). [`FittedModel::stream`] returns a
 //! [`Streamer`] that takes one frame at a time and keeps the running vote; the
 //! batch [`Model::predict`] takes the frames a stream would use, scores them in
-//! one batch ([`Classifier::scores_batch`], the same bits row by row) and votes
+//! one batch (`Classifier::scores_batch`, the same bits row by row) and votes
 //! in the same order, so the two agree (except in `decision_time_ms`, which the batch caps at the
 //! trial's end: a stream cannot know where the trial ends; see `estimate`).
 //! A stage given a saved model (`model_in`, see [`super::saved`]) loads it
@@ -1055,7 +1055,7 @@ impl Accumulator {
     /// `scores` (rows as wide as the vote's classes), in order: the same
     /// state as those calls one by one.
     ///
-    /// With AVX-512 and at most 32 classes, [`Self::add_rows512`]: a row's
+    /// With AVX-512 and at most 32 classes, `Self::add_rows512`: a row's
     /// test, maximum, first index of the maximum and peaks in a few vector
     /// operations, where the frame-by-frame form took ~13 ns a frame of 17
     /// classes (a tenth of an ANN (S) prediction of the peers test set).

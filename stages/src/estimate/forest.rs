@@ -196,10 +196,10 @@ const WALKS: usize = 1024;
 /// those on a leaf (~10 % of the walks end sooner on the peers data).
 const EARLY: usize = 10;
 
-/// A forest's trees laid out for prediction: one array of [`Step`]s, tree
+/// A forest's trees laid out for prediction: one array of `Step`s, tree
 /// after tree (each followed by two dead ends), so that a walk is the same
 /// three loads and a compare at every node, leaves included. Built once per
-/// forest (`Forest` caches it); votes as [`Tree::predict_checked`] would.
+/// forest (`Forest` caches it); votes as `Tree::predict_checked` would.
 #[derive(Clone, Debug, Default)]
 pub struct Flat {
     /// Features per row.
@@ -268,10 +268,10 @@ impl Flat {
     /// one vote to `votes[r * k + c]` for the tree's class `c` of the row, if
     /// `c < k` (rows as many as both hold).
     ///
-    /// Up to [`WALKS`] walks (row, tree) go down together, a step at a time,
+    /// Up to `WALKS` walks (row, tree) go down together, a step at a time,
     /// each step moving every walk one node down, branch-free: so the load
     /// latencies of many walks overlap, and a tree's few deep walks share
-    /// their steps with other trees' walks. The first [`EARLY`] steps move
+    /// their steps with other trees' walks. The first `EARLY` steps move
     /// every walk (few have reached a leaf, which leads to itself); after
     /// that, the walks still going are kept in a list compacted without a
     /// branch, and the walk ends when the list is empty.

@@ -61,10 +61,10 @@
 //!
 //! # The kernel
 //!
-//! Training vectors in blocks of [`LANES`], coordinate-major (one 16-lane
+//! Training vectors in blocks of `LANES`, coordinate-major (one 16-lane
 //! `f32` vector per coordinate of a block), so a query coordinate broadcast
 //! against a block's coordinate advances 16 pairs at once. With AVX-512
-//! (and FMA) a register tile holds [`QT`] queries against two blocks (12
+//! (and FMA) a register tile holds `QT` queries against two blocks (12
 //! accumulators), each coordinate costing 2 loads, 6 broadcasts and 12 fused
 //! multiply-adds; without AVX-512 the same loop is written on 16-lane arrays
 //! that the compiler vectorises (multiply, then add). Both feed the same

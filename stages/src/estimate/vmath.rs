@@ -130,7 +130,7 @@ fn exp_parts(xc: f64) -> (f64, f64) {
 /// The exponential's argument is clamped at `−40` first: `e^−40 < 2^−54`,
 /// and for any `e` below that `1 − e` and `1 + e` both round to 1, so the
 /// result is `±1` whether `e` is `e^−40` or smaller: the bits of the
-/// unclamped formula, with the cheaper [`exp_small_nonpositive`] (about a
+/// unclamped formula, with the cheaper `exp_small_nonpositive` (about a
 /// fifth fewer operations than [`exp`]: no upper clamp, one scaling).
 #[inline(always)]
 pub fn tanh(x: f64) -> f64 {

@@ -82,7 +82,7 @@ pub struct MaeConfig {
     #[serde(default = "yes")]
     pub per_class: bool,
     /// Coarser acuities to report the MAE at, degrees (see the module docs).
-    /// Default [10].
+    /// Default `[10]`.
     #[serde(default = "ten")]
     pub acuity_deg: Vec<f64>,
     /// A trial counts as correct when its answer is within this many degrees

@@ -36,7 +36,7 @@ use std::sync::{mpsc, Arc};
 use std::time::{Duration, Instant};
 
 /// Writes a raw byte stream to disk as it arrives, flushing and syncing every
-/// `interval` (and on [`RawRecorder::finish`]).
+/// `interval`, on [`RawRecorder::flush`] and when dropped.
 pub struct RawRecorder {
     file: std::io::BufWriter<std::fs::File>,
     path: PathBuf,
