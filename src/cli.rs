@@ -754,7 +754,9 @@ fn run_live_graph(graph: &Graph, block: usize) -> ExitCode {
             }
             let live = crate::report::LiveRecord::new(graph, &run, t0.elapsed());
             println!("{}", live.summary());
-            print!("{}", live.stage_table());
+            if live.blocks > 0 {
+                print!("{}", live.stage_table());
+            }
             match crate::report::write_live_run_files(graph, &run, &live) {
                 Ok(files) => {
                     let names: Vec<String> = files.iter().map(|p| p.display().to_string()).collect();

@@ -420,6 +420,14 @@ impl LiveRecord {
     /// One line for the terminal.
     pub fn summary(&self) -> String {
         let b = &self.block_us;
+        if self.blocks == 0 {
+            // Stopped before any trial began (nothing in contact): no
+            // latency to give, rather than a row of zeros.
+            return format!(
+                "live replay: {:.2} s wall, no trial began: no block went through the chain",
+                self.wall_s
+            );
+        }
         format!(
             "live replay: {:.2} s wall for {:.1} s of stream ({} trials, {:.0}x real time); \
              {} blocks through the chain, per block mean {:.1} us, median {:.1} us, p95 {:.1} us, \

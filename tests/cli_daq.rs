@@ -206,6 +206,13 @@ fn ctrl_c_ends_a_live_session_with_nothing_in_contact() {
         stdout.contains("stopped by Ctrl-C after 0 finished trials"),
         "{text}"
     );
+    // No trial began: said in words, not latencies and a stage table of zeros.
+    assert!(
+        stdout.contains("no trial began: no block went through the chain")
+            && stdout.contains("estimator `wss`: no trial to score")
+            && !stdout.contains("median us"),
+        "{text}"
+    );
     let rec: serde_json::Value =
         serde_json::from_slice(&std::fs::read(dir.path().join("run.json")).unwrap()).unwrap();
     assert_eq!(rec["live"]["stopped"], true, "{rec}");
