@@ -360,9 +360,9 @@ fn reports_dict<'py>(
 /// same report files plus `live_timing.md` / `.csv`. `on_update(dict)` is
 /// called with every estimate as it changes (`trial_id`, `stage`, `t_ms`,
 /// `last`, `estimate`). An exception it raises, or Ctrl-C (checked at each
-/// update and every 50 ms between), stops the stream: the trial under way is dropped, the sinks
-/// and the run record cover the trials finished, and the exception is
-/// raised.
+/// update and every 50 ms between), stops the stream: the trial under way
+/// is dropped, the sinks and the run record cover the trials finished, and
+/// the exception is raised.
 /// Returns the reports, the estimators' final estimates (as `run`'s
 /// `estimates`), the run record with its `live` section (block latency,
 /// per-stage times) and the CLI's per-stage table.
