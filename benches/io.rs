@@ -1,5 +1,6 @@
-//! IO benches: DAQ frame decoding (must keep far ahead of 1 kHz x 16 taxels) and
-//! CSV signal reading.
+//! IO benches: DAQ frame decoding (must keep far ahead of 1 kHz x 16 taxels),
+//! and the content keys a sweep hashes its trained estimators' inputs into
+//! (`Item::content_key`) to reuse their fits.
 //!
 //! Run: `cargo bench --bench io`.
 
@@ -29,5 +30,37 @@ fn decode(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, decode);
+/// The keys of one run's training items in a fit-sharing sweep: the lab
+/// set's 170 trials of spike images, a median trial's 2158 frames x 16 taxels
+/// each (5.9 M counts).
+fn content_keys(c: &mut Criterion) {
+    use palpate_core::{Item, Payload, SpikeImages, TaxelLayout, TrialMeta};
+    use std::sync::Arc;
+    let items: Vec<Item> = (0..170)
+        .map(|t| Item {
+            meta: Arc::new(TrialMeta {
+                trial_id: format!("edge-r{t:03}"),
+                index: t,
+                ..TrialMeta::default()
+            }),
+            payload: Payload::from(SpikeImages {
+                layout: TaxelLayout::paper(),
+                window_ms: 100.0,
+                hop_ms: 10.0,
+                n_frames: 2158,
+                counts: (0..2158 * 16)
+                    .map(|k| f64::from(((k * 7 + t) % 11) as u32 % 3))
+                    .collect(),
+            }),
+        })
+        .collect();
+    let mut g = c.benchmark_group("cache");
+    g.throughput(Throughput::Bytes((170 * 2158 * 16 * 8) as u64));
+    g.bench_function("content_keys_170_lab_trials", |b| {
+        b.iter(|| items.iter().map(Item::content_key).fold(0u64, |a, k| a ^ k))
+    });
+    g.finish();
+}
+
+criterion_group!(benches, decode, content_keys);
 criterion_main!(benches);
