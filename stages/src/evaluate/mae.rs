@@ -45,7 +45,12 @@
 //!   `correct_within_deg` (default 0: the exact class) of the truth, and the
 //!   count of the others ("wrong", "no edge" included). With classes 5° apart
 //!   every miss costs at least 5°, so "4 of 170 wrong" says what an MAE of
-//!   0.12° (SD 0.76°) hides.
+//!   0.12° (SD 0.76°) hides. Exact-class accuracy cannot count right a true
+//!   angle between the classes (a recording at 33.3°) nor an answer refined
+//!   between them (WSS's `refine = "search"`): a note of the report counts
+//!   those trials and suggests `correct_within_deg` (half the class step
+//!   counts the nearest class right), so "0 of 8 right" is not read as
+//!   failure.
 //!
 //! * uncertain answers (metric `<id>.uncertain`): trials whose estimate flags
 //!   itself `uncertain` (each estimator documents its rule; WSS: a rival class
@@ -583,15 +588,7 @@ pub fn render(stats: &MaeStats, per_class: bool) -> String {
 /// at the grid's far end, where the edge's orientation is nearly the same).
 /// `None` when every true angle is covered or there is no grid.
 fn outside_note(id: &str, classes: &[f64], pairs: &[(Option<f64>, Option<f64>)]) -> Option<String> {
-    let mut grid: Vec<f64> = classes.iter().copied().filter(|a| a.is_finite()).collect();
-    grid.sort_by(f64::total_cmp);
-    let (&lo, &hi) = (grid.first()?, grid.last()?);
-    let step = grid
-        .windows(2)
-        .map(|w| w[1] - w[0])
-        .filter(|d| *d > 0.0)
-        .fold(f64::INFINITY, f64::min);
-    let half = if step.is_finite() { step / 2.0 } else { 0.0 };
+    let Grid { lo, hi, half, .. } = Grid::of(classes)?;
     let outside: Vec<f64> = pairs
         .iter()
         .filter_map(|(t, _)| *t)
@@ -619,6 +616,106 @@ fn outside_note(id: &str, classes: &[f64], pairs: &[(Option<f64>, Option<f64>)])
             .map(|a| format!("{}°", palpate_core::fmt_num(*a)))
             .collect::<Vec<_>>()
             .join(", ")
+    ))
+}
+
+/// An estimator's classes, sorted (finite ones), with their range and half
+/// the smallest step between two of them (0 for a single class).
+struct Grid {
+    classes: Vec<f64>,
+    lo: f64,
+    hi: f64,
+    half: f64,
+}
+
+impl Grid {
+    /// `None` without classes (estimates that score none).
+    fn of(classes: &[f64]) -> Option<Grid> {
+        let mut grid: Vec<f64> = classes.iter().copied().filter(|a| a.is_finite()).collect();
+        grid.sort_by(f64::total_cmp);
+        let (&lo, &hi) = (grid.first()?, grid.last()?);
+        let step = grid
+            .windows(2)
+            .map(|w| w[1] - w[0])
+            .filter(|d| *d > 0.0)
+            .fold(f64::INFINITY, f64::min);
+        let half = if step.is_finite() { step / 2.0 } else { 0.0 };
+        Some(Grid {
+            classes: grid,
+            lo,
+            hi,
+            half,
+        })
+    }
+
+    /// Whether `a` is one of the classes (to the 1e-6° exact-class accuracy allows).
+    fn has(&self, a: f64) -> bool {
+        self.classes.iter().any(|c| (c - a).abs() <= 1e-6)
+    }
+}
+
+/// A report line when exact-class accuracy (`correct_within_deg = 0`)
+/// counts trials wrong only because the truth or the answer lies between the
+/// estimator's classes: a true angle off the grid (a scene or recording at
+/// 33.3° against classes 5° apart) can never be answered exactly, and an
+/// estimator that refines its answer (`refine = "search"`) answers between
+/// classes, so "0 of 8 right" says nothing of how close they came. Truths
+/// beyond the grid's ends are [`outside_note`]'s. `None` when accuracy has
+/// a tolerance, there is no grid, or no such trial.
+fn between_note(
+    id: &str,
+    classes: &[f64],
+    pairs: &[(Option<f64>, Option<f64>)],
+    tolerance: f64,
+) -> Option<String> {
+    if tolerance > 0.0 {
+        return None;
+    }
+    let grid = Grid::of(classes)?;
+    let inside = |t: f64| t >= grid.lo - grid.half - 1e-9 && t <= grid.hi + grid.half + 1e-9;
+    let (mut truths, mut answers) = (Vec::new(), Vec::new());
+    for &(t, e) in pairs {
+        let Some(t) = t.filter(|t| inside(*t)) else {
+            continue;
+        };
+        if !grid.has(t) {
+            truths.push(t);
+        } else if let Some(e) = e.filter(|e| !grid.has(*e)) {
+            answers.push(e);
+        }
+    }
+    let deg = |v: f64| format!("{}°", palpate_core::fmt_num(v));
+    let trials = |n: usize| format!("{n} trial{}", if n == 1 { "" } else { "s" });
+    let mut parts = Vec::new();
+    if let Some(&t) = truths.first() {
+        parts.push(format!(
+            "{} with a true angle between `{id}`'s classes (e.g. {})",
+            trials(truths.len()),
+            deg(t)
+        ));
+    }
+    if let Some(&e) = answers.first() {
+        parts.push(format!(
+            "{} on a class answered between classes (e.g. {e:.2}°)",
+            trials(answers.len())
+        ));
+    }
+    if parts.is_empty() {
+        return None;
+    }
+    let hint = if grid.half > 0.0 {
+        format!(
+            " ({} is half the classes' {} step: the nearest class counts right)",
+            deg(grid.half),
+            deg(2.0 * grid.half)
+        )
+    } else {
+        String::new()
+    };
+    Some(format!(
+        "  note: accuracy is exact-class (`correct_within_deg = 0`): {} count wrong however close; the MAE \
+         says how close, or set the mae sink's `correct_within_deg`{hint}\n",
+        parts.join(" and ")
     ))
 }
 
@@ -664,6 +761,9 @@ impl Sink for MaeSink {
             report.text.push_str(&render(&stats, self.per_class));
             let id = input.stage_id;
             if let Some(note) = outside_note(id, &classes, &pairs) {
+                report.text.push_str(&note);
+            }
+            if let Some(note) = between_note(id, &classes, &pairs, self.correct_within_deg) {
                 report.text.push_str(&note);
             }
             if let Some(m) = stats.mae_deg {
@@ -947,5 +1047,43 @@ mod tests {
         );
         // No grid (estimates without class scores): nothing to say.
         assert_eq!(outside_note("x", &[], &far), None);
+    }
+
+    #[test]
+    fn exact_class_accuracy_notes_truths_and_answers_between_classes() {
+        let grid = [30.0, 10.0, 20.0];
+        // Class answers to class truths, truths beyond the ends (the other
+        // note's), no-edge answers: nothing to say.
+        let exact = [
+            (Some(10.0), Some(10.0)),
+            (Some(20.0), Some(30.0)),
+            (Some(30.0), None),
+            (Some(50.0), Some(30.0)),
+            (None, Some(12.5)),
+        ];
+        assert_eq!(between_note("wss", &grid, &exact, 0.0), None);
+        let off = [
+            (Some(12.5), Some(10.0)),
+            (Some(22.0), Some(20.0)),
+            (Some(20.0), Some(20.7)),
+            (Some(20.0), Some(20.0)),
+            (Some(50.0), Some(31.0)),
+        ];
+        let note = between_note("wss", &grid, &off, 0.0).unwrap();
+        assert!(
+            note.contains("2 trials with a true angle between `wss`'s classes (e.g. 12.5°)")
+                && note.contains("1 trial on a class answered between classes (e.g. 20.70°)")
+                && note.contains("5° is half the classes' 10° step"),
+            "{note}"
+        );
+        // With a tolerance, accuracy already says it; without a grid, nothing.
+        assert_eq!(between_note("wss", &grid, &off, 2.5), None);
+        assert_eq!(between_note("x", &[], &off, 0.0), None);
+        // One class: no step to suggest half of.
+        let note = between_note("wss", &[45.0], &[(Some(45.0), Some(44.0))], 0.0).unwrap();
+        assert!(
+            note.contains("1 trial on a class") && !note.contains("half"),
+            "{note}"
+        );
     }
 }
