@@ -277,6 +277,35 @@ fn spreadsheet_and_logger_csv_variants_read_the_same_samples() {
         "ignore_columns = [\"time_ms\"]\nsample_rate_hz = 1000.0",
     );
     assert_data(&s, 0, 12);
+    // A delimiter after every value (loggers that print `v,` per value),
+    // in `,`- and `;`-separated files: the same samples; a value under the
+    // unnamed last column is an error naming its line, not dropped.
+    for (name, sep) in [("trail.csv", ","), ("trail_semi.csv", ";")] {
+        let trail = plain.replace(',', sep).replace('\n', &format!("{sep}\n"));
+        std::fs::write(p.join(name), &trail).unwrap();
+        assert_data(&read(name, ""), 0, 12);
+    }
+    let stray: String = plain
+        .replace('\n', ",\n")
+        .lines()
+        .enumerate()
+        .map(|(k, l)| {
+            if k == 3 {
+                format!("{l}7\n")
+            } else {
+                format!("{l}\n")
+            }
+        })
+        .collect();
+    std::fs::write(p.join("stray.csv"), stray).unwrap();
+    let e = source_error(p, &src("stray.csv", ""));
+    assert!(
+        e.contains("stray.csv, line 4") && e.contains("`7`") && e.contains("header is empty"),
+        "{e}"
+    );
+    // An unnamed column elsewhere stays an unknown column.
+    std::fs::write(p.join("hole.csv"), plain.replacen("time_ms,", "time_ms,,", 1)).unwrap();
+    assert!(source_error(p, &src("hole.csv", "")).contains("unknown column ``"));
     // A decimal comma in a `;`-separated file: an error that names it.
     let comma = plain
         .replace(',', ";")
@@ -742,8 +771,30 @@ fn spike_files_map_events_to_taxels() {
     let a = spikes(&items(&r, "src")[0]);
     let ev: Vec<(u32, f64)> = a.events.iter().map(|e| (e.taxel, e.t_ms)).collect();
     assert_eq!(ev, vec![(4, 0.0), (5, 1250.0)]);
+    // A delimiter ending every line (a logger's `v,` per value), in the
+    // events and in a CSV label file: the same events and labels.
+    std::fs::write(p.join("ev3.csv"), "x,y,t,p,\n2,1,1500,1,\n0,0,250,0,\n").unwrap();
+    std::fs::write(p.join("lab.csv"), "trial,angle_deg,\nev3,30,\n").unwrap();
+    let r = run_graph(
+        p,
+        &format!("[stages.src]\ntype = \"spike_file\"\npath = \"ev3.csv\"\nlabels = \"lab.csv\"\n{grid}\n"),
+    )
+    .unwrap();
+    let c = &items(&r, "src")[0];
+    let ev: Vec<(u32, f64)> = spikes(c).events.iter().map(|e| (e.taxel, e.t_ms)).collect();
+    assert_eq!(ev, vec![(0, 0.25), (5, 1.5)]);
+    assert_eq!(c.meta.label.angle_deg, Some(30.0));
+    std::fs::write(p.join("lab.csv"), "trial,angle_deg,\nev3,30,x\n").unwrap();
+    let e = run_graph(
+        p,
+        &format!("[stages.src]\ntype = \"spike_file\"\npath = \"ev3.csv\"\nlabels = \"lab.csv\"\n{grid}\n"),
+    )
+    .err()
+    .unwrap();
+    assert!(e.contains("lab.csv, line 2") && e.contains("`x`"), "{e}");
     // Errors: outside the grid, non-integer coordinates, NaN time.
     for (body, want) in [
+        ("x,y,t,\n0,0,1,2\n", "a value `2` in the last column"),
         ("x,y,t\n3,0,5\n", "outside the 2 x 3 grid"),
         ("x,y,t\n0.5,0,5\n", "whole numbers"),
         ("x,y,t\n0,0,nan\n", "not finite"),

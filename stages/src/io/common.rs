@@ -450,6 +450,27 @@ pub fn user_csv_reader(bytes: &[u8]) -> csv::Reader<&[u8]> {
         .from_reader(bytes)
 }
 
+/// The trailing empty column of a header that ends with the delimiter
+/// (`taxel_0,...,taxel_15,`), as loggers that print a delimiter after every
+/// value write their lines: the reader sees one more column, unnamed, whose
+/// cells must be empty ([`check_trailing`]). `None` otherwise (an empty
+/// header name elsewhere stays an unknown column).
+pub fn trailing_column(headers: &csv::StringRecord) -> Option<usize> {
+    (headers.len() > 1 && headers.iter().next_back() == Some("")).then(|| headers.len() - 1)
+}
+
+/// An error when `rec` holds a value in the [trailing](trailing_column)
+/// column `col`: no value is dropped silently. `at`: the file and line.
+pub fn check_trailing(rec: &csv::StringRecord, col: Option<usize>, at: &str) -> Result<(), String> {
+    match col.and_then(|c| rec.get(c)) {
+        Some(v) if !v.is_empty() => Err(format!(
+            "{at}: a value `{v}` in the last column, whose header is empty (the header line ends \
+             with a delimiter): name that column, or end the rows as the header ends"
+        )),
+        _ => Ok(()),
+    }
+}
+
 /// The error for a cell that is not a number (`noun`, e.g. "a number" or
 /// "a time"), with a hint when the cell is one written with a decimal comma
 /// (`1,75`), as `;`-separated files from such locales hold.
@@ -769,8 +790,12 @@ pub fn parse_sidecar(
                 .map_err(|e| StageError::new(format!("label sidecar {shown}: {e}")))?
                 .clone();
             let mut trial_col = None;
+            let trailing = trailing_column(&headers);
             let mut seen = std::collections::HashSet::new();
             for (i, h) in headers.iter().enumerate() {
+                if Some(i) == trailing {
+                    continue;
+                }
                 if !seen.insert(h) {
                     return Err(StageError::new(format!(
                         "label sidecar {shown}: column `{h}` appears twice in the header"
@@ -792,6 +817,8 @@ pub fn parse_sidecar(
                 let line = r + 2;
                 let rec =
                     rec.map_err(|e| StageError::new(format!("label sidecar {shown}, line {line}: {e}")))?;
+                check_trailing(&rec, trailing, &format!("label sidecar {shown}, line {line}"))
+                    .map_err(StageError::new)?;
                 let id = rec.get(trial_col).unwrap_or("").to_string();
                 if id.is_empty() {
                     return Err(StageError::new(format!(
@@ -800,7 +827,7 @@ pub fn parse_sidecar(
                 }
                 let mut l = TrialLabels::default();
                 for (i, h) in headers.iter().enumerate() {
-                    if i != trial_col {
+                    if i != trial_col && Some(i) != trailing {
                         set_label_cell(
                             &mut l,
                             h,

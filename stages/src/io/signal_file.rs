@@ -20,7 +20,9 @@
 //! Any other column is an error (it would otherwise be silently ignored),
 //! unless `ignore_columns` lists it. The delimiter is `,`, or `;` or a tab
 //! when the header has no comma (spreadsheets in decimal-comma locales,
-//! loggers writing TSV); numbers use a decimal point. The
+//! loggers writing TSV); numbers use a decimal point. A delimiter ending
+//! the header line and every row (loggers printing `v,` per value) is no
+//! column; a value after it is an error. The
 //! file must end with a line end: a last line without one is taken as a file
 //! cut while being written (its last number may have lost digits).
 //! Lines starting with `#` are comments.
@@ -829,13 +831,20 @@ fn read_csv_signals(
         Trial,
         Label,
         Ignored,
+        /// The unnamed column after a delimiter ending the header line.
+        Trailing,
     }
     // Hash lookups: a layout of 160k taxels made matching quadratic (32 s).
     let by_name: std::collections::HashMap<&str, usize> =
         names.iter().enumerate().map(|(i, n)| (n.as_str(), i)).collect();
     let mut seen = std::collections::HashSet::new();
     let mut cols = Vec::new();
+    let trailing = super::common::trailing_column(&headers);
     for (k, h) in headers.iter().enumerate() {
+        if Some(k) == trailing {
+            cols.push(Col::Trailing);
+            continue;
+        }
         if !seen.insert(h) {
             return Err(format!(
                 "{shown}: column `{h}` appears twice in the header (column {} is a repeat)",
@@ -949,6 +958,9 @@ fn read_csv_signals(
                     t.times_ms.push((line, v * scale));
                 }
                 Col::Trial | Col::Ignored => {}
+                Col::Trailing => {
+                    super::common::check_trailing(&rec, Some(i), &format!("{shown}, line {line}"))?
+                }
                 Col::Label => set_label_cell(&mut row_labels, &headers[i], cell, &what())?,
             }
         }

@@ -534,8 +534,12 @@ fn read_csv_events(
     let mut rdr = super::common::user_csv_reader(bytes);
     let headers = rdr.headers().map_err(|e| csv_error(shown, &e))?.clone();
     let find = |n: &str| headers.iter().position(|h| h == n);
+    let trailing = super::common::trailing_column(&headers);
     let mut seen = std::collections::HashSet::new();
-    for h in headers.iter() {
+    for (i, h) in headers.iter().enumerate() {
+        if Some(i) == trailing {
+            continue;
+        }
         if !seen.insert(h) {
             return Err(format!("{shown}: column `{h}` appears twice in the header"));
         }
@@ -563,6 +567,7 @@ fn read_csv_events(
         let rec = rec.map_err(|e| csv_error(shown, &e))?;
         let line = rec.position().map_or(0, |p| p.line());
         let what = format!("{shown}, line {line}");
+        super::common::check_trailing(&rec, trailing, &what)?;
         let num = |i: usize| -> Result<f64, String> {
             let cell = rec.get(i).unwrap_or("");
             cell.parse::<f64>().map_err(|_| {
