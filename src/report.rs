@@ -531,7 +531,8 @@ pub fn write_live_run_files(
 /// per metric; in the series form (whose series vary different keys, so share
 /// no x axis), one `sweep_<series>_<metric>.svg` per series with numeric values
 /// and per metric listed in `metrics` (none when `metrics` is empty: a series
-/// sweep reports many metrics, and the frontier plots are its summary).
+/// sweep reports many metrics, and the frontier plots are its summary). A
+/// curve needs two values of its key: a sweep of one value charts nothing.
 pub fn sweep_report(graph: &Graph, runs: &[palpate_core::sweep::SweepRun]) -> (String, bool) {
     use palpate_core::output::write_atomic;
     let mut text = String::new();
@@ -616,6 +617,13 @@ pub fn sweep_report(graph: &Graph, runs: &[palpate_core::sweep::SweepRun]) -> (S
     }
     for (prefix, key, of, all_metrics) in groups {
         if of.is_empty() || !of.iter().all(|r| r.x.is_some()) {
+            continue;
+        }
+        // A line over one x value is a dot: a sweep of one point (repeats
+        // over seeds, as graphs/paper/table2.toml) wrote 72 such charts;
+        // the table above says it all.
+        let first = of[0].x;
+        if of.iter().all(|r| r.x == first) {
             continue;
         }
         let mut names: Vec<&str> = Vec::new();

@@ -194,3 +194,28 @@ x = "hop"
         assert!(!out.status.success() && err.contains(want), "{want}: {err}");
     }
 }
+
+/// Without `[[sweep.plot]]` tables, a sweep over numbers charts each metric
+/// against its key; a sweep of one value (repeats over seeds only) charts
+/// nothing, since a line over one x value is a dot.
+#[test]
+fn default_charts_need_two_values_of_the_key() {
+    let d = tempfile::tempdir().unwrap();
+    let base = graph("");
+    let sweep_at = base.find("[sweep]").unwrap();
+    for (values, repeats, charts) in [("[20.0, 40.0]", 1, true), ("[20.0]", 2, false)] {
+        let g = format!(
+            "{}[sweep]\nkey = \"stages.bins.hop_ms\"\nvalues = {values}\nrepeats = {repeats}\n",
+            &base[..sweep_at]
+        );
+        std::fs::write(d.path().join("g.toml"), g).unwrap();
+        let out = palpate_in(d.path())
+            .args(["run", "g.toml", "--out", "o", "--fresh"])
+            .output()
+            .unwrap();
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        let chart = d.path().join("o/sweep_wss_mae_deg.svg");
+        assert_eq!(chart.exists(), charts, "values {values}");
+        let _ = std::fs::remove_dir_all(d.path().join("o"));
+    }
+}
