@@ -109,12 +109,17 @@ fn a_live_run_writes_its_run_record_with_block_latency() {
     assert!(stdout.contains("share"), "{stdout}");
 }
 
-/// Runs `palpate args...`, sends it SIGINT once a line containing `marker`
-/// appears on its stdout (`on_stderr`: its stderr), and returns its exit
-/// code, stdout and stderr (the watched stream's lines before the signal
-/// included).
+/// Runs `palpate args...`, sends it SIGINT `after` a line containing
+/// `marker` appears on its stdout (`on_stderr`: its stderr), and returns its
+/// exit code, stdout and stderr (the watched stream's lines before the
+/// signal included).
 #[cfg(all(target_os = "linux", target_env = "gnu"))]
-fn interrupted_at(args: &[&str], on_stderr: bool, marker: &str) -> (Option<i32>, String, String) {
+fn interrupted_at(
+    args: &[&str],
+    on_stderr: bool,
+    marker: &str,
+    after: std::time::Duration,
+) -> (Option<i32>, String, String) {
     use std::io::{BufRead, Read};
     let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_palpate"))
         .current_dir(env!("CARGO_MANIFEST_DIR"))
@@ -139,6 +144,7 @@ fn interrupted_at(args: &[&str], on_stderr: bool, marker: &str) -> (Option<i32>,
         }
     }
     assert!(seen.last().is_some_and(|l| l.contains(marker)), "{seen:?}");
+    std::thread::sleep(after);
     // SAFETY: signalling our own child process.
     let pid = i32::try_from(child.id()).unwrap();
     assert_eq!(unsafe { libc::kill(pid, libc::SIGINT) }, 0);
@@ -162,7 +168,7 @@ fn interrupted_at(args: &[&str], on_stderr: bool, marker: &str) -> (Option<i32>,
 #[test]
 fn ctrl_c_ends_a_live_session_with_its_reports() {
     let args = [&DAQ_RUN_60[..], &["--speed", "5", "--config", "graphs/live.toml"]].concat();
-    let (code, text, stderr) = interrupted_at(&args, false, "wss: now ");
+    let (code, text, stderr) = interrupted_at(&args, false, "wss: now ", std::time::Duration::ZERO);
     assert_eq!(code, Some(130), "{text}\n{stderr}");
     assert!(
         text.contains("stopped by Ctrl-C after 0 finished trials"),
@@ -199,7 +205,13 @@ fn ctrl_c_ends_a_live_session_with_nothing_in_contact() {
         "--set",
         "stages.daq.speed=1.0",
     ];
-    let (code, stdout, stderr) = interrupted_at(&args, true, "streaming live; Ctrl-C stops");
+    // Half a second in, so the board has sent frames (at 1 kHz) to diagnose.
+    let (code, stdout, stderr) = interrupted_at(
+        &args,
+        true,
+        "streaming live; Ctrl-C stops",
+        std::time::Duration::from_millis(500),
+    );
     let text = format!("{stdout}\n{stderr}");
     assert_eq!(code, Some(130), "{text}");
     assert!(
@@ -213,8 +225,67 @@ fn ctrl_c_ends_a_live_session_with_nothing_in_contact() {
             && !stdout.contains("median us"),
         "{text}"
     );
+    // ... and why: the board's levels against the threshold, on the stop too.
+    assert!(
+        stderr.contains("daq `daq`: no contact in ")
+            && stderr.contains("never at or under `contact_v` = 0.5"),
+        "{text}"
+    );
     let rec: serde_json::Value =
         serde_json::from_slice(&std::fs::read(dir.path().join("run.json")).unwrap()).unwrap();
     assert_eq!(rec["live"]["stopped"], true, "{rec}");
     assert_eq!(rec["live"]["trials"], 0, "{rec}");
+}
+
+/// A stream that ends without contact says why: the range of each frame's
+/// lowest taxel against `contact_v` (here the emulated board's open 3.3 V and
+/// contact ~1.7 V against a threshold of 0.5 V), and the keys to set. A
+/// threshold met, but not for `enter_ms`, says for how many frames it was.
+#[test]
+fn a_live_stream_without_contact_says_which_levels_it_saw() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = |contact: &str, release: &str, enter: &str| {
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_palpate"))
+            .current_dir(env!("CARGO_MANIFEST_DIR"))
+            .args(["run", "graphs/live.toml", "--live", "--out"])
+            .arg(dir.path())
+            .args([
+                "--set",
+                "stages.daq.angles=[60]",
+                "--set",
+                "stages.daq.trials_per_angle=1",
+            ])
+            .args(["--set", &format!("stages.daq.contact_v={contact}")])
+            .args(["--set", &format!("stages.daq.release_v={release}")])
+            .args(["--set", &format!("stages.daq.enter_ms={enter}")])
+            .output()
+            .unwrap();
+        let stderr = String::from_utf8_lossy(&out.stderr).to_string();
+        assert!(out.status.success(), "{stderr}");
+        stderr
+    };
+    let e = run("0.5", "0.6", "20");
+    let line = e
+        .lines()
+        .find(|l| l.contains("no contact in"))
+        .unwrap_or_else(|| panic!("{e}"));
+    assert!(
+        line.contains("to 3.3 V, never at or under `contact_v` = 0.5")
+            && line.contains("after 20 frames")
+            && line.contains("`scale`"),
+        "{line}"
+    );
+    // The trial's contact lasts seconds: an `enter_ms` longer than the
+    // whole stream finds it, but never long enough.
+    let e = run("3.0", "3.2", "60000");
+    let line = e
+        .lines()
+        .find(|l| l.contains("no contact in"))
+        .unwrap_or_else(|| panic!("{e}"));
+    assert!(
+        line.contains("at or under `contact_v` = 3 for at most "),
+        "{line}"
+    );
+    // With contact, nothing to explain.
+    assert!(!run("3.0", "3.2", "20").contains("no contact"));
 }

@@ -744,6 +744,11 @@ pub fn replay_until(
     replay_polled(graph, plan, block, on_update, || false)
 }
 
+/// The message of the error a live source's `on` callback returns once the
+/// caller of [`replay_polled`] stopped the stream: a source that reports on
+/// its way out (e.g. why no trial began) can tell a stop from a failure.
+pub const STOPPED: &str = "stopped by the caller";
+
 /// [`replay_until`] that also asks `stop` whether to stop, after every
 /// block and at every [`SourceEvent::Tick`] of a live source (each frame a
 /// board sends outside a trial, each wait for a silent one): a stop asked
@@ -771,8 +776,6 @@ pub fn replay_polled(
         }
         stopped.get()
     };
-    // What the live source's stream returns when the caller stopped it.
-    const STOP: &str = "stopped by the caller";
     let src_id = graph.nodes[plan.source].id.as_str();
     let Stage::Source(src) = &graph.nodes[plan.source].stage else {
         return Err(crate::RunError {
@@ -888,7 +891,7 @@ pub fn replay_polled(
             let stop_err = || crate::RunError {
                 stage: src_id.to_string(),
                 trial: None,
-                message: STOP.into(),
+                message: STOPPED.into(),
             };
             let r = live.stream(&mut |ev| match ev {
                 _ if stopped.get() => Err(stop_err()),
@@ -934,7 +937,7 @@ pub fn replay_polled(
             });
             match r {
                 // The trial under way, if any, is dropped.
-                Err(e) if stopped.get() && e.message == STOP => {}
+                Err(e) if stopped.get() && e.message == STOPPED => {}
                 Err(e) => return Err(e),
                 Ok(()) => {
                     if let Some(o) = open.take() {

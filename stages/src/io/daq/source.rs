@@ -579,6 +579,11 @@ impl DaqSource {
         let mut last: Option<Vec<f64>> = None;
         let mut fail: Option<RunError> = None;
         let mut frames = 0u64;
+        // For the diagnosis of a stream with no contact: the range of each
+        // frame's lowest taxel, and the longest run of frames at or under
+        // `contact_v`.
+        let mut lows = (f64::INFINITY, f64::NEG_INFINITY);
+        let (mut run_now, mut run_max) = (0usize, 0usize);
         let stage = self.stage_id.clone();
         // `None`: a tick (see `SourceEvent::Tick`); one closure holds `on`.
         let mut on_event = |ev: Option<SegEvent<'_>>| -> Result<(), RunError> {
@@ -609,6 +614,12 @@ impl DaqSource {
                         )));
                     }
                     frames += 1;
+                    if let SegmentPlan::Contact { contact, .. } = self.c.plan {
+                        let low = f.samples.iter().copied().fold(f64::INFINITY, f64::min);
+                        lows = (lows.0.min(low), lows.1.max(low));
+                        run_now = if low <= contact { run_now + 1 } else { 0 };
+                        run_max = run_max.max(run_now);
+                    }
                     seg.push(&f.samples, &mut |e| on_event(Some(e)))?;
                     // A frame outside a trial streams nothing: a tick, so
                     // that a live run can stop on a board with nothing in
@@ -723,11 +734,70 @@ impl DaqSource {
                 r.map(|_| ())
             }
         };
+        // Why no trial began, when none did: at the stream's end, or when
+        // the user stopped a session that never saw contact (a board
+        // streams until stopped), but not over a failure.
+        let stopped = fail.as_ref().map(|e| e.message == palpate_core::stream::STOPPED);
+        let diagnose = |trial: usize| {
+            if let (0, true, SegmentPlan::Contact { contact, enter, .. }) = (trial, frames > 0, self.c.plan) {
+                eprintln!("{}", self.no_contact(frames, lows, run_max, contact, enter));
+            }
+        };
         if let Some(e) = fail {
+            if stopped == Some(true) {
+                diagnose(trial);
+            }
             return Err(e);
         }
         result.map_err(|e| self.error(e.message))?;
-        seg.finish(&mut |e| on_event(Some(e)))
+        seg.finish(&mut |e| on_event(Some(e)))?;
+        diagnose(trial);
+        Ok(())
+    }
+
+    /// Why a stream of `frames` frames began no trial: the range `lows` of
+    /// each frame's lowest taxel against `contact_v`, and what to set. The
+    /// usual causes: thresholds left at the default 3.0 V for a board with
+    /// another range, or values in other units (a recording in mV reads
+    /// ~1700 where the default thresholds expect volts).
+    fn no_contact(
+        &self,
+        frames: u64,
+        lows: (f64, f64),
+        run_max: usize,
+        contact: f64,
+        enter: usize,
+    ) -> String {
+        let unit = &self.c.unit;
+        let num = palpate_core::fmt_num;
+        // Four significant digits: the samples are f32 from the board.
+        let sig = |v: f64| {
+            if v == 0.0 || !v.is_finite() {
+                return num(v);
+            }
+            let p = 10f64.powi(3 - v.abs().log10().floor() as i32);
+            num((v * p).round() / p)
+        };
+        let relation = if lows.0 > contact {
+            format!("never at or under `contact_v` = {}", num(contact))
+        } else {
+            format!(
+                "at or under `contact_v` = {} for at most {} in a row",
+                num(contact),
+                super::protocol::count(run_max as u64, "frame", "frames")
+            )
+        };
+        format!(
+            "daq `{}`: no contact in {}: the lowest taxel of a frame read {} to {} {unit}, {relation}; \
+             a trial begins after {} at or under it (`enter_ms`). Set `contact_v` and `release_v` \
+             for this board (a pressed taxel reads low), or `scale` if its values come in other \
+             units (e.g. 0.001 for mV)",
+            self.stage_id,
+            super::protocol::count(frames, "frame", "frames"),
+            sig(lows.0),
+            sig(lows.1),
+            super::protocol::count(enter as u64, "frame", "frames"),
+        )
     }
 
     /// Plays the scene's trials as frames into `tx`, `gap_ms` at `open_v` after each.
