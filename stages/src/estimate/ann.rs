@@ -49,12 +49,7 @@ use super::features::{
     MODEL_FORMAT,
 };
 use super::{dense, vmath};
-use crate::estimate::features::{FitBaseline, TrainedEstimator};
-use crate::estimate::saved;
-use palpate_core::{
-    check_positive, check_range, register_stage, BuildContext, ConfigChecks, ConfigError, FitContext,
-    InputSpec, Item, PayloadKind, Stage, StageConfig, StageError,
-};
+use palpate_core::{check_positive, check_range, ConfigChecks, ConfigError, FitContext, Item, StageError};
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 use schemars::JsonSchema;
@@ -234,32 +229,7 @@ impl AnnConfig {
     }
 }
 
-#[typetag::serde(name = "ann")]
-impl StageConfig for AnnConfig {
-    fn inputs(&self) -> InputSpec {
-        InputSpec::one(PayloadKind::Images)
-    }
-    fn output(&self) -> Option<PayloadKind> {
-        Some(PayloadKind::Estimates)
-    }
-    fn build(&self, ctx: &BuildContext) -> Result<Stage, ConfigError> {
-        self.check()?;
-        if let Some(stage) = saved::stage("ann", self.model_in.as_deref(), self.save_model, ctx)? {
-            return Ok(stage);
-        }
-        Ok(TrainedEstimator::stage(self, ctx))
-    }
-}
-register_stage!("ann", AnnConfig);
-
-impl FitBaseline for AnnConfig {
-    fn fit_fold(&self, train: &[&Item], ctx: &FitContext<'_>) -> Result<FittedModel, StageError> {
-        self.fit_model(train, ctx)
-    }
-    fn saves_models(&self) -> bool {
-        self.save_model
-    }
-}
+super::features::trained_baseline_stage!("ann", AnnConfig);
 
 /// A fitted one-hidden-layer perceptron. Parameters are one flat vector,
 /// `[W1 (hidden x dim, row-major) | b1 | W2 (classes x hidden) | b2]`.

@@ -115,12 +115,7 @@ use super::features::{
     TrainingLog, Vote, MODEL_FORMAT,
 };
 use super::{dense, forest, knn_scan, lbfgs, smo, vmath};
-use crate::estimate::features::{FitBaseline, TrainedEstimator};
-use crate::estimate::saved;
-use palpate_core::{
-    check_positive, check_range, register_stage, BuildContext, ConfigChecks, ConfigError, FitContext,
-    InputSpec, Item, PayloadKind, Stage, StageConfig, StageError,
-};
+use palpate_core::{check_positive, check_range, ConfigChecks, ConfigError, FitContext, Item, StageError};
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
@@ -625,31 +620,7 @@ impl SvmConfig {
     }
 }
 
-#[typetag::serde(name = "svm")]
-impl StageConfig for SvmConfig {
-    fn inputs(&self) -> InputSpec {
-        InputSpec::one(PayloadKind::Images)
-    }
-    fn output(&self) -> Option<PayloadKind> {
-        Some(PayloadKind::Estimates)
-    }
-    fn build(&self, ctx: &BuildContext) -> Result<Stage, ConfigError> {
-        self.check()?;
-        if let Some(stage) = saved::stage("svm", self.model_in.as_deref(), self.save_model, ctx)? {
-            return Ok(stage);
-        }
-        Ok(TrainedEstimator::stage(self, ctx))
-    }
-}
-register_stage!("svm", SvmConfig);
-impl FitBaseline for SvmConfig {
-    fn fit_fold(&self, train: &[&Item], ctx: &FitContext<'_>) -> Result<FittedModel, StageError> {
-        self.fit_model(train, ctx)
-    }
-    fn saves_models(&self) -> bool {
-        self.save_model
-    }
-}
+super::features::trained_baseline_stage!("svm", SvmConfig);
 
 // ---------------------------------------------------------------- random forest
 
@@ -845,31 +816,7 @@ impl RandomForestConfig {
     }
 }
 
-#[typetag::serde(name = "random_forest")]
-impl StageConfig for RandomForestConfig {
-    fn inputs(&self) -> InputSpec {
-        InputSpec::one(PayloadKind::Images)
-    }
-    fn output(&self) -> Option<PayloadKind> {
-        Some(PayloadKind::Estimates)
-    }
-    fn build(&self, ctx: &BuildContext) -> Result<Stage, ConfigError> {
-        self.check()?;
-        if let Some(stage) = saved::stage("random_forest", self.model_in.as_deref(), self.save_model, ctx)? {
-            return Ok(stage);
-        }
-        Ok(TrainedEstimator::stage(self, ctx))
-    }
-}
-register_stage!("random_forest", RandomForestConfig);
-impl FitBaseline for RandomForestConfig {
-    fn fit_fold(&self, train: &[&Item], ctx: &FitContext<'_>) -> Result<FittedModel, StageError> {
-        self.fit_model(train, ctx)
-    }
-    fn saves_models(&self) -> bool {
-        self.save_model
-    }
-}
+super::features::trained_baseline_stage!("random_forest", RandomForestConfig);
 
 // ---------------------------------------------------------------- k-NN
 
@@ -1172,31 +1119,7 @@ impl KnnConfig {
     }
 }
 
-#[typetag::serde(name = "knn")]
-impl StageConfig for KnnConfig {
-    fn inputs(&self) -> InputSpec {
-        InputSpec::one(PayloadKind::Images)
-    }
-    fn output(&self) -> Option<PayloadKind> {
-        Some(PayloadKind::Estimates)
-    }
-    fn build(&self, ctx: &BuildContext) -> Result<Stage, ConfigError> {
-        self.check()?;
-        if let Some(stage) = saved::stage("knn", self.model_in.as_deref(), self.save_model, ctx)? {
-            return Ok(stage);
-        }
-        Ok(TrainedEstimator::stage(self, ctx))
-    }
-}
-register_stage!("knn", KnnConfig);
-impl FitBaseline for KnnConfig {
-    fn fit_fold(&self, train: &[&Item], ctx: &FitContext<'_>) -> Result<FittedModel, StageError> {
-        self.fit_model(train, ctx)
-    }
-    fn saves_models(&self) -> bool {
-        self.save_model
-    }
-}
+super::features::trained_baseline_stage!("knn", KnnConfig);
 
 // ---------------------------------------------------------------- logistic
 
@@ -1493,31 +1416,7 @@ impl LogisticConfig {
     }
 }
 
-#[typetag::serde(name = "logistic")]
-impl StageConfig for LogisticConfig {
-    fn inputs(&self) -> InputSpec {
-        InputSpec::one(PayloadKind::Images)
-    }
-    fn output(&self) -> Option<PayloadKind> {
-        Some(PayloadKind::Estimates)
-    }
-    fn build(&self, ctx: &BuildContext) -> Result<Stage, ConfigError> {
-        self.check()?;
-        if let Some(stage) = saved::stage("logistic", self.model_in.as_deref(), self.save_model, ctx)? {
-            return Ok(stage);
-        }
-        Ok(TrainedEstimator::stage(self, ctx))
-    }
-}
-register_stage!("logistic", LogisticConfig);
-impl FitBaseline for LogisticConfig {
-    fn fit_fold(&self, train: &[&Item], ctx: &FitContext<'_>) -> Result<FittedModel, StageError> {
-        self.fit_model(train, ctx)
-    }
-    fn saves_models(&self) -> bool {
-        self.save_model
-    }
-}
+super::features::trained_baseline_stage!("logistic", LogisticConfig);
 
 #[typetag::serde(name = "svm")]
 impl FrameClassifier for OvoSvm {

@@ -100,12 +100,7 @@ use super::features::{
     want, FeatureKeys, FittedModel, FrameClassifier, TrainSet, TrainingLog, Vote, MODEL_FORMAT,
 };
 use super::vmath::{self, softmax};
-use crate::estimate::features::{FitBaseline, TrainedEstimator};
-use crate::estimate::saved;
-use palpate_core::{
-    check_positive, check_range, register_stage, BuildContext, ConfigChecks, ConfigError, FitContext,
-    InputSpec, Item, PayloadKind, Stage, StageConfig, StageError,
-};
+use palpate_core::{check_positive, check_range, ConfigChecks, ConfigError, FitContext, Item, StageError};
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 use schemars::JsonSchema;
@@ -1432,32 +1427,7 @@ impl EdbnConfig {
     }
 }
 
-#[typetag::serde(name = "edbn")]
-impl StageConfig for EdbnConfig {
-    fn inputs(&self) -> InputSpec {
-        InputSpec::one(PayloadKind::Images)
-    }
-    fn output(&self) -> Option<PayloadKind> {
-        Some(PayloadKind::Estimates)
-    }
-    fn build(&self, ctx: &BuildContext) -> Result<Stage, ConfigError> {
-        self.check()?;
-        if let Some(stage) = saved::stage("edbn", self.model_in.as_deref(), self.save_model, ctx)? {
-            return Ok(stage);
-        }
-        Ok(TrainedEstimator::stage(self, ctx))
-    }
-}
-register_stage!("edbn", EdbnConfig);
-
-impl FitBaseline for EdbnConfig {
-    fn fit_fold(&self, train: &[&Item], ctx: &FitContext<'_>) -> Result<FittedModel, StageError> {
-        self.fit_model(train, ctx)
-    }
-    fn saves_models(&self) -> bool {
-        self.save_model
-    }
-}
+super::features::trained_baseline_stage!("edbn", EdbnConfig);
 
 #[typetag::serde(name = "edbn")]
 impl FrameClassifier for Dbn {

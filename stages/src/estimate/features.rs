@@ -987,6 +987,53 @@ pub fn maybe_save(
     )
 }
 
+/// The stage glue every trained baseline's config shares, for a config type
+/// with `check()`, `fit_model(train, ctx)`, `model_in` and `save_model`:
+/// spike images in, estimates out; built as a [`TrainedEstimator`], or from
+/// a saved model when `model_in` names one ([`super::saved::stage`]); and
+/// registered under its stage type name.
+macro_rules! trained_baseline_stage {
+    ($name:literal, $config:ty) => {
+        #[typetag::serde(name = $name)]
+        impl palpate_core::StageConfig for $config {
+            fn inputs(&self) -> palpate_core::InputSpec {
+                palpate_core::InputSpec::one(palpate_core::PayloadKind::Images)
+            }
+            fn output(&self) -> Option<palpate_core::PayloadKind> {
+                Some(palpate_core::PayloadKind::Estimates)
+            }
+            fn build(
+                &self,
+                ctx: &palpate_core::BuildContext,
+            ) -> Result<palpate_core::Stage, palpate_core::ConfigError> {
+                self.check()?;
+                if let Some(stage) =
+                    $crate::estimate::saved::stage($name, self.model_in.as_deref(), self.save_model, ctx)?
+                {
+                    return Ok(stage);
+                }
+                Ok($crate::estimate::features::TrainedEstimator::stage(
+                    self, ctx,
+                ))
+            }
+        }
+        palpate_core::register_stage!($name, $config);
+        impl $crate::estimate::features::FitBaseline for $config {
+            fn fit_fold(
+                &self,
+                train: &[&palpate_core::Item],
+                ctx: &palpate_core::FitContext<'_>,
+            ) -> Result<$crate::estimate::features::FittedModel, palpate_core::StageError> {
+                self.fit_model(train, ctx)
+            }
+            fn saves_models(&self) -> bool {
+                self.save_model
+            }
+        }
+    };
+}
+pub(crate) use trained_baseline_stage;
+
 /// A baseline's config: fits one fold's [`FittedModel`] and says whether to save it.
 pub trait FitBaseline: Clone + Send + Sync + 'static {
     /// Fits on one fold's training trials.
