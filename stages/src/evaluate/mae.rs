@@ -588,11 +588,12 @@ pub fn render(stats: &MaeStats, per_class: bool) -> String {
 /// at the grid's far end, where the edge's orientation is nearly the same).
 /// `None` when every true angle is covered or there is no grid.
 fn outside_note(id: &str, classes: &[f64], pairs: &[(Option<f64>, Option<f64>)]) -> Option<String> {
-    let Grid { lo, hi, half, .. } = Grid::of(classes)?;
+    let grid = Grid::of(classes)?;
+    let (lo, hi) = (grid.lo, grid.hi);
     let outside: Vec<f64> = pairs
         .iter()
         .filter_map(|(t, _)| *t)
-        .filter(|t| *t < lo - half - 1e-9 || *t > hi + half + 1e-9)
+        .filter(|t| !grid.covers(*t))
         .collect();
     if outside.is_empty() {
         return None;
@@ -648,6 +649,12 @@ impl Grid {
         })
     }
 
+    /// Whether a true angle `t` lies within half a step of the grid's ends
+    /// (its nearest class can answer it).
+    fn covers(&self, t: f64) -> bool {
+        t >= self.lo - self.half - 1e-9 && t <= self.hi + self.half + 1e-9
+    }
+
     /// Whether `a` is one of the classes (to the 1e-6° exact-class accuracy allows).
     fn has(&self, a: f64) -> bool {
         self.classes.iter().any(|c| (c - a).abs() <= 1e-6)
@@ -672,10 +679,9 @@ fn between_note(
         return None;
     }
     let grid = Grid::of(classes)?;
-    let inside = |t: f64| t >= grid.lo - grid.half - 1e-9 && t <= grid.hi + grid.half + 1e-9;
     let (mut truths, mut answers) = (Vec::new(), Vec::new());
     for &(t, e) in pairs {
-        let Some(t) = t.filter(|t| inside(*t)) else {
+        let Some(t) = t.filter(|t| grid.covers(*t)) else {
             continue;
         };
         if !grid.has(t) {

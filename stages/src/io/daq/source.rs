@@ -227,6 +227,20 @@ pub struct Segmenter {
     /// the open trial so far (fixed: only counted).
     held: Vec<Vec<f64>>,
     count: usize,
+    /// Contact: the range of the frames' lowest taxel so far, and the
+    /// longest run of frames at or under `contact` outside a trial (what
+    /// [`Self::levels`] reports when no trial began).
+    lows: (f64, f64),
+    longest_under: usize,
+}
+
+/// What a [`Segmenter`] saw of the frames' lowest taxel (contact plans).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Levels {
+    /// Lowest and highest of the frames' lowest taxel.
+    pub low_range: (f64, f64),
+    /// Longest run of frames at or under `contact_v` outside a trial.
+    pub longest_under: usize,
 }
 
 impl Segmenter {
@@ -237,7 +251,17 @@ impl Segmenter {
             in_trial: false,
             held: Vec::new(),
             count: 0,
+            lows: (f64::INFINITY, f64::NEG_INFINITY),
+            longest_under: 0,
         }
+    }
+
+    /// The levels seen so far, for a contact plan that has seen a frame.
+    pub fn levels(&self) -> Option<Levels> {
+        (self.lows.0 <= self.lows.1).then_some(Levels {
+            low_range: self.lows,
+            longest_under: self.longest_under,
+        })
     }
 
     /// Whether a trial is open.
@@ -277,9 +301,11 @@ impl Segmenter {
                 exit,
             } => {
                 let low = frame.iter().copied().fold(f64::INFINITY, f64::min);
+                self.lows = (self.lows.0.min(low), self.lows.1.max(low));
                 if !self.in_trial {
                     if low <= contact {
                         self.held.push(frame.to_vec());
+                        self.longest_under = self.longest_under.max(self.held.len());
                         if self.held.len() >= enter {
                             self.in_trial = true;
                             on(SegEvent::Start)?;
@@ -579,11 +605,6 @@ impl DaqSource {
         let mut last: Option<Vec<f64>> = None;
         let mut fail: Option<RunError> = None;
         let mut frames = 0u64;
-        // For the diagnosis of a stream with no contact: the range of each
-        // frame's lowest taxel, and the longest run of frames at or under
-        // `contact_v`.
-        let mut lows = (f64::INFINITY, f64::NEG_INFINITY);
-        let (mut run_now, mut run_max) = (0usize, 0usize);
         let stage = self.stage_id.clone();
         // `None`: a tick (see `SourceEvent::Tick`); one closure holds `on`.
         let mut on_event = |ev: Option<SegEvent<'_>>| -> Result<(), RunError> {
@@ -614,12 +635,6 @@ impl DaqSource {
                         )));
                     }
                     frames += 1;
-                    if let SegmentPlan::Contact { contact, .. } = self.c.plan {
-                        let low = f.samples.iter().copied().fold(f64::INFINITY, f64::min);
-                        lows = (lows.0.min(low), lows.1.max(low));
-                        run_now = if low <= contact { run_now + 1 } else { 0 };
-                        run_max = run_max.max(run_now);
-                    }
                     seg.push(&f.samples, &mut |e| on_event(Some(e)))?;
                     // A frame outside a trial streams nothing: a tick, so
                     // that a live run can stop on a board with nothing in
@@ -737,37 +752,35 @@ impl DaqSource {
         // Why no trial began, when none did: at the stream's end, or when
         // the user stopped a session that never saw contact (a board
         // streams until stopped), but not over a failure.
-        let stopped = fail.as_ref().map(|e| e.message == palpate_core::stream::STOPPED);
-        let diagnose = |trial: usize| {
-            if let (0, true, SegmentPlan::Contact { contact, enter, .. }) = (trial, frames > 0, self.c.plan) {
-                eprintln!("{}", self.no_contact(frames, lows, run_max, contact, enter));
+        let diagnose = |trial: usize, seg: &Segmenter| {
+            if let (0, Some(levels), SegmentPlan::Contact { contact, enter, .. }) =
+                (trial, seg.levels(), self.c.plan)
+            {
+                eprintln!("{}", self.no_contact(frames, levels, contact, enter));
             }
         };
         if let Some(e) = fail {
-            if stopped == Some(true) {
-                diagnose(trial);
+            if e.message == palpate_core::stream::STOPPED {
+                diagnose(trial, &seg);
             }
             return Err(e);
         }
         result.map_err(|e| self.error(e.message))?;
         seg.finish(&mut |e| on_event(Some(e)))?;
-        diagnose(trial);
+        diagnose(trial, &seg);
         Ok(())
     }
 
-    /// Why a stream of `frames` frames began no trial: the range `lows` of
+    /// Why a stream of `frames` frames began no trial: the `levels` of
     /// each frame's lowest taxel against `contact_v`, and what to set. The
     /// usual causes: thresholds left at the default 3.0 V for a board with
     /// another range, or values in other units (a recording in mV reads
     /// ~1700 where the default thresholds expect volts).
-    fn no_contact(
-        &self,
-        frames: u64,
-        lows: (f64, f64),
-        run_max: usize,
-        contact: f64,
-        enter: usize,
-    ) -> String {
+    fn no_contact(&self, frames: u64, levels: Levels, contact: f64, enter: usize) -> String {
+        let Levels {
+            low_range: lows,
+            longest_under,
+        } = levels;
         let unit = &self.c.unit;
         let num = palpate_core::fmt_num;
         // Four significant digits: the samples are f32 from the board.
@@ -784,7 +797,7 @@ impl DaqSource {
             format!(
                 "at or under `contact_v` = {} for at most {} in a row",
                 num(contact),
-                super::protocol::count(run_max as u64, "frame", "frames")
+                super::protocol::count(longest_under as u64, "frame", "frames")
             )
         };
         format!(
@@ -1077,6 +1090,31 @@ mod tests {
         // A trial open at the stream's end ends there, with its held frames.
         let got = cut(plan, &[2.0, 2.0, 3.3]);
         assert_eq!(got, ["S", "2", "2", "3.3", "E"]);
+    }
+
+    #[test]
+    fn a_contact_segmenter_reports_the_levels_it_saw() {
+        let plan = SegmentPlan::Contact {
+            contact: 3.0,
+            release: 3.2,
+            enter: 3,
+            exit: 3,
+        };
+        let mut seg = Segmenter::new(plan);
+        assert_eq!(seg.levels(), None);
+        let mut on = |_: SegEvent<'_>| -> Result<(), ()> { Ok(()) };
+        // Under the threshold twice in a row at most: no trial (enter = 3).
+        for v in [3.3, 2.9, 3.3, 2.5, 2.8, 3.1, 3.25] {
+            seg.push(&[3.3, v], &mut on).unwrap();
+        }
+        assert!(!seg.in_trial());
+        assert_eq!(
+            seg.levels(),
+            Some(Levels {
+                low_range: (2.5, 3.3),
+                longest_under: 2
+            })
+        );
     }
 
     #[test]
