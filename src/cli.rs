@@ -30,8 +30,9 @@ enum Command {
     Run {
         /// The graph file.
         graph: PathBuf,
-        /// Override a key: `stages.<id>.<key>=<value>` or `run.<key>=<value>` (TOML value;
-        /// a table is merged into the key's table, except `run.protocol`, which it replaces).
+        /// Override a key: `stages.<id>.<key>=<value>`, `run.<key>=<value>` or `sweep.<key>=<value>`
+        /// (TOML value; a table is merged into the key's table, except `run.protocol`, which it
+        /// replaces). `sweep.repeats=5` runs a graph without a sweep at 5 seeds.
         #[arg(long = "set", value_name = "PATH=VALUE", value_parser = LoadOptions::parse_set)]
         set: Vec<(String, toml::Value)>,
         /// Output directory (default: `[run] out`, else out/<graph name>).

@@ -130,7 +130,8 @@ impl Default for RunSettings {
 /// Two forms: the single-key form (`key` and `values`: one point per value), or
 /// `[[sweep.series]]` tables, each varying one key from the base graph (the
 /// sweep is then the union of the series' points). A graph gives one form, not
-/// both.
+/// both. A sweep of `repeats` alone runs the base graph at seeds `[run] seed`
+/// to `seed + repeats - 1` (on the command line: `--set sweep.repeats=5`).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct SweepSettings {
@@ -143,7 +144,7 @@ pub struct SweepSettings {
     #[serde(default)]
     #[schemars(with = "Vec<serde_json::Value>")]
     pub values: Vec<toml::Value>,
-    /// Runs per value, repeat `r` with seed `[run] seed + r`. Default 1.
+    /// Runs per value, repeat `r` with seed `[run] seed + r`; alone (no key, values or series), the base graph's runs. Default 1.
     #[serde(default = "one")]
     pub repeats: usize,
     /// Metrics to tabulate and plot across the sweep (names as sinks report them,
@@ -742,7 +743,7 @@ impl<'t> Loader<'t> {
         self.apply_overrides(&mut doc, &opts.overrides);
         self.check_top_level(&doc, &lines);
         let run = self.load_run(doc.get("run"), &lines);
-        let sweep = self.load_sweep(doc.get("sweep"), &lines, &doc);
+        let sweep = self.load_sweep(doc.get("sweep"), &lines, &doc, run.seed);
         let out_dir = opts
             .out
             .clone()
@@ -882,10 +883,11 @@ impl<'t> Loader<'t> {
         value: Option<&toml::Value>,
         lines: &Lines,
         doc: &toml::Table,
+        seed: u64,
     ) -> Option<SweepSettings> {
         let value = value?;
         let line = lines.top.get("sweep").copied();
-        let sweep: SweepSettings = match serde_path_to_error::deserialize(value.clone()) {
+        let mut sweep: SweepSettings = match serde_path_to_error::deserialize(value.clone()) {
             Ok(s) => s,
             Err(e) => {
                 let path = e.path().to_string();
@@ -928,6 +930,16 @@ impl<'t> Loader<'t> {
         let key_msg = |key: &str| {
             format!("must name run.<key> or a declared stage: stages.<id>[.<key>], not \"{key}\"")
         };
+        // Repeats only (no key, values nor series): the base graph is the
+        // one point, run at seeds `seed`, `seed + 1`, ..., as if the sweep
+        // were `key = "run.seed"`, `values = [seed]` (the form
+        // graphs/paper/table2.toml spells out).
+        if sweep.series.is_empty() && sweep.key.is_empty() && sweep.values.is_empty() {
+            sweep.key = "run.seed".into();
+            sweep.values = vec![i64::try_from(seed)
+                .map(toml::Value::Integer)
+                .unwrap_or_else(|_| toml::Value::String(seed.to_string()))];
+        }
         if sweep.series.is_empty() {
             if !key_ok(&sweep.key) {
                 self.error(
@@ -1258,12 +1270,21 @@ impl<'t> Loader<'t> {
                         (t, key.to_vec())
                     })
                 }
+                // A graph without a sweep gains one: `--set sweep.repeats=5`
+                // runs it over 5 seeds (see `load_sweep`).
+                ["sweep", key @ ..] if !key.is_empty() => doc
+                    .entry("sweep")
+                    .or_insert_with(|| toml::Value::Table(toml::Table::new()))
+                    .as_table_mut()
+                    .map(|t| (t, key.to_vec())),
                 _ => {
                     self.error(
                         None,
                         None,
                         None,
-                        format!("override `{path}`: the path must be stages.<id>.<key> or run.<key>"),
+                        format!(
+                            "override `{path}`: the path must be stages.<id>.<key>, run.<key> or sweep.<key>"
+                        ),
                     );
                     None
                 }

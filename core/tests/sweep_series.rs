@@ -258,7 +258,7 @@ set = { "stages.ghost.inputs" = ["a"] }
     ));
     assert!(twice.contains("series `s`: `values` lists 2.0 twice"), "{twice}");
 
-    let no_values = load_error(&with_sweep("[sweep]\nrepeats = 1\n"));
+    let no_values = load_error(&with_sweep("[sweep]\nkey = \"stages.b.factor\"\nrepeats = 2\n"));
     assert!(no_values.contains("`values` lists no value"), "{no_values}");
 
     let frontier = load_error(&with_sweep(
@@ -340,4 +340,39 @@ values = [2.0]
     assert!(e1.cached);
     assert_eq!(e1.fits, e0.fits);
     assert!(!e0.fits.is_empty());
+}
+
+/// A sweep of `repeats` alone is the base graph at consecutive seeds, and
+/// `--set sweep.<key>` makes one for a graph without a sweep or changes a
+/// graph's own (a paper graph's five seeds cut to one to try it).
+#[test]
+fn repeats_alone_run_the_base_graph_at_consecutive_seeds() {
+    let text = format!("[run]\nseed = 7\n{BASE}\n[sweep]\nrepeats = 3\n");
+    let runs = run_all(&text, &Cache::default());
+    let seeds: Vec<u64> = runs.iter().map(|r| r.seed).collect();
+    assert_eq!(seeds, [7, 8, 9]);
+    assert!(runs.iter().all(|r| r.key == "run.seed" && r.point == 0));
+
+    let set = |text: &str, sets: &[&str]| {
+        let opts = LoadOptions {
+            overrides: sets.iter().map(|s| LoadOptions::parse_set(s).unwrap()).collect(),
+            ..Default::default()
+        };
+        palpate_core::load_str(text, "t.toml", "t", &opts)
+    };
+    // No [sweep] in the graph: the override makes one.
+    let g = set(BASE, &["sweep.repeats=4", "run.seed=2"]).unwrap_or_else(|e| panic!("{e}"));
+    let s = g.sweep.expect("a sweep");
+    assert_eq!((s.repeats, s.key.as_str()), (4, "run.seed"));
+    assert_eq!(s.values, [toml::Value::Integer(2)]);
+    // A graph's own sweep: its repeats change, its points stay.
+    let own = with_sweep("[sweep]\nkey = \"stages.b.factor\"\nvalues = [1.0, 0.5]\nrepeats = 5\n");
+    let s = set(&own, &["sweep.repeats=1"]).unwrap().sweep.expect("a sweep");
+    assert_eq!((s.repeats, s.points().len()), (1, 2));
+    // A key the sweep does not have is an error naming it.
+    let e = set(&own, &["sweep.repeets=1"]).unwrap_err().to_string();
+    assert!(e.contains("repeets"), "{e}");
+    // Other top-level paths still name the three forms.
+    let e = set(BASE, &["swept.repeats=1"]).unwrap_err().to_string();
+    assert!(e.contains("sweep.<key>"), "{e}");
 }
