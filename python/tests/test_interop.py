@@ -222,6 +222,17 @@ def test_sweep_through_python_equals_the_cli(small_graph, tmp_path):
     assert marker.stat().st_mtime_ns != before
 
 
+def test_set_sweep_repeats_runs_a_graph_over_seeds(small_graph, tmp_path):
+    """`set={"sweep.repeats": 3}` turns a graph without a sweep into one point
+    run at seeds 1, 2, 3, whose summary is the mean of the three runs."""
+    res = palpate.run(small_graph, set={"sweep.repeats": 3}, out=tmp_path / "seeds", progress=False)
+    assert isinstance(res, palpate.SweepResult)
+    assert sorted(r["seed"] for r in res.runs) == [1, 2, 3]
+    ((_label, mean, _sd, n),) = res.summary("wss.mae_deg")
+    runs = [r["metrics"]["wss.mae_deg"] for r in res.runs]
+    assert n == 3 and mean == pytest.approx(sum(runs) / 3, abs=1e-12)
+
+
 def test_readme_example_runs_verbatim(tmp_path):
     """The README's Python example, as printed there, from a folder holding the
     repository's graphs/: it runs and its WSS answers equal the simulated labels."""
