@@ -95,6 +95,10 @@ put("signal_npz", "deflated.npz", npz(members, True))
 colmajor = [sig[k][x] for x in range(16) for k in range(12)]
 put("signal_mat", "2d.mat", mat([("fs", [1, 1], [1000.0]), ("data", [12, 16], colmajor)]))
 put("signal_mat", "3d.mat", mat([("data", [6, 16, 2], colmajor), ("angle_deg", [1, 2], [10.0, 20.0])]))
+# MATLAB v7.3 (HDF5) files as libhdf5 writes them (stages/tests/data/make_mat73.py).
+for path in sorted(glob.glob(os.path.join(root, "stages", "tests", "data", "mat73_*.mat"))):
+    with open(path, "rb") as f:
+        put("signal_mat", os.path.basename(path), f.read())
 
 # signal_daq, daq_decoder (the decoder's first byte is a control byte)
 u16s = b"".join(frame(1, k, 1000 * k, [1000 + x for x in range(16)]) for k in range(8))

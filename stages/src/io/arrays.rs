@@ -13,7 +13,18 @@
 //!   deflated), read in archive order (NumPy writes keyword arrays in call order).
 //! * MAT: MATLAB v5/v7 files (`save -v7`, compressed or not) through the
 //!   `matfile` crate; numeric real arrays only (char, cell and struct variables
-//!   are skipped). v7.3 files are HDF5 and are rejected with a hint.
+//!   are skipped).
+//! * MAT v7.3 (`save -v7.3`, MATLAB's format for variables over 2 GB): HDF5
+//!   behind a 512-byte user block, read by the pure-Rust `hdf5-reader`. Each
+//!   root dataset is a variable whose `MATLAB_class` attribute names its
+//!   class; MATLAB stores the dimensions reversed, so HDF5's C order over the
+//!   reversed shape is MATLAB's column-major order and the array is then
+//!   transposed as a v5 one is. Numeric real classes (`double`, `single`,
+//!   the integers, `logical`) are read, whatever their chunking or deflate
+//!   compression; `char`, `cell`, structs (groups), `#refs#`, and empty
+//!   arrays (`MATLAB_empty`) are skipped; a complex array is an error, as in
+//!   v5. HDF5 keeps no save order: variables come in the order the file lists
+//!   them (by name, in the files MATLAB writes).
 //!
 //! ## Hostile files (docs/resource-policy.md)
 //!
@@ -27,7 +38,11 @@
 //! (elements are at least 1 byte): memory is bounded by 8x the file (16x for
 //! a Fortran-order array, transposed through a copy). An NPZ member is read
 //! into a buffer of at most its declared size, itself capped by
-//! [`MAX_NPZ_MEMBER_BYTES`] (deflate can expand 1000-fold).
+//! [`MAX_NPZ_MEMBER_BYTES`] (deflate can expand 1000-fold). A v7.3 variable
+//! may decode to at most [`mat73_read_cap`] bytes (checked by the HDF5 reader
+//! before it allocates), reads no external file or link, and a panic
+//! inside the HDF5 decoder on a malformed file becomes an error naming the
+//! file (the decoder is a dependency; fuzz target `signal_mat` covers it).
 
 use std::io::{Cursor, Read};
 
@@ -360,10 +375,8 @@ pub fn read_npz(bytes: &[u8], what: &str) -> Result<Vec<(String, NpyContent)>, S
 
 /// Reads every numeric variable of a MATLAB v5/v7 `.mat` file, in file order.
 pub fn read_mat(bytes: &[u8], what: &str) -> Result<Vec<(String, NdArray)>, String> {
-    if bytes.len() >= 128 && bytes.starts_with(b"MATLAB 7.3") {
-        return Err(format!(
-            "{what}: MATLAB v7.3 (HDF5) files are not supported; save with `save(..., '-v7')`"
-        ));
+    if bytes.starts_with(b"MATLAB 7.3") {
+        return read_mat73(bytes, what);
     }
     if bytes.len() < 128 || !bytes.starts_with(b"MATLAB") {
         return Err(format!(
@@ -372,7 +385,7 @@ pub fn read_mat(bytes: &[u8], what: &str) -> Result<Vec<(String, NdArray)>, Stri
     }
     check_mat_elements(bytes, what)?;
     let mat = matfile::MatFile::parse(bytes)
-        .map_err(|e| format!("{what}: not a readable MAT v5/v7 file ({e}); truncated, or saved as v7.3?"))?;
+        .map_err(|e| format!("{what}: not a readable MAT v5/v7 file ({e}); truncated?"))?;
     let mut out = Vec::new();
     for a in mat.arrays() {
         use matfile::NumericData as N;
@@ -405,6 +418,124 @@ pub fn read_mat(bytes: &[u8], what: &str) -> Result<Vec<(String, NdArray)>, Stri
         out.push((a.name().to_string(), NdArray { shape, data }));
     }
     Ok(out)
+}
+
+/// Reads every numeric variable of a MATLAB v7.3 (HDF5) `.mat` file (module
+/// docs), in the order the file lists them.
+fn read_mat73(bytes: &[u8], what: &str) -> Result<Vec<(String, NdArray)>, String> {
+    let bad = |e: hdf5_reader::error::Error| {
+        format!("{what}: not a readable MAT v7.3 (HDF5) file ({e}); truncated?")
+    };
+    // The decoder is a dependency: a panic it raises on a malformed file is
+    // this file's error, not the run's end.
+    let read = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+        let cap = mat73_read_cap(bytes.len());
+        let opts = hdf5_reader::OpenOptions::default()
+            .with_max_read_bytes(cap)
+            .with_max_chunk_bytes(cap.min(MAX_NPZ_MEMBER_BYTES as usize));
+        let file = hdf5_reader::Hdf5File::from_bytes_with_options(bytes, opts).map_err(bad)?;
+        // The superblock's end of file is absolute (libhdf5 checks it the
+        // same way): a file cut short may still decode the objects before
+        // the cut, and would lose the rest without a word.
+        let eof = file.superblock().eof_address;
+        if eof > bytes.len() as u64 {
+            return Err(format!(
+                "{what}: truncated: the file is {} bytes, its HDF5 superblock says {eof}",
+                bytes.len()
+            ));
+        }
+        let (_, datasets) = file.root_group().and_then(|g| g.members()).map_err(bad)?;
+        let mut out = Vec::new();
+        for d in datasets {
+            let name = d.name().to_string();
+            if let Some(array) = mat73_variable(&d).map_err(|e| format!("{what}: variable `{name}`: {e}"))? {
+                out.push((name, array));
+            }
+        }
+        Ok(out)
+    }));
+    read.unwrap_or_else(|_| Err(format!("{what}: not a readable MAT v7.3 (HDF5) file (malformed)")))
+}
+
+/// Most bytes one v7.3 variable of a `file_len`-byte file may decode to: 8x
+/// the file (MATLAB deflates its chunks; real signals shrink by far less),
+/// at least [`MAX_NPZ_MEMBER_BYTES`], at most [`MAX_ELEMENTS`] doubles, so
+/// a small file cannot claim gigabytes while a large uncompressed recording
+/// (v7.3 is what MATLAB needs for variables over 2 GB) still reads.
+pub fn mat73_read_cap(file_len: usize) -> usize {
+    let floor = MAX_NPZ_MEMBER_BYTES as usize;
+    let ceil = usize::try_from(MAX_ELEMENTS * 8).unwrap_or(usize::MAX);
+    file_len.saturating_mul(8).clamp(floor, ceil)
+}
+
+/// One v7.3 variable as a C-order array of its MATLAB shape, or `None` for
+/// a variable that holds no numeric data (module docs).
+fn mat73_variable(d: &hdf5_reader::Dataset) -> Result<Option<NdArray>, String> {
+    use hdf5_reader::Datatype as T;
+    if d.name().starts_with('#') {
+        return Ok(None);
+    }
+    let attr = |key: &str| d.attribute(key).ok();
+    let class = attr("MATLAB_class").and_then(|a| a.read_string().ok());
+    let numeric = [
+        "double", "single", "int8", "uint8", "int16", "uint16", "int32", "uint32", "int64", "uint64",
+        "logical",
+    ];
+    match class.as_deref() {
+        // No class: a plain HDF5 dataset (from h5py, say) is read by its type.
+        None => {}
+        Some(c) if numeric.contains(&c) => {}
+        Some(_) => return Ok(None),
+    }
+    let empty = attr("MATLAB_empty").and_then(|a| a.read_as_f64().ok());
+    if empty.is_some_and(|e| e != 0.0) {
+        return Ok(None);
+    }
+    // Every element of `d` as `T`, widened to `f64` (exact up to 2^53).
+    fn widen<T: hdf5_reader::H5Type + Copy>(
+        d: &hdf5_reader::Dataset,
+        f: fn(T) -> f64,
+    ) -> Result<Vec<f64>, String> {
+        Ok(d.read_array::<T>()
+            .map_err(|e| e.to_string())?
+            .iter()
+            .map(|&v| f(v))
+            .collect())
+    }
+    let data = match d.dtype() {
+        T::FloatingPoint { size: 8, .. } => widen::<f64>(d, |v| v)?,
+        T::FloatingPoint { size: 4, .. } => widen::<f32>(d, f64::from)?,
+        T::FixedPoint { size, signed, .. } => match (size, signed) {
+            (1, true) => widen::<i8>(d, f64::from)?,
+            (1, false) => widen::<u8>(d, f64::from)?,
+            (2, true) => widen::<i16>(d, f64::from)?,
+            (2, false) => widen::<u16>(d, f64::from)?,
+            (4, true) => widen::<i32>(d, f64::from)?,
+            (4, false) => widen::<u32>(d, f64::from)?,
+            (8, true) => widen::<i64>(d, |v| v as f64)?,
+            (8, false) => widen::<u64>(d, |v| v as f64)?,
+            _ => return Err(format!("{size}-byte integers are not a MATLAB class")),
+        },
+        T::Compound { fields, .. } if fields.iter().any(|f| f.name == "imag") => {
+            return Err("is complex; only real data is supported".into())
+        }
+        other if class.is_some() => return Err(format!("holds {other:?}, not numbers")),
+        // An unclassed dataset of another type (strings, say) is no variable.
+        _ => return Ok(None),
+    };
+    // MATLAB's shape is HDF5's reversed; a scalar or 1-D dataset (written by
+    // other tools) is a column, as MATLAB would load it.
+    let mut shape: Vec<usize> = d.shape().iter().rev().map(|&n| n as usize).collect();
+    match shape.len() {
+        0 => shape = vec![1, 1],
+        1 => shape.push(1),
+        _ => {}
+    }
+    if shape.iter().try_fold(1usize, |p, &n| p.checked_mul(n)) != Some(data.len()) {
+        return Err("its data do not fill its shape".into());
+    }
+    let data = fortran_to_c(&shape, &data);
+    Ok(Some(NdArray { shape, data }))
 }
 
 /// Walks the top-level data elements of a MAT v5 file and fails if the last
@@ -533,6 +664,14 @@ pub fn npy_bytes(shape: &[usize], data: &[f64]) -> std::io::Result<Vec<u8>> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_v73_variable_may_decode_to_eight_times_its_file_within_bounds() {
+        let gib = 1usize << 30;
+        assert_eq!(mat73_read_cap(10_856), gib);
+        assert_eq!(mat73_read_cap(gib), 8 * gib);
+        assert_eq!(mat73_read_cap(usize::MAX), 16 * gib);
+    }
 
     #[test]
     fn fortran_transpose_matches_index_maths() {

@@ -36,7 +36,7 @@
 //! value per trial, in trial order); every other array (or only those named in `variables`) is
 //! data: 2-D = one trial, 3-D = a stack of trials, shaped as for NPY.
 //!
-//! **MAT** (`.mat`, MATLAB v5/v7; v7.3 is HDF5 and not supported): the same
+//! **MAT** (`.mat`, MATLAB v5/v7, and v7.3, which is HDF5: see [`super::arrays`]): the same
 //! reserved variables (`fs` is accepted for `sample_rate_hz`); data variables
 //! are `data(sample, taxel)` for one trial or `data(sample, taxel, trial)` for a
 //! stack (MATLAB's natural order: trial last), transposed by `taxel_major`
