@@ -602,6 +602,106 @@ fn mat_v73_files_read_as_v5_ones() {
     }
 }
 
+/// A continuous log of three palpations (2 x 2 taxels, 500 Hz) as one CSV:
+/// `segment = "contact"` cuts it into three trials with the samples in
+/// contact, ids `<file>-<j>` whose angles come from the sidecar; `fixed`
+/// cuts windows; a threshold the log never reaches is an error that gives
+/// its levels; the keys are checked.
+#[test]
+fn one_log_of_several_palpations_is_cut_at_contact() {
+    let d = tempfile::tempdir().unwrap();
+    // (samples, in contact): 150 off, 300 on, 150 off, 250 on, 150 off, 200 on, 150 off.
+    let runs = [
+        (150, false),
+        (300, true),
+        (150, false),
+        (250, true),
+        (150, false),
+        (200, true),
+        (150, false),
+    ];
+    let level = |on: bool, x: usize, k: usize| {
+        if on {
+            1.75 + 0.01 * x as f64 + (k as f64 * 0.37).sin() / 20.0
+        } else {
+            3.3
+        }
+    };
+    let mut csv = String::from("time_ms,taxel_0,taxel_1,taxel_2,taxel_3\n");
+    let mut k = 0;
+    let mut on_at = Vec::new();
+    for &(len, on) in &runs {
+        if on {
+            on_at.push((k, len));
+        }
+        for _ in 0..len {
+            csv.push_str(&format!("{}", k as f64 * 2.0));
+            for x in 0..4 {
+                csv.push_str(&format!(",{}", level(on, x, k)));
+            }
+            csv.push('\n');
+            k += 1;
+        }
+    }
+    std::fs::write(d.path().join("log.csv"), csv).unwrap();
+    std::fs::write(
+        d.path().join("labels.csv"),
+        "trial,angle_deg\nlog-0,30\nlog-1,60\nlog-2,90\n",
+    )
+    .unwrap();
+    let src =
+        |extra: &str| format!("[stages.src]\ntype = \"signal_file\"\npath = \"log.csv\"\n{GRID2}\n{extra}\n");
+    let r = run_graph(d.path(), &src("segment = \"contact\"\nlabels = \"labels.csv\"")).unwrap();
+    let it = items(&r, "src");
+    let ids: Vec<&str> = it.iter().map(|i| i.meta.trial_id.as_str()).collect();
+    assert_eq!(ids, ["log-0", "log-1", "log-2"]);
+    let angles: Vec<Option<f64>> = it.iter().map(|i| i.meta.label.angle_deg).collect();
+    assert_eq!(angles, [Some(30.0), Some(60.0), Some(90.0)]);
+    for (i, &(start, len)) in it.iter().zip(&on_at) {
+        let s = signals(i);
+        assert_eq!(
+            (s.n_samples(), s.sample_rate_hz),
+            (len, 500.0),
+            "{}",
+            i.meta.trial_id
+        );
+        for (x, col) in s.data.iter().enumerate() {
+            for (j, v) in col.iter().enumerate() {
+                assert_eq!(
+                    *v,
+                    level(true, x, start + j),
+                    "{} taxel {x} sample {j}",
+                    i.meta.trial_id
+                );
+            }
+        }
+    }
+
+    // Fixed windows: 1350 samples in windows of 1 s (500 samples).
+    let r = run_graph(d.path(), &src("segment = \"fixed\"\nwindow_ms = 1000.0")).unwrap();
+    let lens: Vec<usize> = items(&r, "src").iter().map(|i| signals(i).n_samples()).collect();
+    assert_eq!(lens, [500, 500, 350]);
+
+    // The log never falls to 1.0 V: the error gives the levels it saw.
+    let e = source_error(
+        d.path(),
+        &src("segment = \"contact\"\ncontact_v = 1.0\nrelease_v = 1.2")
+            .replace("[stages.src]\ntype = \"signal_file\"\n", ""),
+    );
+    assert!(
+        e.contains("log.csv") && e.contains("found no trial") && e.contains("ranged 1.7"),
+        "{e}"
+    );
+    // Keys: the hysteresis, a fixed window's length.
+    let g = |extra: &str| palpate_core::load_str(&src(extra), "g.toml", "g", &Default::default());
+    let e = g("segment = \"contact\"\ncontact_v = 2.0\nrelease_v = 2.0")
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("release_v") && e.contains("above contact_v"), "{e}");
+    let e = g("segment = \"fixed\"").unwrap_err().to_string();
+    assert!(e.contains("window_ms") && e.contains("required"), "{e}");
+}
+
 /// Runs a one-source graph expecting an error; returns its message.
 fn source_error(dir: &Path, keys: &str) -> String {
     match run_graph(dir, &format!("[stages.src]\ntype = \"signal_file\"\n{keys}\n")) {

@@ -61,6 +61,23 @@
 //! NPZ/MAT array name, or, within a stack, the 0-based index (`<file>-<array>-<k>`
 //! when an archive has several stacks). Ids must be unique across all files.
 //!
+//! ## One recording, many palpations (`segment`)
+//!
+//! A continuous log of several palpations is cut into trials by the rules
+//! the `daq` source applies to a live stream (`segment = "contact"`): with
+//! `m_k` the lowest taxel of sample `k`, a trial starts at the first of
+//! `N_in = round(enter_ms · fs / 1000)` consecutive samples with `m_k <=
+//! contact_v` (those samples included) and ends before the first of `N_out
+//! = round(exit_ms · fs / 1000)` consecutive samples with `m_k >=
+//! release_v` (hysteresis: `release_v > contact_v`; the output falls with
+//! pressure, as a piezoresistive divider's does). `segment = "fixed"` cuts
+//! consecutive windows of `window_ms` instead (the last may be shorter).
+//! Segment `j` (0-based) of a trial with id `<id>` gets the id `<id>-<j>`
+//! and the file's labels, which a sidecar entry for `<id>-<j>` overrides, so
+//! each palpation of one log can carry its own angle. A recording in which
+//! no contact segment starts is an error that gives the range of its lowest
+//! taxel and its longest run under `contact_v`, so the threshold can be set.
+//!
 //! The sample rate is the `sample_rate_hz` key if given, else the one the
 //! `labels` file declares (a top-level `sample_rate_hz`, which the
 //! `labels.toml` of `palpate simulate` and `write_signals` and a
@@ -75,10 +92,11 @@ use super::common::{
     apply_sidecar, build_metas, expand_paths, file_ids, merge_consistent, number_error, read_sidecar,
     resolve_layout, set_label_cell, user_csv_reader, LayoutConfig, TrialLabels, LABEL_COLUMNS,
 };
+use super::daq::source::{SegEvent, SegmentPlan, Segmenter};
 use palpate_core::{
-    check_positive, register_stage, BuildContext, ConfigChecks, ConfigError, InputSpec, Inspection,
-    OutputFacts, Payload, PayloadKind, Signals, Source, Stage, StageConfig, StageError, TaxelLayout,
-    TrialContext, TrialMeta,
+    check_positive, check_range, register_stage, BuildContext, ConfigChecks, ConfigError, InputSpec,
+    Inspection, OutputFacts, Payload, PayloadKind, Signals, Source, Stage, StageConfig, StageError,
+    TaxelLayout, TrialContext, TrialMeta,
 };
 use rayon::prelude::*;
 use schemars::JsonSchema;
@@ -169,6 +187,38 @@ pub struct SignalFileConfig {
     pub daq_scale: f64,
     /// DAQ: see `daq_scale`. Default 0.
     pub daq_offset: f64,
+    /// Cut each recording into trials: `none` (each file, CSV `trial` or
+    /// array is one trial), `contact` (a trial per stretch of contact, as
+    /// the `daq` source cuts a live stream: `contact_v`, `release_v`,
+    /// `enter_ms`, `exit_ms`), or `fixed` (windows of `window_ms`); see the
+    /// module docs. Default none.
+    pub segment: FileSegment,
+    /// `segment = "contact"`: contact starts when the lowest taxel reads at
+    /// most this, in the files' unit (V for the paper's divider). Default 3.0.
+    pub contact_v: f64,
+    /// `segment = "contact"`: contact ends when the lowest taxel reads at
+    /// least this, in the files' unit; above `contact_v`. Default 3.2.
+    pub release_v: f64,
+    /// `segment = "contact"`: samples under `contact_v` needed to start a
+    /// trial, as a duration, ms. Default 20.
+    pub enter_ms: f64,
+    /// `segment = "contact"`: samples over `release_v` needed to end it, ms. Default 200.
+    pub exit_ms: f64,
+    /// `segment = "fixed"`: the length of each trial, ms. Default none (required then).
+    pub window_ms: Option<f64>,
+}
+
+/// How `signal_file` cuts a recording into trials (see the module docs).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum FileSegment {
+    /// Each file (or CSV `trial`, or array) is a trial.
+    #[default]
+    None,
+    /// A trial per stretch of contact.
+    Contact,
+    /// Consecutive windows of `window_ms`.
+    Fixed,
 }
 
 impl Default for SignalFileConfig {
@@ -189,6 +239,12 @@ impl Default for SignalFileConfig {
             allow_cut_end: false,
             daq_scale: 1.0,
             daq_offset: 0.0,
+            segment: FileSegment::None,
+            contact_v: 3.0,
+            release_v: 3.2,
+            enter_ms: 20.0,
+            exit_ms: 200.0,
+            window_ms: None,
         }
     }
 }
@@ -229,6 +285,44 @@ impl SignalFileConfig {
                 "daq_scale",
                 "scale must be finite and non-zero, offset finite",
             ));
+        }
+        match self.segment {
+            FileSegment::None => {}
+            FileSegment::Contact => {
+                let contact = c.take(check_range(
+                    "contact_v",
+                    self.contact_v,
+                    -1e12,
+                    1e12,
+                    "file units",
+                ));
+                let release = c.take(check_range(
+                    "release_v",
+                    self.release_v,
+                    -1e12,
+                    1e12,
+                    "file units",
+                ));
+                if let (Some(a), Some(b)) = (contact, release) {
+                    if b <= a {
+                        c.push(ConfigError::key(
+                            "release_v",
+                            format!("must lie above contact_v = {a} (the hysteresis), got {b}"),
+                        ));
+                    }
+                }
+                c.take(check_range("enter_ms", self.enter_ms, 0.0, 3.6e6, "ms"));
+                c.take(check_range("exit_ms", self.exit_ms, 0.0, 3.6e6, "ms"));
+            }
+            FileSegment::Fixed => match self.window_ms {
+                Some(w) => {
+                    c.take(check_range("window_ms", w, 1e-3, 3.6e6, "ms"));
+                }
+                None => c.push(ConfigError::key(
+                    "window_ms",
+                    "required with segment = \"fixed\": the length of each trial, ms",
+                )),
+            },
         }
         let entries: Vec<String> = self.path.iter().chain(&self.paths).cloned().collect();
         let key = if self.path.is_some() { "path" } else { "paths" };
@@ -406,6 +500,10 @@ impl SignalFileSource {
                 r0
             }
         };
+        let raw = match self.plan(rate) {
+            Some(plan) => segment_trials(raw, plan, &self.cfg).map_err(StageError::new)?,
+            None => raw,
+        };
         let mut labelled: Vec<(String, TrialLabels)> =
             raw.iter().map(|t| (t.id.clone(), t.labels.clone())).collect();
         if let Some(p) = &self.labels {
@@ -429,6 +527,21 @@ impl SignalFileSource {
             .collect())
     }
 
+    /// The segmentation at `fs` Hz, if the config asks for one.
+    fn plan(&self, fs: f64) -> Option<SegmentPlan> {
+        let frames = |ms: f64| ((ms * fs / 1000.0).round() as usize).max(1);
+        match self.cfg.segment {
+            FileSegment::None => None,
+            FileSegment::Contact => Some(SegmentPlan::Contact {
+                contact: self.cfg.contact_v,
+                release: self.cfg.release_v,
+                enter: frames(self.cfg.enter_ms),
+                exit: frames(self.cfg.exit_ms),
+            }),
+            FileSegment::Fixed => Some(SegmentPlan::Fixed(frames(self.cfg.window_ms.unwrap_or(0.0)))),
+        }
+    }
+
     fn loaded(&self) -> Result<&Loaded, StageError> {
         self.loaded
             .get_or_init(|| self.load())
@@ -445,6 +558,77 @@ impl Source for SignalFileSource {
         let trial = crate::io::common::loaded_trial(self.loaded()?, ctx.meta, "files")?;
         Ok(Payload::Signals(trial))
     }
+}
+
+/// Cuts every trial of `raw` by `plan` (module docs): segment `j` of trial
+/// `<id>` becomes trial `<id>-<j>` with its labels. A trial in which no
+/// segment starts is an error that says what the samples looked like.
+fn segment_trials(
+    raw: Vec<RawTrial>,
+    plan: SegmentPlan,
+    cfg: &SignalFileConfig,
+) -> Result<Vec<RawTrial>, String> {
+    let mut out = Vec::new();
+    for t in raw {
+        let n = t.data.len();
+        let samples = t.data.first().map_or(0, Vec::len);
+        let mut seg = Segmenter::new(plan);
+        let mut parts: Vec<Vec<Vec<f64>>> = Vec::new();
+        let mut on = |e: SegEvent<'_>| -> Result<(), std::convert::Infallible> {
+            match e {
+                SegEvent::Start => parts.push(vec![Vec::new(); n]),
+                SegEvent::Frame(f) => {
+                    if let Some(p) = parts.last_mut() {
+                        p.iter_mut().zip(f).for_each(|(col, &v)| col.push(v));
+                    }
+                }
+                SegEvent::End => {}
+            }
+            Ok(())
+        };
+        let mut frame = vec![0.0; n];
+        for k in 0..samples {
+            frame.iter_mut().zip(&t.data).for_each(|(v, col)| *v = col[k]);
+            let Ok(()) = seg.push(&frame, &mut on);
+        }
+        let Ok(()) = seg.finish(&mut on);
+        if parts.is_empty() {
+            let seen = seg.levels().map_or(String::new(), |l| {
+                format!(
+                    ": its lowest taxel ranged {} to {} {}, and stayed at or under contact_v = {} for at most {} samples (enter_ms = {} needs {})",
+                    round4(l.low_range.0),
+                    round4(l.low_range.1),
+                    cfg.unit,
+                    cfg.contact_v,
+                    l.longest_under,
+                    cfg.enter_ms,
+                    match plan {
+                        SegmentPlan::Contact { enter, .. } => enter,
+                        SegmentPlan::Fixed(_) => 0,
+                    }
+                )
+            });
+            return Err(format!(
+                "{}: `segment` found no trial in {samples} samples{seen}; set `contact_v` and `release_v` to the recording's levels",
+                t.origin
+            ));
+        }
+        for (j, data) in parts.into_iter().enumerate() {
+            out.push(RawTrial {
+                id: format!("{}-{j}", t.id),
+                labels: t.labels.clone(),
+                data,
+                rate_hz: t.rate_hz,
+                origin: format!("{}, segment {j}", t.origin),
+            });
+        }
+    }
+    Ok(out)
+}
+
+/// `v` to 4 decimals, for messages (`1638` rather than `1638.0000`).
+fn round4(v: f64) -> f64 {
+    (v * 1e4).round() / 1e4
 }
 
 /// Reads one recording into trials; `file_id` is the file's short name.
