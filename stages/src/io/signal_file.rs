@@ -61,6 +61,15 @@
 //! NPZ/MAT array name, or, within a stack, the 0-based index (`<file>-<array>-<k>`
 //! when an archive has several stacks). Ids must be unique across all files.
 //!
+//! The sample rate is the `sample_rate_hz` key if given, else the one the
+//! `labels` file declares (a top-level `sample_rate_hz`, which the
+//! `labels.toml` of `palpate simulate` and `write_signals` and a
+//! `trials.json` carry; a key and a label file that disagree are an error).
+//! A file that carries its own rate (a time column, a `sample_rate_hz`
+//! variable, DAQ timestamps) must agree with it (within 0.1 %). Without
+//! either, every file must carry a rate and all must agree: mixing rates in
+//! one source is an error, since downstream stages assume one rate.
+//!
 //! ## One recording, many palpations (`segment`)
 //!
 //! A continuous log of several palpations is cut into trials by the rules
@@ -77,15 +86,6 @@
 //! each palpation of one log can carry its own angle. A recording in which
 //! no contact segment starts is an error that gives the range of its lowest
 //! taxel and its longest run under `contact_v`, so the threshold can be set.
-//!
-//! The sample rate is the `sample_rate_hz` key if given, else the one the
-//! `labels` file declares (a top-level `sample_rate_hz`, which the
-//! `labels.toml` of `palpate simulate` and `write_signals` and a
-//! `trials.json` carry; a key and a label file that disagree are an error).
-//! A file that carries its own rate (a time column, a `sample_rate_hz`
-//! variable, DAQ timestamps) must agree with it (within 0.1 %). Without
-//! either, every file must carry a rate and all must agree: mixing rates in
-//! one source is an error, since downstream stages assume one rate.
 
 use super::arrays::{read_mat, read_npy_plain, read_npz, NdArray, NpyContent};
 use super::common::{
