@@ -63,6 +63,7 @@ __all__ = [
     "lif",
     "lowpass",
     "normalize",
+    "read_signals",
     "run",
     "run_live",
     "simulate",
@@ -610,7 +611,9 @@ def stage_types() -> List[dict]:
 
 @dataclasses.dataclass
 class Dataset:
-    """A simulated scene's trials: ``signals`` float64 ``(trials, samples, taxels)``,
+    """A simulated scene's or a set of recordings' trials (``simulate``,
+    ``read_signals``): ``signals`` float64 ``(trials, samples, taxels)`` (NaN past
+    the end of a trial shorter than the longest),
     ``labels`` (true angle per trial, degrees; NaN if none), ``trial_ids``,
     ``groups``, ``crossing_ms`` ``(trials, 2)`` (NaN if unknown),
     ``speed_mm_s`` (each trial's commanded sliding speed, which WSS builds its
@@ -642,7 +645,33 @@ def simulate(scene: Union[str, os.PathLike, dict], seed: int = 1, **keys: Any) -
     else:
         cfg = {"file": str(pathlib.Path(scene).resolve())}
     cfg.update(keys)
-    raws = _palpate.simulate(cfg, seed)
+    return _dataset(_palpate.simulate(cfg, seed))
+
+
+def read_signals(
+    path: Union[str, os.PathLike, Sequence[Union[str, os.PathLike]]],
+    labels: Union[str, os.PathLike, None] = None,
+    **keys: Any,
+) -> Dataset:
+    """Reads recordings as a graph's ``signal_file`` stage does, into a ``Dataset``:
+    ``path`` is a file, a glob pattern (``"recordings/*.csv"``) or a list of them,
+    relative to the current folder; ``labels`` a label file; ``keys`` any other key
+    of the stage (``sample_rate_hz``, ``layout``, ``unit``, ``columns``,
+    ``segment="contact"`` with ``contact_v``/``release_v`` to cut one log of several
+    palpations into trials, ...: ``palpate stages signal_file`` lists them). CSV,
+    NPY, NPZ, MATLAB ``.mat`` (v5 and v7.3) and raw DAQ files; the same checks and
+    errors as the stage. ``crossing_ms`` is NaN (a recording does not know when
+    the edge crossed)."""
+    paths = [path] if isinstance(path, (str, os.PathLike)) else list(path)
+    cfg: Dict[str, Any] = {"paths": [str(p) for p in paths]}
+    if labels is not None:
+        cfg["labels"] = str(labels)
+    cfg.update(keys)
+    return _dataset(_palpate.read_source("signal_file", cfg, 1, os.getcwd(), "signals"))
+
+
+def _dataset(raws: List[dict]) -> Dataset:
+    """A ``Dataset`` of a source's raw trials (signals with their metadata)."""
     trials = [Signals.from_raw(r) for r in raws]
     lens = {t.data.shape[0] for t in trials}
     if len(lens) > 1:

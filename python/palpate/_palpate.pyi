@@ -84,6 +84,13 @@ def fit(
     stage_id: str = "stage",
 ) -> Model: ...
 def simulate(config: Dict[str, Any], seed: int = 1, base_dir: Optional[str] = None) -> List[RawPayload]: ...
+def read_source(
+    type_name: str,
+    config: Dict[str, Any],
+    seed: int = 1,
+    base_dir: Optional[str] = None,
+    stage_id: str = "source",
+) -> List[RawPayload]: ...
 def register_stage(
     name: str,
     role: str,

@@ -100,6 +100,7 @@ fn _palpate(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(run::apply, m)?)?;
     m.add_function(wrap_pyfunction!(run::fit, m)?)?;
     m.add_function(wrap_pyfunction!(run::simulate, m)?)?;
+    m.add_function(wrap_pyfunction!(run::read_source, m)?)?;
     m.add_function(wrap_pyfunction!(pystage::register_stage, m)?)?;
     m.add_function(wrap_pyfunction!(pystage::unregister_stage, m)?)?;
     m.add_class::<run::Model>()?;

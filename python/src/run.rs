@@ -873,12 +873,30 @@ pub fn simulate<'py>(
     seed: u64,
     base_dir: Option<PathBuf>,
 ) -> PyResult<Bound<'py, PyList>> {
-    let (_, stage) = build_stage(py, "scene", config, seed, "scene", base_dir)?;
+    read_source(py, "scene", config, seed, base_dir, "scene")
+}
+
+/// Every trial of the source stage `type_name` with these keys (stage id
+/// `stage_id`, the given run seed), in the order a graph's run sees them:
+/// `simulate` for a scene, `read_signals` for recordings (`signal_file`).
+#[pyfunction]
+#[pyo3(signature = (type_name, config, seed=1, base_dir=None, stage_id="source"))]
+pub fn read_source<'py>(
+    py: Python<'py>,
+    type_name: &str,
+    config: &Bound<'py, PyAny>,
+    seed: u64,
+    base_dir: Option<PathBuf>,
+    stage_id: &str,
+) -> PyResult<Bound<'py, PyList>> {
+    let (_, stage) = build_stage(py, type_name, config, seed, stage_id, base_dir)?;
     let Stage::Source(src) = stage else {
-        return Err(PalpateError::new_err("the scene stage is not a source"));
+        return Err(PalpateError::new_err(format!(
+            "stage type `{type_name}` is not a source (it takes inputs)"
+        )));
     };
     let outs = py.allow_threads(|| {
-        no_panic("scene", || {
+        no_panic(stage_id, || {
             let metas = match src.trials() {
                 Ok(m) => m,
                 Err(e) => return Ok(Err((None, e.message))),
@@ -887,9 +905,9 @@ pub fn simulate<'py>(
             for (k, mut meta) in metas.into_iter().enumerate() {
                 meta.index = k;
                 let ctx = TrialContext {
-                    stage_id: "scene",
+                    stage_id,
                     meta: &meta,
-                    seed: derive_seed(seed, &["scene", &meta.trial_id]),
+                    seed: derive_seed(seed, &[stage_id, &meta.trial_id]),
                 };
                 match src.produce(&ctx) {
                     Ok(p) => items.push(Item {
@@ -902,6 +920,6 @@ pub fn simulate<'py>(
             Ok(Ok(items))
         })
     })?;
-    let items = outs.map_err(|(t, m)| stage_err(py, "scene", t.as_deref(), &m))?;
+    let items = outs.map_err(|(t, m)| stage_err(py, stage_id, t.as_deref(), &m))?;
     items_to_list(py, &items)
 }

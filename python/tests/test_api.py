@@ -9,7 +9,7 @@ import pytest
 
 import palpate
 
-from conftest import GRAPHS
+from conftest import GRAPHS, REPO
 
 
 def test_run_returns_estimates_metrics_and_timing(small_graph, tmp_path):
@@ -123,6 +123,42 @@ def test_simulate_matches_the_graph_scene_and_is_seeded():
     other = palpate.simulate(GRAPHS / "scenes" / "lab.toml", seed=2, angles=[30.0, 60.0], trials_per_angle=2)
     assert np.array_equal(d.signals, again.signals, equal_nan=True)
     assert not np.array_equal(d.signals, other.signals, equal_nan=True)
+
+
+def test_read_signals_gives_the_recordings_a_graph_reads(tmp_path):
+    """read_signals on the shipped recording: the CSV's samples, the label
+    file's angles, the files' rate; through the building blocks, the same WSS
+    answers as the recording's graph."""
+    rec = REPO / "examples" / "recording"
+    d = palpate.read_signals(rec / "trial*.csv", labels=rec / "labels.csv", unit="mV")
+    assert d.trial_ids == ["trial01", "trial02", "trial03", "trial04"]
+    assert list(d.labels) == [40.0, 60.0, 75.0, 90.0] and list(d.speed_mm_s) == [2.0] * 4
+    assert d.sample_rate_hz == 100.0 and d.unit == "mV" and np.isnan(d.crossing_ms).all()
+    raw = np.loadtxt(rec / "trial02.csv", delimiter=",", skiprows=1)
+    assert np.array_equal(d.trials[1].data, raw[:, 1:])
+    res = palpate.run(rec / "recording.toml", out=tmp_path / "graph", progress=False)
+    x = palpate.lowpass(d.trials, cutoff_hz=10.0)
+    x = palpate.drive(palpate.normalize(x, min_span=100.0), kind="fa_i")
+    est = palpate.wss(palpate.bin(palpate.izhikevich(x, preset="fa_i"), window_ms=100.0, hop_ms=10.0))
+    assert [e.angle_deg for e in est] == list(res.estimates["wss"].estimate)
+
+
+def test_read_signals_cuts_one_log_into_palpations(tmp_path):
+    """segment="contact": a log of two presses (4 taxels, 500 Hz) is two trials,
+    each exactly its samples in contact; no contact is an error naming the file."""
+    off, on = np.full((100, 4), 3.3), 1.75 + 0.01 * np.arange(4) + np.zeros((150, 4))
+    log = np.vstack([off, on, off, on[:120] + 0.01, off])
+    header = "taxel_0,taxel_1,taxel_2,taxel_3"
+    np.savetxt(tmp_path / "log.csv", log, delimiter=",", header=header, comments="")
+    grid2 = {"kind": "grid", "rows": 2, "cols": 2, "pitch_mm": 3.0, "taxel_mm": 2.0}
+    d = palpate.read_signals(tmp_path / "log.csv", layout=grid2, sample_rate_hz=500.0, segment="contact")
+    assert d.trial_ids == ["log-0", "log-1"]
+    assert [t.data.shape for t in d.trials] == [(150, 4), (120, 4)]
+    assert np.array_equal(d.trials[1].data, on[:120] + 0.01)
+    with pytest.raises(palpate.PalpateError, match="found no trial"):
+        palpate.read_signals(tmp_path / "log.csv", layout=grid2, sample_rate_hz=500.0, segment="contact", contact_v=1.0, release_v=1.1)
+    with pytest.raises(palpate.PalpateError, match="release_v"):
+        palpate.read_signals(tmp_path / "log.csv", layout=grid2, sample_rate_hz=500.0, segment="contact", release_v=2.0)
 
 
 def test_building_blocks_chain_to_the_graph_result(small_graph, tmp_path):
