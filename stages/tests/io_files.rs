@@ -692,12 +692,50 @@ fn one_log_of_several_palpations_is_cut_at_contact() {
         e.contains("log.csv") && e.contains("found no trial") && e.contains("ranged 1.7"),
         "{e}"
     );
-    // Keys: the hysteresis, a fixed window's length.
+    // A sensor whose output rises with pressure: the same log mirrored
+    // (5.05 - v: 1.75 on the object, 3.3 in contact) gives the same trials.
+    let mirrored: String = std::fs::read_to_string(d.path().join("log.csv"))
+        .unwrap()
+        .lines()
+        .enumerate()
+        .map(|(i, l)| match i {
+            0 => format!("{l}\n"),
+            _ => {
+                let mut f = l.split(',');
+                let t = f.next().unwrap_or_default().to_string();
+                let vals: Vec<String> = f
+                    .map(|v| format!("{}", 5.05 - v.parse::<f64>().unwrap()))
+                    .collect();
+                format!("{t},{}\n", vals.join(","))
+            }
+        })
+        .collect();
+    std::fs::write(d.path().join("log.csv"), mirrored).unwrap();
+    let rises = "segment = \"contact\"\ncontact_polarity = \"rises\"\ncontact_v = 2.3\nrelease_v = 2.1";
+    let r = run_graph(d.path(), &src(rises)).unwrap();
+    let it = items(&r, "src");
+    let lens: Vec<usize> = it.iter().map(|i| signals(i).n_samples()).collect();
+    assert_eq!(lens, on_at.iter().map(|&(_, len)| len).collect::<Vec<_>>());
+    assert_eq!(signals(&it[1]).data[2][7], 5.05 - level(true, 2, on_at[1].0 + 7));
+    let e = source_error(
+        d.path(),
+        &src("segment = \"contact\"\ncontact_polarity = \"rises\"\ncontact_v = 4.0\nrelease_v = 3.9")
+            .replace("[stages.src]\ntype = \"signal_file\"\n", ""),
+    );
+    assert!(
+        e.contains("highest taxel ranged 1.75") && e.contains("or over contact_v = 4"),
+        "{e}"
+    );
+    // Keys: the hysteresis (either way), a fixed window's length.
     let g = |extra: &str| palpate_core::load_str(&src(extra), "g.toml", "g", &Default::default());
     let e = g("segment = \"contact\"\ncontact_v = 2.0\nrelease_v = 2.0")
         .unwrap_err()
         .to_string();
     assert!(e.contains("release_v") && e.contains("above contact_v"), "{e}");
+    let e = g("segment = \"contact\"\ncontact_polarity = \"rises\"\ncontact_v = 2.0\nrelease_v = 2.2")
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("release_v") && e.contains("below contact_v"), "{e}");
     let e = g("segment = \"fixed\"").unwrap_err().to_string();
     assert!(e.contains("window_ms") && e.contains("required"), "{e}");
 }

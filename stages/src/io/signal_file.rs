@@ -83,9 +83,13 @@
 //! consecutive windows of `window_ms` instead (the last may be shorter).
 //! Segment `j` (0-based) of a trial with id `<id>` gets the id `<id>-<j>`
 //! and the file's labels, which a sidecar entry for `<id>-<j>` overrides, so
-//! each palpation of one log can carry its own angle. A recording in which
-//! no contact segment starts is an error that gives the range of its lowest
-//! taxel and its longest run under `contact_v`, so the threshold can be set.
+//! each palpation of one log can carry its own angle. A sensor whose output
+//! rises with pressure sets `contact_polarity = "rises"`: the rules apply to
+//! the highest taxel with the inequalities turned (`m_k >= contact_v` starts,
+//! `m_k <= release_v < contact_v` ends; computed on the negated samples, so
+//! exactly the same rules). A recording in which no contact segment starts is
+//! an error that gives the range of its lowest (highest) taxel and its
+//! longest run past `contact_v`, so the threshold can be set.
 
 use super::arrays::{read_mat, read_npy_plain, read_npz, NdArray, NpyContent};
 use super::common::{
@@ -206,6 +210,23 @@ pub struct SignalFileConfig {
     pub exit_ms: f64,
     /// `segment = "fixed"`: the length of each trial, ms. Default none (required then).
     pub window_ms: Option<f64>,
+    /// `segment = "contact"`: how the output moves with pressure: `falls`
+    /// (a piezoresistive divider, as the paper's: contact at the lowest
+    /// taxel <= `contact_v`, release at >= `release_v`) or `rises` (contact
+    /// at the highest taxel >= `contact_v`, release at <= `release_v`, then
+    /// below `contact_v`). Default falls.
+    pub contact_polarity: Polarity,
+}
+
+/// Which way a sensor's output moves with pressure (`contact_polarity`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum Polarity {
+    /// The output falls with pressure.
+    #[default]
+    Falls,
+    /// The output rises with pressure.
+    Rises,
 }
 
 /// How `signal_file` cuts a recording into trials (see the module docs).
@@ -245,6 +266,7 @@ impl Default for SignalFileConfig {
             enter_ms: 20.0,
             exit_ms: 200.0,
             window_ms: None,
+            contact_polarity: Polarity::Falls,
         }
     }
 }
@@ -304,10 +326,15 @@ impl SignalFileConfig {
                     "file units",
                 ));
                 if let (Some(a), Some(b)) = (contact, release) {
-                    if b <= a {
+                    let rises = self.contact_polarity == Polarity::Rises;
+                    if (b <= a && !rises) || (b >= a && rises) {
+                        let side = if rises { "below" } else { "above" };
                         c.push(ConfigError::key(
                             "release_v",
-                            format!("must lie above contact_v = {a} (the hysteresis), got {b}"),
+                            format!(
+                                "must lie {side} contact_v = {a} (the hysteresis, contact_polarity = {}), got {b}",
+                                if rises { "rises" } else { "falls" }
+                            ),
                         ));
                     }
                 }
@@ -501,7 +528,7 @@ impl SignalFileSource {
             }
         };
         let raw = match self.plan(rate) {
-            Some(plan) => segment_trials(raw, plan, &self.cfg).map_err(StageError::new)?,
+            Some(plan) => segment_trials(raw, plan, self.sign(), &self.cfg).map_err(StageError::new)?,
             None => raw,
         };
         let mut labelled: Vec<(String, TrialLabels)> =
@@ -527,14 +554,24 @@ impl SignalFileSource {
             .collect())
     }
 
+    /// `-1` when the output rises with pressure (the segmenter then reads
+    /// the negated samples), else `1`.
+    fn sign(&self) -> f64 {
+        match self.cfg.contact_polarity {
+            Polarity::Falls => 1.0,
+            Polarity::Rises => -1.0,
+        }
+    }
+
     /// The segmentation at `fs` Hz, if the config asks for one.
     fn plan(&self, fs: f64) -> Option<SegmentPlan> {
         let frames = |ms: f64| ((ms * fs / 1000.0).round() as usize).max(1);
         match self.cfg.segment {
             FileSegment::None => None,
             FileSegment::Contact => Some(SegmentPlan::Contact {
-                contact: self.cfg.contact_v,
-                release: self.cfg.release_v,
+                // A rising output is segmented as its negation (module docs).
+                contact: self.sign() * self.cfg.contact_v,
+                release: self.sign() * self.cfg.release_v,
                 enter: frames(self.cfg.enter_ms),
                 exit: frames(self.cfg.exit_ms),
             }),
@@ -566,6 +603,7 @@ impl Source for SignalFileSource {
 fn segment_trials(
     raw: Vec<RawTrial>,
     plan: SegmentPlan,
+    sign: f64,
     cfg: &SignalFileConfig,
 ) -> Result<Vec<RawTrial>, String> {
     let mut out = Vec::new();
@@ -579,7 +617,8 @@ fn segment_trials(
                 SegEvent::Start => parts.push(vec![Vec::new(); n]),
                 SegEvent::Frame(f) => {
                     if let Some(p) = parts.last_mut() {
-                        p.iter_mut().zip(f).for_each(|(col, &v)| col.push(v));
+                        // Negation is exact: `sign` twice is the sample.
+                        p.iter_mut().zip(f).for_each(|(col, &v)| col.push(sign * v));
                     }
                 }
                 SegEvent::End => {}
@@ -588,16 +627,21 @@ fn segment_trials(
         };
         let mut frame = vec![0.0; n];
         for k in 0..samples {
-            frame.iter_mut().zip(&t.data).for_each(|(v, col)| *v = col[k]);
+            frame
+                .iter_mut()
+                .zip(&t.data)
+                .for_each(|(v, col)| *v = sign * col[k]);
             let Ok(()) = seg.push(&frame, &mut on);
         }
         let Ok(()) = seg.finish(&mut on);
         if parts.is_empty() {
             let seen = seg.levels().map_or(String::new(), |l| {
+                let (which, past) = if sign < 0.0 { ("highest", "over") } else { ("lowest", "under") };
+                let (a, b) = (sign * l.low_range.0, sign * l.low_range.1);
                 format!(
-                    ": its lowest taxel ranged {} to {} {}, and stayed at or under contact_v = {} for at most {} samples (enter_ms = {} needs {})",
-                    round4(l.low_range.0),
-                    round4(l.low_range.1),
+                    ": its {which} taxel ranged {} to {} {}, and stayed at or {past} contact_v = {} for at most {} samples (enter_ms = {} needs {})",
+                    round4(a.min(b)),
+                    round4(a.max(b)),
                     cfg.unit,
                     cfg.contact_v,
                     l.longest_under,
