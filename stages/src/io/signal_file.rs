@@ -86,8 +86,7 @@
 //! each palpation of one log can carry its own angle. A sensor whose output
 //! rises with pressure sets `contact_polarity = "rises"`: the rules apply to
 //! the highest taxel with the inequalities turned (`m_k >= contact_v` starts,
-//! `m_k <= release_v < contact_v` ends; computed on the negated samples, so
-//! exactly the same rules). A recording in which no contact segment starts is
+//! `m_k <= release_v < contact_v` ends, as the `daq` source does). A recording in which no contact segment starts is
 //! an error that gives the range of its lowest (highest) taxel and its
 //! longest run past `contact_v`, so the threshold can be set.
 
@@ -96,7 +95,7 @@ use super::common::{
     apply_sidecar, build_metas, expand_paths, file_ids, merge_consistent, number_error, read_sidecar,
     resolve_layout, set_label_cell, user_csv_reader, LayoutConfig, TrialLabels, LABEL_COLUMNS,
 };
-use super::daq::source::{SegEvent, SegmentPlan, Segmenter};
+use super::daq::source::{Polarity, SegEvent, SegmentPlan, Segmenter};
 use palpate_core::{
     check_positive, check_range, register_stage, BuildContext, ConfigChecks, ConfigError, InputSpec,
     Inspection, OutputFacts, Payload, PayloadKind, Signals, Source, Stage, StageConfig, StageError,
@@ -218,17 +217,6 @@ pub struct SignalFileConfig {
     pub contact_polarity: Polarity,
 }
 
-/// Which way a sensor's output moves with pressure (`contact_polarity`).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
-#[serde(rename_all = "snake_case")]
-pub enum Polarity {
-    /// The output falls with pressure.
-    #[default]
-    Falls,
-    /// The output rises with pressure.
-    Rises,
-}
-
 /// How `signal_file` cuts a recording into trials (see the module docs).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
 #[serde(rename_all = "snake_case")]
@@ -311,33 +299,8 @@ impl SignalFileConfig {
         match self.segment {
             FileSegment::None => {}
             FileSegment::Contact => {
-                let contact = c.take(check_range(
-                    "contact_v",
-                    self.contact_v,
-                    -1e12,
-                    1e12,
-                    "file units",
-                ));
-                let release = c.take(check_range(
-                    "release_v",
-                    self.release_v,
-                    -1e12,
-                    1e12,
-                    "file units",
-                ));
-                if let (Some(a), Some(b)) = (contact, release) {
-                    let rises = self.contact_polarity == Polarity::Rises;
-                    if (b <= a && !rises) || (b >= a && rises) {
-                        let side = if rises { "below" } else { "above" };
-                        c.push(ConfigError::key(
-                            "release_v",
-                            format!(
-                                "must lie {side} contact_v = {a} (the hysteresis, contact_polarity = {}), got {b}",
-                                if rises { "rises" } else { "falls" }
-                            ),
-                        ));
-                    }
-                }
+                self.contact_polarity
+                    .check_thresholds(&mut c, self.contact_v, self.release_v, "file units");
                 c.take(check_range("enter_ms", self.enter_ms, 0.0, 3.6e6, "ms"));
                 c.take(check_range("exit_ms", self.exit_ms, 0.0, 3.6e6, "ms"));
             }
@@ -528,7 +491,7 @@ impl SignalFileSource {
             }
         };
         let raw = match self.plan(rate) {
-            Some(plan) => segment_trials(raw, plan, self.sign(), &self.cfg).map_err(StageError::new)?,
+            Some(plan) => segment_trials(raw, plan, &self.cfg).map_err(StageError::new)?,
             None => raw,
         };
         let mut labelled: Vec<(String, TrialLabels)> =
@@ -554,24 +517,15 @@ impl SignalFileSource {
             .collect())
     }
 
-    /// `-1` when the output rises with pressure (the segmenter then reads
-    /// the negated samples), else `1`.
-    fn sign(&self) -> f64 {
-        match self.cfg.contact_polarity {
-            Polarity::Falls => 1.0,
-            Polarity::Rises => -1.0,
-        }
-    }
-
     /// The segmentation at `fs` Hz, if the config asks for one.
     fn plan(&self, fs: f64) -> Option<SegmentPlan> {
         let frames = |ms: f64| ((ms * fs / 1000.0).round() as usize).max(1);
         match self.cfg.segment {
             FileSegment::None => None,
             FileSegment::Contact => Some(SegmentPlan::Contact {
-                // A rising output is segmented as its negation (module docs).
-                contact: self.sign() * self.cfg.contact_v,
-                release: self.sign() * self.cfg.release_v,
+                contact: self.cfg.contact_v,
+                release: self.cfg.release_v,
+                rises: self.cfg.contact_polarity == Polarity::Rises,
                 enter: frames(self.cfg.enter_ms),
                 exit: frames(self.cfg.exit_ms),
             }),
@@ -603,7 +557,6 @@ impl Source for SignalFileSource {
 fn segment_trials(
     raw: Vec<RawTrial>,
     plan: SegmentPlan,
-    sign: f64,
     cfg: &SignalFileConfig,
 ) -> Result<Vec<RawTrial>, String> {
     let mut out = Vec::new();
@@ -617,8 +570,7 @@ fn segment_trials(
                 SegEvent::Start => parts.push(vec![Vec::new(); n]),
                 SegEvent::Frame(f) => {
                     if let Some(p) = parts.last_mut() {
-                        // Negation is exact: `sign` twice is the sample.
-                        p.iter_mut().zip(f).for_each(|(col, &v)| col.push(sign * v));
+                        p.iter_mut().zip(f).for_each(|(col, &v)| col.push(v));
                     }
                 }
                 SegEvent::End => {}
@@ -627,17 +579,15 @@ fn segment_trials(
         };
         let mut frame = vec![0.0; n];
         for k in 0..samples {
-            frame
-                .iter_mut()
-                .zip(&t.data)
-                .for_each(|(v, col)| *v = sign * col[k]);
+            frame.iter_mut().zip(&t.data).for_each(|(v, col)| *v = col[k]);
             let Ok(()) = seg.push(&frame, &mut on);
         }
         let Ok(()) = seg.finish(&mut on);
         if parts.is_empty() {
             let seen = seg.levels().map_or(String::new(), |l| {
-                let (which, past) = if sign < 0.0 { ("highest", "over") } else { ("lowest", "under") };
-                let (a, b) = (sign * l.low_range.0, sign * l.low_range.1);
+                let rises = matches!(plan, SegmentPlan::Contact { rises: true, .. });
+                let (which, past) = if rises { ("highest", "over") } else { ("lowest", "under") };
+                let (a, b) = l.low_range;
                 format!(
                     ": its {which} taxel ranged {} to {} {}, and stayed at or {past} contact_v = {} for at most {} samples (enter_ms = {} needs {})",
                     round4(a.min(b)),

@@ -21,7 +21,10 @@
 //!   and ends before the first frame of a run of
 //!   `N_out = max(1, round(exit_ms·fs/1000))` frames with `m_k >= release_v`.
 //!   `release_v > contact_v` is the hysteresis: noise around one threshold
-//!   cannot start and stop trials. The frames of a run that does not complete
+//!   cannot start and stop trials. A sensor whose output rises with pressure
+//!   (`contact_polarity = "rises"`) uses the highest taxel with the
+//!   inequalities turned: `m_k >= contact_v` begins, `m_k <= release_v`
+//!   ends, `release_v < contact_v`. The frames of a run that does not complete
 //!   belong to the state it interrupted (a short dip back to the open level
 //!   stays inside its trial). A trial still open when the stream ends ends
 //!   there. Latency: the first `N_in` frames of a trial are handed on
@@ -74,6 +77,45 @@ pub enum SegmentMode {
     Fixed,
 }
 
+/// Which way a sensor's output moves with pressure (`contact_polarity`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum Polarity {
+    /// The output falls with pressure (a piezoresistive divider, as the paper's).
+    #[default]
+    Falls,
+    /// The output rises with pressure.
+    Rises,
+}
+
+impl Polarity {
+    /// Checks `contact_v` and `release_v` (finite, release past contact
+    /// the polarity's way) into `c`; returns them when both are good.
+    pub fn check_thresholds(
+        self,
+        c: &mut ConfigChecks,
+        contact: f64,
+        release: f64,
+        unit: &str,
+    ) -> Option<(f64, f64)> {
+        let contact = c.take(check_range("contact_v", contact, -1e12, 1e12, unit));
+        let release = c.take(check_range("release_v", release, -1e12, 1e12, unit));
+        let (a, b) = (contact?, release?);
+        let (ok, side, name) = match self {
+            Polarity::Falls => (b > a, "above", "falls"),
+            Polarity::Rises => (b < a, "below", "rises"),
+        };
+        if !ok {
+            c.push(ConfigError::key(
+                "release_v",
+                format!("must lie {side} contact_v = {a} (the hysteresis; contact_polarity = \"{name}\"), got {b}"),
+            ));
+            return None;
+        }
+        Some((a, b))
+    }
+}
+
 /// DAQ source: trials from a serial port, a raw recording or an emulated scene, cut at contact.
 ///
 /// One of `port`, `recording`, `scene` (that order wins when several are
@@ -123,11 +165,16 @@ pub struct DaqConfig {
     pub unit: String,
     /// Trial segmentation: `contact` or `fixed`. Default `contact`.
     pub segment: SegmentMode,
-    /// Contact begins when the lowest taxel reads at most this, DAQ units (V). Default 3.0.
+    /// Contact begins when the lowest taxel reads at most this (the highest at
+    /// least this, with `contact_polarity = "rises"`), DAQ units (V). Default 3.0.
     pub contact_v: f64,
     /// Contact ends when the lowest taxel reads at least this, DAQ units (V);
-    /// above `contact_v` (hysteresis). Default 3.2.
+    /// above `contact_v` (hysteresis; below it, and the highest taxel at
+    /// most this, with `contact_polarity = "rises"`). Default 3.2.
     pub release_v: f64,
+    /// How the output moves with pressure: `falls` (a piezoresistive
+    /// divider, as the paper's board) or `rises`; see `contact_v`. Default falls.
+    pub contact_polarity: Polarity,
     /// Contact must hold this long to begin a trial, ms. Default 20.
     pub enter_ms: f64,
     /// Release must hold this long to end a trial, ms. Default 200.
@@ -168,6 +215,7 @@ impl Default for DaqConfig {
             segment: SegmentMode::Contact,
             contact_v: 3.0,
             release_v: 3.2,
+            contact_polarity: Polarity::Falls,
             enter_ms: 20.0,
             exit_ms: 200.0,
             window_ms: None,
@@ -197,6 +245,9 @@ pub enum SegmentPlan {
         contact: f64,
         /// `release_v`.
         release: f64,
+        /// Whether the output rises with pressure (the highest taxel then
+        /// decides, the inequalities turned).
+        rises: bool,
         /// `N_in`.
         enter: usize,
         /// `N_out`.
@@ -234,12 +285,14 @@ pub struct Segmenter {
     longest_under: usize,
 }
 
-/// What a [`Segmenter`] saw of the frames' lowest taxel (contact plans).
+/// What a [`Segmenter`] saw of the frames' deciding taxel (contact plans):
+/// the lowest taxel of each frame, the highest for a rising output.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Levels {
-    /// Lowest and highest of the frames' lowest taxel.
+    /// Lowest and highest of the frames' deciding taxel.
     pub low_range: (f64, f64),
-    /// Longest run of frames at or under `contact_v` outside a trial.
+    /// Longest run of frames in contact range (at or under `contact_v`; at
+    /// or over it for a rising output) outside a trial.
     pub longest_under: usize,
 }
 
@@ -299,11 +352,21 @@ impl Segmenter {
                 release,
                 enter,
                 exit,
+                rises,
             } => {
-                let low = frame.iter().copied().fold(f64::INFINITY, f64::min);
-                self.lows = (self.lows.0.min(low), self.lows.1.max(low));
+                let m = if rises {
+                    frame.iter().copied().fold(f64::NEG_INFINITY, f64::max)
+                } else {
+                    frame.iter().copied().fold(f64::INFINITY, f64::min)
+                };
+                self.lows = (self.lows.0.min(m), self.lows.1.max(m));
+                let (pressed, released) = if rises {
+                    (m >= contact, m <= release)
+                } else {
+                    (m <= contact, m >= release)
+                };
                 if !self.in_trial {
-                    if low <= contact {
+                    if pressed {
                         self.held.push(frame.to_vec());
                         self.longest_under = self.longest_under.max(self.held.len());
                         if self.held.len() >= enter {
@@ -316,7 +379,7 @@ impl Segmenter {
                     } else {
                         self.held.clear();
                     }
-                } else if low >= release {
+                } else if released {
                     self.held.push(frame.to_vec());
                     if self.held.len() >= exit {
                         self.held.clear();
@@ -387,16 +450,9 @@ impl DaqConfig {
         let speed = c.take(check_range("speed", self.speed, 0.0, 1e6, "x real time"));
         let gap_ms = c.take(check_range("gap_ms", self.gap_ms, 0.0, 3.6e6, "ms"));
         let open_v = c.take(check_range("open_v", self.open_v, -1e12, 1e12, "DAQ units"));
-        let contact = c.take(check_range("contact_v", self.contact_v, -1e12, 1e12, "DAQ units"));
-        let release = c.take(check_range("release_v", self.release_v, -1e12, 1e12, "DAQ units"));
-        if let (Some(a), Some(b)) = (contact, release) {
-            if b <= a {
-                c.push(ConfigError::key(
-                    "release_v",
-                    format!("must lie above contact_v = {a} (the hysteresis), got {b}"),
-                ));
-            }
-        }
+        let thresholds =
+            self.contact_polarity
+                .check_thresholds(&mut c, self.contact_v, self.release_v, "DAQ units");
         let enter_ms = c.take(check_range("enter_ms", self.enter_ms, 0.0, 3.6e6, "ms"));
         let exit_ms = c.take(check_range("exit_ms", self.exit_ms, 0.0, 3.6e6, "ms"));
         let window_ms = match (self.segment, self.window_ms) {
@@ -470,8 +526,7 @@ impl DaqConfig {
             Some(speed),
             Some(gap_ms),
             Some(open_v),
-            Some(contact),
-            Some(release),
+            Some((contact, release)),
             Some(enter_ms),
             Some(exit_ms),
             Some(window_ms),
@@ -479,7 +534,7 @@ impl DaqConfig {
             Some(stall_ms),
             Some(give_up_ms),
         ) = (
-            input, layout, fs, scale, offset, speed, gap_ms, open_v, contact, release, enter_ms, exit_ms,
+            input, layout, fs, scale, offset, speed, gap_ms, open_v, thresholds, enter_ms, exit_ms,
             window_ms, max_gap_ms, stall_ms, give_up_ms,
         )
         else {
@@ -492,6 +547,7 @@ impl DaqConfig {
                 release,
                 enter: frames(enter_ms),
                 exit: frames(exit_ms),
+                rises: self.contact_polarity == Polarity::Rises,
             },
             SegmentMode::Fixed => SegmentPlan::Fixed(frames(window_ms)),
         };
@@ -791,19 +847,30 @@ impl DaqSource {
             let p = 10f64.powi(3 - v.abs().log10().floor() as i32);
             num((v * p).round() / p)
         };
-        let relation = if lows.0 > contact {
-            format!("never at or under `contact_v` = {}", num(contact))
+        let rises = matches!(self.c.plan, SegmentPlan::Contact { rises: true, .. });
+        let (which, past, reads) = if rises {
+            ("highest", "over", "a pressed taxel reads high")
+        } else {
+            (
+                "lowest",
+                "under",
+                "a pressed taxel reads low; `contact_polarity = \"rises\"` for one that reads high",
+            )
+        };
+        let never = if rises { lows.1 < contact } else { lows.0 > contact };
+        let relation = if never {
+            format!("never at or {past} `contact_v` = {}", num(contact))
         } else {
             format!(
-                "at or under `contact_v` = {} for at most {} in a row",
+                "at or {past} `contact_v` = {} for at most {} in a row",
                 num(contact),
                 super::protocol::count(longest_under as u64, "frame", "frames")
             )
         };
         format!(
-            "daq `{}`: no contact in {}: the lowest taxel of a frame read {} to {} {unit}, {relation}; \
-             a trial begins after {} at or under it (`enter_ms`). Set `contact_v` and `release_v` \
-             for this board (a pressed taxel reads low), or `scale` if its values come in other \
+            "daq `{}`: no contact in {}: the {which} taxel of a frame read {} to {} {unit}, {relation}; \
+             a trial begins after {} at or {past} it (`enter_ms`). Set `contact_v` and `release_v` \
+             for this board ({reads}), or `scale` if its values come in other \
              units (e.g. 0.001 for mV)",
             self.stage_id,
             super::protocol::count(frames, "frame", "frames"),
@@ -1078,6 +1145,7 @@ mod tests {
             release: 3.2,
             enter: 2,
             exit: 3,
+            rises: false,
         };
         // A single low frame is noise; two begin a trial (both inside it).
         // 3.1 lies between the thresholds: still contact. Two high frames
@@ -1092,6 +1160,50 @@ mod tests {
         assert_eq!(got, ["S", "2", "2", "3.3", "E"]);
     }
 
+    /// A rising output: the falling test's stream mirrored (`6.5 - v`) and
+    /// its thresholds with it cut the same trials at the same frames, the
+    /// highest taxel deciding.
+    #[test]
+    fn a_rising_output_is_cut_as_the_mirror_of_a_falling_one() {
+        let falling = [3.3, 2.0, 3.3, 2.0, 1.5, 3.1, 3.25, 3.3, 1.7, 3.3, 3.3, 3.3, 3.3];
+        let plan = |rises: bool, contact: f64, release: f64| SegmentPlan::Contact {
+            contact,
+            release,
+            enter: 2,
+            exit: 3,
+            rises,
+        };
+        let mirror = |v: f64| 6.5 - v;
+        let rising: Vec<f64> = falling.iter().map(|&v| mirror(v)).collect();
+        // The other taxel sits at the open level (low for a rising output):
+        // the maximum, not the minimum, must decide.
+        let mut got = Vec::new();
+        let mut on = |e: SegEvent<'_>| -> Result<(), ()> {
+            got.push(match e {
+                SegEvent::Start => "S".to_string(),
+                SegEvent::Frame(f) => format!("{}", f[1]),
+                SegEvent::End => "E".to_string(),
+            });
+            Ok(())
+        };
+        let mut seg = Segmenter::new(plan(true, mirror(3.0), mirror(3.2)));
+        for &v in &rising {
+            seg.push(&[mirror(3.3), v], &mut on).unwrap();
+        }
+        seg.finish(&mut on).unwrap();
+        // The falling cut, each frame's value mirrored as the input was.
+        let want: Vec<String> = cut(plan(false, 3.0, 3.2), &falling)
+            .into_iter()
+            .map(|e| e.parse::<f64>().map_or(e, |v| format!("{}", mirror(v))))
+            .collect();
+        assert!(want.len() > 4 && want.contains(&"E".to_string()), "{want:?}");
+        assert_eq!(got, want);
+        assert_eq!(
+            seg.levels().map(|l| l.low_range),
+            Some((mirror(3.3), mirror(1.5)))
+        );
+    }
+
     #[test]
     fn a_contact_segmenter_reports_the_levels_it_saw() {
         let plan = SegmentPlan::Contact {
@@ -1099,6 +1211,7 @@ mod tests {
             release: 3.2,
             enter: 3,
             exit: 3,
+            rises: false,
         };
         let mut seg = Segmenter::new(plan);
         assert_eq!(seg.levels(), None);
