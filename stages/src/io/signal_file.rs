@@ -602,8 +602,13 @@ fn segment_trials(
                     }
                 )
             });
+            // Fixed windows cut a trial from any sample: none means no samples.
+            let hint = match plan {
+                SegmentPlan::Contact { .. } => "; set `contact_v` and `release_v` to the recording's levels",
+                SegmentPlan::Fixed(_) => "",
+            };
             return Err(format!(
-                "{}: `segment` found no trial in {samples} samples{seen}; set `contact_v` and `release_v` to the recording's levels",
+                "{}: `segment` found no trial in {samples} samples{seen}{hint}",
                 t.origin
             ));
         }

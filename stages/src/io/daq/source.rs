@@ -1081,6 +1081,12 @@ mod tests {
     use super::*;
 
     fn cut(plan: SegmentPlan, lows: &[f64]) -> Vec<String> {
+        // Taxel 0 is dead (open circuit, high); taxel 1 carries the contact.
+        cut_beside(plan, 3.3, lows).0
+    }
+
+    /// The events of `plan` over frames `[open, v]`, and the levels it saw.
+    fn cut_beside(plan: SegmentPlan, open: f64, values: &[f64]) -> (Vec<String>, Option<Levels>) {
         let mut seg = Segmenter::new(plan);
         let mut out = Vec::new();
         let mut on = |e: SegEvent<'_>| -> Result<(), ()> {
@@ -1091,13 +1097,13 @@ mod tests {
             });
             Ok(())
         };
-        for &v in lows {
-            // Taxel 0 is dead (open circuit, high); taxel 1 carries the contact.
-            seg.push(&[3.3, v], &mut on).unwrap();
+        for &v in values {
+            seg.push(&[open, v], &mut on).unwrap();
             assert!(seg.held() <= 3);
         }
         seg.finish(&mut on).unwrap();
-        out
+        let levels = seg.levels();
+        (out, levels)
     }
 
     #[test]
@@ -1177,20 +1183,7 @@ mod tests {
         let rising: Vec<f64> = falling.iter().map(|&v| mirror(v)).collect();
         // The other taxel sits at the open level (low for a rising output):
         // the maximum, not the minimum, must decide.
-        let mut got = Vec::new();
-        let mut on = |e: SegEvent<'_>| -> Result<(), ()> {
-            got.push(match e {
-                SegEvent::Start => "S".to_string(),
-                SegEvent::Frame(f) => format!("{}", f[1]),
-                SegEvent::End => "E".to_string(),
-            });
-            Ok(())
-        };
-        let mut seg = Segmenter::new(plan(true, mirror(3.0), mirror(3.2)));
-        for &v in &rising {
-            seg.push(&[mirror(3.3), v], &mut on).unwrap();
-        }
-        seg.finish(&mut on).unwrap();
+        let (got, levels) = cut_beside(plan(true, mirror(3.0), mirror(3.2)), mirror(3.3), &rising);
         // The falling cut, each frame's value mirrored as the input was.
         let want: Vec<String> = cut(plan(false, 3.0, 3.2), &falling)
             .into_iter()
@@ -1198,10 +1191,7 @@ mod tests {
             .collect();
         assert!(want.len() > 4 && want.contains(&"E".to_string()), "{want:?}");
         assert_eq!(got, want);
-        assert_eq!(
-            seg.levels().map(|l| l.low_range),
-            Some((mirror(3.3), mirror(1.5)))
-        );
+        assert_eq!(levels.map(|l| l.low_range), Some((mirror(3.3), mirror(1.5))));
     }
 
     #[test]
