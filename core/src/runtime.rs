@@ -12,22 +12,24 @@
 //! output is computed once and shared by every stage that reads it, then
 //! dropped as soon as its last reader is done.
 //!
-//! With a sweep [`Cache`], stages run stage-at-a-time instead and outputs
-//! are kept for later points (sources and the maps below them trial by
-//! trial, see `runtime/items.rs`): reuse across points is worth the memory
-//! there. That memory is, at the peak, a signal stage's output and its input
-//! for every trial at once, so it grows with trials x taxels x samples. So a
-//! chain the run computes in full (no trial served from the cache) and whose
-//! outputs no announced run still to come contains runs depth-first under a
-//! cache too, keeping nothing in the cache (nothing would read it). A sweep
-//! of seeds, as `graphs/paper/table2.toml`'s 5 repeats (170 trials each), then
-//! peaks near one run's memory: 1.33 GB -> 203 MB on the 4 x 4 lab scene,
-//! 5.6 GB -> 576 MB with `--set stages.scene.array.rows=8 --set
-//! stages.scene.array.cols=8` (pitch 2 mm), the same sweep table to the bit
-//! (`/usr/bin/time -f %M`; one run without the sweep: 173 / 485 MB). A chain
-//! that later runs share (a sweep of a downstream key, `palpate batch`'s
-//! graphs that start with the same trials) still runs stage-at-a-time and
-//! is kept for them.
+//! With a sweep [`Cache`], outputs are kept for later points (sources and
+//! the maps below them trial by trial, see `runtime/items.rs`), and the run
+//! is planned backwards from its sinks: each trial of each of those stages
+//! is served from the cache, computed, or left out when nothing reads it.
+//! A chain the run computes in full and whose outputs no announced run
+//! still to come contains runs as without a cache (`chain`), keeping
+//! nothing. A chain that later runs share (a sweep of a downstream key,
+//! `palpate batch`'s graphs that start with the same trials) runs its
+//! sources and maps trial by trial too (`item_chain`), offering the cache
+//! what it wants as it goes; the stages below them (WSS, trained
+//! estimators, sinks) then take the kept spike images. Either way peak
+//! memory is about one run's, not a signal stage's output for every trial:
+//! `graphs/paper/table2.toml`'s 5 seeds peaked at 203 MB on the 4 x 4 lab
+//! scene and 576 MB on an 8 x 8 array (one run: 173 / 485 MB), and a
+//! two-point sweep of a WSS key on the quickstart at 156 MB (4 x 4) and
+//! 542 MB (8 x 8), where running shared chains stage at a time held 1.15 GB
+//! and 7.2 GB (`/usr/bin/time -f %M`; tests/sweep_memory.rs checks the
+//! bound).
 //!
 //! Determinism: every per-trial computation is a pure function of (config, input,
 //! seed), seeds come from [`derive_seed`] over (graph seed, stage id, trial id or
@@ -51,6 +53,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 mod chain;
+mod item_chain;
 mod items;
 
 /// Receives progress while a graph runs (the CLI draws a bar with it).
@@ -650,17 +653,15 @@ pub fn run(graph: &Graph, opts: &RunOptions<'_>) -> Result<RunResult, RunError> 
     let mut hit: Vec<Option<Cached>> = vec![None; n];
     let mut skipped: Vec<Option<StageTiming>> = vec![None; n];
     let mut families: Vec<Option<u64>> = vec![None; n];
-    // Item-level stages under a cache: their trial plans, each trial's hit
-    // or whether it is computed, their items and costs by trial.
-    let mut item_plans: Vec<Option<items::ItemPlan>> = (0..n).map(|_| None).collect();
+    // Item-level stages under a cache: each trial's hit, its known time and
+    // whether it is computed (the plan's), then what running them gave.
     let mut item_hits: Vec<Vec<Option<(Payload, Duration)>>> = vec![Vec::new(); n];
     let mut item_times: Vec<Vec<Option<Duration>>> = vec![Vec::new(); n];
     let mut compute: Vec<Vec<bool>> = vec![Vec::new(); n];
-    let mut partial: Vec<Option<Partial>> = (0..n).map(|_| None).collect();
-    let mut item_costs: Vec<Vec<Duration>> = vec![Vec::new(); n];
+    let mut item_done: Vec<Option<item_chain::ItemDone>> = (0..n).map(|_| None).collect();
     if let Some(c) = opts.cache {
         keys = stage_keys(graph);
-        item_plans = items::plans(graph, &keys, &key_context(graph))?;
+        let item_plans = items::plans(graph, &keys, &key_context(graph))?;
         plan(
             graph,
             c,
@@ -684,9 +685,9 @@ pub fn run(graph: &Graph, opts: &RunOptions<'_>) -> Result<RunResult, RunError> 
         let own: Vec<u64> = families.iter().flatten().copied().collect();
         c.started(&cacheable, &own);
         // A chain this run computes in full and no later run shares runs
-        // depth-first, as without a cache: stage-at-a-time would hold a
-        // signal stage's output for every trial at once (5.6 GB for
-        // `table2.toml` on an 8 x 8 array) for nothing to reuse.
+        // as without a cache (its model-based estimators inside it, each
+        // trial's estimate made while its images are warm), offering the
+        // cache nothing: nothing would read it.
         let keep = chain::kept(graph, opts.keep_outputs);
         for ch in chain::chains(graph) {
             let unshared = ch.nodes.iter().all(|&i| match &item_plans[i] {
@@ -707,6 +708,66 @@ pub fn run(graph: &Graph, opts: &RunOptions<'_>) -> Result<RunResult, RunError> 
                 depth_first[i] = Some(timing);
             }
         }
+        // The other item-level stages: trial by trial through each
+        // connected component, as the plan says (served, computed or left
+        // out), keeping for the cache what it wants (`item_chain`).
+        let member: Vec<bool> = (0..n)
+            .map(|i| item_plans[i].is_some() && depth_first[i].is_none())
+            .collect();
+        let mut metas_of: Vec<Option<Arc<Vec<Arc<TrialMeta>>>>> = vec![None; n];
+        for comp in chain::components(graph, &member) {
+            let mut nodes = Vec::with_capacity(comp.nodes.len());
+            for &i in &comp.nodes {
+                let (Some(p), node) = (&item_plans[i], &graph.nodes[i]) else {
+                    continue;
+                };
+                let id = node.id.as_str();
+                let prov = Provenance {
+                    stage: node.id.clone(),
+                    type_name: node.type_name.clone(),
+                    settings: settings_json(node.config.as_ref()),
+                };
+                let with_stage = |m: &TrialMeta| meta_with(m, &prov);
+                // A source's trials as listed, or the first input's metadata.
+                let metas: Arc<Vec<Arc<TrialMeta>>> = Arc::new(match &node.stage {
+                    Stage::Source(_) => p.listed.iter().map(&with_stage).collect(),
+                    _ => graph.input_index[i]
+                        .first()
+                        .and_then(|&j| metas_of[j].as_ref())
+                        .ok_or_else(|| {
+                            RunError::new(id, None, "an input has no trials (internal planning error)")
+                        })?
+                        .iter()
+                        .map(|m| with_stage(m))
+                        .collect(),
+                });
+                metas_of[i] = Some(metas.clone());
+                let reader_nodes: Vec<usize> =
+                    (0..n).filter(|&j| graph.input_index[j].contains(&i)).collect();
+                // The same trials of the stages reading this one, when all are item-level.
+                let readers: Vec<&[u64]> = reader_nodes
+                    .iter()
+                    .map(|&j| item_plans[j].as_ref().map(|r| r.keys.as_slice()))
+                    .collect::<Option<_>>()
+                    .unwrap_or_default();
+                let keep = opts.keep_outputs || reader_nodes.iter().any(|&j| !member[j]);
+                nodes.push(item_chain::ItemNode {
+                    node: i,
+                    plan: p,
+                    metas,
+                    hits: std::mem::take(&mut item_hits[i]),
+                    known: std::mem::take(&mut item_times[i]),
+                    stored: skipped[i].take(),
+                    compute: std::mem::take(&mut compute[i]),
+                    readers,
+                    keep,
+                });
+            }
+            let done = item_chain::run_component(graph, nodes, c, opts)?;
+            for (&i, d) in comp.nodes.iter().zip(done) {
+                item_done[i] = Some(d);
+            }
+        }
     }
     // Content keys of an estimator input's items, computed once per run for
     // every estimator that may reuse a model (by input node).
@@ -725,66 +786,20 @@ pub fn run(graph: &Graph, opts: &RunOptions<'_>) -> Result<RunResult, RunError> 
                 result.outputs.insert(node.id.clone(), items.clone());
             }
             result.timings.push(timing);
-            release_inputs(graph, i, &mut readers, &mut outputs, &mut partial);
+            release_inputs(graph, i, &mut readers, &mut outputs);
             continue;
         }
-        if let (Some(p), Some(c)) = (&item_plans[i], opts.cache) {
-            let prov = Provenance {
-                stage: node.id.clone(),
-                type_name: node.type_name.clone(),
-                settings: settings_json(node.config.as_ref()),
-            };
-            let with_stage = |m: &TrialMeta| meta_with(m, &prov);
-            // A source's trials as listed, or the first input's items' metadata.
-            let metas: Arc<Vec<Arc<TrialMeta>>> = Arc::new(match &node.stage {
-                Stage::Source(_) => p.listed.iter().map(&with_stage).collect(),
-                _ => graph.input_index[i]
-                    .first()
-                    .and_then(|&j| partial[j].as_ref())
-                    .ok_or_else(|| {
-                        RunError::new(id, None, "an input has no trials (internal planning error)")
-                    })?
-                    .metas
-                    .iter()
-                    .map(|m| with_stage(m))
-                    .collect::<Vec<_>>(),
-            });
-            let served = (
-                std::mem::take(&mut item_hits[i]),
-                std::mem::take(&mut item_times[i]),
-                skipped[i].take(),
-            );
-            // The same trials of the stages reading this one, when all are item-level.
-            let reader_keys: Vec<&[u64]> = (0..n)
-                .filter(|&j| graph.input_index[j].contains(&i))
-                .map(|j| item_plans[j].as_ref().map(|r| r.keys.as_slice()))
-                .collect::<Option<_>>()
-                .unwrap_or_default();
-            let (items, timing, costs) = run_item_stage(
-                graph,
-                i,
-                p,
-                c,
-                opts,
-                served,
-                &compute[i],
-                &partial,
-                &item_costs,
-                &reader_keys,
-                &metas,
-            )?;
-            upstream_cost[i] = inputs_cost + timing.total;
-            item_costs[i] = costs;
-            if items.iter().all(Option::is_some) {
-                let full: Arc<Vec<Item>> = Arc::new(items.iter().flatten().cloned().collect());
+        if let Some(done) = item_done[i].take() {
+            upstream_cost[i] = inputs_cost + done.timing.total;
+            if let Some(items) = done.items.filter(|v| v.iter().all(Option::is_some)) {
+                let full: Arc<Vec<Item>> = Arc::new(items.into_iter().flatten().collect());
                 if opts.keep_outputs {
                     result.outputs.insert(node.id.clone(), full.clone());
                 }
                 outputs[i] = Some(full);
             }
-            partial[i] = Some(Partial { items, metas });
-            result.timings.push(timing);
-            release_inputs(graph, i, &mut readers, &mut outputs, &mut partial);
+            result.timings.push(done.timing);
+            release_inputs(graph, i, &mut readers, &mut outputs);
             continue;
         }
         let prov = Provenance {
@@ -811,7 +826,7 @@ pub fn run(graph: &Graph, opts: &RunOptions<'_>) -> Result<RunResult, RunError> 
                 result.outputs.insert(node.id.clone(), items.clone());
             }
             outputs[i] = items;
-            release_inputs(graph, i, &mut readers, &mut outputs, &mut partial);
+            release_inputs(graph, i, &mut readers, &mut outputs);
             continue;
         }
         let inputs: Vec<Arc<Vec<Item>>> = graph.input_index[i]
@@ -1054,7 +1069,7 @@ pub fn run(graph: &Graph, opts: &RunOptions<'_>) -> Result<RunResult, RunError> 
             outputs[i] = Some(items);
         }
         result.timings.push(timing);
-        release_inputs(graph, i, &mut readers, &mut outputs, &mut partial);
+        release_inputs(graph, i, &mut readers, &mut outputs);
     }
     if let Some(c) = opts.cache {
         let own: Vec<u64> = families.iter().flatten().copied().collect();
@@ -1208,193 +1223,13 @@ fn plan(
 }
 
 /// Drops an input's output once its last reader is done.
-fn release_inputs(
-    graph: &Graph,
-    i: usize,
-    readers: &mut [usize],
-    outputs: &mut [Option<Arc<Vec<Item>>>],
-    partial: &mut [Option<Partial>],
-) {
+fn release_inputs(graph: &Graph, i: usize, readers: &mut [usize], outputs: &mut [Option<Arc<Vec<Item>>>]) {
     for &j in &graph.input_index[i] {
         readers[j] -= 1;
         if readers[j] == 0 {
             outputs[j] = None;
-            partial[j] = None;
         }
     }
-}
-
-/// What the plan fetched for an item-level stage: each trial's hit, each
-/// trial's known time, and the stage-level timing of a run that computed it
-/// all.
-type Served = (
-    Vec<Option<(Payload, Duration)>>,
-    Vec<Option<Duration>>,
-    Option<StageTiming>,
-);
-
-/// An item-level stage's output under a cache: its items by trial (the
-/// trials nobody wanted left out) and every trial's metadata (what its
-/// readers' items carry, provenance appended).
-struct Partial {
-    items: Vec<Option<Item>>,
-    metas: Arc<Vec<Arc<TrialMeta>>>,
-}
-
-/// What an item-level stage gives under a cache: its items by trial (the
-/// trials nobody wanted left out), its timing, and each trial's cost to
-/// recompute with everything upstream.
-type ItemOutcome = (Vec<Option<Item>>, StageTiming, Vec<Duration>);
-
-/// Runs an item-level stage under a cache: computes the trials the plan
-/// marked, takes the planned hits, and keeps what it computed.
-#[allow(clippy::too_many_arguments)]
-fn run_item_stage(
-    graph: &Graph,
-    i: usize,
-    plan: &items::ItemPlan,
-    cache: &Cache,
-    opts: &RunOptions<'_>,
-    (hits, mut own, stored): Served,
-    compute: &[bool],
-    partial: &[Option<Partial>],
-    costs: &[Vec<Duration>],
-    readers: &[&[u64]],
-    metas: &[Arc<TrialMeta>],
-) -> Result<ItemOutcome, RunError> {
-    let node = &graph.nodes[i];
-    let id = node.id.as_str();
-    let seed = graph.run.seed;
-    let len = plan.keys.len();
-    let todo: Vec<usize> = (0..len).filter(|&t| compute.get(t) == Some(&true)).collect();
-    own.resize(len, None);
-    let mut items: Vec<Option<Item>> = hits
-        .into_iter()
-        .zip(metas)
-        .map(|(h, meta)| {
-            h.map(|(payload, _)| Item {
-                meta: meta.clone(),
-                payload,
-            })
-        })
-        .collect();
-    items.resize(len, None);
-    // Trial `t`'s cost to recompute everything upstream of this stage.
-    let upstream =
-        |t: usize| -> Duration { graph.input_index[i].iter().filter_map(|&j| costs[j].get(t)).sum() };
-    let mut timing = StageTiming {
-        id: node.id.clone(),
-        type_name: node.type_name.clone(),
-        role: node.stage.role(),
-        ..StageTiming::default()
-    };
-    if todo.is_empty() {
-        // Nothing computed: the timing of the run that computed it all, or
-        // the trials' own times.
-        timing = match stored {
-            Some(t) => StageTiming {
-                id: timing.id,
-                type_name: timing.type_name,
-                role: timing.role,
-                cached: true,
-                ..t
-            },
-            None => {
-                let per_trial: Vec<Duration> = own.iter().map(|d| d.unwrap_or_default()).collect();
-                StageTiming {
-                    total: per_trial.iter().sum(),
-                    per_trial,
-                    cached: true,
-                    ..timing
-                }
-            }
-        };
-    } else {
-        let input = |j: usize, t: usize| -> Result<&Item, RunError> {
-            partial[j]
-                .as_ref()
-                .and_then(|p| p.items.get(t))
-                .and_then(Option::as_ref)
-                .ok_or_else(|| {
-                    RunError::new(
-                        id,
-                        Some(&metas[t].trial_id),
-                        format!(
-                            "input `{}` has no item for this trial (internal planning error)",
-                            graph.nodes[j].id
-                        ),
-                    )
-                })
-        };
-        start(opts, id, todo.len());
-        let t_stage = Instant::now();
-        let done: Vec<Result<Timed<Payload>, RunError>> = todo
-            .par_iter()
-            .map(|&t| {
-                interrupted(opts, id)?;
-                let trial_id = metas[t].trial_id.as_str();
-                let (payload, dt) = match &node.stage {
-                    Stage::Source(src) => {
-                        let ctx = TrialContext {
-                            stage_id: id,
-                            meta: &plan.listed[t],
-                            seed: derive_seed(seed, &[id, trial_id]),
-                        };
-                        timed(|| src.produce(&ctx))
-                    }
-                    Stage::Map(map) => {
-                        let inputs: Vec<&Item> = graph.input_index[i]
-                            .iter()
-                            .map(|&j| input(j, t))
-                            .collect::<Result<_, _>>()?;
-                        let ctx = TrialContext {
-                            stage_id: id,
-                            meta: &inputs[0].meta,
-                            seed: derive_seed(seed, &[id, trial_id]),
-                        };
-                        timed(|| map.process(&inputs, &ctx))
-                    }
-                    _ => {
-                        return Err(RunError::new(
-                            id,
-                            None,
-                            "not a per-trial stage (internal planning error)",
-                        ))
-                    }
-                };
-                tick(opts);
-                let payload = payload.map_err(|e| RunError::new(id, Some(trial_id), e.message))?;
-                Ok((payload, dt))
-            })
-            .collect();
-        timing.total = t_stage.elapsed();
-        let covered = cache.covered(&plan.keys, readers);
-        let mut keep = Vec::with_capacity(todo.len());
-        for (&t, r) in todo.iter().zip(done) {
-            let (payload, dt) = r?;
-            own[t] = Some(dt);
-            // A covered trial keeps its time alone: its readers' trials
-            // will be served instead.
-            let kept = (!covered[t]).then(|| payload.clone());
-            keep.push((plan.keys[t], kept, dt, dt + upstream(t)));
-            items[t] = Some(Item {
-                meta: metas[t].clone(),
-                payload,
-            });
-        }
-        cache.put_items(keep);
-        timing.per_trial = own.iter().map(|d| d.unwrap_or_default()).collect();
-        if todo.len() == len {
-            cache.put_timing(plan.stage_key, timing.clone());
-        }
-        if let Some(p) = opts.progress {
-            p.finish(id);
-        }
-    }
-    let cost: Vec<Duration> = (0..len)
-        .map(|t| own[t].unwrap_or_default() + upstream(t))
-        .collect();
-    Ok((items, timing, cost))
 }
 
 fn start(opts: &RunOptions<'_>, id: &str, total: usize) {
@@ -1478,7 +1313,7 @@ pub fn median_p95(times: &[Duration]) -> (Duration, Duration) {
 }
 
 /// The error for a per-trial stage whose inputs `0` and `k` carry different
-/// trials (shared by the stage-at-a-time and the depth-first runners).
+/// trials (shared by the runners of `chain` and `item_chain`).
 pub(crate) fn mixed_trials(graph: &Graph, id: &str, i: usize, k: usize) -> RunError {
     RunError::new(
         id,

@@ -54,8 +54,14 @@ pub(super) struct ChainOutput {
 
 /// The chains of a graph, in the order of their first node.
 pub(super) fn chains(graph: &Graph) -> Vec<Chain> {
+    components(graph, &per_trial_set(graph))
+}
+
+/// The connected components of the nodes marked in `member` (linked by
+/// input edges between members), in the order of their first node, each
+/// in the graph's execution order.
+pub(super) fn components(graph: &Graph, member: &[bool]) -> Vec<Chain> {
     let n = graph.nodes.len();
-    let per_trial = per_trial_set(graph);
     let mut parent: Vec<usize> = (0..n).collect();
     fn find(p: &mut [usize], mut x: usize) -> usize {
         while p[x] != x {
@@ -65,8 +71,8 @@ pub(super) fn chains(graph: &Graph) -> Vec<Chain> {
         x
     }
     for &i in &graph.order {
-        if per_trial[i] {
-            for &j in &graph.input_index[i] {
+        if member[i] {
+            for &j in graph.input_index[i].iter().filter(|&&j| member[j]) {
                 let (a, b) = (find(&mut parent, i), find(&mut parent, j));
                 parent[a] = b;
             }
@@ -75,7 +81,7 @@ pub(super) fn chains(graph: &Graph) -> Vec<Chain> {
     let mut by_root: Vec<Option<usize>> = vec![None; n];
     let mut out: Vec<Chain> = Vec::new();
     for &i in &graph.order {
-        if !per_trial[i] {
+        if !member[i] {
             continue;
         }
         let r = find(&mut parent, i);
