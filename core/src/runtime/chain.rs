@@ -110,6 +110,46 @@ pub(super) fn per_trial_set(graph: &Graph) -> Vec<bool> {
     per_trial
 }
 
+/// The progress label of a chain: its first and last stage (`scene .. bins`).
+pub(super) fn label(graph: &Graph, nodes: &[usize]) -> String {
+    match (nodes.first(), nodes.last()) {
+        (Some(&a), Some(&b)) if a != b => format!("{} .. {}", graph.nodes[a].id, graph.nodes[b].id),
+        (Some(&a), _) => graph.nodes[a].id.clone(),
+        _ => String::new(),
+    }
+}
+
+/// One trial's payload from source or map `i`, timed: a source produces
+/// the trial `meta` lists, a map processes `inputs` (whose first item's
+/// metadata is `meta`); the seed derives from the stage and trial ids.
+/// Shared by the depth-first runners, with and without a cache.
+pub(super) fn trial_payload(
+    graph: &Graph,
+    i: usize,
+    meta: &TrialMeta,
+    inputs: &[&Item],
+) -> Result<(Payload, Duration), RunError> {
+    let id = graph.nodes[i].id.as_str();
+    let ctx = TrialContext {
+        stage_id: id,
+        meta,
+        seed: derive_seed(graph.run.seed, &[id, &meta.trial_id]),
+    };
+    let (payload, dt) = match &graph.nodes[i].stage {
+        Stage::Source(src) => timed(|| src.produce(&ctx)),
+        Stage::Map(map) => timed(|| map.process(inputs, &ctx)),
+        _ => {
+            return Err(RunError::new(
+                id,
+                None,
+                "not a per-trial stage (internal planning error)",
+            ))
+        }
+    };
+    let payload = payload.map_err(|e| RunError::new(id, Some(&meta.trial_id), e.message))?;
+    Ok((payload, dt))
+}
+
 /// For each node, whether its output must outlive the trial: something outside
 /// the per-trial set reads it, or the caller keeps every output.
 pub(super) fn kept(graph: &Graph, keep_all: bool) -> Vec<bool> {
@@ -255,11 +295,7 @@ pub(super) fn run_chain(
         models.push(Some(model));
         fit_times[p] = Some(dt);
     }
-    let label = match (chain.nodes.first(), chain.nodes.last()) {
-        (Some(&a), Some(&b)) if a != b => format!("{} .. {}", graph.nodes[a].id, graph.nodes[b].id),
-        (Some(&a), _) => graph.nodes[a].id.clone(),
-        _ => String::new(),
-    };
+    let label = label(graph, &chain.nodes);
     if let Some(p) = opts.progress {
         p.start(&label, n_trials);
     }
@@ -312,21 +348,15 @@ pub(super) fn run_chain(
             return release(slots, left);
         }
         let (item, dt) = match &node.stage {
-            Stage::Source(src) => {
+            Stage::Source(_) => {
                 let meta = metas[p]
                     .as_ref()
                     .and_then(|m| m.get(t))
                     .ok_or_else(|| RunError::new(id, None, "source without trials (internal error)"))?;
-                let ctx = TrialContext {
-                    stage_id: id,
-                    meta,
-                    seed: derive_seed(seed, &[id, &meta.trial_id]),
-                };
-                let (payload, dt) = timed(|| src.produce(&ctx));
-                let payload = payload.map_err(|e| RunError::new(id, Some(&meta.trial_id), e.message))?;
+                let (payload, dt) = trial_payload(graph, i, meta, &[])?;
                 (with_provenance(meta, &provs[p], payload), dt)
             }
-            Stage::Map(map) => {
+            Stage::Map(_) => {
                 let mut items: Vec<&Item> = Vec::with_capacity(graph.input_index[i].len());
                 for &j in &graph.input_index[i] {
                     let item = slots[at(j)?].as_ref().ok_or_else(|| {
@@ -345,13 +375,7 @@ pub(super) fn run_chain(
                 if let Some(k) = items.iter().position(|it| it.meta.trial_id != meta.trial_id) {
                     return Err(super::mixed_trials(graph, id, i, k));
                 }
-                let ctx = TrialContext {
-                    stage_id: id,
-                    meta,
-                    seed: derive_seed(seed, &[id, &meta.trial_id]),
-                };
-                let (payload, dt) = timed(|| map.process(&items, &ctx));
-                let payload = payload.map_err(|e| RunError::new(id, Some(&meta.trial_id), e.message))?;
+                let (payload, dt) = trial_payload(graph, i, meta, &items)?;
                 (with_provenance(meta, &provs[p], payload), dt)
             }
             Stage::Estimator(_) => {

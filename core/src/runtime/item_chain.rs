@@ -29,10 +29,11 @@
 //! first failing trial in trial order is reported, with the first stage in
 //! graph order that failed on it (as `chain` does).
 
-use super::{interrupted, tick, timed, Cache, RunError, RunOptions, StageTiming};
+use super::chain::trial_payload;
+use super::{interrupted, tick, Cache, RunError, RunOptions, StageTiming};
 use crate::graph::Graph;
 use crate::payload::{Item, Payload, TrialMeta};
-use crate::stage::{derive_seed, Stage, TrialContext};
+use crate::stage::Stage;
 use rayon::prelude::*;
 use std::sync::Arc;
 use std::time::Duration;
@@ -95,7 +96,6 @@ pub(super) fn run_component(
     cache: &Cache,
     opts: &RunOptions<'_>,
 ) -> Result<Vec<ItemDone>, RunError> {
-    let seed = graph.run.seed;
     let m = nodes.len();
     let n_trials = nodes.first().map_or(0, |c| c.plan.keys.len());
     let mut pos = vec![None; graph.nodes.len()];
@@ -139,15 +139,8 @@ pub(super) fn run_component(
     let todo = (0..n_trials)
         .filter(|&t| nodes.iter().any(|c| c.compute[t]))
         .count();
-    let any_compute = todo > 0;
-    let label = match (nodes.first(), nodes.last()) {
-        (Some(a), Some(b)) if a.node != b.node => {
-            format!("{} .. {}", graph.nodes[a.node].id, graph.nodes[b.node].id)
-        }
-        (Some(a), _) => graph.nodes[a.node].id.clone(),
-        _ => String::new(),
-    };
-    if let (Some(p), true) = (opts.progress, any_compute) {
+    let label = super::chain::label(graph, &nodes.iter().map(|c| c.node).collect::<Vec<_>>());
+    if let (Some(p), true) = (opts.progress, todo > 0) {
         p.start(&label, todo);
     }
 
@@ -177,23 +170,15 @@ pub(super) fn run_component(
                 })
             } else if c.compute[t] {
                 interrupted(opts, id)?;
-                let trial_id = meta.trial_id.as_str();
                 let (payload, dt) = match &node.stage {
-                    Stage::Source(src) => {
-                        let ctx = TrialContext {
-                            stage_id: id,
-                            meta: &c.plan.listed[t],
-                            seed: derive_seed(seed, &[id, trial_id]),
-                        };
-                        timed(|| src.produce(&ctx))
-                    }
-                    Stage::Map(map) => {
+                    Stage::Source(_) => trial_payload(graph, c.node, &c.plan.listed[t], &[])?,
+                    _ => {
                         let mut items: Vec<&Item> = Vec::with_capacity(inputs[p].len());
                         for &q in &inputs[p] {
                             items.push(slots[q].as_ref().ok_or_else(|| {
                                 RunError::new(
                                     id,
-                                    Some(trial_id),
+                                    Some(&meta.trial_id),
                                     format!(
                                         "input `{}` has no item for this trial (internal planning error)",
                                         graph.nodes[nodes[q].node].id
@@ -201,22 +186,9 @@ pub(super) fn run_component(
                                 )
                             })?);
                         }
-                        let ctx = TrialContext {
-                            stage_id: id,
-                            meta: &items[0].meta,
-                            seed: derive_seed(seed, &[id, trial_id]),
-                        };
-                        timed(|| map.process(&items, &ctx))
-                    }
-                    _ => {
-                        return Err(RunError::new(
-                            id,
-                            None,
-                            "not a per-trial stage (internal planning error)",
-                        ))
+                        trial_payload(graph, c.node, &items[0].meta, &items)?
                     }
                 };
-                let payload = payload.map_err(|e| RunError::new(id, Some(trial_id), e.message))?;
                 run.own[p] = Some(dt);
                 run.computed[p] = offer[p].then(|| payload.clone());
                 computed_any = true;
@@ -305,7 +277,7 @@ pub(super) fn run_component(
             }
         }
     }
-    if let (Some(p), true) = (opts.progress, any_compute) {
+    if let (Some(p), true) = (opts.progress, todo > 0) {
         p.finish(&label);
     }
 
