@@ -95,8 +95,14 @@ pub struct SceneConfig {
     /// (`--set stages.scene.conditions.test.adjust.skin.sigma_mm=1.0`). An
     /// error names the kind when the list holds no effect of it, or several.
     /// Default: none.
+    // TOML values, not JSON ones: JSON has no NaN or infinity, so a
+    // `sigma_mm = nan` read into JSON became `null` and was reported as a
+    // type error that named no key.
     #[serde(skip_serializing_if = "Option::is_none")]
-    pub adjust: Option<std::collections::BTreeMap<String, serde_json::Map<String, serde_json::Value>>>,
+    #[schemars(
+        with = "Option<std::collections::BTreeMap<String, serde_json::Map<String, serde_json::Value>>>"
+    )]
+    pub adjust: Option<std::collections::BTreeMap<String, toml::Table>>,
     /// Which simulated copy of the array to draw: every copy has its own
     /// manufacturing draws (mismatch, dead taxels, per-taxel dynamics...), the
     /// same for every trial of the copy; copy 0 is the one the run seed gives.
@@ -325,12 +331,18 @@ pub struct Scene {
 
 /// Deep-merges `over` into `base`: tables merge key by key, anything else in
 /// `over` replaces `base`.
-fn merge_json(base: &mut serde_json::Value, over: serde_json::Value) {
+///
+/// The merge works on TOML values, the form the keys were written in: a
+/// JSON intermediate (the first version) turned a NaN or an infinity into
+/// `null`, which then read as "not set", so `speed_mm_s = nan` over a scene
+/// file ran at the file's speed without a word. In TOML the value stays a
+/// float and the checks refuse it, naming the key.
+fn merge_toml(base: &mut toml::Value, over: toml::Value) {
     match (base, over) {
-        (serde_json::Value::Object(b), serde_json::Value::Object(o)) => {
+        (toml::Value::Table(b), toml::Value::Table(o)) => {
             for (k, v) in o {
                 match b.get_mut(&k) {
-                    Some(slot) => merge_json(slot, v),
+                    Some(slot) => merge_toml(slot, v),
                     None => {
                         b.insert(k, v);
                     }
@@ -437,10 +449,14 @@ impl SceneConfig {
     /// This config with `base`'s keys as defaults (this config's keys win,
     /// tables merged key by key).
     pub fn over(&self, base: &SceneConfig) -> Result<SceneConfig, ConfigError> {
-        let to = |c: &SceneConfig| serde_json::to_value(c).map_err(|e| ConfigError::general(e.to_string()));
+        let to = |c: &SceneConfig| {
+            toml::Value::try_from(c).map_err(|e| ConfigError::general(format!("merging scene keys: {e}")))
+        };
         let mut merged = to(base)?;
-        merge_json(&mut merged, to(self)?);
-        serde_json::from_value(merged).map_err(|e| ConfigError::general(format!("merging scene keys: {e}")))
+        merge_toml(&mut merged, to(self)?);
+        merged
+            .try_into()
+            .map_err(|e| ConfigError::general(format!("merging scene keys: {e}")))
     }
 
     /// Resolves the file (if any) and every default, and checks every value.
@@ -490,8 +506,8 @@ impl SceneConfig {
             return Ok(());
         };
         let effects = self.effects.take().unwrap_or_default();
-        let mut list = match serde_json::to_value(&effects) {
-            Ok(serde_json::Value::Array(a)) => a,
+        let mut list = match toml::Value::try_from(&effects) {
+            Ok(toml::Value::Array(a)) => a,
             _ => return Err(ConfigError::key("adjust", "cannot read the effects list")),
         };
         let mut c = ConfigChecks::new();
@@ -509,7 +525,7 @@ impl SceneConfig {
                         c.push(ConfigError::key(key, "cannot change an effect's `kind`"));
                         continue;
                     }
-                    merge_json(&mut list[*i], serde_json::Value::Object(keys));
+                    merge_toml(&mut list[*i], toml::Value::Table(keys));
                 }
                 [] => c.push(ConfigError::key(
                     key,
@@ -529,8 +545,9 @@ impl SceneConfig {
             .into_iter()
             .map(|e| {
                 let kind = e.get("kind").and_then(|k| k.as_str()).unwrap_or("?").to_string();
-                serde_json::from_value(e)
-                    .map_err(|err| ConfigError::key(format!("adjust.{kind}"), err.to_string()))
+                e.try_into().map_err(|err: toml::de::Error| {
+                    ConfigError::key(format!("adjust.{kind}"), err.message().to_string())
+                })
             })
             .collect::<Result<_, _>>()?;
         self.effects = Some(effects);
@@ -771,7 +788,10 @@ fn resolve_angles(angles: Option<&Angles>) -> Result<Vec<f64>, ConfigError> {
         if !(a.is_finite() && a > 0.0 && a < 180.0) {
             return Err(ConfigError::key(
                 "angles",
-                format!("every angle must lie strictly between 0 and 180 degrees (0 and 180 are parallel to the motion and never crossed), got {}", palpate_core::fmt_num(a)),
+                format!(
+                    "every angle must lie strictly between 0 and 180 degrees (0 and 180 are parallel to the motion and never crossed), got {}",
+                    palpate_core::fmt_num(a)
+                ),
             ));
         }
         if !seen.insert(angle_id(a)) {

@@ -409,10 +409,50 @@ fn bad_adjust_names_the_kind() {
     assert!(e.message.contains("no `creep` effect"), "{e}");
     let e = err(&format!("{skin}adjust = {{ skin = {{ thickness = 1.0 }} }}\n"));
     assert_eq!(e.key.as_deref(), Some("adjust.skin"), "{e}");
-    let e = err("effects = [{ kind = \"skin\", sigma_mm = 0.5 }, { kind = \"skin\", sigma_mm = 0.2 }]\nadjust = { skin = { sigma_mm = 1.0 } }\n");
+    let e = err(
+        "effects = [{ kind = \"skin\", sigma_mm = 0.5 }, { kind = \"skin\", sigma_mm = 0.2 }]\nadjust = { skin = { sigma_mm = 1.0 } }\n",
+    );
     assert!(e.message.contains("2 `skin` effects"), "{e}");
     let e = err(&format!(
         "{skin}[conditions.a]\nadjust = {{ skin = {{ kind = \"creep\" }} }}\n"
     ));
     assert_eq!(e.key.as_deref(), Some("conditions.a.adjust.skin"), "{e}");
+}
+
+#[test]
+fn non_finite_keys_over_a_scene_file_are_refused_not_dropped() {
+    // The keys over a scene file were merged through JSON, where NaN and
+    // infinity become `null`, read back as "not set": the file's value ran.
+    let dir = std::env::temp_dir().join(format!("palpate-scene-nan-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let file = dir.join("base.toml");
+    std::fs::write(
+        &file,
+        "angles = [30, 60]\ntrials_per_angle = 1\neffects = [{ kind = \"skin\", sigma_mm = 0.5 }]\n\
+         [motion]\nspeed_mm_s = 2.0\n",
+    )
+    .unwrap();
+    let f = file.display().to_string().replace('\\', "/");
+    let with = |over: &str| format!("file = \"{f}\"\n{over}\n");
+    for (over, key) in [
+        ("[motion]\nspeed_mm_s = nan", "motion.speed_mm_s"),
+        ("[motion]\nspeed_mm_s = -inf", "motion.speed_mm_s"),
+        ("[motion]\nhold_before_s = inf", "motion.hold_before_s"),
+        ("angles = [nan]", "angles"),
+        ("angles = [30, nan]", "angles"),
+        ("adjust = { skin = { sigma_mm = nan } }", "effects[0].sigma_mm"),
+    ] {
+        let e = build_error(&with(over));
+        assert_eq!(e.key.as_deref(), Some(key), "{over}: {e}");
+        assert!(
+            e.message.contains("NaN") || e.message.contains("inf"),
+            "{over}: {e}"
+        );
+    }
+    // Finite keys over the file still win over it.
+    let cfg: SceneConfig = toml::from_str(&with("[motion]\nspeed_mm_s = 3.0")).unwrap();
+    let scene = cfg.resolve(&ctx()).unwrap();
+    assert_eq!(scene.motion.speed_mm_s, 3.0);
+    assert_eq!(scene.angles, vec![30.0, 60.0]);
+    std::fs::remove_dir_all(&dir).ok();
 }
