@@ -248,8 +248,14 @@ fn a_grid_beside_an_explicit_layout_is_a_warning_naming_array() {
         let g = load(&graph(&one, "cutoff_hz = 10.0", "")).unwrap();
         assert!(keys(&g).is_empty(), "{one}: {:#?}", g.warnings);
     }
-    // A condition whose layout meets the scene's grid: named under it.
+    // A condition's layout replaces the scene's grid (as an inline layout
+    // replaces a scene file's `[array]`): nothing the user could leave out,
+    // so no warning.
     let cond = format!("angles = [45]\narray = {{ rows = 8 }}\n[stages.scene.conditions.b]\n{layout}\n[stages.scene.conditions.a]");
+    let g = load(&graph(&cond, "cutoff_hz = 10.0", "")).unwrap();
+    assert!(keys(&g).is_empty(), "{:#?}", g.warnings);
+    // A condition's grid under the scene's layout changes nothing: named under it.
+    let cond = format!("angles = [45]\n{layout}\n[stages.scene.conditions.b]\narray = {{ rows = 8 }}\n[stages.scene.conditions.a]");
     let g = load(&graph(&cond, "cutoff_hz = 10.0", "")).unwrap();
     assert_eq!(keys(&g), ["conditions.b.array"], "{:#?}", g.warnings);
 }

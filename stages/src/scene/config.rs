@@ -454,9 +454,17 @@ impl SceneConfig {
         };
         let mut merged = to(base)?;
         merge_toml(&mut merged, to(self)?);
-        merged
+        let mut merged: SceneConfig = merged
             .try_into()
-            .map_err(|e| ConfigError::general(format!("merging scene keys: {e}")))
+            .map_err(|e| ConfigError::general(format!("merging scene keys: {e}")))?;
+        // A layout given here replaces the base's grid (as an explicit layout
+        // replaces a grid in one table): the base's `array` is then no key
+        // the user set beside the layout, and warning that it is ignored
+        // (`grid_ignored`) would only be noise.
+        if self.layout.is_some() && self.array.is_none() {
+            merged.array = None;
+        }
+        Ok(merged)
     }
 
     /// Resolves the file (if any) and every default, and checks every value.

@@ -456,3 +456,28 @@ fn non_finite_keys_over_a_scene_file_are_refused_not_dropped() {
     assert_eq!(scene.angles, vec![30.0, 60.0]);
     std::fs::remove_dir_all(&dir).ok();
 }
+
+#[test]
+fn an_inline_layout_over_a_scene_files_grid_is_no_warning() {
+    let dir = std::env::temp_dir().join(format!("palpate-scene-grid-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let file = dir.join("base.toml");
+    std::fs::write(
+        &file,
+        "angles = [45]\ntrials_per_angle = 1\n[array]\nrows = 8\ncols = 8\n",
+    )
+    .unwrap();
+    let f = file.display().to_string().replace('\\', "/");
+    let warnings = |inline: &str| {
+        let cfg: SceneConfig = toml::from_str(&format!("file = \"{f}\"\n{inline}\n")).unwrap();
+        let (scenes, w) = cfg.resolve_conditions(&ctx()).unwrap();
+        (scenes[0].2.layout.len(), w.len())
+    };
+    // The file's 8 x 8 grid, replaced by the inline layout: no warning.
+    assert_eq!(
+        warnings("layout = { positions_mm = [[0.0, 0.0], [3.0, 0.0]] }"),
+        (2, 0)
+    );
+    assert_eq!(warnings(""), (64, 0));
+    std::fs::remove_dir_all(&dir).ok();
+}
