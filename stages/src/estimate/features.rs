@@ -594,9 +594,13 @@ impl TrainSet {
         let mut seen = vec![false; set.classes.len()];
         set.y.iter().for_each(|&c| seen[c] = true);
         if let Some(c) = seen.iter().position(|s| !s) {
+            // Name the threshold: a `min_spikes` set too high, not the
+            // trials, is the usual cause of a class with no frame.
             return Err(StageError::new(format!(
-                "class {}° has no frame with spikes in its training trials; nothing to learn it from",
-                set.classes[c]
+                "class {}° has no frame of at least `min_spikes` = {} spikes (and above zero) in its \
+                 training trials; nothing to learn it from",
+                set.classes[c],
+                palpate_core::fmt_num(set.spec.min_spikes)
             )));
         }
         Ok(set)

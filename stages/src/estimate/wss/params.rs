@@ -2,7 +2,7 @@
 //! by the stage, the pure-Rust API ([`super::wss_batch`], [`super::WssStream`])
 //! and the benches.
 
-use palpate_core::{check_positive, ConfigError};
+use palpate_core::{check_positive, check_range, ConfigError};
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 
@@ -187,9 +187,12 @@ pub struct WssSettings<A> {
     /// board's trials declare none: set the arm's speed here. Set, it
     /// overrides every trial's (to study a wrong declared speed, say).
     pub speed_mm_s: Option<f64>,
-    /// Spread `σ` of eq. 6, mm. Default 1 (half the paper's 2 mm taxel).
+    /// Spread `σ` of eq. 6, mm, in [0.01, 1000]. Default 1 (half the
+    /// paper's 2 mm taxel). Outside that range every template is flat (all
+    /// 1) or empty (all 0 but on the line) on any real array, its
+    /// correlation 0, and every trial would answer "no edge".
     pub sigma_mm: f64,
-    /// Width of the simulated line, mm. Default 0.2 (the paper's).
+    /// Width of the simulated line, mm, in [0, 1000]. Default 0.2 (the paper's).
     pub line_width_mm: f64,
     // In `WssParams`: the resolved, strictly increasing list.
     /// Class angles, degrees in (0, 180): a list `[10, 20, 30]` or a range
@@ -447,13 +450,8 @@ impl WssParams {
         if let Some(v) = self.speed_mm_s {
             check_positive("speed_mm_s", v, "mm/s")?;
         }
-        check_positive("sigma_mm", self.sigma_mm, "mm")?;
-        if !(self.line_width_mm.is_finite() && self.line_width_mm >= 0.0) {
-            return Err(ConfigError::key(
-                "line_width_mm",
-                format!("must be a non-negative number of mm, got {}", self.line_width_mm),
-            ));
-        }
+        check_range("sigma_mm", self.sigma_mm, 0.01, 1000.0, "mm")?;
+        check_range("line_width_mm", self.line_width_mm, 0.0, 1000.0, "mm")?;
         AngleGrid::List(self.angles.clone()).resolve()?;
         if !(self.threshold.is_finite() && (-1.0..=1.0).contains(&self.threshold)) {
             return Err(ConfigError::key(
@@ -542,5 +540,27 @@ mod speed_tests {
                 && searched.contains("`speed_tolerance` = 0.25: 1.5 to 2.5 mm/s"),
             "{searched}"
         );
+    }
+
+    #[test]
+    fn a_template_spread_or_line_width_that_flattens_every_template_is_refused() {
+        let with = |sigma_mm: f64, line_width_mm: f64| {
+            WssParams {
+                sigma_mm,
+                line_width_mm,
+                ..WssParams::default()
+            }
+            .validate()
+            .err()
+            .and_then(|e| e.key)
+        };
+        assert_eq!(with(1.0, 0.2), None);
+        assert_eq!(with(0.01, 0.0), None);
+        for bad in [1e-300, 0.0, -1.0, 1e300, f64::NAN, f64::INFINITY] {
+            assert_eq!(with(bad, 0.2).as_deref(), Some("sigma_mm"), "{bad}");
+        }
+        for bad in [-0.1, 1e300, f64::NAN] {
+            assert_eq!(with(1.0, bad).as_deref(), Some("line_width_mm"), "{bad}");
+        }
     }
 }
