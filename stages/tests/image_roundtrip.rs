@@ -155,8 +155,12 @@ fn wrong_files_are_named_errors() {
         "{e}"
     );
     // Another hop.
+    // Another hop than info.json's: refused before any file is read.
     let e = read(d.path(), "hop_ms = 5.0").unwrap_err();
-    assert!(e.contains("t_start_ms") && e.contains("another hop_ms"), "{e}");
+    assert!(
+        e.contains("key `hop_ms`") && e.contains("info.json records 7.5 ms"),
+        "{e}"
+    );
     // No folder.
     let e = read(d.path(), "").map(|_| ());
     assert!(e.is_err());

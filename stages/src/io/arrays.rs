@@ -33,7 +33,9 @@
 //! Python-literal text may nest brackets at most [`MAX_NPY_NESTING`] deep (the
 //! parser is exponential in the depth), every integer in it must be below
 //! 2^63 and the shape's product (and every partial product) at most
-//! [`MAX_ELEMENTS`]; the data must then hold `product x item size` bytes. So
+//! [`MAX_ELEMENTS`]; the data must then hold exactly `product x item size`
+//! bytes (fewer is a truncated file, more a header that describes another
+//! array: both are errors naming the byte counts). So
 //! reading an NPY file allocates at most 8 bytes per element of the file
 //! (elements are at least 1 byte): memory is bounded by 8x the file (16x for
 //! a Fortran-order array, transposed through a copy). An NPZ member is read
@@ -269,6 +271,7 @@ pub fn read_npy(bytes: &[u8], what: &str) -> Result<NpyContent, String> {
                     data.len()
                 ));
             }
+            check_no_trailing(what, data.len(), need, &format!("shape {shape:?}"))?;
             let mut v: Vec<f64> = data[..need].chunks_exact(size).map(|c| numeric(&ts, c)).collect();
             if fortran && shape.len() > 1 {
                 v = fortran_to_c(&shape, &v);
@@ -307,6 +310,7 @@ pub fn read_npy(bytes: &[u8], what: &str) -> Result<NpyContent, String> {
                     data.len()
                 ));
             }
+            check_no_trailing(what, data.len(), need, &format!("{n} records of {rec} bytes"))?;
             let cols = layout
                 .into_iter()
                 .map(|(name, ts, o)| {
@@ -318,6 +322,22 @@ pub fn read_npy(bytes: &[u8], what: &str) -> Result<NpyContent, String> {
         }
         other => Err(format!("{what}: dtype `{}` is not supported", other.descr())),
     }
+}
+
+/// An error when an NPY file's data (`have` bytes after the header) runs
+/// past the `need` bytes its header declares (`declared` says how): the
+/// header then describes another array than the one written (a shape edited
+/// by hand, two arrays appended), and the extra bytes would be dropped
+/// without a word.
+fn check_no_trailing(what: &str, have: usize, need: usize, declared: &str) -> Result<(), String> {
+    if have > need {
+        return Err(format!(
+            "{what}: {} bytes after the data: the header declares {declared}, {need} bytes of \
+             data, but the file holds {have} (a wrong shape in the header, or two arrays in one file?)",
+            have - need
+        ));
+    }
+    Ok(())
 }
 
 /// Reads a plain numeric NPY array.
@@ -703,5 +723,39 @@ mod tests {
         assert!(e.contains("x.npy") && e.contains("truncated"), "{e}");
         let e = read_npy_plain(&b[..20], "x.npy").unwrap_err();
         assert!(e.contains("x.npy"), "{e}");
+    }
+
+    /// Bytes after the data the header declares are refused, naming the
+    /// file and both counts, for plain and structured arrays.
+    #[test]
+    fn npy_bytes_after_the_data_are_an_error() {
+        let mut b = npy_bytes(&[2, 3], &[1., 2., 3., 4., 5., 6.5]).unwrap();
+        b.extend_from_slice(&[0u8; 8]);
+        let e = read_npy_plain(&b, "x.npy").unwrap_err();
+        assert!(
+            e.contains("x.npy")
+                && e.contains("8 bytes after the data")
+                && e.contains("48 bytes")
+                && e.contains("56"),
+            "{e}"
+        );
+        // A structured array (x, y as u2): 2 records of 4 bytes, 3 bytes extra.
+        let header = "{'descr': [('x', '<u2'), ('y', '<u2')], 'fortran_order': False, 'shape': (2,), }";
+        let mut h = header.to_string();
+        while !(10 + h.len() + 1).is_multiple_of(64) {
+            h.push(' ');
+        }
+        h.push('\n');
+        let mut r = b"\x93NUMPY\x01\x00".to_vec();
+        r.extend_from_slice(&(h.len() as u16).to_le_bytes());
+        r.extend_from_slice(h.as_bytes());
+        r.extend_from_slice(&[1, 0, 2, 0, 3, 0, 4, 0]);
+        assert!(matches!(read_npy(&r, "ev.npy"), Ok(NpyContent::Record(_))));
+        r.extend_from_slice(&[9, 9, 9]);
+        let e = read_npy(&r, "ev.npy").unwrap_err();
+        assert!(
+            e.contains("ev.npy") && e.contains("3 bytes after the data"),
+            "{e}"
+        );
     }
 }

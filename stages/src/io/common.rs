@@ -23,6 +23,17 @@
 //! CSV: a header row with `trial` and any of `angle_deg`, `stimulus`, `group`,
 //! `duration_ms`; one row per trial; an empty cell means "not given".
 //!
+//! ## Label angles
+//!
+//! An `angle_deg` label, wherever it is read (a sidecar, a data file's column,
+//! an NPZ or MAT `angle_deg` array, a `trials.json`), must lie strictly
+//! between 0 and 180 degrees ([`check_label_angle`]): the rule the scene's
+//! `angles` and WSS's class grid (10 to 170 by default) follow. 0 and 180 are
+//! parallel to the motion and never crossed, and an angle outside the range
+//! (400, -30, 1e300) names no edge an estimator could answer: it would be
+//! scored as an error of hundreds of degrees, or an infinite one. Such a
+//! label is an error naming the file and the trial (and the line, for CSV).
+//!
 //! ## The array's layout
 //!
 //! A TOML sidecar may also declare the taxel layout the files were recorded
@@ -515,6 +526,7 @@ pub fn set_label_cell(labels: &mut TrialLabels, column: &str, cell: &str, what: 
                 return Err(format!("{what}: `{cell}` is not a finite number"));
             }
             if column == "angle_deg" {
+                check_label_angle(v).map_err(|m| format!("{what}: {m}"))?;
                 labels.angle_deg = Some(v);
             } else if v <= 0.0 {
                 return Err(format!("{what}: `{column}` must be positive, got {v}"));
@@ -539,11 +551,31 @@ pub fn set_label_cell(labels: &mut TrialLabels, column: &str, cell: &str, what: 
     Ok(())
 }
 
-/// Checks the numbers of labels read from a typed source (a TOML sidecar):
-/// an angle must be finite, a duration finite and positive.
+/// The range of a label's edge angle (module docs, "Label angles"):
+/// strictly between 0 and 180 degrees, as the scene's `angles` and WSS's
+/// class grid are; anything else (a non-finite value included) is an error.
+pub fn check_label_angle(a: f64) -> Result<(), String> {
+    if a.is_finite() && a > 0.0 && a < 180.0 {
+        Ok(())
+    } else {
+        Err(format!(
+            "angle_deg = {} must lie strictly between 0 and 180 degrees (0 and 180 are \
+             parallel to the motion and never crossed; a scene's `angles` and WSS's classes \
+             follow the same rule)",
+            palpate_core::fmt_num(a)
+        ))
+    }
+}
+
+/// Checks the numbers of labels read from a typed source (a TOML sidecar, a
+/// `trials.json`): an angle must be finite and in range
+/// ([`check_label_angle`]), a duration and a speed finite and positive.
 pub fn check_label_numbers(l: &TrialLabels) -> Result<(), String> {
     if let Some(a) = l.angle_deg.filter(|a| !a.is_finite()) {
         return Err(format!("angle_deg = {a} is not a finite number"));
+    }
+    if let Some(a) = l.angle_deg {
+        check_label_angle(a)?;
     }
     if let Some(d) = l.duration_ms.filter(|d| !(d.is_finite() && *d > 0.0)) {
         return Err(format!(
@@ -832,7 +864,7 @@ pub fn parse_sidecar(
                             &mut l,
                             h,
                             rec.get(i).unwrap_or(""),
-                            &format!("label sidecar {shown}, line {line}"),
+                            &format!("label sidecar {shown}, line {line}, trial `{id}`"),
                         )
                         .map_err(StageError::new)?;
                     }
@@ -894,6 +926,9 @@ fn read_trials_json(text: &str) -> Result<BTreeMap<String, TrialLabels>, String>
             speed_mm_s: t.speed_mm_s,
             conditions: t.conditions,
         };
+        // JSON has no NaN, but an angle of 400 or a speed of -1 is as wrong
+        // here as in a TOML sidecar.
+        check_label_numbers(&labels).map_err(|m| format!("trial `{}`: {m}", t.trial_id))?;
         if out.insert(t.trial_id.clone(), labels).is_some() {
             return Err(format!("trial `{}` appears twice", t.trial_id));
         }
@@ -1101,8 +1136,134 @@ pub fn sidecar_toml(
     s
 }
 
+/// How far a time may lie from its point on a uniform grid, in steps: a
+/// quarter sample, so that a missing or repeated sample (a whole step) is
+/// never within it. The CSV time column and the DAQ timestamps are held to it.
+pub const GRID_TOLERANCE: f64 = 0.25;
+
+/// Whether time `t` lies off the uniform grid `t0 + k·dt` by more than
+/// [`GRID_TOLERANCE`] steps.
+pub fn off_grid(t: f64, t0: f64, k: f64, dt: f64) -> bool {
+    (t - t0 - k * dt).abs() > GRID_TOLERANCE * dt
+}
+
+/// Checks times one after another against a uniform grid, in constant
+/// memory (a live stream is checked as it arrives, whatever its length).
+///
+/// The step is the span of the times taken so far over their steps (the
+/// CSV reader's fit through the first and last time, over what has come),
+/// and each new time must lie [on its grid point](off_grid), so the first
+/// time that leaves the grid of the ones before it is the one named. A
+/// [`restart`](Self::restart) (after a sequence gap, whose length the caller
+/// judges by other means) anchors the grid at the next time and keeps the
+/// step learnt so far.
+#[derive(Clone, Debug, Default)]
+pub struct TimeGrid {
+    /// The current run: its first time, its last, and the steps between them.
+    run: Option<(f64, f64, u64)>,
+    /// Time spanned and steps taken by the runs before the current one.
+    before: (f64, u64),
+}
+
+/// A time that breaks a [`TimeGrid`].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum GridBreak {
+    /// The time is not after the one before (`before`).
+    NotIncreasing {
+        /// The time before it.
+        before: f64,
+    },
+    /// The time lies off the grid.
+    Off {
+        /// The grid's step so far.
+        step: f64,
+        /// The interval the time came after, per step.
+        interval: f64,
+    },
+}
+
+impl TimeGrid {
+    /// The step learnt so far; `None` before the first interval.
+    pub fn step(&self) -> Option<f64> {
+        let (span, steps) = self.before;
+        let (span, steps) = match self.run {
+            Some((first, last, n)) => (span + (last - first), steps + n),
+            None => (span, steps),
+        };
+        (steps > 0).then(|| span / steps as f64)
+    }
+
+    /// Takes time `t`, `steps` grid steps after the last one taken (1 for
+    /// consecutive samples); refused, and not taken, when it is not after
+    /// the last or lies off the grid.
+    pub fn push(&mut self, t: f64, steps: u64) -> Result<(), GridBreak> {
+        let Some((first, last, n)) = self.run else {
+            self.run = Some((t, t, 0));
+            return Ok(());
+        };
+        if t <= last || t.is_nan() {
+            return Err(GridBreak::NotIncreasing { before: last });
+        }
+        if let Some(dt) = self.step() {
+            if off_grid(t, first, (n + steps) as f64, dt) {
+                return Err(GridBreak::Off {
+                    step: dt,
+                    interval: (t - last) / steps as f64,
+                });
+            }
+        }
+        self.run = Some((first, t, n + steps));
+        Ok(())
+    }
+
+    /// Ends the current run: the next time taken anchors a new one.
+    pub fn restart(&mut self) {
+        if let Some((first, last, n)) = self.run.take() {
+            self.before.0 += last - first;
+            self.before.1 += n;
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
+    /// The incremental grid names the first time that leaves the grid of
+    /// the times before it, and learns its step across restarts.
+    #[test]
+    fn a_time_grid_names_the_first_time_off_the_grid_of_those_before_it() {
+        use super::{GridBreak, TimeGrid};
+        let mut g = TimeGrid::default();
+        // 100 Hz for 700 samples, then 200 Hz: the 701st interval is the break.
+        for k in 0..=700 {
+            g.push(k as f64 * 10.0, 1).unwrap();
+        }
+        assert_eq!(g.step(), Some(10.0));
+        assert_eq!(
+            g.push(7005.0, 1),
+            Err(GridBreak::Off {
+                step: 10.0,
+                interval: 5.0
+            })
+        );
+        // Intervals alternating 13 and 7 (a mean of 10) break at the second.
+        let mut g = TimeGrid::default();
+        g.push(0.0, 1).unwrap();
+        g.push(13.0, 1).unwrap();
+        assert!(matches!(g.push(20.0, 1), Err(GridBreak::Off { .. })));
+        // A time that does not advance; one 3 steps on, within a quarter step.
+        let mut g = TimeGrid::default();
+        g.push(0.0, 1).unwrap();
+        g.push(10.0, 1).unwrap();
+        assert_eq!(g.push(10.0, 1), Err(GridBreak::NotIncreasing { before: 10.0 }));
+        g.push(42.0, 3).unwrap();
+        // A restart keeps the step (10.5 from 42 over 4) and re-anchors.
+        g.restart();
+        g.push(1000.0, 1).unwrap();
+        assert_eq!(g.step(), Some(10.5));
+        g.push(1010.0, 1).unwrap();
+        assert!(matches!(g.push(1030.0, 1), Err(GridBreak::Off { .. })));
+    }
+
     #[test]
     fn a_source_layout_without_kind_is_read_from_its_keys() {
         use crate::io::signal_file::SignalFileConfig;
@@ -1253,6 +1414,38 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("labels.toml") && e.contains("labels"), "{e}");
+    }
+
+    /// A label angle outside (0, 180), from any sidecar kind, is refused
+    /// naming the file and the trial (and the CSV line); in-range angles,
+    /// near the ends too, pass.
+    #[test]
+    fn label_angles_outside_0_to_180_are_refused_naming_file_and_trial() {
+        for bad in ["400", "-30", "0", "180", "1e300"] {
+            let csv = format!("trial,angle_deg,speed_mm_s\ntrial01,40,2\ntrial02,{bad},2\n");
+            let e = parse_sidecar(&csv, "csv", "labels.csv").unwrap_err().message;
+            assert!(
+                e.contains("labels.csv, line 3")
+                    && e.contains("trial `trial02`")
+                    && e.contains("between 0 and 180"),
+                "{bad}: {e}"
+            );
+            let toml = format!("[trials.t1]\nangle_deg = {bad}.0\n").replace("e300.0", ".0e300");
+            let e = parse_sidecar(&toml, "toml", "labels.toml").unwrap_err().message;
+            assert!(
+                e.contains("labels.toml") && e.contains("trial `t1`") && e.contains("between 0 and 180"),
+                "{bad}: {e}"
+            );
+            let json = format!(r#"{{"trials": [{{"trial_id": "r7", "label": {{"angle_deg": {bad}}}}}]}}"#);
+            let e = parse_sidecar(&json, "json", "trials.json").unwrap_err().message;
+            assert!(
+                e.contains("trials.json") && e.contains("trial `r7`") && e.contains("between 0 and 180"),
+                "{bad}: {e}"
+            );
+        }
+        let ok = parse_sidecar("trial,angle_deg\na,0.001\nb,179.999\nc,\n", "csv", "l.csv").unwrap();
+        assert_eq!(ok["a"].angle_deg, Some(0.001));
+        assert_eq!(ok["c"].angle_deg, None);
     }
 
     #[test]

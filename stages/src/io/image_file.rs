@@ -17,11 +17,16 @@
 //!   trial files' stems in the order the run gave them).
 //!
 //! `image_file` reads `info.json` for the layout, window, hop, format and
-//! order (the `layout`, `window_ms`, `hop_ms` and `format` keys override it,
-//! and are required when the folder has no `info.json`); without a `trials`
-//! list the trials are the folder's files of that format in name order. The
-//! labels come from `labels.toml` when present (or the `labels` key); every
-//! trial must have an entry and every entry a trial, as for `signal_file`.
+//! order. The `layout`, `window_ms`, `hop_ms` and `format` keys supply what
+//! `info.json` does not record (all four when the folder has none); a key
+//! that `info.json` also records must agree with it, else it is an error
+//! naming the key, both values and the `info.json`: the record says how the
+//! files were written, and reading them with another hop or array (a 3 x 5
+//! grid read as 5 x 3) gives wrong answers without a word. Without a
+//! `trials` list the trials are the folder's files of that format in name
+//! order. The labels come from `labels.toml` when present (or the `labels`
+//! key); every trial must have an entry and every entry a trial, as for
+//! `signal_file`.
 //!
 //! ## Checks
 //!
@@ -34,7 +39,7 @@
 //! the file and the row or entry.
 
 use super::arrays::{read_npy_plain, NdArray};
-use super::common::{apply_sidecar, build_metas, read_sidecar, LayoutConfig, TrialLabels};
+use super::common::{apply_sidecar, build_metas, describe_layout, read_sidecar, LayoutConfig, TrialLabels};
 use palpate_core::{
     check_positive, register_stage, BuildContext, ConfigChecks, ConfigError, InputSpec, Payload, PayloadKind,
     Source, SpikeImages, Stage, StageConfig, StageError, TaxelLayout, TrialContext, TrialMeta,
@@ -79,13 +84,17 @@ pub struct ImageFileConfig {
     /// The folder, relative to the graph file's folder (e.g.
     /// "../out/quickstart/images"). Required.
     pub dir: String,
-    /// `auto` (as `info.json` says), `csv` or `npy`. Default auto.
+    /// `auto` (as `info.json` says), `csv` or `npy`; set, it must agree
+    /// with `info.json`'s `format` when that records one. Default auto.
     pub format: ImageFormat,
-    /// Frame length, ms; default: `info.json`'s `window_ms`.
+    /// Frame length, ms; must agree with `info.json`'s `window_ms` when that
+    /// records one. Default: `info.json`'s.
     pub window_ms: Option<f64>,
-    /// Time between frame starts, ms; default: `info.json`'s `hop_ms`.
+    /// Time between frame starts, ms; must agree with `info.json`'s
+    /// `hop_ms` when that records one. Default: `info.json`'s.
     pub hop_ms: Option<f64>,
-    /// Taxel layout; default: `info.json`'s `layout`.
+    /// Taxel layout; must agree with `info.json`'s `layout` when that
+    /// records one. Default: `info.json`'s.
     /// (`kind = "grid"` or `"positions"` may be left out: `positions_mm` or
     /// `rows`/`cols` tell it.)
     #[serde(default, deserialize_with = "crate::io::common::layout_with_inferred_kind")]
@@ -134,7 +143,8 @@ impl ImageFileConfig {
             ));
         }
         let info_path = dir.join("info.json");
-        let info: Info = if info_path.is_file() {
+        let has_info = info_path.is_file();
+        let info: Info = if has_info {
             let text = palpate_core::input::read_text(&info_path)
                 .map_err(|e| ConfigError::key("dir", format!("cannot read {}: {e}", info_path.display())))?;
             serde_json::from_str(&text)
@@ -142,40 +152,84 @@ impl ImageFileConfig {
         } else {
             Info::default()
         };
-        let from_info = |what: &str| format!("not given, and {} gives no `{what}`", info_path.display());
+        let shown = info_path.display().to_string();
+        let from_info = |what: &str| {
+            if has_info {
+                format!("not given, and {shown} gives no `{what}`")
+            } else {
+                format!(
+                    "not given, and the folder has no info.json ({shown} is missing): it records the \
+                     `layout`, `window_ms`, `hop_ms` and `format` the files were written with \
+                     (`write_images` writes it); restore it, or set the `{what}` key"
+                )
+            }
+        };
+        // A key that disagrees with the record: named with both values.
+        let disagrees = |key: &str, set: String, recorded: String| {
+            ConfigError::key(
+                key,
+                format!(
+                    "is {set} but {shown} records {recorded}, which the files were written with; \
+                     remove the key (or correct info.json)"
+                ),
+            )
+        };
         let mut c = ConfigChecks::new();
-        let layout = match (&self.layout, info.layout) {
-            (Some(l), _) => c.take(l.to_layout("layout")),
-            (None, Some(l)) => c.take(
+        let layout_recorded = info.layout.is_some();
+        let recorded_layout = match info.layout {
+            Some(l) => c.take(
                 l.validate()
                     .map(|()| l)
-                    .map_err(|m| ConfigError::key("layout", format!("{}: {m}", info_path.display()))),
+                    .map_err(|m| ConfigError::key("layout", format!("{shown}: {m}"))),
             ),
+            None => None,
+        };
+        let layout = match (&self.layout, recorded_layout) {
+            (Some(l), recorded) => match (c.take(l.to_layout("layout")), recorded) {
+                (Some(l), Some(r)) if l != r => {
+                    c.push(disagrees("layout", describe_layout(&l), describe_layout(&r)));
+                    None
+                }
+                (l, _) => l,
+            },
+            (None, Some(r)) => Some(r),
             (None, None) => {
-                c.push(ConfigError::key("layout", from_info("layout")));
+                // A bad recorded layout was reported above.
+                if !layout_recorded {
+                    c.push(ConfigError::key("layout", from_info("layout")));
+                }
                 None
             }
         };
-        let mut number = |key: &str, given: Option<f64>, recorded: Option<f64>| match given.or(recorded) {
-            Some(v) => c.take(check_positive(key, v, "ms")),
-            None => {
-                c.push(ConfigError::key(key, from_info(key)));
-                None
-            }
+        let mut number = |key: &str, given: Option<f64>, recorded: Option<f64>| {
+            let v = match (given, recorded) {
+                // Equal to the record, to rounding (a hand-typed 0.1 + 0.2).
+                (Some(g), Some(r)) if (g - r).abs() > 1e-9 * g.abs().max(r.abs()) => {
+                    c.push(disagrees(key, format!("{g} ms"), format!("{r} ms")));
+                    return None;
+                }
+                (Some(v), _) | (None, Some(v)) => v,
+                (None, None) => {
+                    c.push(ConfigError::key(key, from_info(key)));
+                    return None;
+                }
+            };
+            c.take(check_positive(key, v, "ms"))
         };
         let window_ms = number("window_ms", self.window_ms, info.window_ms);
         let hop_ms = number("hop_ms", self.hop_ms, info.hop_ms);
         let ext = match (self.format.ext(), info.format.as_deref()) {
+            (Some(e), Some(r)) if (r == "csv" || r == "npy") && r != e => {
+                c.push(disagrees("format", format!("\"{e}\""), format!("\"{r}\"")));
+                None
+            }
             (Some(e), _) => Some(e),
             (None, Some("csv")) => Some("csv"),
             (None, Some("npy")) => Some("npy"),
             (None, Some(other)) => {
                 c.push(ConfigError::key(
                     "format",
-                    format!(
-                        "{} says format \"{other}\"; set `format` to csv or npy",
-                        info_path.display()
-                    ),
+                    format!("{shown} says format \"{other}\"; set `format` to csv or npy"),
                 ));
                 None
             }
@@ -397,5 +451,117 @@ impl Source for ImageFileSource {
     fn produce(&self, ctx: &TrialContext<'_>) -> Result<Payload, StageError> {
         let trial = crate::io::common::loaded_trial(self.loaded()?, ctx.meta, "image files")?;
         Ok(Payload::Images(trial))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A 3 x 5 grid folder of one CSV trial, written at a hop of 10 ms and a
+    /// window of 30 ms; `info` is info.json's text (none when `None`).
+    fn folder(info: Option<&str>) -> tempfile::TempDir {
+        let d = tempfile::tempdir().unwrap();
+        let cols: Vec<String> = (0..15).map(|i| format!("taxel_{i}")).collect();
+        let mut csv = format!("frame,t_start_ms,{}\n", cols.join(","));
+        for k in 0..4 {
+            let counts: Vec<String> = (0..15).map(|i| ((i + k) % 3).to_string()).collect();
+            csv.push_str(&format!("{k},{},{}\n", k as f64 * 10.0, counts.join(",")));
+        }
+        std::fs::write(d.path().join("t0.csv"), csv).unwrap();
+        if let Some(info) = info {
+            std::fs::write(d.path().join("info.json"), info).unwrap();
+        }
+        d
+    }
+
+    const GRID_3X5: &str =
+        r#""layout": {"kind": "grid", "rows": 3, "cols": 5, "pitch_mm": 3.0, "taxel_mm": 2.0}"#;
+
+    fn full_info() -> String {
+        format!(r#"{{{GRID_3X5}, "window_ms": 30.0, "hop_ms": 10.0, "format": "csv", "trials": ["t0"]}}"#)
+    }
+
+    /// Builds the source from `keys` (TOML, `dir` added) over folder `d`.
+    fn build(d: &tempfile::TempDir, keys: &str) -> Result<ImageFileSource, String> {
+        let cfg: ImageFileConfig = toml::from_str(&format!("dir = \".\"\n{keys}")).unwrap();
+        let ctx = BuildContext {
+            stage_id: "img".into(),
+            seed: 0,
+            out_dir: d.path().to_path_buf(),
+            base_dir: d.path().to_path_buf(),
+        };
+        cfg.source(&ctx).map_err(|e| e.to_string())
+    }
+
+    /// A key that info.json also records must agree with it: a 3 x 5 folder
+    /// read as 5 x 3, or at another hop, window or format, is refused with
+    /// the key, both values and the info.json named; agreeing keys pass.
+    #[test]
+    fn keys_that_disagree_with_info_json_are_refused_naming_both_values() {
+        let d = folder(Some(&full_info()));
+        for (keys, key, set, recorded) in [
+            (
+                "layout = { rows = 5, cols = 3, pitch_mm = 3.0, taxel_mm = 2.0 }",
+                "layout",
+                "5 x 3",
+                "3 x 5",
+            ),
+            ("hop_ms = 20.0", "hop_ms", "20 ms", "10 ms"),
+            ("window_ms = 25.0", "window_ms", "25 ms", "30 ms"),
+            ("format = \"npy\"", "format", "\"npy\"", "\"csv\""),
+        ] {
+            let e = build(&d, keys)
+                .err()
+                .unwrap_or_else(|| panic!("{keys}: accepted"));
+            assert!(
+                e.contains(&format!("`{key}`"))
+                    && e.contains(set)
+                    && e.contains(recorded)
+                    && e.contains("info.json"),
+                "{keys}: {e}"
+            );
+        }
+        let same = "layout = { rows = 3, cols = 5, pitch_mm = 3.0, taxel_mm = 2.0 }\n\
+                    hop_ms = 10.0\nwindow_ms = 30.0\nformat = \"csv\"";
+        let src = build(&d, same).unwrap();
+        assert_eq!(
+            (src.layout.grid(), src.hop_ms, src.window_ms),
+            (Some((3, 5)), 10.0, 30.0)
+        );
+        let trials = src.trials().unwrap();
+        assert_eq!(trials.len(), 1);
+    }
+
+    /// Keys supply what info.json does not record, and then the CSV's
+    /// `t_start_ms` column still catches a hop the files were not written at.
+    #[test]
+    fn keys_supply_what_info_json_does_not_record() {
+        let d = folder(Some(&format!(r#"{{{GRID_3X5}, "format": "csv"}}"#)));
+        let e = build(&d, "").err().unwrap();
+        assert!(e.contains("`hop_ms`") && e.contains("gives no `hop_ms`"), "{e}");
+        let src = build(&d, "hop_ms = 10.0\nwindow_ms = 30.0").unwrap();
+        assert_eq!(src.trials().unwrap().len(), 1);
+        let src = build(&d, "hop_ms = 5.0\nwindow_ms = 30.0").unwrap();
+        let e = src.trials().unwrap_err().message;
+        assert!(e.contains("t_start_ms") && e.contains("t0.csv"), "{e}");
+    }
+
+    /// A folder without info.json says the file is missing and what it
+    /// holds, and the keys can stand in for it.
+    #[test]
+    fn a_folder_without_info_json_says_it_is_missing() {
+        let d = folder(None);
+        let e = build(&d, "").err().unwrap();
+        assert!(
+            e.contains("info.json") && e.contains("is missing") && !e.contains("gives no"),
+            "{e}"
+        );
+        for key in ["layout", "window_ms", "hop_ms", "format"] {
+            assert!(e.contains(&format!("`{key}`")), "{key}: {e}");
+        }
+        let keys = "layout = { rows = 3, cols = 5, pitch_mm = 3.0, taxel_mm = 2.0 }\n\
+                    hop_ms = 10.0\nwindow_ms = 30.0\nformat = \"csv\"";
+        assert_eq!(build(&d, keys).unwrap().trials().unwrap().len(), 1);
     }
 }

@@ -44,7 +44,10 @@
 //!
 //! **DAQ** (`.daq`, `.bin`): a raw byte stream recorded by the DAQ acquisition
 //! (see `docs/daq-protocol.md`), decoded frame by frame; one trial per file.
-//! The sample rate comes from the frames' timestamps (median interval). Lost
+//! The sample rate comes from the frames' timestamps (median interval), which
+//! must lie on a uniform grid (to a quarter sample, as a CSV time column;
+//! a decrease, a rate change or alternating intervals are errors naming the
+//! frame), and every frame must keep the first one's sample format. Lost
 //! frames (sequence gaps) and CRC errors are an error naming their count,
 //! unless `fill_gaps = true`, which holds each lost frame at the previous
 //! frame's values (the gap count is still in the error-free report), for at
@@ -802,7 +805,8 @@ fn named_arrays_to_trials(
                 ));
             }
             for (t, &x) in trials.iter_mut().zip(v.iter()) {
-                set_label_cell(&mut t.labels, name, &x.to_string(), &format!("{shown}, `{name}`"))?;
+                let what = format!("{shown}, `{name}` of trial `{}`", t.id);
+                set_label_cell(&mut t.labels, name, &x.to_string(), &what)?;
             }
         }
     }
@@ -1144,7 +1148,14 @@ fn read_csv_signals(
                 Col::Trailing => {
                     super::common::check_trailing(&rec, Some(i), &format!("{shown}, line {line}"))?
                 }
-                Col::Label => set_label_cell(&mut row_labels, &headers[i], cell, &what())?,
+                Col::Label => {
+                    // A label belongs to the trial: name it when the file holds several.
+                    let at = match trial_col {
+                        Some(_) => format!("{}, trial `{}`", what(), t.name),
+                        None => what(),
+                    };
+                    set_label_cell(&mut row_labels, &headers[i], cell, &at)?
+                }
             }
         }
         merge_consistent(&mut t.labels, &row_labels, &format!("{shown}, line {line}"))?;
@@ -1175,25 +1186,156 @@ fn read_csv_signals(
 }
 
 /// The sample rate a time column gives, checking that samples are uniformly
-/// spaced (to a quarter sample), so a missing row is caught.
+/// spaced (each within [a quarter sample](super::common::GRID_TOLERANCE) of
+/// the grid through the first and last time), so a missing row is caught.
+/// The line named is the first that leaves the grid of the lines before it
+/// ([`TimeGrid`](super::common::TimeGrid)), so a rate that changes part way
+/// is named where it changes, not where the overall fit first misses.
 fn rate_from_times(times: &[(u64, f64)], origin: &str) -> Result<Option<f64>, String> {
+    use super::common::{off_grid, GridBreak, TimeGrid};
     if times.len() < 2 {
         return Ok(None);
     }
     let n = times.len();
     let dt = (times[n - 1].1 - times[0].1) / (n - 1) as f64;
+    let uniform = dt.is_finite()
+        && dt > 0.0
+        && times
+            .iter()
+            .enumerate()
+            .all(|(k, &(_, t))| !off_grid(t, times[0].1, k as f64, dt));
+    if uniform {
+        return Ok(Some(1000.0 / dt));
+    }
+    let way_out = "(a missing or repeated row? if the times only jitter, e.g. stamped by the \
+                   host, give the rate in `sample_rate_hz` and list the time column in \
+                   `ignore_columns`)";
+    let mut grid = TimeGrid::default();
+    for &(line, t) in times {
+        match grid.push(t, 1) {
+            Ok(()) => {}
+            Err(GridBreak::NotIncreasing { before }) => {
+                return Err(format!(
+                    "{origin}, line {line}: the time column does not increase: {t} ms after {before} ms"
+                ))
+            }
+            Err(GridBreak::Off { step, interval }) => {
+                return Err(format!(
+                    "{origin}, line {line}: time {t} ms is off the uniform grid of {step} ms of the \
+                     lines before it ({interval} ms after the line before) {way_out}"
+                ))
+            }
+        }
+    }
+    // Every line on the grid of those before it, but not on the overall
+    // one (a slow drift): the first line the overall fit misses.
     if !(dt.is_finite() && dt > 0.0) {
         return Err(format!("{origin}: the time column does not increase"));
     }
-    for (k, &(line, t)) in times.iter().enumerate() {
-        if (t - times[0].1 - k as f64 * dt).abs() > 0.25 * dt {
-            return Err(format!(
-                "{origin}, line {line}: time {t} ms is off the uniform grid of {dt} ms \
-                 (a missing or repeated row? if the times only jitter, e.g. stamped by the \
-                 host, give the rate in `sample_rate_hz` and list the time column in \
-                 `ignore_columns`)"
-            ));
-        }
+    let (line, t) = times
+        .iter()
+        .enumerate()
+        .find(|&(k, &(_, t))| off_grid(t, times[0].1, k as f64, dt))
+        .map_or((0, f64::NAN), |(_, &lt)| lt);
+    Err(format!(
+        "{origin}, line {line}: time {t} ms is off the uniform grid of {dt} ms {way_out}"
+    ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::io::daq::{encode_frame, SampleFormat};
+
+    fn csv_cfg() -> SignalFileConfig {
+        SignalFileConfig::default()
     }
-    Ok(Some(1000.0 / dt))
+
+    /// A label angle outside (0, 180) in a data file is refused naming the
+    /// file, line and trial (CSV) or the file, array and trial (NPZ/MAT).
+    #[test]
+    fn label_angles_outside_0_to_180_in_data_files_are_refused() {
+        let csv = "trial,angle_deg,taxel_0\na,40,1.0\na,40,1.5\nb,400,1.0\nb,400,1.2\n";
+        let e = read_signal_bytes(csv.as_bytes(), "rec.csv", "rec", SignalFormat::Csv, &csv_cfg(), 1)
+            .unwrap_err();
+        assert!(
+            e.contains("rec.csv, line 4") && e.contains("trial `b`") && e.contains("between 0 and 180"),
+            "{e}"
+        );
+        let arrays = |angles: Vec<f64>| {
+            vec![
+                (
+                    "data".to_string(),
+                    NdArray {
+                        shape: vec![2, 3, 1],
+                        data: vec![1.0; 6],
+                    },
+                ),
+                (
+                    "angle_deg".to_string(),
+                    NdArray {
+                        shape: vec![2],
+                        data: angles,
+                    },
+                ),
+            ]
+        };
+        let e = named_arrays_to_trials(arrays(vec![30.0, -30.0]), "rec.npz", "rec", &csv_cfg(), 1, false)
+            .unwrap_err();
+        assert!(
+            e.contains("rec.npz") && e.contains("trial `rec-1`") && e.contains("between 0 and 180"),
+            "{e}"
+        );
+        let ok = named_arrays_to_trials(arrays(vec![30.0, 150.0]), "rec.npz", "rec", &csv_cfg(), 1, false)
+            .unwrap();
+        assert_eq!(ok[1].labels.angle_deg, Some(150.0));
+    }
+
+    /// A time column whose rate changes part way (100 Hz, then 200 Hz from
+    /// line 703) is refused at the line where it changes, with the step of
+    /// the lines before it, not at line 3 with the overall fit's step.
+    #[test]
+    fn a_rate_change_in_a_time_column_is_named_where_it_happens() {
+        let times: Vec<(u64, f64)> = (0..1400u64)
+            .map(|k| {
+                let t = if k <= 700 {
+                    k as f64 * 10.0
+                } else {
+                    7000.0 + (k - 700) as f64 * 5.0
+                };
+                (k + 2, t)
+            })
+            .collect();
+        let e = rate_from_times(&times, "rec.csv").unwrap_err();
+        assert!(
+            e.contains("rec.csv, line 703") && e.contains("grid of 10 ms") && e.contains("5 ms after"),
+            "{e}"
+        );
+        // Uniform times still give their rate; times that go back are named.
+        let uniform: Vec<(u64, f64)> = (0..50u64).map(|k| (k + 2, k as f64 * 2.5)).collect();
+        assert_eq!(rate_from_times(&uniform, "u.csv").unwrap(), Some(400.0));
+        let mut back = uniform.clone();
+        back[30].1 = 10.0;
+        let e = rate_from_times(&back, "b.csv").unwrap_err();
+        assert!(
+            e.contains("b.csv, line 32") && e.contains("does not increase"),
+            "{e}"
+        );
+    }
+
+    /// A DAQ recording whose timestamps decrease says so at the frame,
+    /// rather than that it carries no sample rate.
+    #[test]
+    fn a_daq_recording_with_decreasing_timestamps_names_the_frame() {
+        let mut b = Vec::new();
+        for (seq, ts) in [(0u32, 3000u64), (1, 2000), (2, 1000), (3, 0)] {
+            encode_frame(&mut b, SampleFormat::F32, seq, ts, &[1.0]);
+        }
+        let e = read_signal_bytes(&b, "r.daq", "r", SignalFormat::Daq, &csv_cfg(), 1).unwrap_err();
+        assert!(
+            e.contains("r.daq") && e.contains("frame 1 (sequence 1)") && e.contains("decrease"),
+            "{e}"
+        );
+        assert!(!e.contains("no sample rate"), "{e}");
+    }
 }

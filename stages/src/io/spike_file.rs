@@ -16,7 +16,8 @@
 //! The trial's duration is, in order of precedence: the sidecar's
 //! `duration_ms`, the `duration_ms` key, or the last event's time plus 1 ms
 //! (so every event lies in `[0, duration)`); an event at or after a given
-//! duration is an error. Events are sorted by time, then taxel.
+//! duration is an error naming the latest event's CSV line or NPY index.
+//! Events are sorted by time, then taxel.
 //!
 //! ## Formats
 //!
@@ -225,8 +226,9 @@ fn spike_format_of(f: SpikeFormat, path: &Path) -> Result<SpikeFormat, String> {
 
 /// Every trial, read once and shared.
 type Loaded = Vec<(TrialMeta, Arc<SpikeTrain>)>;
-/// A CSV trial being read: name, labels, `(taxel, t_ms)` events.
-type CsvEvents = (String, TrialLabels, Vec<(u32, f64)>);
+/// A CSV trial being read: name, labels, `(taxel, t_ms)` events, and the
+/// latest event's time and line.
+type CsvEvents = (String, TrialLabels, Vec<(u32, f64)>, Latest);
 
 struct SpikeFileSource {
     cfg: SpikeFileConfig,
@@ -273,6 +275,25 @@ struct RawEvents {
     /// `(taxel, t_ms)`, unsorted, origin not yet applied.
     events: Vec<(u32, f64)>,
     origin: String,
+    /// Where the latest event is in the file (`line 7`, `event 3`), for the
+    /// error when it lies past the trial's duration.
+    latest_at: Option<String>,
+}
+
+/// The latest event seen so far of a trial being read: its time and where
+/// it is (the CSV line or NPY event index). First of equal times wins.
+#[derive(Clone, Copy, Default)]
+struct Latest(Option<(f64, u64)>);
+
+impl Latest {
+    fn see(&mut self, t_ms: f64, pos: u64) {
+        if self.0.is_none_or(|(t, _)| t_ms > t) {
+            self.0 = Some((t_ms, pos));
+        }
+    }
+    fn at(self, what: &str) -> Option<String> {
+        self.0.map(|(_, p)| format!("{what} {p}"))
+    }
 }
 
 impl SpikeFileSource {
@@ -321,8 +342,9 @@ impl SpikeFileSource {
                     Some(d) => {
                         if last >= d {
                             return Err(StageError::new(format!(
-                                "{}: an event at {last:?} ms lies at or after the trial's duration of {d:?} ms",
-                                t.origin
+                                "{}{}: an event at {last:?} ms lies at or after the trial's duration of {d:?} ms",
+                                t.origin,
+                                t.latest_at.as_deref().map(|a| format!(", {a}")).unwrap_or_default()
                             )));
                         }
                         d
@@ -436,16 +458,7 @@ fn read_spike_file(
     let shown = path.display().to_string();
     let fmt = spike_format_of(cfg.format, path)?;
     let bytes = palpate_core::input::read_data(path).map_err(|e| format!("cannot read {shown}: {e}"))?;
-    read_spike_bytes(&bytes, &shown, file_id, fmt, cfg, layout).map(|t| {
-        t.into_iter()
-            .map(|(id, labels, events, origin)| RawEvents {
-                id,
-                labels,
-                events,
-                origin,
-            })
-            .collect()
-    })
+    read_spike_raw(&bytes, &shown, file_id, fmt, cfg, layout)
 }
 
 /// One trial's events as read from bytes: `(id, labels, (taxel, t_ms) events
@@ -462,6 +475,21 @@ pub fn read_spike_bytes(
     cfg: &SpikeFileConfig,
     layout: &TaxelLayout,
 ) -> Result<Vec<SpikeBytesTrial>, String> {
+    Ok(read_spike_raw(bytes, shown, file_id, fmt, cfg, layout)?
+        .into_iter()
+        .map(|r| (r.id, r.labels, r.events, r.origin))
+        .collect())
+}
+
+/// [`read_spike_bytes`], each trial with where its latest event is.
+fn read_spike_raw(
+    bytes: &[u8],
+    shown: &str,
+    file_id: &str,
+    fmt: SpikeFormat,
+    cfg: &SpikeFileConfig,
+    layout: &TaxelLayout,
+) -> Result<Vec<RawEvents>, String> {
     let shown = shown.to_string();
     let mapper = Mapper { layout, cfg };
     let raw = match fmt {
@@ -502,10 +530,12 @@ pub fn read_spike_bytes(
             };
             let p = get("p");
             let mut events = Vec::with_capacity(x.len());
+            let mut latest = Latest::default();
             for i in 0..x.len() {
                 if let Some(e) =
                     mapper.map(x[i], y[i], t[i], p.map(|p| p[i]), &format!("{shown}, event {i}"))?
                 {
+                    latest.see(e.1, i as u64);
                     events.push(e);
                 }
             }
@@ -514,14 +544,12 @@ pub fn read_spike_bytes(
                 labels: TrialLabels::default(),
                 events,
                 origin: shown,
+                latest_at: latest.at("event"),
             }])
         }
         SpikeFormat::Auto => Err(format!("{shown}: the format must be resolved before reading")),
     }?;
-    Ok(raw
-        .into_iter()
-        .map(|r| (r.id, r.labels, r.events, r.origin))
-        .collect())
+    Ok(raw)
 }
 
 fn read_csv_events(
@@ -581,33 +609,45 @@ fn read_csv_events(
             Some(&k) => k,
             None => {
                 trial_index.insert(name.clone(), trials.len());
-                trials.push((name, TrialLabels::default(), Vec::new()));
+                trials.push((name, TrialLabels::default(), Vec::new(), Latest::default()));
                 trials.len() - 1
             }
         };
         let mut row_labels = TrialLabels::default();
         for &(i, h) in &label_cols {
+            // A label belongs to the trial: name it when the file holds several.
+            let trial = match ctrial {
+                Some(_) => format!(", trial `{}`", trials[k].0),
+                None => String::new(),
+            };
             set_label_cell(
                 &mut row_labels,
                 h,
                 rec.get(i).unwrap_or(""),
-                &format!("{what}, column `{h}`"),
+                &format!("{what}, column `{h}`{trial}"),
             )?;
         }
         merge_consistent(&mut trials[k].1, &row_labels, &what)?;
         let p = cp.map(num).transpose()?;
         if let Some(e) = mapper.map(num(cx)?, num(cy)?, num(ct)?, p, &what)? {
+            trials[k].3.see(e.1, line);
             trials[k].2.push(e);
         }
     }
     if trials.is_empty() {
         // A header-only file: one trial without spikes.
-        trials.push((String::new(), TrialLabels::default(), Vec::new()));
+        trials.push((
+            String::new(),
+            TrialLabels::default(),
+            Vec::new(),
+            Latest::default(),
+        ));
     }
     let many = trials.len() > 1 || !trials[0].0.is_empty();
     Ok(trials
         .into_iter()
-        .map(|(name, labels, events)| RawEvents {
+        .map(|(name, labels, events, latest)| RawEvents {
+            latest_at: latest.at("line"),
             id: if many {
                 format!("{file_id}-{name}")
             } else {
@@ -627,6 +667,41 @@ fn read_csv_events(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// An event at or after the trial's duration is named with its line
+    /// (CSV) or index (NPY), the latest event's where several are.
+    #[test]
+    fn an_event_past_the_duration_names_its_line() {
+        let d = tempfile::tempdir().unwrap();
+        std::fs::write(
+            d.path().join("ev.csv"),
+            "x,y,t\n0,0,1.0\n1,0,7.5\n2,1,9.0\n3,3,2.0\n",
+        )
+        .unwrap();
+        let ctx = BuildContext {
+            stage_id: "sp".into(),
+            seed: 0,
+            out_dir: d.path().to_path_buf(),
+            base_dir: d.path().to_path_buf(),
+        };
+        let source = |keys: &str| -> Box<dyn Source> {
+            let cfg: SpikeFileConfig = toml::from_str(keys).unwrap();
+            match cfg.build(&ctx).unwrap() {
+                Stage::Source(s) => s,
+                _ => panic!("not a source"),
+            }
+        };
+        let e = source("path = \"ev.csv\"\ntime_unit = \"ms\"\nduration_ms = 8.0")
+            .trials()
+            .unwrap_err()
+            .message;
+        assert!(e.contains("ev.csv, line 4") && e.contains("9.0 ms"), "{e}");
+        assert!(
+            source("path = \"ev.csv\"\ntime_unit = \"ms\"\nduration_ms = 10.0")
+                .trials()
+                .is_ok()
+        );
+    }
 
     #[test]
     fn events_of_a_smaller_array_on_the_default_grid_are_flagged() {

@@ -188,9 +188,9 @@ pub struct WssSettings<A> {
     /// overrides every trial's (to study a wrong declared speed, say).
     pub speed_mm_s: Option<f64>,
     /// Spread `σ` of eq. 6, mm, in [0.01, 1000]. Default 1 (half the
-    /// paper's 2 mm taxel). Outside that range every template is flat (all
-    /// 1) or empty (all 0 but on the line) on any real array, its
-    /// correlation 0, and every trial would answer "no edge".
+    /// paper's 2 mm taxel). Outside that range every template is flat (every
+    /// taxel near 1) or empty (every taxel off the line at 0) on any real
+    /// array, its correlation 0, and every trial would answer "no edge".
     pub sigma_mm: f64,
     /// Width of the simulated line, mm, in [0, 1000]. Default 0.2 (the paper's).
     pub line_width_mm: f64,

@@ -21,7 +21,7 @@
 //! ## Emulation ([`emulate`])
 //!
 //! Sample `k` of every taxel goes into frame `k` (sequence `first_seq + k`,
-//! timestamp `k * 1e6 / rate` µs). Frame `k` is written once the wall clock
+//! timestamp `(first_time_index + k) * 1e6 / rate` µs, rounded). Frame `k` is written once the wall clock
 //! reaches `k / (rate * speed)` s after the start; frames already due are
 //! written together, so a slow consumer or a high speed factor never skips
 //! frames, it only batches them.
@@ -470,6 +470,11 @@ pub struct EmulateOptions {
     pub offset: f64,
     /// Sequence number of the first frame (tests use it to cross the wrap).
     pub first_seq: u32,
+    /// Sample periods before the first frame's timestamp: frame `k` is
+    /// stamped `(first_time_index + k) * 1e6 / rate` µs, so signals played
+    /// one after another (an emulated scene's trials) go on in time as their
+    /// sequence numbers do, on one uniform grid. Default 0.
+    pub first_time_index: u64,
     /// Play the signals this many times back to back (sequence and time go on).
     pub repeat: usize,
 }
@@ -482,6 +487,7 @@ impl Default for EmulateOptions {
             scale: 1.0,
             offset: 0.0,
             first_seq: 0,
+            first_time_index: 0,
             repeat: 1,
         }
     }
@@ -578,7 +584,7 @@ pub fn emulate<W: Write>(
             for (r, col) in raw.iter_mut().zip(&signals.data) {
                 *r = (col[s] - opts.offset) / opts.scale;
             }
-            let ts = (k as f64 * 1e6 / rate).round() as u64;
+            let ts = ((opts.first_time_index + k) as f64 * 1e6 / rate).round() as u64;
             report.clamped += encode_frame(
                 &mut buf,
                 opts.format,
@@ -747,4 +753,53 @@ pub fn signals_from_recording(
         },
         rec.stats,
     ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// `first_time_index` stamps the first frame that many sample periods
+    /// on, so two signals played one after the other are one uniform stream
+    /// (what an emulated scene's trials need to pass the frame check).
+    #[test]
+    fn signals_played_one_after_another_go_on_in_time() {
+        let s = Signals {
+            sample_rate_hz: 400.0,
+            layout: palpate_core::TaxelLayout::Positions {
+                positions_mm: vec![[0.0, 0.0]],
+                taxel_mm: 2.0,
+            },
+            unit: "V".into(),
+            data: vec![vec![1.0, 2.0, 3.0]],
+        };
+        let mut out = Vec::new();
+        let fast = |first: u64| EmulateOptions {
+            speed: f64::INFINITY,
+            first_seq: first as u32,
+            first_time_index: first,
+            ..EmulateOptions::default()
+        };
+        emulate(&s, &mut out, &fast(0)).unwrap();
+        emulate(&s, &mut out, &fast(3)).unwrap();
+        let d = super::super::decode_recording(&out, 1.0, 0.0, false).unwrap();
+        assert_eq!((d.data[0].len(), d.sample_rate_hz), (6, Some(400.0)));
+        // Restarting the clock instead is refused (the timestamps go back).
+        let mut out = Vec::new();
+        emulate(&s, &mut out, &fast(0)).unwrap();
+        emulate(
+            &s,
+            &mut out,
+            &EmulateOptions {
+                first_time_index: 0,
+                ..fast(3)
+            },
+        )
+        .unwrap();
+        let e = super::super::decode_recording(&out, 1.0, 0.0, false).unwrap_err();
+        assert!(
+            e.contains("frame 3 (sequence 3)") && e.contains("decrease"),
+            "{e}"
+        );
+    }
 }

@@ -27,7 +27,7 @@ pub use live::{
 };
 pub use protocol::{
     crc32, decode_recording, encode_frame, frame_len, DaqStats, DecodeEvent, DecodedRecording, Decoder,
-    Frame, SampleFormat,
+    Frame, FrameCheck, SampleFormat,
 };
 pub use source::{
     is_pseudo_terminal, simulate_trial, DaqConfig, DaqSource, SegEvent, SegmentMode, SegmentPlan, Segmenter,

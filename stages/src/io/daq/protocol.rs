@@ -37,6 +37,24 @@
 //! `wrong_channels` (with the count it carried) and skipped whole, so the
 //! mismatch is named in every report instead of looking like garbage.
 //!
+//! ## One stream, one format, one clock ([`FrameCheck`])
+//!
+//! Every frame of a stream must carry the first frame's sample format
+//! (`docs/daq-protocol.md`: "do not mix formats"), and its timestamps must
+//! lie on a uniform grid: each within a quarter of the step (the rule the
+//! CSV time column follows, [`GRID_TOLERANCE`]) of its point on the grid
+//! learnt from the frames before it, whose step is their time span over
+//! their sequence steps ([`TimeGrid`]). So a rate that changes, intervals
+//! that alternate (13 and 7 ms, which a median reads as 77 Hz), or
+//! timestamps that go back are errors naming the frame, its sequence
+//! number and the expected and actual intervals, not a rate taken from
+//! their median. The check holds a few numbers, whatever the stream's
+//! length, so the live path makes it too. Across a sequence gap (lost
+//! frames) or a device reset the grid restarts at the next frame, its step
+//! kept: the sequence numbers, not the clock, count lost frames. A stream
+//! whose timestamps all stay at their first value carries no clock (a
+//! board that does not stamp): it passes, and gives no rate.
+//!
 //! ## Recordings ([`decode_recording`]) and their limits
 //!
 //! Every decoded sample must be finite (a NaN sent as f32, or a scale that
@@ -47,6 +65,7 @@
 //! (17 GB per channel) from a 600-byte file. Memory is so bounded by a small
 //! multiple of the file size.
 
+use crate::io::common::{GridBreak, TimeGrid, GRID_TOLERANCE};
 use std::fmt;
 
 /// The two sync bytes that start every frame.
@@ -159,6 +178,8 @@ pub struct Frame {
     pub seq: u32,
     /// Device time of the samples, µs.
     pub timestamp_us: u64,
+    /// How the samples were sent (one format per stream: [`FrameCheck`]).
+    pub format: SampleFormat,
     /// One value per channel (taxel order), `raw * scale + offset`.
     pub samples: Vec<f64>,
 }
@@ -387,11 +408,118 @@ impl Decoder {
             on(DecodeEvent::Frame(Frame {
                 seq,
                 timestamp_us,
+                format,
                 samples,
             }));
         }
         self.buf.drain(..pos);
     }
+}
+
+/// Checks a stream's frames as they come, in constant memory (module docs,
+/// "One stream, one format, one clock"): one sample format, timestamps on a
+/// uniform grid. Feed it every frame in stream order.
+#[derive(Clone, Debug, Default)]
+pub struct FrameCheck {
+    /// The stream's format (its first frame's).
+    format: Option<SampleFormat>,
+    /// Whether every timestamp so far equals the first (a board without a
+    /// clock; the grid is then not fed).
+    clockless: bool,
+    /// The last frame's sequence number and timestamp.
+    last: Option<(u32, u64)>,
+    grid: TimeGrid,
+    /// Frames taken.
+    frames: u64,
+}
+
+impl FrameCheck {
+    /// Takes the next frame; an error names it (its 0-based index in the
+    /// stream and its sequence number) and what is wrong.
+    pub fn push(&mut self, f: &Frame) -> Result<(), String> {
+        let k = self.frames;
+        let at = || format!("frame {k} (sequence {})", f.seq);
+        let name = |s: SampleFormat| match s {
+            SampleFormat::U16 => "u16",
+            SampleFormat::F32 => "f32",
+        };
+        match self.format {
+            Some(s) if s != f.format => {
+                return Err(format!(
+                    "{}: {} samples, but the frames before it carry {}: a stream keeps one \
+                     sample format (docs/daq-protocol.md: do not mix formats)",
+                    at(),
+                    name(f.format),
+                    name(s)
+                ))
+            }
+            _ => self.format = Some(f.format),
+        }
+        let t = f.timestamp_us;
+        let Some((seq, before)) = self.last else {
+            // Clockless until a second frame says otherwise.
+            self.clockless = true;
+            self.last = Some((f.seq, t));
+            self.frames += 1;
+            return Ok(());
+        };
+        if self.clockless {
+            if t == before {
+                self.last = Some((f.seq, t));
+                self.frames += 1;
+                return Ok(());
+            }
+            if k > 1 {
+                return Err(format!(
+                    "{}: timestamp {t} µs, but the {k} frames before it all carry {before} µs: \
+                     the timestamps must advance with every frame",
+                    at()
+                ));
+            }
+            // The second frame moves: a clock after all, from the first frame on.
+            self.clockless = false;
+            let _ = self.grid.push(before as f64, 1);
+        }
+        // 1: the next frame; 2..2^31: after lost frames; else a reset or a
+        // repeat (the sequence numbers judge those, not the clock).
+        let steps = f.seq.wrapping_sub(seq);
+        if steps != 1 {
+            self.grid.restart();
+        }
+        if (1..1 << 31).contains(&steps) && t <= before {
+            let what = if t < before { "decrease" } else { "do not advance" };
+            return Err(format!(
+                "{}: the timestamps {what}: {t} µs after {before} µs at frame {}; they must \
+                 increase with the sequence numbers",
+                at(),
+                k - 1
+            ));
+        }
+        match self.grid.push(t as f64, 1) {
+            Ok(()) => {}
+            // Ruled out above for a forward step; a restarted grid takes any time.
+            Err(GridBreak::NotIncreasing { .. }) => {}
+            Err(GridBreak::Off { step, interval }) => {
+                return Err(format!(
+                    "{}: timestamp {t} µs is off the uniform grid: {} µs after the frame before, \
+                     where the frames before it are {} µs apart (more than {} of a sample off: \
+                     a sample rate that changes, or timestamps that jitter)",
+                    at(),
+                    round3(interval),
+                    round3(step),
+                    GRID_TOLERANCE
+                ))
+            }
+        }
+        self.last = Some((f.seq, t));
+        self.frames += 1;
+        Ok(())
+    }
+}
+
+/// `v` to 3 decimals, for messages (`1000` rather than `1000.0000000002`).
+fn round3(v: f64) -> f64 {
+    (v * 1e3).round() / 1e3
 }
 
 /// A whole recording decoded: per-channel data and what was found.
@@ -400,7 +528,8 @@ pub struct DecodedRecording {
     /// `data[channel][sample]`, lost frames filled when asked.
     pub data: Vec<Vec<f64>>,
     /// Sample rate from the timestamps (median interval per sequence step), Hz;
-    /// `None` with fewer than two frames.
+    /// `None` with fewer than two frames, or timestamps that never advance
+    /// (a board without a clock).
     pub sample_rate_hz: Option<f64>,
     /// Counts.
     pub stats: DaqStats,
@@ -411,8 +540,9 @@ pub struct DecodedRecording {
 /// Decodes a raw recording. Lost frames (gaps) are an error unless
 /// `fill_gaps`, which holds the previous frame's values over each lost frame
 /// (at most as many lost frames as received ones, see the module docs);
-/// frames from the past, frames of another channel count and samples that are
-/// not finite are always an error. A cut last frame is reported in
+/// frames from the past, frames of another channel count, samples that are
+/// not finite, a change of sample format and timestamps off a uniform grid
+/// ([`FrameCheck`]) are always an error. A cut last frame is reported in
 /// `trailing_bytes` for the caller to judge.
 pub fn decode_recording(
     bytes: &[u8],
@@ -466,6 +596,10 @@ pub fn decode_recording(
                 f.seq, f.samples[ch]
             ));
         }
+    }
+    let mut check = FrameCheck::default();
+    for f in &frames {
+        check.push(f)?;
     }
     let n = frames[0].samples.len();
     let mut data = vec![Vec::with_capacity(frames.len() + stats.lost_frames as usize); n];
@@ -600,6 +734,99 @@ mod tests {
         assert!((f.samples[2] - 3.3).abs() < 1e-9);
     }
 
+    /// f32 frames of one channel, frame `k` with sequence `seqs[k]`,
+    /// timestamp `ts[k]` µs and format `formats[k % len]`.
+    fn stream(seqs: &[u32], ts: &[u64], formats: &[SampleFormat]) -> Vec<u8> {
+        let mut b = Vec::new();
+        for (k, (&s, &t)) in seqs.iter().zip(ts).enumerate() {
+            encode_frame(&mut b, formats[k % formats.len()], s, t, &[1.0]);
+        }
+        b
+    }
+
+    /// Timestamps off a uniform grid and a change of sample format are
+    /// errors naming the frame, its sequence number and the intervals (or
+    /// formats), not a rate taken from the median interval.
+    #[test]
+    fn a_recording_off_a_uniform_grid_or_of_mixed_formats_is_refused() {
+        let f32s = [SampleFormat::F32];
+        // 100 Hz for 700 frames, then 200 Hz.
+        let ts: Vec<u64> = (0..1400u64)
+            .map(|k| {
+                if k < 700 {
+                    k * 10_000
+                } else {
+                    6_990_000 + (k - 699) * 5_000
+                }
+            })
+            .collect();
+        let seqs: Vec<u32> = (0..1400).collect();
+        let e = decode_recording(&stream(&seqs, &ts, &f32s), 1.0, 0.0, false).unwrap_err();
+        assert!(
+            e.contains("frame 700 (sequence 700)")
+                && e.contains("off the uniform grid")
+                && e.contains("5000 µs after")
+                && e.contains("10000 µs apart"),
+            "{e}"
+        );
+        // Intervals alternating 13 and 7 ms (a median of 13 ms: read as 77 Hz).
+        let ts: Vec<u64> = (0..40u64).map(|k| k / 2 * 20_000 + (k % 2) * 13_000).collect();
+        let e = decode_recording(&stream(&seqs[..40], &ts, &f32s), 1.0, 0.0, false).unwrap_err();
+        assert!(
+            e.contains("frame 2 (sequence 2)") && e.contains("13000 µs apart"),
+            "{e}"
+        );
+        // u16 and f32 frames in turn.
+        let ts: Vec<u64> = (0..20u64).map(|k| k * 1000).collect();
+        let mixed = stream(&seqs[..20], &ts, &[SampleFormat::U16, SampleFormat::F32]);
+        let e = decode_recording(&mixed, 1.0, 0.0, false).unwrap_err();
+        assert!(
+            e.contains("frame 1 (sequence 1)") && e.contains("f32 samples") && e.contains("carry u16"),
+            "{e}"
+        );
+        // Well-formed: the rate as before, lost frames (time goes on over
+        // them) filled; a board that stamps nothing gives no rate.
+        let seqs: Vec<u32> = (0..20).filter(|&s| s != 7).collect();
+        let ts: Vec<u64> = seqs.iter().map(|&s| u64::from(s) * 1000).collect();
+        let d = decode_recording(&stream(&seqs, &ts, &f32s), 1.0, 0.0, true).unwrap();
+        assert_eq!((d.sample_rate_hz, d.data[0].len()), (Some(1000.0), 20));
+        let d = decode_recording(&stream(&seqs, &[0; 19], &f32s), 1.0, 0.0, true).unwrap();
+        assert_eq!(d.sample_rate_hz, None);
+        // Stamped, then stuck: refused at the first frame that repeats a time.
+        let mut ts: Vec<u64> = (0..10u64).map(|k| k * 1000).collect();
+        ts[6] = 5000;
+        let seqs: Vec<u32> = (0..10).collect();
+        let e = decode_recording(&stream(&seqs, &ts, &f32s), 1.0, 0.0, false).unwrap_err();
+        assert!(
+            e.contains("frame 6 (sequence 6)") && e.contains("do not advance"),
+            "{e}"
+        );
+    }
+
+    /// The check holds a few numbers: it takes a frame at a time, and a
+    /// device reset (the sequence going back) restarts its grid.
+    #[test]
+    fn the_frame_check_is_incremental_and_restarts_after_a_reset() {
+        let mut c = FrameCheck::default();
+        let frame = |seq: u32, t: u64| Frame {
+            seq,
+            timestamp_us: t,
+            format: SampleFormat::F32,
+            samples: vec![0.0],
+        };
+        for k in 0..100u32 {
+            c.push(&frame(k, u64::from(k) * 1000)).unwrap();
+        }
+        // A reset: sequence and clock start again from 0, on the same step.
+        c.push(&frame(0, 0)).unwrap();
+        c.push(&frame(1, 1000)).unwrap();
+        let e = c.push(&frame(2, 2600)).unwrap_err();
+        assert!(
+            e.contains("frame 102 (sequence 2)") && e.contains("1600 µs after"),
+            "{e}"
+        );
+    }
+
     use proptest::prelude::*;
 
     proptest! {
@@ -636,7 +863,7 @@ mod tests {
             let mut d = Decoder::new(Some(raw.len()), 1.0, 0.0);
             let mut got = None;
             d.feed(&b, |e| if let DecodeEvent::Frame(f) = e { got = Some(f) });
-            prop_assert_eq!(got, Some(Frame { seq, timestamp_us: ts, samples: raw }));
+            prop_assert_eq!(got, Some(Frame { seq, timestamp_us: ts, format: SampleFormat::F32, samples: raw }));
         }
     }
 }

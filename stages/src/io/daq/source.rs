@@ -38,7 +38,10 @@
 //! Time is the frame count over `sample_rate_hz`. A sequence gap of lost
 //! frames (CRC errors included) is filled by holding the previous frame, up
 //! to `max_gap_ms`; a longer gap ends the run with an error. A frame with a
-//! non-finite sample is an error naming it. Anomalies (CRC errors, gaps,
+//! non-finite sample is an error naming it, and so is a frame whose sample
+//! format differs from the stream's or whose timestamp lies off the uniform
+//! grid of the frames before it ([`FrameCheck`](super::FrameCheck), checked
+//! as the frames arrive, in constant memory). Anomalies (CRC errors, gaps,
 //! out-of-order frames, stalls) are reported on stderr as they happen.
 //!
 //! Offline (`palpate run`), the stream is acquired to its end (a recording's
@@ -661,6 +664,7 @@ impl DaqSource {
         let mut last: Option<Vec<f64>> = None;
         let mut fail: Option<RunError> = None;
         let mut frames = 0u64;
+        let mut check = super::protocol::FrameCheck::default();
         let stage = self.stage_id.clone();
         // `None`: a tick (see `SourceEvent::Tick`); one closure holds `on`.
         let mut on_event = |ev: Option<SegEvent<'_>>| -> Result<(), RunError> {
@@ -690,6 +694,7 @@ impl DaqSource {
                             frames, f.seq, f.samples[ch]
                         )));
                     }
+                    check.push(f).map_err(|m| self.error(m))?;
                     frames += 1;
                     seg.push(&f.samples, &mut |e| on_event(Some(e)))?;
                     // A frame outside a trial streams nothing: a tick, so
@@ -890,7 +895,8 @@ impl DaqSource {
         let (stage, seed, c) = (self.stage_id.clone(), self.seed, self.c.clone());
         std::thread::spawn(move || {
             let mut out = ChanWriter(tx);
-            let mut first_seq = 0u32;
+            // Frames played so far: the next trial's sequence and time go on from them.
+            let mut played = 0u64;
             for meta in &metas {
                 let ctx = TrialContext {
                     stage_id: &stage,
@@ -921,11 +927,12 @@ impl DaqSource {
                     speed: if c.speed > 0.0 { c.speed } else { f64::INFINITY },
                     scale: c.scale,
                     offset: c.offset,
-                    first_seq,
+                    first_seq: played as u32,
+                    first_time_index: played,
                     ..EmulateOptions::default()
                 };
                 let r = super::emulate(&s, &mut out, &opts)?;
-                first_seq = first_seq.wrapping_add(r.frames as u32);
+                played += r.frames;
             }
             Ok(())
         })
@@ -1224,6 +1231,73 @@ mod tests {
     fn fixed_windows_cut_every_w_frames() {
         let got = cut(SegmentPlan::Fixed(2), &[1.0, 2.0, 3.0, 4.0, 5.0]);
         assert_eq!(got, ["S", "1", "2", "E", "S", "3", "4", "E", "S", "5", "E"]);
+    }
+
+    /// The live path checks frames as they arrive: a recording whose rate
+    /// changes, or whose frames change sample format, ends the stream with
+    /// an error naming the frame; the well-formed one streams its trials.
+    #[test]
+    fn a_stream_off_its_grid_or_of_mixed_formats_is_refused_as_it_arrives() {
+        use super::super::{encode_frame, SampleFormat};
+        let d = tempfile::tempdir().unwrap();
+        let ctx = BuildContext {
+            stage_id: "daq".into(),
+            seed: 0,
+            out_dir: d.path().to_path_buf(),
+            base_dir: d.path().to_path_buf(),
+        };
+        let trials = |name: &str, ts: &dyn Fn(u64) -> u64, format: &dyn Fn(u64) -> SampleFormat| {
+            let mut b = Vec::new();
+            for k in 0..1400u64 {
+                encode_frame(&mut b, format(k), k as u32, ts(k), &[1.0]);
+            }
+            std::fs::write(d.path().join(name), b).unwrap();
+            let cfg = DaqConfig {
+                recording: Some(name.into()),
+                layout: Some(LayoutConfig::Positions {
+                    positions_mm: vec![[0.0, 0.0]],
+                    taxel_mm: 2.0,
+                }),
+                sample_rate_hz: Some(100.0),
+                segment: SegmentMode::Fixed,
+                window_ms: Some(1000.0),
+                ..DaqConfig::default()
+            };
+            DaqSource::new(&cfg, &ctx)
+                .unwrap()
+                .trials()
+                .map_err(|e| e.message)
+        };
+        let f32s = |_| SampleFormat::F32;
+        assert_eq!(trials("ok.daq", &|k| k * 10_000, &f32s).unwrap().len(), 14);
+        // 100 Hz for 700 frames, then 200 Hz.
+        let e = trials(
+            "rate.daq",
+            &|k| {
+                if k < 700 {
+                    k * 10_000
+                } else {
+                    6_990_000 + (k - 699) * 5_000
+                }
+            },
+            &f32s,
+        )
+        .unwrap_err();
+        assert!(
+            e.contains("daq `daq`")
+                && e.contains("frame 700 (sequence 700)")
+                && e.contains("off the uniform grid"),
+            "{e}"
+        );
+        let e = trials("mixed.daq", &|k| k * 10_000, &|k| {
+            if k % 2 == 0 {
+                SampleFormat::U16
+            } else {
+                SampleFormat::F32
+            }
+        })
+        .unwrap_err();
+        assert!(e.contains("frame 1 (sequence 1)") && e.contains("u16"), "{e}");
     }
 
     #[test]
