@@ -39,7 +39,10 @@
 //! prints one line per job with its wall time (taken while other jobs run
 //! beside it) and, with `--times FILE`, writes them as JSON
 //! (`{"name": seconds, ...}`). Every graph is loaded and checked before
-//! any runs: an error names the jobs file, the job and the key. If a job
+//! any runs: an error names the jobs file, the job and the key. Each job's
+//! output directory must be a directory or creatable (it is created then),
+//! and no two jobs may share an output directory or a log (they would
+//! overwrite each other's reports): the error names both jobs. If a job
 //! fails, no further job starts; the jobs running finish, and the batch
 //! exits with failure after naming each failed job and its log.
 
@@ -126,9 +129,13 @@ fn load_jobs(path: &Path, fresh: bool) -> Result<Vec<Job>, String> {
         ));
     }
     let mut jobs = Vec::with_capacity(spec.job.len());
+    // Each earlier job's label, output directory and log ([`resolved`]),
+    // to refuse a second job writing to the same place.
+    let mut places: Vec<(String, PathBuf, PathBuf)> = Vec::with_capacity(spec.job.len());
     for (i, j) in spec.job.into_iter().enumerate() {
         let name = j.name.unwrap_or_else(|| j.graph.display().to_string());
-        let at = format!("{}: job {} ({name})", path.display(), i + 1);
+        let label = format!("job {} ({name})", i + 1);
+        let at = format!("{}: {label}", path.display());
         let set = j
             .set
             .iter()
@@ -149,6 +156,24 @@ fn load_jobs(path: &Path, fresh: bool) -> Result<Vec<Job>, String> {
             s.push(".log");
             PathBuf::from(s)
         });
+        crate::cli::prepare_out_dir(&graph.out_dir).map_err(|e| format!("{at}: {e}"))?;
+        let (out_at, log_at) = (resolved(&graph.out_dir), resolved(&log));
+        for (other, out, other_log) in &places {
+            let both = format!("{}: {other} and {label} both write", path.display());
+            if *out == out_at {
+                return Err(format!(
+                    "{both} to the output directory {}: each job needs its own `out`",
+                    graph.out_dir.display()
+                ));
+            }
+            if *other_log == log_at {
+                return Err(format!(
+                    "{both} the log {}: each job needs its own `log`",
+                    log.display()
+                ));
+            }
+        }
+        places.push((label, out_at, log_at));
         let sweep = if graph.sweep.is_some() {
             let job = SweepJob {
                 path: &j.graph,
@@ -170,6 +195,20 @@ fn load_jobs(path: &Path, fresh: bool) -> Result<Vec<Job>, String> {
         });
     }
     Ok(jobs)
+}
+
+/// `p` made comparable with other jobs' paths: through its symbolic links
+/// when it exists (an output directory does by then), else absolute, with
+/// its parent resolved when that exists (a log not yet written).
+fn resolved(p: &Path) -> PathBuf {
+    if let Ok(c) = std::fs::canonicalize(p) {
+        return c;
+    }
+    let abs = std::path::absolute(p).unwrap_or_else(|_| p.to_path_buf());
+    match (abs.parent(), abs.file_name()) {
+        (Some(dir), Some(name)) => std::fs::canonicalize(dir).map_or(abs.clone(), |d| d.join(name)),
+        _ => abs,
+    }
 }
 
 /// Runs one job: its text (what `palpate run` prints) or an error message.

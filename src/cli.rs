@@ -35,7 +35,8 @@ enum Command {
         /// replaces). `sweep.repeats=5` runs a graph without a sweep at 5 seeds.
         #[arg(long = "set", value_name = "PATH=VALUE", value_parser = LoadOptions::parse_set)]
         set: Vec<(String, toml::Value)>,
-        /// Output directory (default: `[run] out`, else out/<graph name>).
+        /// Output directory (default: `[run] out`, else out/<graph name>); created
+        /// if missing, and refused before anything runs if it is a file.
         #[arg(long)]
         out: Option<PathBuf>,
         /// Worker threads (default: all cores; at most 4096). Results do not depend on it.
@@ -63,8 +64,8 @@ enum Command {
         /// block and each stage's share (also in live_timing.md / .csv).
         #[arg(long)]
         live: bool,
-        /// With --live: samples per block (1 = frame by frame).
-        #[arg(long, default_value_t = 1, requires = "live")]
+        /// With --live: samples per block, at least 1 (1 = frame by frame).
+        #[arg(long, default_value_t = 1, requires = "live", value_parser = parse_block)]
         block: usize,
     },
     /// Run several graphs (a jobs file) in one process, a few at a time,
@@ -73,7 +74,7 @@ enum Command {
     /// go to its log; see `palpate::batch` for the jobs file.
     Batch {
         /// The jobs file: `[[job]]` tables with `graph` and optional `out`,
-        /// `set`, `name`, `log`.
+        /// `set`, `name`, `log` (no two jobs may share an `out` or a `log`).
         jobs: PathBuf,
         /// Jobs at a time (default: the core count).
         #[arg(long = "jobs", value_name = "N", default_value_t = 0)]
@@ -281,6 +282,32 @@ fn parse_seconds(s: &str) -> Result<f64, String> {
         ));
     }
     Ok(v)
+}
+
+/// Parses `--block`: a whole number of samples, at least 1 (a block of no
+/// samples delivers nothing; it used to be taken silently as 1).
+fn parse_block(s: &str) -> Result<usize, String> {
+    match s.trim().parse::<usize>() {
+        Ok(0) => Err("a block holds at least 1 sample (1 = frame by frame)".into()),
+        Ok(n) => Ok(n),
+        Err(_) => Err(format!("`{s}` is not a whole number of samples")),
+    }
+}
+
+/// Checks, before anything is computed, that a run's output directory can
+/// take its reports: an existing directory, or one it creates now. Why
+/// first: the sinks write last, so a file in the way (`--out` naming a
+/// file, or `/dev/null`) failed only after every stage had run.
+pub(crate) fn prepare_out_dir(dir: &std::path::Path) -> Result<(), String> {
+    match std::fs::metadata(dir) {
+        Ok(m) if m.is_dir() => Ok(()),
+        Ok(_) => Err(format!(
+            "output directory {}: exists and is not a directory; give --out (or `[run] out`) a folder",
+            dir.display()
+        )),
+        Err(_) => std::fs::create_dir_all(dir)
+            .map_err(|e| format!("output directory {}: cannot create it: {e}", dir.display())),
+    }
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -587,6 +614,10 @@ fn cmd_run(
     let Some(graph) = load(&path, set.clone(), out) else {
         return ExitCode::FAILURE;
     };
+    if let Err(e) = prepare_out_dir(&graph.out_dir) {
+        eprintln!("{}: {e}", graph.file);
+        return ExitCode::FAILURE;
+    }
     let pool = match palpate_core::thread_pool(threads.unwrap_or(0), "--threads") {
         Ok(p) => p,
         Err(e) => {
@@ -708,6 +739,10 @@ fn run_live_graph(graph: &Graph, block: usize) -> ExitCode {
             return ExitCode::FAILURE;
         }
     };
+    if let Err(e) = prepare_out_dir(&graph.out_dir) {
+        eprintln!("{}: {e}", graph.file);
+        return ExitCode::FAILURE;
+    }
     // Ctrl-C ends the session after the block under way (or, with nothing
     // in contact, the frame or wait under way), with the reports of the
     // trials finished (a board streams until stopped); a second one quits

@@ -370,18 +370,44 @@ pub fn list(path: &Path, graph: &Graph) -> ExitCode {
         return ExitCode::FAILURE;
     };
     let points = sweep.points();
+    // The seeds the runs use: refused, as the run refuses them, if a
+    // point's repeats would pass u64::MAX (they used to print clamped).
+    for p in &points {
+        if let Some(seed) = core::sweep::point_seed(p, graph.run.seed) {
+            if core::sweep::repeat_seeds(seed, sweep.repeats).is_none() {
+                eprintln!(
+                    "{}: point {}: {}",
+                    path.display(),
+                    point_label(p),
+                    core::sweep::seed_overflow_message(seed, sweep.repeats)
+                );
+                return ExitCode::FAILURE;
+            }
+        }
+    }
+    // One range when every point starts at the same seed (a sweep of
+    // `repeats` alone is one point over `run.seed`, the graph's own).
+    let starts: Vec<Option<u64>> = points
+        .iter()
+        .map(|p| core::sweep::point_seed(p, graph.run.seed))
+        .collect();
+    let last = sweep.repeats.saturating_sub(1);
+    let seeds = match starts.first() {
+        Some(&Some(first)) if starts.iter().all(|&s| s == Some(first)) => {
+            match core::sweep::repeat_seeds(first, sweep.repeats) {
+                Some(r) => format!("seeds {}..={}", r.start(), r.end()),
+                None => format!("seeds {first} + 0..={last}"),
+            }
+        }
+        _ => format!("seeds: each point's run.seed + 0..={last}"),
+    };
     println!(
-        "{}: {} point{} x {} repeat{} (seeds {}..={}), output {}",
+        "{}: {} point{} x {} repeat{} ({seeds}), output {}",
         path.display(),
         points.len(),
         if points.len() == 1 { "" } else { "s" },
         sweep.repeats,
         if sweep.repeats == 1 { "" } else { "s" },
-        graph.run.seed,
-        graph
-            .run
-            .seed
-            .saturating_add(sweep.repeats.saturating_sub(1) as u64),
         graph.out_dir.display()
     );
     println!("{:>5}  {:<28}  keys", "point", "label");

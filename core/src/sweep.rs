@@ -16,8 +16,9 @@
 //!   multiply the run time, and each setting's effect is read against the base.
 //!
 //! Repeat `r` of a point uses `[run] seed = seed + r` (and reports into
-//! `.../r<r>/`). Every point is loaded (and so checked) before any runs; an
-//! error names the point's series (or key) and value. All points share one
+//! `.../r<r>/`); a point whose last repeat's seed would pass `u64::MAX` is
+//! an error naming `run.seed` and `sweep.repeats` (it wrapped to 0, 1, ...).
+//! Every point is loaded (and so checked) before any runs; an error names the point's series (or key) and value. All points share one
 //! [`Cache`]: a stage whose type, settings, seed, protocol and inputs did not change is not
 //! run again, so sweeping a downstream key (a WSS weighting, a jitter width, a
 //! grid step) does not re-simulate, re-encode or retrain; the cache keeps each
@@ -111,6 +112,36 @@ pub fn point_label(point: &SweepPoint) -> String {
     }
 }
 
+/// The seeds of a point's `repeats` repeats from `seed`: `seed..=seed +
+/// repeats - 1`; `None` when the last one overflows u64.
+pub fn repeat_seeds(seed: u64, repeats: usize) -> Option<std::ops::RangeInclusive<u64>> {
+    let last = seed.checked_add(u64::try_from(repeats.saturating_sub(1)).ok()?)?;
+    Some(seed..=last)
+}
+
+/// The error of a seed range that overflows u64 (see [`repeat_seeds`]).
+pub fn seed_overflow_message(seed: u64, repeats: usize) -> String {
+    let extra = repeats.saturating_sub(1) as u64;
+    format!(
+        "`run.seed` = {seed} with `sweep.repeats` = {repeats} needs seeds {seed} to {seed} + {extra}, \
+         past the largest seed {}; lower `run.seed` to at most {} or `sweep.repeats`",
+        u64::MAX,
+        u64::MAX.saturating_sub(extra)
+    )
+}
+
+/// The seed a point's repeats start from: the swept value when the point
+/// is over `run.seed` (`None` when that value is no seed: loading the point
+/// then names it), else `base_seed`.
+pub fn point_seed(point: &SweepPoint, base_seed: u64) -> Option<u64> {
+    match (point.key.as_str(), &point.value) {
+        ("run.seed", toml::Value::Integer(v)) => u64::try_from(*v).ok(),
+        ("run.seed", toml::Value::String(v)) => crate::graph::seed_from_digits(v),
+        ("run.seed", _) => None,
+        _ => Some(base_seed),
+    }
+}
+
 /// Loads every (point, repeat) graph of a sweep, gathering every error. Point
 /// indices are into [`SweepSettings::points`].
 pub fn load_points(
@@ -126,32 +157,48 @@ pub fn load_points(
     for (p, point) in sweep.points().iter().enumerate() {
         let lbl = point_label(point);
         let value = &point.value;
+        let at = match &point.series {
+            Some(name) => format!("in sweep series `{name}`, with {} = {value}", point.key),
+            None => format!("with sweep value {} = {value}", point.key),
+        };
+        // Repeat r shifts the seed by r; when the point is over the seed itself,
+        // the swept value is the base (else the repeat's override would hide it).
+        // A swept seed that is no seed (negative, not digits) is left as
+        // written: loading the point then names it.
+        let seed = point_seed(point, base.run.seed);
+        if let Some(seed) = seed.filter(|&s| repeat_seeds(s, sweep.repeats).is_none()) {
+            let message = seed_overflow_message(seed, sweep.repeats);
+            let d = Diagnostic {
+                severity: Severity::Error,
+                file: file.to_string(),
+                line: None,
+                stage: None,
+                key: Some("run.seed".into()),
+                // The swept value is only news when the point is over the seed.
+                message: if point.key == "run.seed" {
+                    format!("{at}: {message}")
+                } else {
+                    format!("in [sweep]: {message}")
+                },
+            };
+            if !errors.contains(&d) {
+                errors.push(d);
+            }
+            continue;
+        }
         for r in 0..sweep.repeats {
             let mut o = opts.clone();
             o.overrides.extend(point.set.iter().cloned());
             o.overrides.push((point.key.clone(), value.clone()));
-            // Repeat r shifts the seed by r; when the point is over the seed itself,
-            // the swept value is the base (else the repeat's override would hide it).
-            // A swept seed that is no seed (negative, not digits) is left as
-            // written: loading the point then names it.
-            let seed = match (point.key.as_str(), value) {
-                ("run.seed", toml::Value::Integer(v)) => u64::try_from(*v).ok(),
-                ("run.seed", toml::Value::String(v)) => crate::graph::seed_from_digits(v),
-                ("run.seed", _) => None,
-                _ => Some(base.run.seed),
-            };
             if let Some(seed) = seed {
-                let v = crate::graph::seed_value(seed.wrapping_add(r as u64));
+                // Cannot overflow: checked above for the last repeat.
+                let v = crate::graph::seed_value(seed.saturating_add(r as u64));
                 o.overrides.push(("run.seed".into(), v));
             }
             o.out = Some(point_dir(&base.out_dir, &lbl, (sweep.repeats > 1).then_some(r)));
             match load_str(text, file, stem, &o) {
                 Ok(g) => graphs.push((p, r, g)),
                 Err(e) => {
-                    let at = match &point.series {
-                        Some(name) => format!("in sweep series `{name}`, with {} = {value}", point.key),
-                        None => format!("with sweep value {} = {value}", point.key),
-                    };
                     for mut d in e.0.into_iter().filter(|d| d.severity == Severity::Error) {
                         d.message = format!("{at}: {}", d.message);
                         if !errors.contains(&d) {

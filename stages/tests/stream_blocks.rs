@@ -444,6 +444,24 @@ fn hostile_blocks_are_errors_not_panics() {
     )
     .unwrap_err();
     assert!(e.message.contains("cutoff_hz"), "{e}");
+    // A cutoff too small a share of the rate for f64 (10 Hz at 1e50 Hz)
+    // is refused as in batch, not streamed as NaN.
+    let lp = LowpassConfig {
+        order: 2,
+        cutoff_hz: 10.0,
+        mode: FilterMode::Causal,
+    };
+    let settings = serde_json::to_value(&lp as &dyn StageConfig).unwrap();
+    let Ok(StreamForm::Streams(f)) = stream::form("lowpass", &settings, &ctx()) else {
+        panic!("causal lowpass streams")
+    };
+    let mut fast = signals(vec![vec![0.0, 1.0, 0.5, 0.2]]);
+    fast.sample_rate_hz = 1e50;
+    let e = stream::run_blocks(f.as_ref(), &signal_blocks(&fast, 2), &tctx).unwrap_err();
+    assert!(
+        e.message.contains("cutoff_hz") && e.message.contains("resample"),
+        "{e}"
+    );
 }
 
 /// The live chain's images, then a saved ANN (spatiotemporal) and a saved

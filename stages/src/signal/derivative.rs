@@ -9,10 +9,14 @@
 //!   first sample. First-order accurate; lags half a sample.
 //!
 //! A trial with a single sample has derivative 0.
+//!
+//! A slope larger than f64 holds (a change between samples times `fs`
+//! above ~1.8e308: an absurd sample rate, or values near `f64::MAX`) is an
+//! error naming the stage, taxel and sample, never an infinity passed on.
 
-use super::check_signals;
+use super::{check_signals, first_non_finite};
 use palpate_core::{
-    register_stage, BuildContext, ConfigError, InputSpec, Item, Map, Payload, PayloadKind, Stage,
+    fmt_num, register_stage, BuildContext, ConfigError, InputSpec, Item, Map, Payload, PayloadKind, Stage,
     StageConfig, StageError, TrialContext,
 };
 use schemars::JsonSchema;
@@ -85,13 +89,28 @@ impl Map for Derivative {
     fn process(&self, inputs: &[&Item], _ctx: &TrialContext<'_>) -> Result<Payload, StageError> {
         let s = inputs[0].payload.signals()?;
         check_signals("derivative", s)?;
-        let data = s
-            .data
-            .iter()
-            .map(|xs| differentiate(xs, s.sample_rate_hz, self.scheme))
-            .collect();
+        let fs = s.sample_rate_hz;
+        let mut data = Vec::with_capacity(s.data.len());
+        for (taxel, xs) in s.data.iter().enumerate() {
+            let d = differentiate(xs, fs, self.scheme);
+            // Finite inputs give a non-finite slope only by overflow.
+            if let Some(i) = first_non_finite(&d) {
+                return Err(overflow_error("derivative", taxel, i, fs));
+            }
+            data.push(d);
+        }
         Ok(s.with_data(format!("{}/s", s.unit), data).into())
     }
+}
+
+/// The error of a slope that overflows f64 at `taxel`, sample `i`, for
+/// stage `what` at sample rate `fs`.
+pub fn overflow_error(what: &str, taxel: usize, i: usize, fs: f64) -> StageError {
+    StageError::new(format!(
+        "{what}: taxel {taxel}, sample {i}: dV/dt is larger than f64 holds (the change between \
+         samples times the sample rate, {} Hz); check the input's sample rate and values",
+        fmt_num(fs)
+    ))
 }
 
 #[cfg(test)]
@@ -110,6 +129,40 @@ mod tests {
         }
         assert_eq!(differentiate(&xs, fs, DiffScheme::Backward)[0], 0.0);
         assert_eq!(differentiate(&[5.0], fs, DiffScheme::Central), vec![0.0]);
+    }
+
+    /// At an absurd sample rate the slope overflows: the stage names
+    /// itself, the taxel and the sample instead of passing an infinity on.
+    #[test]
+    fn an_overflowing_slope_is_a_named_error() {
+        let meta = palpate_core::TrialMeta::default();
+        let ctx = TrialContext {
+            stage_id: "d",
+            meta: &meta,
+            seed: 0,
+        };
+        let mut s = crate::signal::testdata::ramps(1000.0, 0.01, 0.01, 0.0, 0.05);
+        let run = |s: &palpate_core::Signals, scheme| {
+            let item = Item {
+                meta: std::sync::Arc::new(meta.clone()),
+                payload: s.clone().into(),
+            };
+            Derivative { scheme }.process(&[&item], &ctx)
+        };
+        // A glitch of 5 in taxel 2: a change of 5 in one or two samples.
+        s.data[2][20] = 5.0;
+        for (scheme, at) in [(DiffScheme::Central, 19), (DiffScheme::Backward, 20)] {
+            s.sample_rate_hz = 1e300;
+            let ok = run(&s, scheme).unwrap();
+            assert!(ok.signals().unwrap().data.iter().flatten().all(|v| v.is_finite()));
+            s.sample_rate_hz = f64::MAX;
+            let e = run(&s, scheme).err().unwrap().message;
+            assert!(
+                e.starts_with(&format!("derivative: taxel 2, sample {at}:"))
+                    && e.contains("1.7976931348623157e308 Hz"),
+                "{e}"
+            );
+        }
     }
 
     #[test]

@@ -18,7 +18,10 @@
 //!. With the median, fewer than half the taxels cannot move `P`;
 //! an outlier taxel gets a current above the target (the encoder clamps
 //! absurd currents) while the others keep theirs. A trial whose drive is 0
-//! everywhere (nothing changes) gives `I = 0`, never NaN.
+//! everywhere (nothing changes) gives `I = 0`, never NaN. A slope or current
+//! larger than f64 holds (an absurd sample rate or gain, values near
+//! `f64::MAX`) is clamped to `f64::MAX`, and is 0 under a zero gain (also
+//! the per-trial gain when the peak itself overflowed), never NaN.
 //!
 //! Default, when neither key is set: `target_peak_current = 20`. Why: on the
 //! ideal edge crossing (a taxel's normalized signal ramps 1 -> 0 over 1 s at
@@ -297,13 +300,17 @@ fn slope_and_peak(xs: &[f64], fs: f64) -> (Vec<f64>, f64) {
     (d, p)
 }
 
-/// `v · g`, guarded: 0 times anything finite is 0, but the product of finite
-/// values may still overflow for an absurd fixed gain.
+/// `v · g`, guarded: the product of finite values may overflow for an
+/// absurd fixed gain (clamped to `±f64::MAX`), and a slope that overflowed
+/// (`v = inf`: a change times an absurd sample rate) times a zero gain is 0,
+/// not NaN (whose sign bit made it `-f64::MAX`).
 #[inline(always)]
-fn scaled(v: f64, g: f64) -> f64 {
+pub(crate) fn scaled(v: f64, g: f64) -> f64 {
     let x = v * g;
     if x.is_finite() {
         x
+    } else if x.is_nan() {
+        0.0
     } else {
         f64::MAX.copysign(x)
     }
@@ -495,6 +502,33 @@ mod tests {
             let two = d.currents(&s.data, s.sample_rate_hz);
             let bits = |v: &[Vec<f64>]| v.iter().flatten().map(|x| x.to_bits()).collect::<Vec<_>>();
             proptest::prop_assert_eq!(bits(&one), bits(&two));
+        }
+    }
+
+    /// At an absurd sample rate a slope overflows f64: the current is
+    /// clamped (a positive gain) or 0 (a zero gain, or a per-trial gain
+    /// whose peak overflowed), never NaN or negative.
+    #[test]
+    fn overflowing_slopes_give_finite_non_negative_currents() {
+        let mut s = ramps(f64::MAX, 0.0, 0.0, 0.0, 0.0);
+        s.data = vec![vec![0.0, 2.0, 0.0, 0.0, 1e-300, 0.0]; 16];
+        for gain in [
+            Gain::Fixed(0.0),
+            Gain::Fixed(30.0),
+            Gain::TargetPeak(20.0, PeakOf::Max),
+            Gain::TargetPeak(20.0, PeakOf::MedianTaxel),
+        ] {
+            let i = drive(DriveKind::FaI, gain).checked_currents(&s).unwrap();
+            assert!(
+                i.iter().flatten().all(|v| v.is_finite() && *v >= 0.0),
+                "{gain:?}: {:?}",
+                i[0]
+            );
+            // Where the slope is 1e-300 x MAX / 2 (finite) a fixed gain scales it.
+            if let Gain::Fixed(g) = gain {
+                assert_eq!(i[0][3], scaled(1e-300 * (0.5 * f64::MAX), g), "{gain:?}");
+                assert_eq!(i[0][0], if g > 0.0 { f64::MAX } else { 0.0 });
+            }
         }
     }
 

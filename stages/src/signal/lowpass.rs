@@ -48,11 +48,24 @@
 //!   in the steady state of the first sample (as if the signal had been at that
 //!   value before the recording began).
 //!
-//! `cutoff_hz` must lie below the Nyquist frequency `fs/2`. When the source
-//! states its sample rate in its config (a scene's `motion.sample_rate_hz`, a
-//! file source's `sample_rate_hz`), `palpate check` refuses a cutoff at or
-//! above it; otherwise the rate is known only from the data, and the run
-//! stops with the same error naming the key.
+//! `cutoff_hz` must lie below the Nyquist frequency `fs/2`, and the
+//! normalised cutoff `fc/fs` must be at least [`MIN_CUTOFF_RATIO`] = 1e-7.
+//! Why the lower bound: a section's DC gain is `Σb / (1 + a1 + a2)` with
+//! `1 + a1 + a2 = 4K²/a0`, a difference of coefficients near -2 and 1, so
+//! rounding each coefficient to f64 (~1e-16) moves the section's gain,
+//! cutoff and damping by ~`1e-16 / 4K²` (`K ≈ π fc/fs`). Measured on the
+//! rounded coefficients with exact arithmetic, the worst over orders 1 to
+//! 16 and both modes: 8e-6 at `fc/fs = 1e-6`, 8e-4 at 1e-7, 9% at 1e-8,
+//! and from ~3e-9 down some section's pole rounds onto or outside the unit
+//! circle (the output drifts without bound; at `fs` ≈ 1e50 Hz for a 10 Hz
+//! cutoff every pole rounds to `z = 1` and the filter outputs NaN). Below
+//! 1e-7 the stage refuses, naming `cutoff_hz`; it refuses any design whose
+//! coefficients are not finite too.
+//!
+//! When the source states its sample rate in its config (a scene's
+//! `motion.sample_rate_hz`, a file source's `sample_rate_hz`), `palpate
+//! check` refuses a cutoff outside these bounds; otherwise the rate is known
+//! only from the data, and the run stops with the same error naming the key.
 
 use super::{check_shape, check_signals, non_finite_error};
 use palpate_core::{
@@ -82,7 +95,9 @@ pub enum FilterMode {
 pub struct LowpassConfig {
     /// Filter order (poles per pass), 1 to 16. Default 2.
     pub order: usize,
-    /// -3 dB cutoff frequency, Hz; must be below half the sample rate. Default 20.
+    /// -3 dB cutoff frequency, Hz; must be below half the sample rate and at
+    /// least 1e-7 of it (below, f64 cannot hold the design: see the module
+    /// docs). Default 20.
     pub cutoff_hz: f64,
     /// `zero_phase` (forward-backward, offline) or `causal` (live). Default `zero_phase`.
     pub mode: FilterMode,
@@ -118,21 +133,14 @@ impl StageConfig for LowpassConfig {
         })))
     }
     /// A cutoff at or above the Nyquist frequency of a sample rate known
-    /// before the run (a scene's) is an error here, at check time.
+    /// before the run (a scene's), or below [`MIN_CUTOFF_RATIO`] of it, is an
+    /// error here, at check time.
     fn inspect(&self, _ctx: &BuildContext, inputs: &[OutputFacts]) -> Inspection {
         let facts = OutputFacts::agreed(inputs);
         let mut errors = Vec::new();
         if let Some(fs) = facts.sample_rate_hz {
-            if self.cutoff_hz >= fs / 2.0 {
-                errors.push(ConfigError::key(
-                    "cutoff_hz",
-                    format!(
-                        "{} Hz must lie below the Nyquist frequency {} Hz (half the input's sample rate, {} Hz)",
-                        fmt_num(self.cutoff_hz),
-                        fmt_num(fs / 2.0),
-                        fmt_num(fs)
-                    ),
-                ));
+            if let Some(problem) = cutoff_problem(self.cutoff_hz, fs) {
+                errors.push(ConfigError::key("cutoff_hz", problem));
             }
         }
         Inspection {
@@ -143,6 +151,43 @@ impl StageConfig for LowpassConfig {
     }
 }
 register_stage!("lowpass", LowpassConfig);
+
+/// Smallest normalised cutoff `cutoff_hz / fs` the stage designs (see the
+/// module docs: below it, rounding the coefficients to f64 moves the gain and
+/// cutoff by more than 0.1%, and from ~3e-9 the filter is unstable).
+pub const MIN_CUTOFF_RATIO: f64 = 1e-7;
+
+/// Why `cutoff_hz` cannot be designed at sample rate `fs` (positive, finite),
+/// as the rest of a sentence after the key; `None` when it can, and for a
+/// cutoff that is not a positive number (the build's own check names it).
+pub fn cutoff_problem(cutoff_hz: f64, fs: f64) -> Option<String> {
+    if !(cutoff_hz > 0.0 && cutoff_hz.is_finite()) {
+        return None;
+    }
+    if cutoff_hz >= fs / 2.0 {
+        return Some(format!(
+            "{} Hz must lie below the Nyquist frequency {} Hz (half the input's sample rate, {} Hz)",
+            fmt_num(cutoff_hz),
+            fmt_num(fs / 2.0),
+            fmt_num(fs)
+        ));
+    }
+    // Written as a product so that a ratio that underflows (1e-300 Hz at
+    // 1e300 Hz) is still refused.
+    if cutoff_hz < MIN_CUTOFF_RATIO * fs {
+        return Some(format!(
+            "{} Hz is {} of the input's sample rate ({} Hz), below the {} a Butterworth design in f64 \
+             can hold (its coefficients round to a wrong or unstable filter); raise `cutoff_hz` to at \
+             least {} Hz or resample the signals to a lower rate",
+            fmt_num(cutoff_hz),
+            fmt_num(cutoff_hz / fs),
+            fmt_num(fs),
+            fmt_num(MIN_CUTOFF_RATIO),
+            fmt_num(MIN_CUTOFF_RATIO * fs)
+        ));
+    }
+    None
+}
 
 /// One second-order section `b0 + b1 z⁻¹ + b2 z⁻²` over `1 + a1 z⁻¹ + a2 z⁻²`.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -251,14 +296,26 @@ impl Lowpass {
         }
     }
 
-    /// The sections of one pass for sample rate `fs`.
+    /// The sections of one pass for sample rate `fs`; an error naming the
+    /// stage and `cutoff_hz` when `fs` cannot hold the design (see
+    /// [`cutoff_problem`]) or its coefficients are not finite.
     pub fn design(&self, fs: f64) -> Result<Vec<Biquad>, StageError> {
+        if !(self.cutoff_hz > 0.0 && self.cutoff_hz.is_finite()) {
+            return Err(StageError::new(format!(
+                "lowpass: key `cutoff_hz` = {} must be a positive number of Hz",
+                fmt_num(self.cutoff_hz)
+            )));
+        }
+        // The run-time wording of the Nyquist error (the user guide quotes it).
         if self.cutoff_hz >= fs / 2.0 {
             return Err(StageError::new(format!(
                 "lowpass: key `cutoff_hz` = {} Hz must lie below the Nyquist frequency {} Hz of these signals",
-                self.cutoff_hz,
-                fs / 2.0
+                fmt_num(self.cutoff_hz),
+                fmt_num(fs / 2.0)
             )));
+        }
+        if let Some(problem) = cutoff_problem(self.cutoff_hz, fs) {
+            return Err(StageError::new(format!("lowpass: key `cutoff_hz` = {problem}")));
         }
         let k = (PI * self.cutoff_hz / fs).tan();
         let k = match self.mode {
@@ -266,7 +323,17 @@ impl Lowpass {
             // Each of the two passes at -1.5 dB so the product is -3 dB at fc.
             FilterMode::ZeroPhase => k / (2f64.sqrt() - 1.0).powf(1.0 / (2.0 * self.order as f64)),
         };
-        Ok(butterworth_sos(self.order, k))
+        let sos = butterworth_sos(self.order, k);
+        // The bounds above keep every coefficient finite; this keeps a NaN
+        // from reaching the next stage if they ever do not.
+        if sos.iter().any(|q| !q.b.iter().chain(&q.a).all(|c| c.is_finite())) {
+            return Err(StageError::new(format!(
+                "lowpass: key `cutoff_hz` = {} Hz at a sample rate of {} Hz gives non-finite filter coefficients",
+                fmt_num(self.cutoff_hz),
+                fmt_num(fs)
+            )));
+        }
+        Ok(sos)
     }
 
     /// Filters one taxel.
@@ -902,6 +969,98 @@ mod tests {
                 proptest::prop_assert!(want.iter().zip(&got[t]).all(|(a, b)| a.to_bits() == b.to_bits()));
             }
         }
+    }
+
+    /// The bound of the module docs: at `fc/fs` = [`MIN_CUTOFF_RATIO`] every
+    /// section of every order and mode keeps its DC gain within 1e-3 (the
+    /// sum `1 + a1 + a2` is exact in f64 here: Sterbenz), and far enough
+    /// below it some design is unstable (`1 + a1 + a2 <= 0`, a real pole at
+    /// or outside `z = 1`), so a lower bound is needed at all.
+    #[test]
+    fn designs_hold_at_the_bound_and_fail_below_it() {
+        let fs = 1.0;
+        let dc_error = |order, ratio, mode| {
+            let sos = butterworth_sos(order, design_k(order, ratio, mode));
+            sos.iter()
+                .map(|q| (magnitude(&[*q], 0.0, fs) - 1.0).abs())
+                .fold(0.0, f64::max)
+        };
+        let unstable = |order, ratio, mode| {
+            butterworth_sos(order, design_k(order, ratio, mode))
+                .iter()
+                .any(|q| 1.0 + q.a[0] + q.a[1] <= 0.0)
+        };
+        let mut worst = 0.0_f64;
+        let mut any_unstable = false;
+        for order in 1..=16 {
+            for mode in [FilterMode::Causal, FilterMode::ZeroPhase] {
+                worst = worst.max(dc_error(order, MIN_CUTOFF_RATIO, mode));
+                any_unstable |= unstable(order, 1e-10, mode);
+                assert!(!unstable(order, MIN_CUTOFF_RATIO, mode));
+            }
+        }
+        assert!(worst < 1e-3, "DC gain error {worst} at the bound");
+        assert!(
+            any_unstable,
+            "no design unstable at 1e-10: the bound could be lower"
+        );
+    }
+
+    /// The prewarped `K` the stage designs at `fc/fs = ratio`.
+    fn design_k(order: usize, ratio: f64, mode: FilterMode) -> f64 {
+        let k = (PI * ratio).tan();
+        match mode {
+            FilterMode::Causal => k,
+            FilterMode::ZeroPhase => k / (2f64.sqrt() - 1.0).powf(1.0 / (2.0 * order as f64)),
+        }
+    }
+
+    /// Sample rates whose normalised cutoff is below the bound (at 1e50 Hz
+    /// the old design gave NaN) are named errors at run time and at check
+    /// time; the bound itself and above design finite sections.
+    #[test]
+    fn a_cutoff_too_small_for_the_rate_is_a_named_error() {
+        for order in [1, 2, 3, 16] {
+            for mode in [FilterMode::Causal, FilterMode::ZeroPhase] {
+                let f = lp(order, 10.0, mode);
+                for fs in [1.01e8, 1e12, 1e50, 1e300, f64::MAX] {
+                    let e = f.design(fs).unwrap_err().message;
+                    assert!(
+                        e.starts_with("lowpass: key `cutoff_hz` = 10 Hz is ") && e.contains("1e-7"),
+                        "{e}"
+                    );
+                    assert!(e.len() < 400, "{e}");
+                }
+                for fs in [1e8, 1e3, 20.5] {
+                    let sos = f.design(fs).unwrap();
+                    assert!(sos.iter().all(|q| q.b.iter().chain(&q.a).all(|c| c.is_finite())));
+                }
+            }
+        }
+        // A ratio that underflows to 0 is refused too.
+        assert!(cutoff_problem(1e-300, 1e300).is_some());
+        assert!(cutoff_problem(10.0, 1e8).is_none());
+        // At check time, from a rate the source states.
+        let cfg = LowpassConfig::default();
+        let ctx = BuildContext {
+            stage_id: "filter".into(),
+            seed: 0,
+            out_dir: ".".into(),
+            base_dir: ".".into(),
+        };
+        let facts = |fs: f64| OutputFacts {
+            sample_rate_hz: Some(fs),
+        };
+        let i = cfg.inspect(&ctx, &[facts(1e300)]);
+        assert_eq!(i.errors.len(), 1);
+        assert_eq!(i.errors[0].key.as_deref(), Some("cutoff_hz"));
+        assert!(cfg.inspect(&ctx, &[facts(1000.0)]).errors.is_empty());
+        // A tiny rate's Nyquist frequency prints in exponent form.
+        let e = lp(2, 10.0, FilterMode::Causal)
+            .design(1e-297)
+            .unwrap_err()
+            .message;
+        assert!(e.contains("Nyquist frequency 5e-298 Hz"), "{e}");
     }
 
     #[test]

@@ -29,8 +29,8 @@ pub fn check_signals(what: &str, s: &Signals) -> Result<(), StageError> {
     for (taxel, xs) in s.data.iter().enumerate() {
         if let Some(i) = first_non_finite(xs) {
             return Err(StageError::new(format!(
-                "{what}: taxel {taxel}, sample {i} (t = {:.3} ms) is {} (not finite)",
-                i as f64 * 1000.0 / s.sample_rate_hz,
+                "{what}: taxel {taxel}, sample {i} (t = {} ms) is {} (not finite)",
+                fmt_ms(i as f64 * 1000.0 / s.sample_rate_hz),
                 xs[i]
             )));
         }
@@ -49,7 +49,7 @@ pub fn check_shape(what: &str, s: &Signals) -> Result<(), StageError> {
     if !(s.sample_rate_hz.is_finite() && s.sample_rate_hz > 0.0) {
         return Err(StageError::new(format!(
             "{what}: sample rate must be a positive number of Hz, got {}",
-            s.sample_rate_hz
+            palpate_core::fmt_num(s.sample_rate_hz)
         )));
     }
     if s.data.len() != s.layout.len() {
@@ -69,6 +69,17 @@ pub fn check_shape(what: &str, s: &Signals) -> Result<(), StageError> {
         }
     }
     Ok(())
+}
+
+/// A time in ms for a message: three decimals, or in exponent form when
+/// huge (a sample rate of 1e-297 Hz puts sample 1 at 1e300 ms, which `{:.3}`
+/// writes as 301 digits).
+pub fn fmt_ms(t: f64) -> String {
+    if t.abs() < 1e15 {
+        format!("{t:.3}")
+    } else {
+        palpate_core::fmt_num(t)
+    }
 }
 
 /// The error of [`check_signals`] for signals a pass found a non-finite
@@ -154,6 +165,12 @@ mod tests {
             assert_eq!(first_non_finite(&xs), Some(i));
         }
         assert_eq!(first_non_finite(&[f64::MAX, f64::MIN, 0.0, -0.0, 1e-320]), None);
+        // A sample time at an absurdly low rate prints in exponent form.
+        let mut slow = testdata::ramps(1000.0, 0.01, 0.01, 0.0, 0.05);
+        slow.sample_rate_hz = 1e-297;
+        slow.data[0][3] = f64::NAN;
+        let e = check_signals("derivative", &slow).unwrap_err().message;
+        assert!(e.contains("e300 ms") && e.len() < 120, "{e}");
         s.data[5].pop();
         assert!(check_signals("t", &s).unwrap_err().message.contains("taxel 5"));
     }

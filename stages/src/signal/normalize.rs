@@ -34,8 +34,8 @@
 
 use super::{check_shape, check_signals, non_finite_error};
 use palpate_core::{
-    check_positive, check_range, register_stage, BuildContext, ConfigChecks, ConfigError, InputSpec, Item,
-    Map, Payload, PayloadKind, Stage, StageConfig, StageError, TrialContext,
+    check_positive, check_range, fmt_num, register_stage, BuildContext, ConfigChecks, ConfigError, InputSpec,
+    Item, Map, Payload, PayloadKind, Stage, StageConfig, StageError, TrialContext,
 };
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
@@ -333,9 +333,10 @@ impl Map for Normalizer {
                 let nb = (self.baseline_ms * s.sample_rate_hz / 1000.0).round() as usize;
                 if nb >= s.n_samples() && s.n_samples() > 0 {
                     return Err(StageError::new(format!(
-                        "normalize: key `baseline_ms` = {} ms covers the whole trial ({:.1} ms)",
-                        self.baseline_ms,
-                        s.duration_ms()
+                        "normalize: key `baseline_ms` = {} ms covers the whole trial ({} ms at {} Hz)",
+                        fmt_num(self.baseline_ms),
+                        super::fmt_ms(s.duration_ms()),
+                        fmt_num(s.sample_rate_hz)
                     )));
                 }
                 s.data
@@ -430,6 +431,48 @@ mod tests {
         assert_eq!(live_taxels(&r, 0.0, 0.25), vec![true, false, true]);
         let v = normalize_trial_taxels(&[vec![-1e308, 1e308], vec![0.0, 1.0]], 0.0, 0.25);
         assert!(v.iter().flatten().all(|x| (0.0..=1.0).contains(x)));
+    }
+
+    /// Absurd sample rates: the causal baseline covers every sample (a
+    /// named error in short numbers) or a single one (finite output).
+    #[test]
+    fn causal_mode_at_absurd_rates_refuses_or_stays_finite() {
+        let meta = palpate_core::TrialMeta::default();
+        let ctx = TrialContext {
+            stage_id: "n",
+            meta: &meta,
+            seed: 0,
+        };
+        let n = Normalizer {
+            mode: NormalizeMode::Causal,
+            baseline_ms: 500.0,
+            span: 1.0,
+            min_span: 0.0,
+            dead_fraction: 0.0,
+        };
+        let mut s = crate::signal::testdata::ramps(1000.0, 0.01, 0.01, 0.0, 0.05);
+        let run = |s: &palpate_core::Signals| {
+            let item = Item {
+                meta: std::sync::Arc::new(meta.clone()),
+                payload: s.clone().into(),
+            };
+            n.process(&[&item], &ctx)
+        };
+        s.sample_rate_hz = 1e300;
+        let e = run(&s).err().unwrap().message;
+        assert!(
+            e.starts_with("normalize: key `baseline_ms`") && e.contains("at 1e300 Hz") && e.len() < 120,
+            "{e}"
+        );
+        s.sample_rate_hz = 1e-297;
+        let out = run(&s).unwrap();
+        assert!(out
+            .signals()
+            .unwrap()
+            .data
+            .iter()
+            .flatten()
+            .all(|v| v.is_finite()));
     }
 
     proptest! {

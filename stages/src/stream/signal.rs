@@ -15,11 +15,10 @@
 
 use super::block_signals;
 use crate::signal::drive::{DriveConfig, DriveKind};
-use crate::signal::lowpass::{butterworth_sos, Biquad, FilterMode, LowpassConfig};
+use crate::signal::lowpass::{Biquad, FilterMode, Lowpass, LowpassConfig};
 use crate::signal::normalize::{NormalizeConfig, NormalizeMode};
 use palpate_core::stream::{StreamForm, StreamStage, StreamState};
 use palpate_core::{register_stream, BuildContext, ConfigError, Payload, Signals, StageError, TrialContext};
-use std::f64::consts::PI;
 
 /// The frame (rate, layout, unit) of the first block, for later output blocks.
 fn frame_of(s: &Signals, unit: &str) -> Signals {
@@ -97,15 +96,11 @@ impl StreamState for LowpassState {
                 self.sos.len()
             }
             None => {
-                let fs = s.sample_rate_hz;
-                if self.cutoff_hz >= fs / 2.0 {
-                    return Err(StageError::new(format!(
-                        "lowpass: key `cutoff_hz` = {} Hz must lie below the Nyquist frequency {} Hz of these signals",
-                        self.cutoff_hz,
-                        fs / 2.0
-                    )));
-                }
-                self.sos = butterworth_sos(self.order, (PI * self.cutoff_hz / fs).tan());
+                // The batch stage's causal design: the same sections, and
+                // the same refusals (the Nyquist frequency, a cutoff too
+                // small a share of the rate for f64 to hold).
+                self.sos =
+                    Lowpass::new(self.order, self.cutoff_hz, FilterMode::Causal).design(s.sample_rate_hz)?;
                 let ns = self.sos.len();
                 // Steady state of the first sample in every section (as `sosfilt`).
                 self.z = Vec::with_capacity(s.data.len() * ns);
@@ -336,12 +331,7 @@ impl DriveState {
     /// `G·|d|`, guarded against overflow as the batch stage is.
     #[inline]
     fn current(&self, d: f64) -> f64 {
-        let x = d.abs() * self.gain;
-        if x.is_finite() {
-            x
-        } else {
-            f64::MAX.copysign(x)
-        }
+        crate::signal::drive::scaled(d.abs(), self.gain)
     }
 }
 
@@ -429,11 +419,6 @@ impl DriveState {
     /// `G·x` (`sa_i`), guarded like the batch stage (no absolute value).
     #[inline]
     fn current_sa(&self, x: f64) -> f64 {
-        let y = x * self.gain;
-        if y.is_finite() {
-            y
-        } else {
-            f64::MAX.copysign(y)
-        }
+        crate::signal::drive::scaled(x, self.gain)
     }
 }
