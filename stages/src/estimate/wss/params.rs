@@ -200,9 +200,11 @@ pub struct WssSettings<A> {
     /// (33 classes: the paper's 17, 10 to 90, and their mirror images).
     pub angles: A,
     /// Frame weighting `w` of eq. 5: `constant`, `one_minus_sr` or
-    /// `one_plus_sr`. Default `constant`: exact on the ideal scene, where
-    /// `one_minus_sr` (the paper's best) misses classes, and as good or better
-    /// on the lab scene (RESULTS.md); the paper graphs set `one_minus_sr`.
+    /// `one_plus_sr`. Default `constant`: exact on the ideal scene with four
+    /// rows or more (on two or three rows some classes go one step towards 90
+    /// degrees: the module docs), where `one_minus_sr`
+    /// (the paper's best) misses classes, and as good or better on the lab
+    /// scene (RESULTS.md); the paper graphs set `one_minus_sr`.
     pub weighting: Weighting,
     /// Best score (a weighted mean correlation, in [-1, 1]) under which the
     /// answer is "no edge". Default 0.1.
