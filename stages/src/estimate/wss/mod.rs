@@ -337,6 +337,11 @@ impl Model for WssModel {
     fn predict(&self, item: &Item, ctx: &TrialContext<'_>) -> Result<Estimate, StageError> {
         let images = item.payload.images()?;
         let params = self.params.for_trial(item.meta.speed_mm_s, ctx.stage_id);
+        if let Some(why) = params::blind_layout(&images.layout) {
+            params::warn_once("layout", ctx.stage_id, || {
+                format!("warning: wss `{}`: {why}", ctx.stage_id)
+            });
+        }
         let sets = self.templates(images, &params)?;
         let e = match params.stop_margin {
             None => {

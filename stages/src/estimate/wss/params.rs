@@ -347,19 +347,57 @@ impl WssConfig {
 /// mm/s: the paper's.
 pub const DEFAULT_SPEED_MM_S: f64 = 2.0;
 
-/// Stage ids already warned that a trial declared no speed.
-static WARNED_SPEED: std::sync::Mutex<Vec<String>> = std::sync::Mutex::new(Vec::new());
+/// (warning kind, stage id) pairs already warned.
+static WARNED: std::sync::Mutex<Vec<(&'static str, String)>> = std::sync::Mutex::new(Vec::new());
+
+/// Prints `message()` the first time warning `kind` concerns `stage_id`;
+/// returns whether it printed (for the tests).
+pub(super) fn warn_once(kind: &'static str, stage_id: &str, message: impl FnOnce() -> String) -> bool {
+    let mut w = WARNED.lock().unwrap_or_else(|e| e.into_inner());
+    if w.iter().any(|(k, s)| *k == kind && s == stage_id) {
+        return false;
+    }
+    w.push((kind, stage_id.to_string()));
+    eprintln!("{}", message());
+    true
+}
 
 /// Warns, the first time for `stage_id`, that a trial declared no speed
 /// ([`default_speed_message`]). Returns whether it warned (for the tests).
 fn warn_default_speed(stage_id: &str, tolerance: f64) -> bool {
-    let mut w = WARNED_SPEED.lock().unwrap_or_else(|e| e.into_inner());
-    if w.iter().any(|s| s == stage_id) {
-        return false;
+    warn_once("speed", stage_id, || default_speed_message(stage_id, tolerance))
+}
+
+/// Why WSS cannot tell orientations apart on `layout`, if it cannot: fewer
+/// than two taxels (a correlation over one taxel is undefined, taken as 0,
+/// so every trial answers "no edge"), or every taxel on one line along the
+/// slide (`x`). An edge at `θ` reaches the taxel at `(x, y)` at `t = (x − y
+/// cot θ) / v` plus a constant, so on a line of one `y` the order and the
+/// timing of the activity are the same at every angle: the answers are
+/// near chance (a 1 x 16 array gave 12.5° MAE, every answer uncertain). A
+/// line across the slide, or any other line, keeps `cot θ` in the timing.
+pub fn blind_layout(layout: &palpate_core::TaxelLayout) -> Option<String> {
+    let n = layout.len();
+    if n < 2 {
+        return Some(format!(
+            "the images have {n} taxel{}: a correlation over fewer than two taxels is undefined (taken \
+             as 0), so every trial answers \"no edge\"; WSS needs two or more taxels, not all on one \
+             line along the slide",
+            if n == 1 { "" } else { "s" }
+        ));
     }
-    w.push(stage_id.to_string());
-    eprintln!("{}", default_speed_message(stage_id, tolerance));
-    true
+    let y0 = layout.position(0)[1];
+    // A thousandth of a micrometre: positions read from files may round.
+    let along = (1..n).all(|i| (layout.position(i)[1] - y0).abs() <= 1e-6);
+    along.then(|| {
+        format!(
+            "the array's {n} taxels all lie on one line along the slide (y = {} mm): an edge's \
+             orientation changes neither the order nor the timing of their activity, so WSS cannot \
+             tell the angles apart (expect answers near chance, flagged uncertain); an array needs \
+             taxels across the slide (more than one row) to see orientation",
+            palpate_core::fmt_num(y0)
+        )
+    })
 }
 
 /// The warning for a trial without a declared speed, under the stage's
@@ -564,5 +602,39 @@ mod speed_tests {
         for bad in [-0.1, 1e300, f64::NAN] {
             assert_eq!(with(1.0, bad).as_deref(), Some("line_width_mm"), "{bad}");
         }
+    }
+
+    #[test]
+    fn a_layout_blind_to_orientation_is_named_and_warned_once_per_stage() {
+        use palpate_core::TaxelLayout;
+        let grid = |rows, cols| TaxelLayout::Grid {
+            rows,
+            cols,
+            pitch_mm: 3.0,
+            taxel_mm: 2.0,
+        };
+        let at = |positions_mm: Vec<[f64; 2]>| TaxelLayout::Positions {
+            positions_mm,
+            taxel_mm: 2.0,
+        };
+        let row = blind_layout(&grid(1, 16)).expect("a row along the slide is blind");
+        assert!(
+            row.contains("16 taxels") && row.contains("along the slide"),
+            "{row}"
+        );
+        assert!(blind_layout(&grid(1, 1)).is_some_and(|m| m.contains("1 taxel:")));
+        assert!(blind_layout(&at(vec![[0.0, 2.0], [3.0, 2.0], [9.0, 2.0]])).is_some());
+        // Across the slide, on a diagonal, or a grid: timing keeps cot θ.
+        for ok in [
+            grid(16, 1),
+            grid(4, 4),
+            grid(2, 2),
+            at(vec![[0.0, 0.0], [3.0, 3.0]]),
+        ] {
+            assert_eq!(blind_layout(&ok), None, "{ok:?}");
+        }
+        assert!(warn_once("layout", "wss-blind", || "warning: test".into()));
+        assert!(!warn_once("layout", "wss-blind", || "warning: test".into()));
+        assert!(warn_once("speed", "wss-blind", || "warning: test".into()));
     }
 }
