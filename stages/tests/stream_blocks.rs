@@ -415,30 +415,25 @@ fn hostile_blocks_are_errors_not_panics() {
         events: vec![palpate_core::SpikeEvent { taxel: 99, t_ms: 1.0 }],
     };
     assert!(stream::run_blocks(bin.as_ref(), &[bad_taxel.into()], &tctx).is_err());
+    // The streaming form of a causal order-2 low-pass at `cutoff_hz`.
+    let lowpass = |cutoff_hz: f64| {
+        let lp = LowpassConfig {
+            order: 2,
+            cutoff_hz,
+            mode: FilterMode::Causal,
+        };
+        let settings = serde_json::to_value(&lp as &dyn StageConfig).unwrap();
+        let Ok(StreamForm::Streams(f)) = stream::form("lowpass", &settings, &ctx()) else {
+            panic!("causal lowpass streams")
+        };
+        f
+    };
     // A non-finite sample is refused by the signal stages, as in batch.
-    let lp = LowpassConfig {
-        order: 2,
-        cutoff_hz: 10.0,
-        mode: FilterMode::Causal,
-    };
-    let settings = serde_json::to_value(&lp as &dyn StageConfig).unwrap();
-    let Ok(StreamForm::Streams(f)) = stream::form("lowpass", &settings, &ctx()) else {
-        panic!("causal lowpass streams")
-    };
     let s = signals(vec![vec![1.0, f64::NAN, 2.0]]);
-    assert!(stream::run_blocks(f.as_ref(), &signal_blocks(&s, 1), &tctx).is_err());
+    assert!(stream::run_blocks(lowpass(10.0).as_ref(), &signal_blocks(&s, 1), &tctx).is_err());
     // A cutoff above Nyquist is named.
-    let lp = LowpassConfig {
-        order: 2,
-        cutoff_hz: 900.0,
-        mode: FilterMode::Causal,
-    };
-    let settings = serde_json::to_value(&lp as &dyn StageConfig).unwrap();
-    let Ok(StreamForm::Streams(f)) = stream::form("lowpass", &settings, &ctx()) else {
-        panic!("causal lowpass streams")
-    };
     let e = stream::run_blocks(
-        f.as_ref(),
+        lowpass(900.0).as_ref(),
         &signal_blocks(&signals(vec![vec![0.0; 10]]), 3),
         &tctx,
     )
@@ -446,15 +441,7 @@ fn hostile_blocks_are_errors_not_panics() {
     assert!(e.message.contains("cutoff_hz"), "{e}");
     // A cutoff too small a share of the rate for f64 (10 Hz at 1e50 Hz)
     // is refused as in batch, not streamed as NaN.
-    let lp = LowpassConfig {
-        order: 2,
-        cutoff_hz: 10.0,
-        mode: FilterMode::Causal,
-    };
-    let settings = serde_json::to_value(&lp as &dyn StageConfig).unwrap();
-    let Ok(StreamForm::Streams(f)) = stream::form("lowpass", &settings, &ctx()) else {
-        panic!("causal lowpass streams")
-    };
+    let f = lowpass(10.0);
     let mut fast = signals(vec![vec![0.0, 1.0, 0.5, 0.2]]);
     fast.sample_rate_hz = 1e50;
     let e = stream::run_blocks(f.as_ref(), &signal_blocks(&fast, 2), &tctx).unwrap_err();
