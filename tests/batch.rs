@@ -4,25 +4,10 @@
 //! jobs file, job and key on bad input.
 
 use std::path::Path;
-use std::process::{Command, Output};
+mod common;
+use common::{palpate, text};
 
 const GRAPH: &str = "tests/data/cluster_sweep.toml";
-
-fn palpate(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_palpate"))
-        .args(args)
-        .current_dir(env!("CARGO_MANIFEST_DIR"))
-        .output()
-        .expect("palpate runs")
-}
-
-fn text(out: &Output) -> String {
-    format!(
-        "{}{}",
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    )
-}
 
 fn ok(args: &[&str]) -> String {
     let out = palpate(args);

@@ -6,23 +6,8 @@
 //! overflows u64 as `MAX..=MAX`.
 
 use std::path::Path;
-use std::process::{Command, Output};
-
-fn palpate(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_palpate"))
-        .args(args)
-        .current_dir(env!("CARGO_MANIFEST_DIR"))
-        .output()
-        .expect("palpate runs")
-}
-
-fn text(out: &Output) -> String {
-    format!(
-        "{}{}",
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    )
-}
+mod common;
+use common::{palpate, text};
 
 fn s(p: &Path) -> &str {
     p.to_str().expect("utf-8 temp path")
