@@ -298,16 +298,33 @@ fn parse_block(s: &str) -> Result<usize, String> {
 /// take its reports: an existing directory, or one it creates now. Why
 /// first: the sinks write last, so a file in the way (`--out` naming a
 /// file, or `/dev/null`) failed only after every stage had run.
-pub(crate) fn prepare_out_dir(dir: &std::path::Path) -> Result<(), String> {
+///
+/// Returns whether it created the directory, so that a run which then fails
+/// before writing anything can take it away again ([`discard_if_empty`]).
+pub(crate) fn prepare_out_dir(dir: &std::path::Path) -> Result<bool, String> {
     match std::fs::metadata(dir) {
-        Ok(m) if m.is_dir() => Ok(()),
+        Ok(m) if m.is_dir() => Ok(false),
         Ok(_) => Err(format!(
             "output directory {}: exists and is not a directory; give --out (or `[run] out`) a folder",
             dir.display()
         )),
         Err(_) => std::fs::create_dir_all(dir)
+            .map(|()| true)
             .map_err(|e| format!("output directory {}: cannot create it: {e}", dir.display())),
     }
+}
+
+/// After a failed run: removes the output directory `dir` if this run
+/// created it (`created`, from [`prepare_out_dir`]) and nothing was written
+/// into it, so a sweep refused at load (a bad value of a series, say) does
+/// not leave an empty folder behind. A directory holding anything stays:
+/// `remove_dir` refuses a non-empty one, and reports are never deleted.
+pub(crate) fn discard_if_empty(dir: &std::path::Path, created: bool, code: ExitCode) -> ExitCode {
+    if created && code == ExitCode::FAILURE {
+        // Best effort: a directory that cannot be removed is only untidy.
+        let _ = std::fs::remove_dir(dir);
+    }
+    code
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -614,10 +631,26 @@ fn cmd_run(
     let Some(graph) = load(&path, set.clone(), out) else {
         return ExitCode::FAILURE;
     };
-    if let Err(e) = prepare_out_dir(&graph.out_dir) {
-        eprintln!("{}: {e}", graph.file);
-        return ExitCode::FAILURE;
-    }
+    let created = match prepare_out_dir(&graph.out_dir) {
+        Ok(created) => created,
+        Err(e) => {
+            eprintln!("{}: {e}", graph.file);
+            return ExitCode::FAILURE;
+        }
+    };
+    let code = run_loaded(&path, &graph, &set, threads, selection, fresh);
+    discard_if_empty(&graph.out_dir, created, code)
+}
+
+/// [`cmd_run`] once the graph is loaded and its output directory exists.
+fn run_loaded(
+    path: &std::path::Path,
+    graph: &Graph,
+    set: &[(String, toml::Value)],
+    threads: Option<usize>,
+    selection: Selection,
+    fresh: bool,
+) -> ExitCode {
     let pool = match palpate_core::thread_pool(threads.unwrap_or(0), "--threads") {
         Ok(p) => p,
         Err(e) => {
@@ -642,10 +675,10 @@ fn cmd_run(
     };
     if graph.sweep.is_some() {
         let job = crate::cluster::SweepJob {
-            path: &path,
+            path,
             source: None,
-            graph: &graph,
-            set: &set,
+            graph,
+            set,
         };
         let code = pool.install(|| crate::cluster::run_sweep(&job, &selection, fresh, &opts));
         drop(bars);
@@ -659,7 +692,7 @@ fn cmd_run(
         return ExitCode::FAILURE;
     }
     let t0 = std::time::Instant::now();
-    let result = pool.install(|| core::run(&graph, &opts));
+    let result = pool.install(|| core::run(graph, &opts));
     drop(bars);
     let result = match result {
         Ok(r) => r,
@@ -668,7 +701,7 @@ fn cmd_run(
             return ExitCode::FAILURE;
         }
     };
-    match single_run_text(&graph, &result, t0.elapsed()) {
+    match single_run_text(graph, &result, t0.elapsed()) {
         Ok(text) => {
             print!("{text}");
             ExitCode::SUCCESS
@@ -739,10 +772,19 @@ fn run_live_graph(graph: &Graph, block: usize) -> ExitCode {
             return ExitCode::FAILURE;
         }
     };
-    if let Err(e) = prepare_out_dir(&graph.out_dir) {
-        eprintln!("{}: {e}", graph.file);
-        return ExitCode::FAILURE;
-    }
+    let created = match prepare_out_dir(&graph.out_dir) {
+        Ok(created) => created,
+        Err(e) => {
+            eprintln!("{}: {e}", graph.file);
+            return ExitCode::FAILURE;
+        }
+    };
+    let code = stream_live(graph, &plan, block);
+    discard_if_empty(&graph.out_dir, created, code)
+}
+
+/// [`run_live_graph`] once the plan is made and the output directory exists.
+fn stream_live(graph: &Graph, plan: &core::stream::LivePlan, block: usize) -> ExitCode {
     // Ctrl-C ends the session after the block under way (or, with nothing
     // in contact, the frame or wait under way), with the reports of the
     // trials finished (a board streams until stopped); a second one quits
@@ -781,7 +823,7 @@ fn run_live_graph(graph: &Graph, block: usize) -> ExitCode {
         }
         std::ops::ControlFlow::Continue(())
     };
-    let result = core::stream::replay_polled(graph, &plan, block, on_update, interrupted);
+    let result = core::stream::replay_polled(graph, plan, block, on_update, interrupted);
     match result {
         Ok(run) => {
             for (id, report) in &run.reports {

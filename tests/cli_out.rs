@@ -3,7 +3,8 @@
 //! run every stage and fail only at the last sink with "File exists"; two
 //! `batch` jobs with one `out` overwrote each other silently; `--block 0`
 //! was taken as 1 without a word; `sweep list` printed a seed range that
-//! overflows u64 as `MAX..=MAX`.
+//! overflows u64 as `MAX..=MAX`; a sweep refused at load left the empty
+//! output folder it had just created.
 
 use std::path::Path;
 mod common;
@@ -61,6 +62,43 @@ fn run_refuses_an_out_that_is_a_file_before_running() {
         "{msg}"
     );
     assert_nothing_ran(&msg);
+}
+
+#[test]
+fn a_refused_sweep_takes_away_only_the_folder_it_created() {
+    let tmp = tempfile::tempdir().expect("temp dir");
+    let bad = [
+        "--set",
+        "sweep.series=[{name=\"a\",key=\"stages.wss.sigma_mm\",values=[-1.0]}]",
+    ];
+    // A folder this run created, still empty when the sweep is refused: gone.
+    let fresh = tmp.path().join("new");
+    let mut args = vec!["run", "graphs/quickstart.toml", "--out", s(&fresh)];
+    args.extend_from_slice(&bad);
+    let r = palpate(&args);
+    let msg = text(&r);
+    assert!(!r.status.success(), "accepted:\n{msg}");
+    assert!(msg.contains("in sweep series `a`"), "{msg}");
+    assert_nothing_ran(&msg);
+    assert!(!fresh.exists(), "the empty folder it created was left:\n{msg}");
+    // A folder that was there before, with a file in it: kept, file and all.
+    let kept = tmp.path().join("kept");
+    std::fs::create_dir(&kept).expect("dir");
+    std::fs::write(kept.join("notes.txt"), "mine").expect("file");
+    args[3] = s(&kept);
+    let r = palpate(&args);
+    assert!(!r.status.success());
+    assert_eq!(
+        std::fs::read_to_string(kept.join("notes.txt")).expect("kept file"),
+        "mine"
+    );
+    // An empty folder that was there before: kept too (not this run's to remove).
+    let empty = tmp.path().join("empty");
+    std::fs::create_dir(&empty).expect("dir");
+    args[3] = s(&empty);
+    let r = palpate(&args);
+    assert!(!r.status.success());
+    assert!(empty.is_dir(), "a folder the user made was removed");
 }
 
 #[test]
