@@ -100,6 +100,9 @@ struct Job {
     log: PathBuf,
     /// A sweep's runs (`None`: a single run).
     sweep: Mutex<Option<PreparedSweep>>,
+    /// The output directory, held so that one this batch created and left
+    /// empty (a later job refused at load) is removed again.
+    _out: crate::cli::OutDir,
 }
 
 /// Reads and checks the jobs file: every job's graph loaded (warnings
@@ -156,7 +159,7 @@ fn load_jobs(path: &Path, fresh: bool) -> Result<Vec<Job>, String> {
             s.push(".log");
             PathBuf::from(s)
         });
-        crate::cli::prepare_out_dir(&graph.out_dir).map_err(|e| format!("{at}: {e}"))?;
+        let out = crate::cli::prepare_out_dir(&graph.out_dir).map_err(|e| format!("{at}: {e}"))?;
         let (out_at, log_at) = (resolved(&graph.out_dir), resolved(&log));
         for (other, out, other_log) in &places {
             let both = format!("{}: {other} and {label} both write", path.display());
@@ -192,6 +195,7 @@ fn load_jobs(path: &Path, fresh: bool) -> Result<Vec<Job>, String> {
             graph,
             log,
             sweep: Mutex::new(sweep),
+            _out: out,
         });
     }
     Ok(jobs)

@@ -299,32 +299,47 @@ fn parse_block(s: &str) -> Result<usize, String> {
 /// first: the sinks write last, so a file in the way (`--out` naming a
 /// file, or `/dev/null`) failed only after every stage had run.
 ///
-/// Returns whether it created the directory, so that a run which then fails
-/// before writing anything can take it away again ([`discard_if_empty`]).
-pub(crate) fn prepare_out_dir(dir: &std::path::Path) -> Result<bool, String> {
-    match std::fs::metadata(dir) {
-        Ok(m) if m.is_dir() => Ok(false),
-        Ok(_) => Err(format!(
-            "output directory {}: exists and is not a directory; give --out (or `[run] out`) a folder",
-            dir.display()
-        )),
-        Err(_) => std::fs::create_dir_all(dir)
-            .map(|()| true)
-            .map_err(|e| format!("output directory {}: cannot create it: {e}", dir.display())),
-    }
+/// Hold the returned [`OutDir`] until the run has written its reports.
+pub(crate) fn prepare_out_dir(dir: &std::path::Path) -> Result<OutDir, String> {
+    let created = match std::fs::metadata(dir) {
+        Ok(m) if m.is_dir() => false,
+        Ok(_) => {
+            return Err(format!(
+                "output directory {}: exists and is not a directory; give --out (or `[run] out`) a folder",
+                dir.display()
+            ))
+        }
+        Err(_) => {
+            std::fs::create_dir_all(dir)
+                .map_err(|e| format!("output directory {}: cannot create it: {e}", dir.display()))?;
+            true
+        }
+    };
+    Ok(OutDir {
+        path: dir.to_path_buf(),
+        created,
+    })
 }
 
-/// After a failed run: removes the output directory `dir` if this run
-/// created it (`created`, from [`prepare_out_dir`]) and nothing was written
-/// into it, so a sweep refused at load (a bad value of a series, say) does
-/// not leave an empty folder behind. A directory holding anything stays:
-/// `remove_dir` refuses a non-empty one, and reports are never deleted.
-pub(crate) fn discard_if_empty(dir: &std::path::Path, created: bool, code: ExitCode) -> ExitCode {
-    if created && code == ExitCode::FAILURE {
-        // Best effort: a directory that cannot be removed is only untidy.
-        let _ = std::fs::remove_dir(dir);
+/// A run's output directory, ready ([`prepare_out_dir`]). If this run
+/// created it, dropping this removes it again when it is still empty: a run
+/// refused after the check (a sweep series with a bad value, a batch whose
+/// third job does not load) leaves no empty folder behind. A folder that
+/// was there before is never removed, and `remove_dir` refuses one holding
+/// anything, so no report is ever deleted.
+#[must_use = "the folder is removed again when this is dropped empty"]
+pub(crate) struct OutDir {
+    path: PathBuf,
+    created: bool,
+}
+
+impl Drop for OutDir {
+    fn drop(&mut self) {
+        if self.created {
+            // Best effort: a folder that cannot be removed is only untidy.
+            let _ = std::fs::remove_dir(&self.path);
+        }
     }
-    code
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -631,26 +646,14 @@ fn cmd_run(
     let Some(graph) = load(&path, set.clone(), out) else {
         return ExitCode::FAILURE;
     };
-    let created = match prepare_out_dir(&graph.out_dir) {
-        Ok(created) => created,
+    // Held to the end: the folder goes again if nothing was written into it.
+    let _out = match prepare_out_dir(&graph.out_dir) {
+        Ok(out) => out,
         Err(e) => {
             eprintln!("{}: {e}", graph.file);
             return ExitCode::FAILURE;
         }
     };
-    let code = run_loaded(&path, &graph, &set, threads, selection, fresh);
-    discard_if_empty(&graph.out_dir, created, code)
-}
-
-/// [`cmd_run`] once the graph is loaded and its output directory exists.
-fn run_loaded(
-    path: &std::path::Path,
-    graph: &Graph,
-    set: &[(String, toml::Value)],
-    threads: Option<usize>,
-    selection: Selection,
-    fresh: bool,
-) -> ExitCode {
     let pool = match palpate_core::thread_pool(threads.unwrap_or(0), "--threads") {
         Ok(p) => p,
         Err(e) => {
@@ -675,10 +678,10 @@ fn run_loaded(
     };
     if graph.sweep.is_some() {
         let job = crate::cluster::SweepJob {
-            path,
+            path: &path,
             source: None,
-            graph,
-            set,
+            graph: &graph,
+            set: &set,
         };
         let code = pool.install(|| crate::cluster::run_sweep(&job, &selection, fresh, &opts));
         drop(bars);
@@ -692,7 +695,7 @@ fn run_loaded(
         return ExitCode::FAILURE;
     }
     let t0 = std::time::Instant::now();
-    let result = pool.install(|| core::run(graph, &opts));
+    let result = pool.install(|| core::run(&graph, &opts));
     drop(bars);
     let result = match result {
         Ok(r) => r,
@@ -701,7 +704,7 @@ fn run_loaded(
             return ExitCode::FAILURE;
         }
     };
-    match single_run_text(graph, &result, t0.elapsed()) {
+    match single_run_text(&graph, &result, t0.elapsed()) {
         Ok(text) => {
             print!("{text}");
             ExitCode::SUCCESS
@@ -772,19 +775,14 @@ fn run_live_graph(graph: &Graph, block: usize) -> ExitCode {
             return ExitCode::FAILURE;
         }
     };
-    let created = match prepare_out_dir(&graph.out_dir) {
-        Ok(created) => created,
+    // Held to the end: the folder goes again if nothing was written into it.
+    let _out = match prepare_out_dir(&graph.out_dir) {
+        Ok(out) => out,
         Err(e) => {
             eprintln!("{}: {e}", graph.file);
             return ExitCode::FAILURE;
         }
     };
-    let code = stream_live(graph, &plan, block);
-    discard_if_empty(&graph.out_dir, created, code)
-}
-
-/// [`run_live_graph`] once the plan is made and the output directory exists.
-fn stream_live(graph: &Graph, plan: &core::stream::LivePlan, block: usize) -> ExitCode {
     // Ctrl-C ends the session after the block under way (or, with nothing
     // in contact, the frame or wait under way), with the reports of the
     // trials finished (a board streams until stopped); a second one quits
@@ -823,7 +821,7 @@ fn stream_live(graph: &Graph, plan: &core::stream::LivePlan, block: usize) -> Ex
         }
         std::ops::ControlFlow::Continue(())
     };
-    let result = core::stream::replay_polled(graph, plan, block, on_update, interrupted);
+    let result = core::stream::replay_polled(graph, &plan, block, on_update, interrupted);
     match result {
         Ok(run) => {
             for (id, report) in &run.reports {

@@ -3,8 +3,8 @@
 //! run every stage and fail only at the last sink with "File exists"; two
 //! `batch` jobs with one `out` overwrote each other silently; `--block 0`
 //! was taken as 1 without a word; `sweep list` printed a seed range that
-//! overflows u64 as `MAX..=MAX`; a sweep refused at load left the empty
-//! output folder it had just created.
+//! overflows u64 as `MAX..=MAX`; a sweep (or a batch) refused at load left
+//! the empty output folder it had just created.
 
 use std::path::Path;
 mod common;
@@ -99,6 +99,23 @@ fn a_refused_sweep_takes_away_only_the_folder_it_created() {
     let r = palpate(&args);
     assert!(!r.status.success());
     assert!(empty.is_dir(), "a folder the user made was removed");
+    // A batch whose second job does not load: the first job's new folder goes too.
+    let first = tmp.path().join("first");
+    let jobs = tmp.path().join("jobs.toml");
+    std::fs::write(
+        &jobs,
+        format!(
+            "[[job]]\ngraph = \"graphs/quickstart.toml\"\nout = {:?}\n\n[[job]]\ngraph = \"graphs/no_such.toml\"\nout = {:?}\n",
+            s(&first),
+            s(&tmp.path().join("second"))
+        ),
+    )
+    .expect("jobs file");
+    let r = palpate(&["batch", s(&jobs)]);
+    let msg = text(&r);
+    assert!(!r.status.success(), "accepted:\n{msg}");
+    assert!(msg.contains("job 2"), "{msg}");
+    assert!(!first.exists(), "job 1's empty folder was left:\n{msg}");
 }
 
 #[test]
