@@ -236,6 +236,55 @@ fn main() {
         let avx2 = rate(&|o| palpate_stages::wide::without_avx512(|| dense::gemm_nt(&a, &b, k, o)));
         products.push(format!("{m}x{n}x{k} {picked:.1} / {avx2:.1}"));
     }
+    // The EDBN's training products, a minibatch of 20 rows against its
+    // bottom RBM (80 visible, 60 hidden): `v Wᵀ` (rows of `v`, `W`
+    // transposed once), `Σ h vᵀ` as `hᵀ v` (a transposed view) and `h W`,
+    // through `dense::gemm_nn`, with the kernel picked, the AVX2 one, and
+    // the operands materialised for `gemm_nt`'s tiles (what AVX2-only CPUs
+    // ran before `gemm_nn` had an AVX2 kernel).
+    let (bs, nv, nh) = (20, 80, 60);
+    let fill = |len: usize, p: usize| -> Vec<f64> {
+        (0..len).map(|i| ((i * p) % 1000) as f64 / 500.0 - 1.0).collect()
+    };
+    let (v, h, w) = (
+        fill(bs * nv, 7919),
+        fill(bs * nh, 104_729),
+        fill(nh * nv, 15_485_863),
+    );
+    let mut wt = vec![0.0; nv * nh];
+    dense::transpose(&w, nh, nv, &mut wt);
+    let cases: [(&str, dense::View<'_>, &[f64], usize); 3] = [
+        ("v Wt 20x60x80", dense::View::rows_of(&v, bs, nv), &wt, nh),
+        ("ht v 60x80x20", dense::View::transpose_of(&h, bs, nh), &v, nv),
+        ("h W 20x80x60", dense::View::rows_of(&h, bs, nh), &w, nv),
+    ];
+    let mut train = Vec::new();
+    for (name, a, b, n) in cases {
+        let (m, k) = (a.rows, a.cols);
+        let mut out = vec![0.0; m * n];
+        let mut rate = |f: &dyn Fn(&mut [f64])| {
+            let ms = best(|| {
+                let t = Instant::now();
+                for _ in 0..2000 {
+                    f(black_box(&mut out));
+                }
+                t.elapsed().as_secs_f64() * 1e3 / 2000.0
+            });
+            (m * n * k) as f64 / (ms * 1e-3) / 1e9
+        };
+        let picked = rate(&|o| dense::gemm_nn(a, b, n, o));
+        let avx2 = rate(&|o| palpate_stages::wide::without_avx512(|| dense::gemm_nn(a, b, n, o)));
+        let materialised = rate(&|o| {
+            let mut rows = Vec::with_capacity(m * k);
+            for i in 0..m {
+                rows.extend((0..k).map(|t| a.data[i * a.rs + t * a.cs]));
+            }
+            let mut bt = vec![0.0; k * n];
+            dense::transpose(&b[..k * n], k, n, &mut bt);
+            palpate_stages::wide::without_avx512(|| dense::gemm_nt(&rows, &bt, k, o));
+        });
+        train.push(format!("{name} {picked:.1} / {avx2:.1} / {materialised:.1}"));
+    }
     // The activations a prediction applies to every layer output: `tanh`
     // (the ANN's hidden layer, through `dense::add_bias_map` as the ANN
     // runs it) and the row softmax (its output), over ANN (ST)'s shapes:
@@ -278,6 +327,10 @@ fn main() {
     println!(
         "baseline layer products, G products/s, kernel picked / AVX2 only (rows x outputs x inputs): {}",
         products.join(", ")
+    );
+    println!(
+        "EDBN training products (gemm_nn), G products/s, kernel picked / AVX2 only / operands materialised for gemm_nt: {}",
+        train.join(", ")
     );
     println!(
         "baseline activations, ns per value: tanh with bias {tanh_ns:.2} (3154 x 30), row softmax {softmax_ns:.2} (3154 x 17)"

@@ -1227,9 +1227,11 @@ impl Softmax {
 /// Each evaluation is two products: the logits class by class, `Z = W Xᵀ`
 /// ([`dense::gemm_nn`] on `Xᵀ`, formed once), and the gradient `Rᵀ X`
 /// ([`dense::gemm_nn`] on `X`) of the residuals `R = P − Y`; without
-/// AVX-512, [`dense::gemm_nt`] on the operands as they are (`W` against the
-/// rows of `X`, `Rᵀ` against those of `Xᵀ`), which `gemm_nn` would
-/// otherwise copy into that form.
+/// AVX-512, [`dense::gemm_nt`] on the operands as they are for the
+/// gradient (`Rᵀ` against the rows of `Xᵀ`; AVX2's `gemm_nn` kernel is
+/// slower at its shape), and for the logits too (`W` against the rows of
+/// `X`) on a CPU without AVX2, where `gemm_nn` would copy them into that
+/// form.
 /// Both hold a class's values for every row contiguously, so the softmax
 /// between them runs with the rows across the vector lanes, each row's
 /// operations those of the row-by-row definition in the same order (its
@@ -1259,11 +1261,16 @@ fn fit_softmax(
     // exponentials.
     let (mut mx, mut zy, mut sum) = (vec![0.0; n], vec![0.0; n], vec![0.0; n]);
     let nw = k * dim;
-    // Without AVX-512 `gemm_nn` would copy its operands into `gemm_nt`'s
-    // form, so `gemm_nt` takes them as they are: `dot(w_c, x_i)` and
-    // `dot(r_c, xᵀ_j)`, the same bits (a fused term is symmetric in its
-    // factors).
-    let nn = crate::wide::avx512();
+    // Where `gemm_nn` has no vector kernel it would copy its operands into
+    // `gemm_nt`'s form, so `gemm_nt` takes them as they are: `dot(w_c,
+    // x_i)` and `dot(r_c, xᵀ_j)`, the same bits (a fused term is symmetric
+    // in its factors). With AVX2 alone, `gemm_nn` for the logits (17 x 16
+    // against 16 x 3060: 75 against 160 us for `gemm_nt`'s tiles) but not
+    // for the gradient (17 x 3060 against 3060 x 16, whose 16 columns it
+    // reads once per three classes: 100-115 against 70 us); best of 1000
+    // calls, throwaway timing on an AVX2-only host, 2026-12-02.
+    let z_nn = crate::wide::avx2();
+    let g_nn = crate::wide::avx512();
     let fg = |theta: &[f64], g: &mut [f64]| -> f64 {
         let (w, b) = theta.split_at(nw);
         if n == 0 {
@@ -1275,7 +1282,7 @@ fn fit_softmax(
         }
         if dim == 0 {
             zt.iter_mut().for_each(|z| *z = 0.0);
-        } else if nn {
+        } else if z_nn {
             dense::gemm_nn(dense::View::rows_of(w, k, dim), &xt, n, &mut zt);
         } else {
             dense::gemm_nt(w, &x[..n * dim], dim, &mut zt);
@@ -1332,7 +1339,7 @@ fn fit_softmax(
                 }
             },
         );
-        if dim > 0 && nn {
+        if dim > 0 && g_nn {
             dense::gemm_nn(dense::View::rows_of(&rt, k, n), x, dim, gw);
         } else if dim > 0 {
             dense::gemm_nt(&rt, &xt, n, gw);

@@ -57,6 +57,18 @@
 //! whose products are `v Wᵀ`, `h W` and `hᵀ v`. Outputs across the lanes
 //! as in `narrow512`, the same bits as [`gemm_nt`] over the materialised
 //! operands (test `gemm_nn_is_gemm_nt_bit_for_bit`).
+//!
+//! CPUs with AVX2 and FMA but not AVX-512 have their own forms of the
+//! `gemm_nn` kernel (`nn256`: three rows against four columns, 12 of the
+//! 16 registers) and of the zero-skipping one (`sparse256`: 12 outputs a
+//! pass), with the same bits. Until 2026-12-02 they materialised both
+//! operands for [`gemm_nt`]'s tiles and ran the EDBN's mostly zero rows
+//! dense, so its fit took 806-831 ms on an AVX2-only AMD EPYC against 264
+//! ms on an AVX-512 one; with them 537-575 ms (`RAYON_NUM_THREADS=1
+//! target/release/examples/peers --out /tmp/wk --seed 1 --only edbn`, the
+//! same host and hour). `cargo run --release --example machine` prints the
+//! training products' rates with each kernel (its "EDBN training
+//! products" line).
 
 /// Rows of `A` per tile.
 const MR: usize = 2;
@@ -503,9 +515,9 @@ pub fn gemm_nt_packed(a: &[f64], b: &NarrowRhs, out: &mut [f64]) {
 /// `b` entry against a zero would have made the reference NaN; this
 /// skips it.
 ///
-/// With AVX-512, at least `ROWS512` rows, `b` of at most [`NARROW`] rows
-/// and rows of at most [`NARROW_K512`] values, `sparse512`; otherwise
-/// [`gemm_nt`] itself.
+/// With at least `ROWS512` rows, `b` of at most [`NARROW`] rows and rows
+/// of at most [`NARROW_K512`] values, `sparse512` (AVX-512) or
+/// `sparse256` (AVX2 and FMA); otherwise [`gemm_nt`] itself.
 pub fn gemm_nt_sparse(a: &[f64], b: &[f64], k: usize, out: &mut [f64]) {
     #[cfg(target_arch = "x86_64")]
     {
@@ -523,14 +535,24 @@ pub fn gemm_nt_sparse(a: &[f64], b: &[f64], k: usize, out: &mut [f64]) {
             unsafe { sparse512(&a[..m * k], &bt, k, n, np, &mut out[..m * n]) };
             return;
         }
+        if (1..=NARROW).contains(&n) && (1..=NARROW_K512).contains(&k) && m >= ROWS512 && crate::wide::avx2()
+        {
+            let np = n.div_ceil(SPARSE_COLS256) * SPARSE_COLS256;
+            let bt = transposed(b, k, np);
+            // SAFETY: the CPU supports AVX2 and FMA (checked above); the
+            // shapes are the ones `sparse256` asserts.
+            unsafe { sparse256(&a[..m * k], &bt, k, n, np, &mut out[..m * n]) };
+            return;
+        }
     }
     gemm_nt(a, b, k, out)
 }
 
 /// A row-major `k x n` right operand of [`gemm_nn_sparse`], kept in the
-/// layout its kernel reads: rows padded with zeros to a multiple of
-/// `SPARSE_COLS` columns when the kernel can run (AVX-512, `k` at most
-/// [`NARROW_K512`]), as they are otherwise. Filled once and used for several
+/// layout its kernel reads: rows padded with zeros to a multiple of the
+/// kernel's output group when one can run (`SPARSE_COLS` with AVX-512,
+/// `SPARSE_COLS256` with AVX2 alone; `k` at most [`NARROW_K512`]), as they
+/// are otherwise. Filled once and used for several
 /// products (the RBMs' training takes three products a minibatch with one
 /// transposed weight matrix).
 #[derive(Clone, Debug, Default)]
@@ -564,11 +586,7 @@ impl SparseRhs {
 
     /// The padded width for `k x n` and room for it, the padding zero.
     fn shape(&mut self, k: usize, n: usize) {
-        let np = if sparse_kernel(k, n) {
-            n.div_ceil(SPARSE_COLS) * SPARSE_COLS
-        } else {
-            n
-        };
+        let np = sparse_group(k, n).map_or(n, |g| n.div_ceil(g) * g);
         if (self.k, self.n, self.np) != (k, n, np) {
             self.data = Aligned::zeros(k * np);
             (self.k, self.n, self.np) = (k, n, np);
@@ -576,24 +594,37 @@ impl SparseRhs {
     }
 }
 
-/// Whether [`sparse512`] takes a `k`-deep product with `n` outputs a row.
-fn sparse_kernel(k: usize, n: usize) -> bool {
+/// The output group of the kernel that takes a `k`-deep product with `n`
+/// outputs a row skipping zeros, on this thread: [`SPARSE_COLS`] for
+/// `sparse512` (AVX-512), [`SPARSE_COLS256`] for `sparse256` (AVX2 and
+/// FMA), `None` where neither runs. A [`SparseRhs`] pads its rows to a
+/// multiple of it.
+fn sparse_group(k: usize, n: usize) -> Option<usize> {
     #[cfg(target_arch = "x86_64")]
     {
-        (1..=NARROW_K512).contains(&k) && n > 0 && crate::wide::avx512()
+        if !(1..=NARROW_K512).contains(&k) || n == 0 {
+            None
+        } else if crate::wide::avx512() {
+            Some(SPARSE_COLS)
+        } else if crate::wide::avx2() {
+            Some(SPARSE_COLS256)
+        } else {
+            None
+        }
     }
     #[cfg(not(target_arch = "x86_64"))]
     {
         let _ = (k, n);
-        false
+        None
     }
 }
 
 /// `out = a · b` for a row-major `a` (`m x k`, `m = a.len() / k`) with
 /// many zero entries and `b` as a [`SparseRhs`]: the bits of [`gemm_nn`]
 /// on the same operands (each entry [`dot`]'s) for a finite `b`, with the
-/// zero terms skipped by [`gemm_nt_sparse`]'s kernel (`sparse512`) when
-/// the operand was padded for it, else [`gemm_nn`] itself. Unlike
+/// zero terms skipped by [`gemm_nt_sparse`]'s kernels (`sparse512`,
+/// `sparse256`) when the operand was padded for the one this thread runs,
+/// else [`gemm_nn`] itself. Unlike
 /// [`gemm_nt_sparse`], for any number of rows: the operand is laid out
 /// once by its owner, so a small batch does not pay for a transpose.
 ///
@@ -604,12 +635,20 @@ pub fn gemm_nn_sparse(a: &[f64], b: &SparseRhs, out: &mut [f64]) {
     let m = a.len() / k.max(1);
     assert!(out.len() >= m * n, "gemm_nn_sparse: short out");
     #[cfg(target_arch = "x86_64")]
-    if np.is_multiple_of(SPARSE_COLS) && sparse_kernel(k, n) {
-        // SAFETY: the CPU supports AVX-512 F/VL/DQ (`sparse_kernel`); `k`
-        // is within `NARROW_K512` and `np` a multiple of `SPARSE_COLS` at
-        // least `n`, with `k·np` values: the shapes `sparse512` asserts.
-        unsafe { sparse512(&a[..m * k], &b.data, k, n, np, &mut out[..m * n]) };
-        return;
+    match sparse_group(k, n) {
+        // SAFETY (both): the CPU supports the kernel's instructions
+        // (`sparse_group`); `k` is within `NARROW_K512` and `np` a multiple
+        // of the kernel's group at least `n`, with `k·np` values: the
+        // shapes the kernels assert.
+        Some(SPARSE_COLS) if np.is_multiple_of(SPARSE_COLS) => {
+            unsafe { sparse512(&a[..m * k], &b.data, k, n, np, &mut out[..m * n]) };
+            return;
+        }
+        Some(SPARSE_COLS256) if np.is_multiple_of(SPARSE_COLS256) => {
+            unsafe { sparse256(&a[..m * k], &b.data, k, n, np, &mut out[..m * n]) };
+            return;
+        }
+        _ => {}
     }
     if np == n {
         gemm_nn(View::rows_of(a, m, k), &b.data, n, out);
@@ -619,6 +658,96 @@ pub fn gemm_nn_sparse(a: &[f64], b: &SparseRhs, out: &mut [f64]) {
         let rows: Vec<f64> = b.data.chunks_exact(np).flat_map(|r| &r[..n]).copied().collect();
         gemm_nn(View::rows_of(a, m, k), &rows, n, out);
     }
+}
+
+/// Room for every index of a row in one list of [`NonZeros`].
+const LIST_CAP: usize = NARROW_K512 / 4;
+
+/// The non-zero entries of one row (a NaN counts as non-zero) for the
+/// zero-skipping kernels: their indices in four lists by `t mod 4` over the
+/// whole chunks of four, and the remainder's in a fifth.
+struct NonZeros {
+    lists: [[u32; LIST_CAP]; 4],
+    len: [usize; 4],
+    rest: [u32; 4],
+    n_rest: usize,
+}
+
+impl Default for NonZeros {
+    fn default() -> Self {
+        NonZeros {
+            lists: [[0; LIST_CAP]; 4],
+            len: [0; 4],
+            rest: [0; 4],
+            n_rest: 0,
+        }
+    }
+}
+
+impl NonZeros {
+    /// The lists of `row` (at most [`NARROW_K512`] values).
+    #[inline(always)]
+    fn fill(&mut self, row: &[f64]) {
+        assert!(row.len() <= NARROW_K512);
+        let full = row.len() / 4 * 4;
+        // Every index is written at its list's end, which moves past it
+        // only if the entry is not zero (NaN != 0): no branch per entry.
+        // Non-zero: any bit set but the sign's (NaN included), an integer
+        // test (a float compare went through a mask register).
+        let nonzero = |x: f64| usize::from(x.to_bits() << 1 != 0);
+        self.len = [0; 4];
+        for (c, x) in row[..full].chunks_exact(4).enumerate() {
+            for (l, &v) in x.iter().enumerate() {
+                // SAFETY: len[l] <= c < full / 4 <= LIST_CAP (asserted).
+                unsafe { *self.lists[l].get_unchecked_mut(self.len[l]) = (4 * c + l) as u32 };
+                self.len[l] += nonzero(v);
+            }
+        }
+        self.n_rest = 0;
+        for (t, &x) in row.iter().enumerate().skip(full) {
+            self.rest[self.n_rest] = t as u32;
+            self.n_rest += nonzero(x);
+        }
+    }
+
+    /// `f(l, t)` for every index `t` of list `l`, in each list's order:
+    /// the four lists side by side while all have entries (independent
+    /// chains for the accumulators), then each one's tail.
+    #[inline(always)]
+    fn visit(&self, mut f: impl FnMut(usize, u32)) {
+        let common = self.len.into_iter().min().unwrap_or(0);
+        let [l0, l1, l2, l3] = self.lists.each_ref().map(|l| &l[..common]);
+        for (((&t0, &t1), &t2), &t3) in l0.iter().zip(l1).zip(l2).zip(l3) {
+            for (l, t) in [t0, t1, t2, t3].into_iter().enumerate() {
+                f(l, t);
+            }
+        }
+        for (l, list) in self.lists.iter().enumerate() {
+            for &t in &list[common..self.len[l]] {
+                f(l, t);
+            }
+        }
+    }
+
+    /// The remainder's non-zero indices, in order.
+    #[inline(always)]
+    fn rest(&self) -> &[u32] {
+        &self.rest[..self.n_rest]
+    }
+}
+
+/// The shapes the zero-skipping kernels read and write: `k` within
+/// `1..=NARROW_K512`, `np` a multiple of the kernel's output `group` at
+/// least `n`, `bt` at least `k·np` values and `out` a row of `n` per row of
+/// `a`.
+fn check_sparse(a: &[f64], bt: &[f64], k: usize, n: usize, np: usize, out: &[f64], group: usize) {
+    assert!(
+        (1..=NARROW_K512).contains(&k)
+            && np.is_multiple_of(group)
+            && np >= n
+            && bt.len() >= k * np
+            && out.len() >= a.len() / k * n
+    );
 }
 
 /// Outputs per pass of [`sparse512`] over a row's non-zero entries: four
@@ -647,39 +776,10 @@ const SPARSE_COLS: usize = 32;
 unsafe fn sparse512(a: &[f64], bt: &[f64], k: usize, n: usize, np: usize, out: &mut [f64]) {
     use std::arch::x86_64::*;
     const G: usize = SPARSE_COLS / 8;
-    // Room for every index of a row in one list.
-    const CAP: usize = NARROW_K512 / 4;
-    let m = a.len() / k;
-    assert!(
-        k > 0
-            && k <= NARROW_K512
-            && np.is_multiple_of(SPARSE_COLS)
-            && np >= n
-            && bt.len() >= k * np
-            && out.len() >= m * n
-    );
-    let full = k / 4 * 4;
-    let mut lists = [[0u32; CAP]; 4];
-    let mut rest = [0u32; 4];
+    check_sparse(a, bt, k, n, np, out, SPARSE_COLS);
+    let mut nz = NonZeros::default();
     for (row, o) in a.chunks_exact(k).zip(out.chunks_exact_mut(n)) {
-        // Every index is written at its list's end, which moves past it
-        // only if the entry is not zero (NaN != 0): no branch per entry.
-        // Non-zero: any bit set but the sign's (NaN included), an integer
-        // test (a float compare went through a mask register).
-        let nonzero = |x: f64| usize::from(x.to_bits() << 1 != 0);
-        let mut len = [0usize; 4];
-        for (c, x) in row[..full].chunks_exact(4).enumerate() {
-            for l in 0..4 {
-                // SAFETY: len[l] <= c < full / 4 <= CAP.
-                unsafe { *lists[l].get_unchecked_mut(len[l]) = (4 * c + l) as u32 };
-                len[l] += nonzero(x[l]);
-            }
-        }
-        let mut n_rest = 0;
-        for (t, &x) in row.iter().enumerate().skip(full) {
-            rest[n_rest] = t as u32;
-            n_rest += nonzero(x);
-        }
+        nz.fill(row);
         for j0 in (0..n).step_by(SPARSE_COLS) {
             let pb = bt.as_ptr().wrapping_add(j0);
             // SAFETY: t < k and j0 + 8h + 8 <= np, so inside `bt` (asserted).
@@ -692,24 +792,11 @@ unsafe fn sparse512(a: &[f64], bt: &[f64], k: usize, n: usize, np: usize, out: &
                     *v = _mm512_fmadd_pd(x, load(t, h), *v);
                 }
             };
-            // The four lists side by side while all have entries (16
-            // independent chains), then each one's tail.
-            let common = len.into_iter().min().unwrap_or(0);
-            let [l0, l1, l2, l3] = lists.each_ref().map(|l| &l[..common]);
-            for (((&t0, &t1), &t2), &t3) in l0.iter().zip(l1).zip(l2).zip(l3) {
-                for (acc, t) in acc.iter_mut().zip([t0, t1, t2, t3]) {
-                    step(acc, t);
-                }
-            }
-            for (l, acc) in acc.iter_mut().enumerate() {
-                for &t in &lists[l][common..len[l]] {
-                    step(acc, t);
-                }
-            }
+            nz.visit(|l, t| step(&mut acc[l], t));
             for h in 0..G {
                 let [a0, a1, a2, a3] = acc.map(|l| l[h]);
                 let mut s = _mm512_add_pd(_mm512_add_pd(a0, a1), _mm512_add_pd(a2, a3));
-                for &t in &rest[..n_rest] {
+                for &t in nz.rest() {
                     let t = t as usize;
                     s = _mm512_fmadd_pd(_mm512_set1_pd(row[t]), load(t, h), s);
                 }
@@ -723,6 +810,59 @@ unsafe fn sparse512(a: &[f64], bt: &[f64], k: usize, n: usize, np: usize, out: &
                             s,
                         )
                     };
+                }
+            }
+        }
+    }
+}
+
+/// Outputs per pass of [`sparse256`] over a row's non-zero entries: three
+/// 256-bit vectors, each with its four partial sums, 12 of the 16 registers.
+const SPARSE_COLS256: usize = 12;
+
+/// [`sparse512`] with 256-bit vectors, for CPUs with AVX2 and FMA but not
+/// AVX-512: the same lists by `t mod 4` and the same sums, so the same
+/// bits, [`SPARSE_COLS256`] outputs a pass (`np` a multiple of it). Before
+/// it, those CPUs ran the EDBN's products with its mostly zero rows dense.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn sparse256(a: &[f64], bt: &[f64], k: usize, n: usize, np: usize, out: &mut [f64]) {
+    use std::arch::x86_64::*;
+    const G: usize = SPARSE_COLS256 / 4;
+    check_sparse(a, bt, k, n, np, out, SPARSE_COLS256);
+    let mut nz = NonZeros::default();
+    for (row, o) in a.chunks_exact(k).zip(out.chunks_exact_mut(n)) {
+        nz.fill(row);
+        for j0 in (0..n).step_by(SPARSE_COLS256) {
+            let pb = bt.as_ptr().wrapping_add(j0);
+            // SAFETY: t < k and j0 + 4h + 4 <= np, so inside `bt` (asserted).
+            let load = |t: usize, h: usize| unsafe { _mm256_loadu_pd(pb.add(t * np + 4 * h)) };
+            let mut acc = [[_mm256_setzero_pd(); G]; 4];
+            let step = |acc: &mut [__m256d; G], t: u32| {
+                let t = t as usize;
+                let x = _mm256_set1_pd(row[t]);
+                for (h, v) in acc.iter_mut().enumerate() {
+                    *v = _mm256_fmadd_pd(x, load(t, h), *v);
+                }
+            };
+            nz.visit(|l, t| step(&mut acc[l], t));
+            for h in 0..G {
+                let [a0, a1, a2, a3] = acc.map(|l| l[h]);
+                let mut s = _mm256_add_pd(_mm256_add_pd(a0, a1), _mm256_add_pd(a2, a3));
+                for &t in nz.rest() {
+                    let t = t as usize;
+                    s = _mm256_fmadd_pd(_mm256_set1_pd(row[t]), load(t, h), s);
+                }
+                let j = j0 + 4 * h;
+                let lanes = n.saturating_sub(j).min(4);
+                if lanes == 4 {
+                    // SAFETY: outputs j..j + 4 < n of this row.
+                    unsafe { _mm256_storeu_pd(o.as_mut_ptr().add(j), s) };
+                } else if lanes > 0 {
+                    let mut v = [0.0f64; 4];
+                    // SAFETY: `v` holds four doubles.
+                    unsafe { _mm256_storeu_pd(v.as_mut_ptr(), s) };
+                    o[j..j + lanes].copy_from_slice(&v[..lanes]);
                 }
             }
         }
@@ -1135,7 +1275,8 @@ impl<'a> View<'a> {
 /// `Σ_rows h vᵀ` as `hᵀ v` (a transposed view, no copy) and `v Wᵀ` with
 /// one transpose of `W` a minibatch, all with the outputs across the
 /// lanes. With AVX-512 ([`crate::wide::avx512`]) the kernel is
-/// `nn512`; otherwise the operands are materialised for [`gemm_nt`].
+/// `nn512`, with AVX2 and FMA alone `nn256`; otherwise the operands are
+/// materialised for [`gemm_nt`].
 ///
 /// # Panics
 /// If `a` reaches past its data, `b` holds fewer than `k·n` values or
@@ -1152,6 +1293,13 @@ pub fn gemm_nn(a: View<'_>, b: &[f64], n: usize, out: &mut [f64]) {
         // SAFETY: the CPU supports AVX-512 F/VL/DQ (checked at run time);
         // the shapes are asserted above.
         unsafe { nn512(a, b, n, out) };
+        return;
+    }
+    #[cfg(target_arch = "x86_64")]
+    if crate::wide::avx2() {
+        // SAFETY: the CPU supports AVX2 and FMA (checked at run time);
+        // the shapes are asserted above.
+        unsafe { nn256(a, b, n, out) };
         return;
     }
     let mut rows = Vec::with_capacity(m * k);
@@ -1204,6 +1352,142 @@ unsafe fn nn512(a: View<'_>, b: &[f64], n: usize, out: &mut [f64]) {
             j0 += if wide { 16 } else { 8 };
         }
         i += rows;
+    }
+}
+
+/// [`gemm_nn`] with 256-bit vectors, for CPUs with AVX2 and FMA but not
+/// AVX-512: three rows of `a` against four columns of `b` a block, lane
+/// `j` of accumulator `l` partial sum `l` of [`dot`] for output `j` (12
+/// accumulators of the 16 registers), reduced as `dot` reduces, so the
+/// bits are `dot`'s, as in [`nn512`]. Before it, such CPUs materialised
+/// both operands for [`gemm_nt`]'s tiles (a transpose of `b` a call and
+/// four horizontal sums a tile): the EDBN's fit took three times as long
+/// on an AVX2-only host as on an AVX-512 one (docs/benches.md).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn nn256(a: View<'_>, b: &[f64], n: usize, out: &mut [f64]) {
+    // One stride of `a` as 1 lets the compiler fold it into the loads'
+    // displacements: with both strides at run time, the 12 offsets of a
+    // block's broadcasts did not fit the registers and were reloaded from
+    // the stack every chunk.
+    match (a.rs == 1, a.cs == 1) {
+        (true, _) => nn256_strides::<RS_ONE>(a, b, n, out),
+        (false, true) => nn256_strides::<CS_ONE>(a, b, n, out),
+        _ => nn256_strides::<STRIDED>(a, b, n, out),
+    }
+}
+
+/// Stride cases of [`nn_block256`]: `a`'s rows adjacent (a transposed view),
+/// its columns adjacent (a row-major matrix), or neither.
+const RS_ONE: u8 = 0;
+const CS_ONE: u8 = 1;
+const STRIDED: u8 = 2;
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn nn256_strides<const S: u8>(a: View<'_>, b: &[f64], n: usize, out: &mut [f64]) {
+    let m = a.rows;
+    let mut i = 0;
+    while i < m {
+        let rows = (m - i).min(3);
+        let mut j0 = 0;
+        while j0 < n {
+            // SAFETY (every call): rows i..i + R < m; columns j0.. < n, the
+            // lanes past n masked; shapes asserted by `gemm_nn`.
+            unsafe {
+                match (rows, n - j0 >= 4) {
+                    (3, true) => nn_block256::<3, true, S>(a, i, b, n, j0, out),
+                    (3, false) => nn_block256::<3, false, S>(a, i, b, n, j0, out),
+                    (2, true) => nn_block256::<2, true, S>(a, i, b, n, j0, out),
+                    (2, false) => nn_block256::<2, false, S>(a, i, b, n, j0, out),
+                    (_, true) => nn_block256::<1, true, S>(a, i, b, n, j0, out),
+                    (_, false) => nn_block256::<1, false, S>(a, i, b, n, j0, out),
+                }
+            }
+            j0 += 4;
+        }
+        i += rows;
+    }
+}
+
+/// Rows `i..i + R` of `a` against columns `j0..j0 + 4` of the row-major
+/// `b` (`n` a row), into the same columns of `out`: [`nn_block512`] with
+/// four lanes. An edge block (`FULL` false: fewer than four columns left)
+/// loads with a lane mask and stores only its columns. `S`: which of
+/// `a`'s strides is 1 ([`RS_ONE`], [`CS_ONE`]; [`STRIDED`] neither).
+#[cfg(target_arch = "x86_64")]
+#[inline]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn nn_block256<const R: usize, const FULL: bool, const S: u8>(
+    a: View<'_>,
+    i: usize,
+    b: &[f64],
+    n: usize,
+    j0: usize,
+    out: &mut [f64],
+) {
+    use std::arch::x86_64::*;
+    let k = a.cols;
+    let full = k / 4 * 4;
+    let lanes = n.saturating_sub(j0).min(4);
+    let (rs, cs) = match S {
+        RS_ONE => (1, a.cs),
+        CS_ONE => (a.rs, 1),
+        _ => (a.rs, a.cs),
+    };
+    assert!(
+        i + R <= a.rows
+            && (lanes == 4) == FULL
+            && lanes > 0
+            && (rs, cs) == (a.rs, a.cs)
+            && (k == 0 || (k - 1) * n + j0 + lanes <= b.len())
+            && (i + R - 1) * n + j0 + lanes <= out.len()
+    );
+    // Lane `q` on when `q < lanes` (the sign bit of each 64-bit lane).
+    let mask = _mm256_cmpgt_epi64(_mm256_set1_epi64x(lanes as i64), _mm256_setr_epi64x(0, 1, 2, 3));
+    // SAFETY (loads): t < k, and the unmasked lanes of row t lie within
+    // `b` (asserted); entry (i + r, t) of `a` is in bounds
+    // (`View::in_bounds`, asserted by `gemm_nn`), at `pa + r·rs + t·cs`.
+    let load = |p: *const f64| unsafe {
+        if FULL {
+            _mm256_loadu_pd(p)
+        } else {
+            _mm256_maskload_pd(p, mask)
+        }
+    };
+    let bcast = |p: *const f64, r: usize, t: usize| unsafe { _mm256_set1_pd(*p.add(r * rs + t * cs)) };
+    let pa = a.data.as_ptr().wrapping_add(i * a.rs);
+    let pb = b.as_ptr().wrapping_add(j0);
+    let mut acc = [[_mm256_setzero_pd(); 4]; R];
+    // Pointers to chunk `c`'s first entries, stepped a chunk at a time.
+    let (mut qa, mut qb) = (pa, pb);
+    let mut c = 0;
+    while c < full {
+        for l in 0..4 {
+            let bv = load(qb.wrapping_add(l * n));
+            for (r, acc_r) in acc.iter_mut().enumerate() {
+                acc_r[l] = _mm256_fmadd_pd(bcast(qa, r, l), bv, acc_r[l]);
+            }
+        }
+        qa = qa.wrapping_add(4 * cs);
+        qb = qb.wrapping_add(4 * n);
+        c += 4;
+    }
+    for (r, [a0, a1, a2, a3]) in acc.into_iter().enumerate() {
+        let mut s = _mm256_add_pd(_mm256_add_pd(a0, a1), _mm256_add_pd(a2, a3));
+        for t in full..k {
+            s = _mm256_fmadd_pd(bcast(pa, r, t), load(pb.wrapping_add(t * n)), s);
+        }
+        let o = &mut out[(i + r) * n + j0..(i + r) * n + j0 + lanes];
+        if FULL {
+            // SAFETY: `o` holds four doubles.
+            unsafe { _mm256_storeu_pd(o.as_mut_ptr(), s) };
+        } else {
+            let mut v = [0.0f64; 4];
+            // SAFETY: `v` holds four doubles.
+            unsafe { _mm256_storeu_pd(v.as_mut_ptr(), s) };
+            o.copy_from_slice(&v[..lanes]);
+        }
     }
 }
 
@@ -1602,8 +1886,9 @@ pub(crate) mod tests {
 
     /// [`gemm_nt_sparse`] gives [`gemm_nt`]'s bits on rows with zeros
     /// (none, some, all of them, and NaN among them), for widths around the
-    /// 32-column groups and `k` with and without a remainder of four, on
-    /// the AVX-512 kernel and the fallbacks.
+    /// 32-column groups of `sparse512` and the 12-column ones of
+    /// `sparse256` and `k` with and without a remainder of four, on the
+    /// AVX-512 kernel, the AVX2 one and the fallback.
     #[test]
     fn gemm_nt_sparse_is_gemm_nt_bit_for_bit() {
         let mut rng = ChaCha8Rng::seed_from_u64(12);
@@ -1616,6 +1901,10 @@ pub(crate) mod tests {
             (70, 4, 32),
             (3, 80, 60),
             (70, 5, 17),
+            (64, 80, 12),
+            (64, 9, 13),
+            (64, 80, 24),
+            (64, 80, 11),
         ] {
             for zeros in [0.0, 0.5, 0.8, 1.0] {
                 let mut a = with_zeros(&mut rng, m * k, zeros, -2.0..2.0);
@@ -1623,17 +1912,13 @@ pub(crate) mod tests {
                 let b: Vec<f64> = (0..n * k).map(|_| rng.random_range(-2.0..2.0)).collect();
                 let mut want = vec![0.0; m * n];
                 gemm_nt(&a, &b, k, &mut want);
-                for no512 in [false, true] {
+                for path in [Path::Picked, Path::Avx2, Path::Baseline] {
                     let mut got = vec![f64::NAN; m * n + 3];
-                    if no512 {
-                        crate::wide::without_avx512(|| gemm_nt_sparse(&a, &b, k, &mut got));
-                    } else {
-                        gemm_nt_sparse(&a, &b, k, &mut got);
-                    }
+                    path.run(|| gemm_nt_sparse(&a, &b, k, &mut got));
                     for (i, (w, g)) in want.iter().zip(&got).enumerate() {
                         assert!(
                             w.to_bits() == g.to_bits() || (w.is_nan() && g.is_nan()),
-                            "m {m} k {k} n {n} zeros {zeros} no512 {no512}: entry {i} {w} vs {g}"
+                            "m {m} k {k} n {n} zeros {zeros} {path:?}: entry {i} {w} vs {g}"
                         );
                     }
                     assert!(got[m * n..].iter().all(|x| x.is_nan()), "wrote past m·n");
@@ -1642,12 +1927,34 @@ pub(crate) mod tests {
         }
     }
 
+    /// Which kernels a test lets run on its thread.
+    #[derive(Clone, Copy, Debug)]
+    enum Path {
+        /// The widest the CPU has.
+        Picked,
+        /// AVX-512 off.
+        Avx2,
+        /// No vector kernel.
+        Baseline,
+    }
+
+    impl Path {
+        fn run<R>(self, f: impl FnOnce() -> R) -> R {
+            match self {
+                Path::Picked => f(),
+                Path::Avx2 => crate::wide::without_avx512(f),
+                Path::Baseline => crate::wide::baseline_only(f),
+            }
+        }
+    }
+
     /// [`gemm_nn_sparse`] gives [`gemm_nn`]'s bits for any share of zero
     /// entries (signed zeros, a NaN), any row count (the RBMs' batches of
     /// 20 rows and fewer), widths with and without padding, `k` with and
     /// without a remainder of four, the operand set from rows or from a
-    /// transpose, on the kernel and the fallback; and an operand padded for
-    /// the kernel still gives them when AVX-512 is then turned off.
+    /// transpose (past `NARROW_K512` too, where no sparse kernel runs), on
+    /// the AVX-512 kernel, the AVX2 one and the fallback; and an operand
+    /// padded for one kernel still gives them when it runs on another.
     #[test]
     fn gemm_nn_sparse_is_gemm_nn_bit_for_bit() {
         let mut rng = ChaCha8Rng::seed_from_u64(13);
@@ -1659,6 +1966,9 @@ pub(crate) mod tests {
             (5, 128, 64),
             (70, 4, 32),
             (0, 5, 3),
+            (20, 80, 12),
+            (7, 9, 25),
+            (20, 129, 30),
         ] {
             for zeros in [0.0, 0.5, 0.8, 1.0] {
                 let mut a = with_zeros(&mut rng, m * k, zeros, -2.0..2.0);
@@ -1670,7 +1980,18 @@ pub(crate) mod tests {
                 transpose(&b, k, n, &mut bt);
                 let mut want = vec![0.0; m * n];
                 gemm_nn(View::rows_of(&a, m, k), &b, n, &mut want);
-                for (set512, run512) in [(true, true), (false, false), (true, false)] {
+                // Where the operand is laid out and where it is multiplied:
+                // the kernel picked (AVX-512 or AVX2), AVX2 (`sparse256`),
+                // or no vector kernel; an operand padded for one kernel
+                // also multiplies on the others.
+                for (lay, mul) in [
+                    (Path::Picked, Path::Picked),
+                    (Path::Avx2, Path::Avx2),
+                    (Path::Picked, Path::Avx2),
+                    (Path::Baseline, Path::Baseline),
+                    (Path::Picked, Path::Baseline),
+                    (Path::Baseline, Path::Picked),
+                ] {
                     for from_transpose in [false, true] {
                         let mut rhs = SparseRhs::default();
                         let set = |rhs: &mut SparseRhs| {
@@ -1680,21 +2001,13 @@ pub(crate) mod tests {
                                 rhs.set_rows(&b, k, n);
                             }
                         };
-                        if set512 {
-                            set(&mut rhs);
-                        } else {
-                            crate::wide::without_avx512(|| set(&mut rhs));
-                        }
+                        lay.run(|| set(&mut rhs));
                         let mut got = vec![f64::NAN; m * n + 3];
-                        if run512 {
-                            gemm_nn_sparse(&a, &rhs, &mut got);
-                        } else {
-                            crate::wide::without_avx512(|| gemm_nn_sparse(&a, &rhs, &mut got));
-                        }
+                        mul.run(|| gemm_nn_sparse(&a, &rhs, &mut got));
                         for (i, (w, g)) in want.iter().zip(&got).enumerate() {
                             assert!(
                                 w.to_bits() == g.to_bits() || (w.is_nan() && g.is_nan()),
-                                "m {m} k {k} n {n} zeros {zeros} 512 {set512}/{run512} transpose {from_transpose}: entry {i} {w} vs {g}"
+                                "m {m} k {k} n {n} zeros {zeros} {lay:?}/{mul:?} transpose {from_transpose}: entry {i} {w} vs {g}"
                             );
                         }
                         assert!(got[m * n..].iter().all(|x| x.is_nan()), "wrote past m·n");
@@ -1742,21 +2055,23 @@ pub(crate) mod tests {
                 if k > 0 {
                     gemm_nt(rows, &bt, k, &mut want);
                 }
-                for no512 in [false, true] {
+                // The kernel picked, the AVX2 one (`nn256`), and no vector
+                // kernel (the operands materialised).
+                for path in ["picked", "avx2", "baseline"] {
                     let mut got = vec![f64::NAN; m * n + 3];
-                    if no512 {
-                        crate::wide::without_avx512(|| gemm_nn(view, &b, n, &mut got));
-                    } else {
-                        gemm_nn(view, &b, n, &mut got);
+                    match path {
+                        "picked" => gemm_nn(view, &b, n, &mut got),
+                        "avx2" => crate::wide::without_avx512(|| gemm_nn(view, &b, n, &mut got)),
+                        _ => crate::wide::baseline_only(|| gemm_nn(view, &b, n, &mut got)),
                     }
                     let same = want.iter().zip(&got).all(|(x, y)| x.to_bits() == y.to_bits());
-                    assert!(same, "m {m} k {k} n {n} no512 {no512}");
+                    assert!(same, "m {m} k {k} n {n} path {path}");
                     assert!(got[m * n..].iter().all(|x| x.is_nan()), "wrote past m·n");
                     cases += 1;
                 }
             }
         }
-        assert_eq!(cases, 48);
+        assert_eq!(cases, 72);
     }
 
     /// Each term is fused into its partial sum on every path: values where
