@@ -91,8 +91,11 @@
 //! (threshold, feature, left child; the right child is next to it) in which
 //! a leaf leads to itself (threshold `+inf`), so that every step of a walk
 //! is the same few loads and one compare, without a branch on the path.
-//! [`Flat::vote`] moves up to 1024 walks (row, tree) together, e.g. 64 rows
-//! through 15 trees: the first 10 steps move every walk, after that only the
+//! [`Flat::vote`] moves up to 1024 walks (row, tree) together: a block of
+//! 1024 rows through one tree at a time, or, with fewer rows, every row
+//! through as many trees as fit (e.g. 64 rows through 15 trees; row blocks
+//! of 32 to 256 through every tree were tried on the peers workload on
+//! 2026-12-02 and gave the same times): the first 10 steps move every walk, after that only the
 //! walks not yet on a leaf, kept in a list compacted without a branch. The
 //! first version walked a block of 32 rows through one tree at a time, so
 //! each tree's few deep walks ran nearly alone at the end, their load
