@@ -93,11 +93,12 @@
 //! is the same few loads and one compare, without a branch on the path.
 //! [`Flat::vote`] moves up to 1024 walks (row, tree) together: a block of
 //! 1024 rows through one tree at a time, or, with fewer rows, every row
-//! through as many trees as fit (e.g. 64 rows through 15 trees; row blocks
-//! of 32 to 256 through every tree were tried on the peers workload on
-//! 2026-12-02 and gave the same times): the first 10 steps move every walk, after that only the
-//! walks not yet on a leaf, kept in a list compacted without a branch. The
-//! first version walked a block of 32 rows through one tree at a time, so
+//! through as many trees as fit (e.g. 64 rows through 15 trees; blocks of
+//! 32 to 256 rows through every tree gave the same times on the peers
+//! workload, docs/benches.md, 2026-12-02). The first 10 steps move every
+//! walk, after that only the walks not yet on a leaf, kept in a list
+//! compacted without a branch. The first version walked a block of 32
+//! rows through one tree at a time, so
 //! each tree's few deep walks ran nearly alone at the end, their load
 //! latencies exposed; and it tested for leaves and bounds at every step.
 //! On the peers workload (3154 rows, 15 trees of ~1300 nodes, ~860k node
