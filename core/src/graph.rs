@@ -683,6 +683,23 @@ impl<'t> Loader<'t> {
         });
     }
 
+    /// The line of every key of a stage's table `t`, nested tables' keys
+    /// as dotted paths (`motion.speed_mm_s`, `sources.b`), so a problem in a
+    /// nested key points at its own line. Depth-capped: a hostile file's
+    /// deep nesting costs nothing.
+    fn key_lines(&self, lines: &mut Lines, id: &str, prefix: &str, t: &toml::de::DeTable, depth: usize) {
+        for (key, v) in t.iter() {
+            let path = format!("{prefix}{}", key.get_ref());
+            lines
+                .keys
+                .entry((id.to_string(), path.clone()))
+                .or_insert_with(|| self.line_of(key.span().start));
+            if let (toml::de::DeValue::Table(sub), true) = (v.get_ref(), depth < 4) {
+                self.key_lines(lines, id, &format!("{path}."), sub, depth + 1);
+            }
+        }
+    }
+
     fn lines(&self) -> Lines {
         let mut lines = Lines::default();
         let Ok(doc) = toml::de::DeTable::parse(self.text) else {
@@ -708,12 +725,7 @@ impl<'t> Loader<'t> {
                         let id = sid.get_ref().to_string();
                         lines.stages.insert(id.clone(), self.line_of(sid.span().start));
                         if let toml::de::DeValue::Table(st) = sv.get_ref() {
-                            for (key, _) in st.iter() {
-                                lines.keys.insert(
-                                    (id.clone(), key.get_ref().to_string()),
-                                    self.line_of(key.span().start),
-                                );
-                            }
+                            self.key_lines(&mut lines, &id, "", st, 0);
                         }
                     }
                 }
@@ -1554,9 +1566,15 @@ impl<'t> Loader<'t> {
     /// One diagnostic per problem a config reported, each at its key's line.
     fn config_problems(&mut self, severity: Severity, e: &ConfigError, id: &str, lines: &Lines) {
         for (key, message) in e.problems() {
+            // The longest prefix of the key's path that has a line of its
+            // own (`a.b[2].c` tries `a.b[2].c`, `a.b`, `a`).
             let line = key
-                .map(|k| k.split(['.', '[']).next().unwrap_or(k))
-                .and_then(|k| lines.keys.get(&(id.to_string(), k.to_string())))
+                .and_then(|k| {
+                    let cuts = k.match_indices(['.', '[']).map(|(i, _)| i).rev();
+                    std::iter::once(k.len())
+                        .chain(cuts)
+                        .find_map(|i| lines.keys.get(&(id.to_string(), k[..i].to_string())))
+                })
                 .or_else(|| lines.stages.get(id))
                 .copied();
             self.diags.push(Diagnostic {

@@ -18,7 +18,7 @@
 //! Randomness: every stage gets its seed from [`derive_seed`] over (graph seed,
 //! stage id, trial id or fold), so results never depend on thread scheduling.
 
-use crate::payload::{Estimate, Item, Payload, PayloadKind, TrialMeta};
+use crate::payload::{Estimate, Item, Payload, PayloadKind, TaxelLayout, TrialMeta};
 use rand_chacha::rand_core::SeedableRng;
 use std::fmt;
 use std::path::PathBuf;
@@ -380,6 +380,14 @@ pub struct OutputFacts {
     /// its config (a scene's `motion.sample_rate_hz`, a file source's
     /// `sample_rate_hz`); `None` when it is known only from the data.
     pub sample_rate_hz: Option<f64>,
+    /// The taxel array of every trial, when the source's config says it (a
+    /// scene's `array` or `layout`, a file source's `layout` key) and every
+    /// trial has the same one; `None` when it is known only from the data
+    /// (a file source reading its layout from a sidecar) or trials differ.
+    /// Why: a `union` of sources on different arrays is legal (WSS matches
+    /// each trial against its own array's templates) but a trained estimator
+    /// would learn one array's taxels and score another's, so `check` warns.
+    pub layout: Option<TaxelLayout>,
 }
 
 impl OutputFacts {
@@ -391,7 +399,14 @@ impl OutputFacts {
             }
             _ => None,
         };
-        OutputFacts { sample_rate_hz: rate }
+        let layout = match inputs.split_first() {
+            Some((first, rest)) if rest.iter().all(|f| f.layout == first.layout) => first.layout.clone(),
+            _ => None,
+        };
+        OutputFacts {
+            sample_rate_hz: rate,
+            layout,
+        }
     }
 }
 

@@ -158,3 +158,56 @@ fn bad_unions_are_errors_naming_the_key() {
     );
     assert!(e.contains("sources.b") && e.contains("500"), "{e}");
 }
+
+#[test]
+fn a_union_of_sources_on_different_arrays_is_a_warning_naming_both() {
+    palpate_stages::link();
+    let dir = tempfile::tempdir().unwrap();
+    // Loading builds the sources, and a file source wants its file to exist
+    // (it is read only when the run lists the trials).
+    std::fs::write(dir.path().join("rec.csv"), "time_s,taxel_0\n").unwrap();
+    let load = |sources: &str| {
+        let path = dir.path().join("g.toml");
+        std::fs::write(&path, graph("", sources)).unwrap();
+        palpate_core::load_file(&path, &palpate_core::LoadOptions::default()).map_err(|e| e.to_string())
+    };
+    let on_arrays = |w: &palpate_core::Diagnostic| w.message.contains("array is");
+    let small = r#"{ type = "scene", angles = [30], array = { rows = 3, cols = 5 } }"#;
+    let sources = format!("sources.a = {SCENE}\nsources.b = {small}\n");
+    let g = load(&sources).unwrap();
+    let w: Vec<_> = g.warnings.iter().filter(|w| on_arrays(w)).collect();
+    assert_eq!(w.len(), 1, "{:#?}", g.warnings);
+    assert_eq!(w[0].key.as_deref(), Some("sources.b"), "{}", w[0]);
+    // At the nested key's own line, not the first `sources.` line.
+    let b_line = graph("", &sources)
+        .lines()
+        .position(|l| l.starts_with("sources.b"))
+        .unwrap()
+        + 1;
+    assert_eq!(w[0].line, Some(b_line), "{}", w[0]);
+    assert!(
+        w[0].message.contains("3 x 5") && w[0].message.contains("4 x 4") && w[0].message.contains("`a`"),
+        "{}",
+        w[0]
+    );
+    // The same array twice, or a source that does not state its array: no warning.
+    let g = load(&format!("sources.a = {SCENE}\nsources.b = {SCENE}\n")).unwrap();
+    assert!(!g.warnings.iter().any(on_arrays), "{:#?}", g.warnings);
+    let g = load(&format!(
+        "sources.a = {SCENE}\nsources.b = {{ type = \"signal_file\", path = \"rec.csv\" }}\n"
+    ))
+    .unwrap();
+    assert!(!g.warnings.iter().any(on_arrays), "{:#?}", g.warnings);
+    // A file source's `layout` key states its array.
+    let g = load(&format!(
+        "sources.a = {SCENE}\nsources.b = {{ type = \"signal_file\", path = \"rec.csv\", layout = {{ rows = 2, cols = 8, pitch_mm = 3.0, taxel_mm = 2.0 }} }}\n"
+    ))
+    .unwrap();
+    assert!(
+        g.warnings
+            .iter()
+            .any(|w| on_arrays(w) && w.message.contains("2 x 8")),
+        "{:#?}",
+        g.warnings
+    );
+}

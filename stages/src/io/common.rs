@@ -169,6 +169,26 @@ impl From<&TaxelLayout> for LayoutConfig {
     }
 }
 
+/// The array a source's `layout` key states, for [`OutputFacts::layout`]
+/// (`None` when unset or invalid: `build` reports an invalid one).
+///
+/// [`OutputFacts::layout`]: palpate_core::OutputFacts
+pub fn stated_layout(layout: &Option<LayoutConfig>) -> Option<TaxelLayout> {
+    layout.as_ref().and_then(|l| l.to_layout("layout").ok())
+}
+
+/// The inspection of a file source whose only fact known before the run is
+/// the array its `layout` key states.
+pub fn layout_inspection(layout: &Option<LayoutConfig>) -> palpate_core::Inspection {
+    palpate_core::Inspection {
+        facts: palpate_core::OutputFacts {
+            layout: stated_layout(layout),
+            ..palpate_core::OutputFacts::default()
+        },
+        ..palpate_core::Inspection::default()
+    }
+}
+
 impl LayoutConfig {
     /// The checked layout, or an error naming `key`.
     pub fn to_layout(&self, key: &str) -> Result<TaxelLayout, ConfigError> {

@@ -41,8 +41,9 @@
 use super::arrays::{read_npy_plain, NdArray};
 use super::common::{apply_sidecar, build_metas, describe_layout, read_sidecar, LayoutConfig, TrialLabels};
 use palpate_core::{
-    check_positive, register_stage, BuildContext, ConfigChecks, ConfigError, InputSpec, Payload, PayloadKind,
-    Source, SpikeImages, Stage, StageConfig, StageError, TaxelLayout, TrialContext, TrialMeta,
+    check_positive, register_stage, BuildContext, ConfigChecks, ConfigError, InputSpec, Inspection,
+    OutputFacts, Payload, PayloadKind, Source, SpikeImages, Stage, StageConfig, StageError, TaxelLayout,
+    TrialContext, TrialMeta,
 };
 use rayon::prelude::*;
 use schemars::JsonSchema;
@@ -125,6 +126,11 @@ impl StageConfig for ImageFileConfig {
     }
     fn build(&self, ctx: &BuildContext) -> Result<Stage, ConfigError> {
         Ok(Stage::Source(Box::new(self.source(ctx)?)))
+    }
+    /// The array when the `layout` key gives it (a union warns when its
+    /// sources' arrays differ); unknown until the files are read otherwise.
+    fn inspect(&self, _ctx: &BuildContext, _inputs: &[OutputFacts]) -> Inspection {
+        super::common::layout_inspection(&self.layout)
     }
 }
 register_stage!("image_file", ImageFileConfig);

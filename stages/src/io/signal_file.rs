@@ -96,7 +96,7 @@
 use super::arrays::{read_mat, read_npy_plain, read_npz, NdArray, NpyContent};
 use super::common::{
     apply_sidecar, build_metas, expand_paths, file_ids, merge_consistent, number_error, read_sidecar,
-    resolve_layout, set_label_cell, user_csv_reader, LayoutConfig, TrialLabels, LABEL_COLUMNS,
+    resolve_layout, set_label_cell, stated_layout, user_csv_reader, LayoutConfig, TrialLabels, LABEL_COLUMNS,
 };
 use super::daq::source::{Polarity, SegEvent, SegmentPlan, Segmenter};
 use palpate_core::{
@@ -274,11 +274,13 @@ impl StageConfig for SignalFileConfig {
         Ok(Stage::Source(Box::new(self.source(ctx)?)))
     }
     /// The sample rate when the `sample_rate_hz` key gives it (the files
-    /// must then agree with it); unknown until the files are read otherwise.
+    /// must then agree with it), and the array when the `layout` key gives
+    /// it; unknown until the files are read otherwise.
     fn inspect(&self, _ctx: &BuildContext, _inputs: &[OutputFacts]) -> Inspection {
         Inspection {
             facts: OutputFacts {
                 sample_rate_hz: self.sample_rate_hz,
+                layout: stated_layout(&self.layout),
             },
             ..Inspection::default()
         }

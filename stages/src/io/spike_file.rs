@@ -41,8 +41,9 @@ use super::common::{
 };
 use super::signal_file::{check_csv_complete, csv_error};
 use palpate_core::{
-    check_positive, register_stage, BuildContext, ConfigError, InputSpec, Payload, PayloadKind, Source,
-    SpikeEvent, SpikeTrain, Stage, StageConfig, StageError, TaxelLayout, TrialContext, TrialMeta,
+    check_positive, register_stage, BuildContext, ConfigError, InputSpec, Inspection, OutputFacts, Payload,
+    PayloadKind, Source, SpikeEvent, SpikeTrain, Stage, StageConfig, StageError, TaxelLayout, TrialContext,
+    TrialMeta,
 };
 use rayon::prelude::*;
 use schemars::JsonSchema;
@@ -202,6 +203,11 @@ impl StageConfig for SpikeFileConfig {
             labels,
             loaded: OnceLock::new(),
         })))
+    }
+    /// The array when the `layout` key gives it (a union warns when its
+    /// sources' arrays differ); unknown until the files are read otherwise.
+    fn inspect(&self, _ctx: &BuildContext, _inputs: &[OutputFacts]) -> Inspection {
+        super::common::layout_inspection(&self.layout)
     }
 }
 register_stage!("spike_file", SpikeFileConfig);

@@ -23,14 +23,18 @@
 //!
 //! Every source must give the same payload kind (signals, spikes or images)
 //! and, where it is known before the run, the same sample rate: the stages
-//! after the union run once over all of them. A trial's seed is the union's
+//! after the union run once over all of them. Sources on different arrays
+//! (where their configs say which) draw a warning, not an error: WSS matches
+//! each trial against its own array's templates, but a trained estimator
+//! learns one array's taxels. A trial's seed is the union's
 //! (derived from the graph seed, the union's stage id and the prefixed trial
 //! id), so a scene inside a union draws other noise than the same scene as a
 //! stage of its own; results remain a pure function of graph and seed.
 
+use super::common::describe_layout;
 use palpate_core::{
     register_stage, BuildContext, ConfigError, InputSpec, Inspection, OutputFacts, Payload, PayloadKind,
-    Source, Stage, StageConfig, StageError, TrialContext, TrialMeta,
+    Source, Stage, StageConfig, StageError, TaxelLayout, TrialContext, TrialMeta,
 };
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
@@ -209,12 +213,36 @@ impl StageConfig for UnionConfig {
         })))
     }
     /// Every source's own inspection, keys prefixed; the sample rate when the
-    /// sources that know theirs agree (an error when two differ).
+    /// sources that know theirs agree (an error when two differ); the array
+    /// when every source states the same one (a warning when two differ:
+    /// legal for WSS, wrong for a trained estimator).
     fn inspect(&self, ctx: &BuildContext, _inputs: &[OutputFacts]) -> Inspection {
         let mut out = Inspection::default();
         let mut rate: Option<(String, f64)> = None;
+        // (first source stating its array, that array); `Err` once two differ.
+        let mut layout: Result<Option<(String, TaxelLayout)>, ()> = Ok(None);
+        let mut all_stated = true;
         for (name, cfg) in &self.sources {
             let sub = cfg.inspect(&Self::sub_context(ctx, name), &[]);
+            match (&sub.facts.layout, &layout) {
+                (None, _) => all_stated = false,
+                (Some(l), Ok(None)) => layout = Ok(Some((name.clone(), l.clone()))),
+                (Some(l), Ok(Some((first, fl)))) if l != fl => {
+                    out.warnings.push(ConfigError::key(
+                        format!("sources.{name}"),
+                        format!(
+                            "its array is {} but source `{first}`'s is {}; WSS matches each trial against its own \
+                             array, but a trained estimator fitted on one array cannot score the other's trials \
+                             (a different taxel count stops the run; the same count with another geometry mixes \
+                             taxels silently)",
+                            describe_layout(l),
+                            describe_layout(fl)
+                        ),
+                    ));
+                    layout = Err(());
+                }
+                _ => {}
+            }
             out.errors.extend(
                 sub.errors
                     .into_iter()
@@ -240,6 +268,10 @@ impl StageConfig for UnionConfig {
             }
         }
         out.facts.sample_rate_hz = rate.map(|(_, r)| r);
+        out.facts.layout = match layout {
+            Ok(Some((_, l))) if all_stated => Some(l),
+            _ => None,
+        };
         out
     }
 }

@@ -87,8 +87,9 @@ impl StageConfig for SceneConfig {
         Ok(Stage::Source(Box::new(SceneSource { sims, fingerprints })))
     }
     /// The sample rate (`motion.sample_rate_hz`), for the stages downstream
-    /// (a low-pass checks its cutoff against it), and the deprecation
-    /// warnings of the scene's keys and file.
+    /// (a low-pass checks its cutoff against it), the array when every
+    /// condition has the same, and the deprecation warnings of the scene's
+    /// keys and file.
     fn inspect(&self, ctx: &BuildContext, _inputs: &[OutputFacts]) -> Inspection {
         match self.resolve_conditions(ctx) {
             Ok((conditions, warnings)) => Inspection {
@@ -99,6 +100,16 @@ impl StageConfig for SceneConfig {
                         .map(|(_, _, scene)| scene.motion.sample_rate_hz)
                         .reduce(|a, b| if a == b { a } else { f64::NAN })
                         .filter(|r| r.is_finite()),
+                    // One array when every condition uses the same (a union
+                    // warns when its sources' arrays differ).
+                    layout: match conditions.split_first() {
+                        Some(((_, _, first), rest))
+                            if rest.iter().all(|(_, _, s)| s.layout == first.layout) =>
+                        {
+                            Some(first.layout.clone())
+                        }
+                        _ => None,
+                    },
                 },
                 errors: Vec::new(),
                 warnings,

@@ -1050,6 +1050,7 @@ mod tests {
         };
         let facts = |fs: f64| OutputFacts {
             sample_rate_hz: Some(fs),
+            layout: None,
         };
         let i = cfg.inspect(&ctx, &[facts(1e300)]);
         assert_eq!(i.errors.len(), 1);
