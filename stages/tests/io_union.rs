@@ -190,6 +190,19 @@ fn a_union_of_sources_on_different_arrays_is_a_warning_naming_both() {
         "{}",
         w[0]
     );
+    // Each source on another array than the first is named.
+    let wide = r#"{ type = "scene", angles = [30], array = { rows = 2, cols = 6 } }"#;
+    let g = load(&format!("{sources}sources.c = {wide}\n")).unwrap();
+    let keys: Vec<_> = g
+        .warnings
+        .iter()
+        .filter(|w| on_arrays(w))
+        .map(|w| w.key.clone())
+        .collect();
+    assert_eq!(
+        keys,
+        [Some("sources.b".to_string()), Some("sources.c".to_string())]
+    );
     // The same array twice, or a source that does not state its array: no warning.
     let g = load(&format!("sources.a = {SCENE}\nsources.b = {SCENE}\n")).unwrap();
     assert!(!g.warnings.iter().any(on_arrays), "{:#?}", g.warnings);

@@ -219,15 +219,16 @@ impl StageConfig for UnionConfig {
     fn inspect(&self, ctx: &BuildContext, _inputs: &[OutputFacts]) -> Inspection {
         let mut out = Inspection::default();
         let mut rate: Option<(String, f64)> = None;
-        // (first source stating its array, that array); `Err` once two differ.
-        let mut layout: Result<Option<(String, TaxelLayout)>, ()> = Ok(None);
-        let mut all_stated = true;
+        // The first source stating its array, and that array: every later
+        // one that states another is warned about.
+        let mut layout: Option<(String, TaxelLayout)> = None;
+        let mut one_array = true;
         for (name, cfg) in &self.sources {
             let sub = cfg.inspect(&Self::sub_context(ctx, name), &[]);
             match (&sub.facts.layout, &layout) {
-                (None, _) => all_stated = false,
-                (Some(l), Ok(None)) => layout = Ok(Some((name.clone(), l.clone()))),
-                (Some(l), Ok(Some((first, fl)))) if l != fl => {
+                (None, _) => one_array = false,
+                (Some(l), None) => layout = Some((name.clone(), l.clone())),
+                (Some(l), Some((first, fl))) if l != fl => {
                     out.warnings.push(ConfigError::key(
                         format!("sources.{name}"),
                         format!(
@@ -239,7 +240,7 @@ impl StageConfig for UnionConfig {
                             describe_layout(fl)
                         ),
                     ));
-                    layout = Err(());
+                    one_array = false;
                 }
                 _ => {}
             }
@@ -268,10 +269,7 @@ impl StageConfig for UnionConfig {
             }
         }
         out.facts.sample_rate_hz = rate.map(|(_, r)| r);
-        out.facts.layout = match layout {
-            Ok(Some((_, l))) if all_stated => Some(l),
-            _ => None,
-        };
+        out.facts.layout = layout.filter(|_| one_array).map(|(_, l)| l);
         out
     }
 }
