@@ -3,34 +3,20 @@
 //! shards writing one folder at the same time. The sweep is
 //! tests/data/cluster_sweep.toml (8 points x 2 repeats on the ideal scene).
 
+mod common;
+
+use common::{palpate, text};
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output, Stdio};
+use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
 const GRAPH: &str = "tests/data/cluster_sweep.toml";
 
-fn palpate(args: &[&str]) -> Output {
-    let out = Command::new(env!("CARGO_BIN_EXE_palpate"))
-        .args(args)
-        .current_dir(env!("CARGO_MANIFEST_DIR"))
-        .output()
-        .expect("palpate runs");
-    out
-}
-
+/// A successful run's stdout then stderr (a failed one fails the test).
 fn ok(args: &[&str]) -> String {
     let out = palpate(args);
-    assert!(
-        out.status.success(),
-        "palpate {args:?} failed:\n{}\n{}",
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    );
-    format!(
-        "{}{}",
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    )
+    assert!(out.status.success(), "palpate {args:?} failed:\n{}", text(&out));
+    text(&out)
 }
 
 fn s(p: &Path) -> &str {
