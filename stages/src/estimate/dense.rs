@@ -853,19 +853,32 @@ unsafe fn sparse256(a: &[f64], bt: &[f64], k: usize, n: usize, np: usize, out: &
                     let t = t as usize;
                     s = _mm256_fmadd_pd(_mm256_set1_pd(row[t]), load(t, h), s);
                 }
-                let j = j0 + 4 * h;
-                let lanes = n.saturating_sub(j).min(4);
-                if lanes == 4 {
-                    // SAFETY: outputs j..j + 4 < n of this row.
-                    unsafe { _mm256_storeu_pd(o.as_mut_ptr().add(j), s) };
-                } else if lanes > 0 {
-                    let mut v = [0.0f64; 4];
-                    // SAFETY: `v` holds four doubles.
-                    unsafe { _mm256_storeu_pd(v.as_mut_ptr(), s) };
-                    o[j..j + lanes].copy_from_slice(&v[..lanes]);
-                }
+                let j = (j0 + 4 * h).min(n);
+                store256(&mut o[j..(j + 4).min(n)], s);
             }
         }
+    }
+}
+
+/// Writes the first `o.len()` lanes (at most 4) of `s` to `o`: a row's
+/// last, partial group of outputs goes through a masked store (the 256-bit
+/// kernels' form of `_mm512_mask_storeu_pd`), a whole group through a plain
+/// one.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+#[inline]
+fn store256(o: &mut [f64], s: std::arch::x86_64::__m256d) {
+    use std::arch::x86_64::*;
+    let lanes = o.len().min(4);
+    if lanes == 4 {
+        // SAFETY: `o` holds at least four doubles.
+        unsafe { _mm256_storeu_pd(o.as_mut_ptr(), s) };
+    } else {
+        // Lane `q` on when `q < lanes` (the sign bit of each 64-bit lane).
+        let mask = _mm256_cmpgt_epi64(_mm256_set1_epi64x(lanes as i64), _mm256_setr_epi64x(0, 1, 2, 3));
+        // SAFETY: the lanes written are `o`'s; a masked-off lane is neither
+        // written nor touched (no fault past the end).
+        unsafe { _mm256_maskstore_pd(o.as_mut_ptr(), mask, s) };
     }
 }
 
@@ -1478,16 +1491,7 @@ unsafe fn nn_block256<const R: usize, const FULL: bool, const S: u8>(
         for t in full..k {
             s = _mm256_fmadd_pd(bcast(pa, r, t), load(pb.wrapping_add(t * n)), s);
         }
-        let o = &mut out[(i + r) * n + j0..(i + r) * n + j0 + lanes];
-        if FULL {
-            // SAFETY: `o` holds four doubles.
-            unsafe { _mm256_storeu_pd(o.as_mut_ptr(), s) };
-        } else {
-            let mut v = [0.0f64; 4];
-            // SAFETY: `v` holds four doubles.
-            unsafe { _mm256_storeu_pd(v.as_mut_ptr(), s) };
-            o.copy_from_slice(&v[..lanes]);
-        }
+        store256(&mut out[(i + r) * n + j0..(i + r) * n + j0 + lanes], s);
     }
 }
 
