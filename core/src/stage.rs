@@ -393,20 +393,19 @@ pub struct OutputFacts {
 impl OutputFacts {
     /// The facts every input agrees on (an unknown input makes them unknown).
     pub fn agreed(inputs: &[OutputFacts]) -> OutputFacts {
-        let rate = match inputs.split_first() {
-            Some((first, rest)) if rest.iter().all(|f| f.sample_rate_hz == first.sample_rate_hz) => {
-                first.sample_rate_hz
-            }
-            _ => None,
-        };
-        let layout = match inputs.split_first() {
-            Some((first, rest)) if rest.iter().all(|f| f.layout == first.layout) => first.layout.clone(),
-            _ => None,
-        };
         OutputFacts {
-            sample_rate_hz: rate,
-            layout,
+            sample_rate_hz: Self::one(inputs.iter().map(|f| f.sample_rate_hz)).flatten(),
+            layout: Self::one(inputs.iter().map(|f| f.layout.as_ref()))
+                .flatten()
+                .cloned(),
         }
+    }
+
+    /// The value every item has; `None` when two differ or there is none
+    /// (how a source with several conditions agrees its own facts).
+    pub fn one<T: PartialEq>(mut items: impl Iterator<Item = T>) -> Option<T> {
+        let first = items.next()?;
+        items.all(|x| x == first).then_some(first)
     }
 }
 

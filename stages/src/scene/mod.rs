@@ -102,14 +102,7 @@ impl StageConfig for SceneConfig {
                         .filter(|r| r.is_finite()),
                     // One array when every condition uses the same (a union
                     // warns when its sources' arrays differ).
-                    layout: match conditions.split_first() {
-                        Some(((_, _, first), rest))
-                            if rest.iter().all(|(_, _, s)| s.layout == first.layout) =>
-                        {
-                            Some(first.layout.clone())
-                        }
-                        _ => None,
-                    },
+                    layout: OutputFacts::one(conditions.iter().map(|(_, _, s)| &s.layout)).cloned(),
                 },
                 errors: Vec::new(),
                 warnings,
