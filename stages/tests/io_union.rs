@@ -224,3 +224,49 @@ fn a_union_of_sources_on_different_arrays_is_a_warning_naming_both() {
         g.warnings
     );
 }
+
+#[test]
+fn a_daq_source_states_its_rate_and_array_before_the_run() {
+    palpate_stages::link();
+    let dir = tempfile::tempdir().unwrap();
+    let write = |text: &str| {
+        let path = dir.path().join("g.toml");
+        std::fs::write(&path, text).unwrap();
+        palpate_core::load_file(&path, &palpate_core::LoadOptions::default()).map_err(|e| e.to_string())
+    };
+    let on_arrays = |w: &palpate_core::Diagnostic| w.message.contains("array is");
+    // A board on a 3 x 5 array beside a 4 x 4 scene: the union warns (the
+    // recording is opened only when the run lists the trials).
+    let board = r#"{ type = "daq", recording = "rec.daq", layout = { rows = 3, cols = 5, pitch_mm = 3.0, taxel_mm = 2.0 } }"#;
+    let g = write(&graph("", &format!("sources.a = {SCENE}\nsources.b = {board}\n"))).unwrap();
+    let w: Vec<_> = g.warnings.iter().filter(|w| on_arrays(w)).collect();
+    assert_eq!(w.len(), 1, "{:#?}", g.warnings);
+    assert_eq!(w[0].key.as_deref(), Some("sources.b"), "{}", w[0]);
+    assert!(
+        w[0].message.contains("3 x 5") && w[0].message.contains("4 x 4"),
+        "{}",
+        w[0]
+    );
+    // Without `layout` a board is the default 4 x 4 grid: no warning.
+    let g = write(&graph(
+        "",
+        &format!("sources.a = {SCENE}\nsources.b = {{ type = \"daq\", recording = \"rec.daq\" }}\n"),
+    ))
+    .unwrap();
+    assert!(!g.warnings.iter().any(on_arrays), "{:#?}", g.warnings);
+    // The board's frame rate reaches the low-pass's check: a 10 Hz cutoff
+    // on a 15 Hz board is an error at load time, naming the key.
+    let lowpass = |rate: f64| {
+        format!(
+            "[stages.daq]\ntype = \"daq\"\nrecording = \"rec.daq\"\nsample_rate_hz = {rate}\n\n\
+             [stages.filter]\ntype = \"lowpass\"\ninputs = [\"daq\"]\ncutoff_hz = 10.0\n\n\
+             [stages.out]\ntype = \"write_signals\"\ninputs = [\"filter\"]\n"
+        )
+    };
+    let e = write(&lowpass(15.0)).unwrap_err();
+    assert!(
+        e.contains("cutoff_hz") && e.contains("Nyquist") && e.contains("15 Hz"),
+        "{e}"
+    );
+    write(&lowpass(1000.0)).unwrap();
+}

@@ -57,9 +57,9 @@ use crate::io::common::LayoutConfig;
 use crate::scene::SceneConfig;
 use palpate_core::stream::{LiveSource, SourceEvent};
 use palpate_core::{
-    check_positive, check_range, derive_seed, register_stage, BuildContext, ConfigChecks, ConfigError,
-    InputSpec, Payload, PayloadKind, RunError, Signals, Source, Stage, StageConfig, StageError, TaxelLayout,
-    TrialContext, TrialMeta,
+    check_positive, check_range, derive_seed, fmt_num, register_stage, BuildContext, ConfigChecks,
+    ConfigError, InputSpec, Inspection, OutputFacts, Payload, PayloadKind, RunError, Signals, Source, Stage,
+    StageConfig, StageError, TaxelLayout, TrialContext, TrialMeta,
 };
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
@@ -151,14 +151,16 @@ pub struct DaqConfig {
     /// Default 3.3 (the paper's board saturates at its supply).
     pub open_v: f64,
     /// Taxel layout; channel `i` is taxel `i`. Default: with `scene` (and no
-    /// `port` or `recording`), the emulated scene's array; else the paper's
-    /// 4x4 grid (3 mm pitch, 2 mm taxels).
+    /// `port` or `recording`), the emulated scene's array (a layout of
+    /// another taxel count is then an error); else the paper's 4x4 grid
+    /// (3 mm pitch, 2 mm taxels).
     /// (`kind = "grid"` or `"positions"` may be left out: `positions_mm` or
     /// `rows`/`cols` tell it.)
     #[serde(default, deserialize_with = "crate::io::common::layout_with_inferred_kind")]
     pub layout: Option<LayoutConfig>,
-    /// Frame rate of the board, Hz (an emulated scene must sample at it).
-    /// Default: with `scene` alone, the scene's rate; else 1000.
+    /// Frame rate of the board, Hz. Default: with `scene` alone, the
+    /// scene's rate (another value is then an error: the emulator plays the
+    /// scene's samples as frames); else 1000.
     pub sample_rate_hz: Option<f64>,
     /// Decoded value = raw · `scale` + `offset` (e.g. V per ADC count). Default 1.
     pub scale: f64,
@@ -436,6 +438,20 @@ struct Checked {
 }
 
 impl DaqConfig {
+    /// The scene this config emulates: only with `scene` and neither `port`
+    /// nor `recording` (which win over it).
+    fn emulated_scene(&self) -> Option<SceneConfig> {
+        match (&self.port, &self.recording, &self.scene) {
+            (None, None, Some(file)) => Some(SceneConfig {
+                file: Some(file.clone()),
+                angles: self.angles.clone().map(crate::scene::config::Angles::List),
+                trials_per_angle: self.trials_per_angle,
+                ..SceneConfig::default()
+            }),
+            _ => None,
+        }
+    }
+
     /// Checks every key, naming each bad one (all at once).
     fn check(&self, ctx: &BuildContext) -> Result<Checked, ConfigError> {
         let mut c = ConfigChecks::new();
@@ -485,13 +501,8 @@ impl DaqConfig {
         let input = match (&self.port, &self.recording, &self.scene) {
             (Some(p), _, _) => Some(Input::Port(p.clone())),
             (None, Some(r), _) => Some(Input::Recording(ctx.base_dir.join(r))),
-            (None, None, Some(file)) => {
-                let scene = SceneConfig {
-                    file: Some(file.clone()),
-                    angles: self.angles.clone().map(crate::scene::config::Angles::List),
-                    trials_per_angle: self.trials_per_angle,
-                    ..SceneConfig::default()
-                };
+            (None, None, Some(_)) => {
+                let scene = self.emulated_scene().unwrap_or_default();
                 // The board an emulated scene stands for has the scene's
                 // array and rate unless the keys say otherwise.
                 if let Ok(sc) = scene.resolve(ctx) {
@@ -519,6 +530,31 @@ impl DaqConfig {
             .or(emulated.as_ref().map(|e| e.1))
             .unwrap_or(1000.0);
         let fs = c.take(check_range("sample_rate_hz", fs, 1.0, 1e6, "Hz"));
+        // An emulated board plays the scene's samples as its frames, so its
+        // rate and taxel count must be the scene's: said here, not when the
+        // first trial plays.
+        if let Some((scene_layout, scene_fs)) = &emulated {
+            if let Some(r) = self.sample_rate_hz.filter(|r| r != scene_fs) {
+                c.push(ConfigError::key(
+                    "sample_rate_hz",
+                    format!(
+                        "{} Hz, but the emulated scene samples at {} Hz: leave the key out or set the scene's `motion.sample_rate_hz`",
+                        fmt_num(r),
+                        fmt_num(*scene_fs)
+                    ),
+                ));
+            }
+            if let Some(l) = layout.as_ref().filter(|l| l.len() != scene_layout.len()) {
+                c.push(ConfigError::key(
+                    "layout",
+                    format!(
+                        "{} taxels, but the emulated scene's array has {}: leave the key out to use the scene's",
+                        l.len(),
+                        scene_layout.len()
+                    ),
+                ));
+            }
+        }
         c.finish()?;
         let (
             Some(input),
@@ -585,6 +621,33 @@ impl StageConfig for DaqConfig {
     }
     fn build(&self, ctx: &BuildContext) -> Result<Stage, ConfigError> {
         Ok(Stage::Source(Box::new(DaqSource::new(self, ctx)?)))
+    }
+    /// The board's frame rate and array as the checked config settles them
+    /// (an emulated scene's unless `sample_rate_hz` or `layout` say
+    /// otherwise), so that a low-pass checks its cutoff against the rate
+    /// and a `union` warns when its sources' arrays differ before anything
+    /// runs; and an emulated scene's own warnings (deprecated keys), under
+    /// `scene`. Nothing is known of a config `build` rejects (it reports
+    /// why).
+    fn inspect(&self, ctx: &BuildContext, _inputs: &[OutputFacts]) -> Inspection {
+        let Ok(c) = self.check(ctx) else {
+            return Inspection::default();
+        };
+        let warnings = self
+            .emulated_scene()
+            .map(|s| s.inspect(ctx, &[]).warnings)
+            .unwrap_or_default()
+            .into_iter()
+            .map(|w| w.within("scene"))
+            .collect();
+        Inspection {
+            facts: OutputFacts {
+                sample_rate_hz: Some(c.fs),
+                layout: Some(c.layout),
+            },
+            errors: Vec::new(),
+            warnings,
+        }
     }
 }
 register_stage!("daq", DaqConfig);
@@ -1134,14 +1197,36 @@ mod tests {
         };
         let c = scene.check(&ctx).unwrap();
         assert_eq!((c.layout.len(), c.fs), (6, 500.0));
-        // Keys win (a mismatch is then the emulator's error, naming them).
+        // Keys that disagree with the scene are errors at check time, each
+        // naming its key, not when the first trial plays.
         let keyed = DaqConfig {
             layout: Some(LayoutConfig::default()),
             sample_rate_hz: Some(1000.0),
+            ..scene.clone()
+        };
+        let Err(e) = keyed.check(&ctx) else {
+            panic!("keys that disagree with the scene passed the check");
+        };
+        let keys: Vec<_> = e.problems().into_iter().filter_map(|(k, _)| k).collect();
+        assert_eq!(keys, ["sample_rate_hz", "layout"], "{e}");
+        assert!(
+            e.to_string().contains("16 taxels") && e.to_string().contains("500 Hz"),
+            "{e}"
+        );
+        // Keys that agree win: another geometry of the scene's six taxels.
+        let keyed = DaqConfig {
+            layout: Some(LayoutConfig::Grid {
+                rows: 2,
+                cols: 3,
+                pitch_mm: 2.5,
+                taxel_mm: 2.0,
+            }),
+            sample_rate_hz: Some(500.0),
             ..scene
         };
         let c = keyed.check(&ctx).unwrap();
-        assert_eq!((c.layout.len(), c.fs), (16, 1000.0));
+        assert_eq!((c.layout.len(), c.fs), (6, 500.0));
+        assert!(matches!(c.layout, TaxelLayout::Grid { rows: 2, cols: 3, .. }));
         // A real board: the paper's array at 1 kHz.
         let port = DaqConfig {
             port: Some("/dev/null".into()),
