@@ -498,11 +498,10 @@ impl DaqConfig {
             ));
         }
         let mut emulated: Option<(TaxelLayout, f64)> = None;
-        let input = match (&self.port, &self.recording, &self.scene) {
+        let input = match (&self.port, &self.recording, self.emulated_scene()) {
             (Some(p), _, _) => Some(Input::Port(p.clone())),
             (None, Some(r), _) => Some(Input::Recording(ctx.base_dir.join(r))),
-            (None, None, Some(_)) => {
-                let scene = self.emulated_scene().unwrap_or_default();
+            (None, None, Some(scene)) => {
                 // The board an emulated scene stands for has the scene's
                 // array and rate unless the keys say otherwise.
                 if let Ok(sc) = scene.resolve(ctx) {
