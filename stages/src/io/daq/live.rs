@@ -5,7 +5,10 @@
 //! ## Acquisition ([`acquire`])
 //!
 //! A reader thread moves bytes from the stream into a channel as they arrive,
-//! so the loop can notice silence even when the stream's `read` blocks. Each
+//! so the loop can notice silence even when the stream's `read` blocks. The
+//! channel holds at most [`READ_AHEAD_BYTES`] (1 MiB): a stream faster than
+//! the graph behind it makes the reader wait there instead of growing memory,
+//! and the board's own buffer (or the terminal's) takes the rest. Each
 //! chunk is first written to the raw recording (every byte, before decoding, so
 //! a decoder bug can never lose data), then decoded; frames and anomalies go to
 //! the caller's callback in stream order. The recording is flushed and synced to
@@ -221,6 +224,16 @@ pub struct DaqError {
     pub recorded_bytes: u64,
 }
 
+/// Bytes one `read` of the stream takes at most.
+const READ_CHUNK_BYTES: usize = 4096;
+/// Chunks the reader may queue ahead of the decoder.
+const READ_QUEUE_CHUNKS: usize = 256;
+/// The most raw bytes read from the stream but not yet decoded: the live
+/// path's only buffer whose fill depends on how far the graph lags the
+/// stream (256 chunks of at most 4 KiB; 1 MiB is ~19 s of a 16-taxel board's
+/// 54-byte `U16` frames at 1 kHz).
+pub const READ_AHEAD_BYTES: usize = READ_QUEUE_CHUNKS * READ_CHUNK_BYTES;
+
 enum Chunk {
     Data(Vec<u8>),
     End,
@@ -228,9 +241,9 @@ enum Chunk {
 }
 
 fn spawn_reader<R: Read + Send + 'static>(mut reader: R, stop: Arc<AtomicBool>) -> mpsc::Receiver<Chunk> {
-    let (tx, rx) = mpsc::sync_channel::<Chunk>(256);
+    let (tx, rx) = mpsc::sync_channel::<Chunk>(READ_QUEUE_CHUNKS);
     std::thread::spawn(move || {
-        let mut buf = vec![0u8; 4096];
+        let mut buf = vec![0u8; READ_CHUNK_BYTES];
         while !stop.load(Ordering::Relaxed) {
             let msg = match reader.read(&mut buf) {
                 Ok(0) => Chunk::End,

@@ -23,7 +23,7 @@ pub mod source;
 pub use live::{
     acquire, acquire_serial, emulate, emulate_pty, emulate_pty_drain, open_pty, open_serial,
     signals_from_recording, AcquireOptions, AcquireReport, DaqError, DaqErrorKind, DaqEvent, EmulateOptions,
-    EmulateReport, Pty, RawRecorder, StopReason,
+    EmulateReport, Pty, RawRecorder, StopReason, READ_AHEAD_BYTES,
 };
 pub use protocol::{
     crc32, decode_recording, encode_frame, frame_len, DaqStats, DecodeEvent, DecodedRecording, Decoder,
