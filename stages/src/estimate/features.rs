@@ -645,17 +645,26 @@ impl Standardizer {
         let d = set.dim;
         let n = idx.len().max(1) as f64;
         let mut mean = vec![0.0; d];
-        for &i in idx {
-            mean.iter_mut().zip(set.row(i)).for_each(|(m, x)| *m += x);
-        }
-        mean.iter_mut().for_each(|m| *m /= n);
         let mut var = vec![0.0; d];
-        for &i in idx {
-            var.iter_mut()
-                .zip(set.row(i))
-                .zip(&mean)
-                .for_each(|((v, x), m)| *v += (x - m) * (x - m));
-        }
+        // Column sums over the rows, four columns to an instruction inside
+        // the AVX2 function (the same additions in the same order per
+        // column, so the same bits; ~0.1 ms of a k-NN fit of 3060 x 80 on
+        // the baseline's two).
+        crate::wide::with_avx2(
+            #[inline(always)]
+            || {
+                for &i in idx {
+                    mean.iter_mut().zip(set.row(i)).for_each(|(m, x)| *m += x);
+                }
+                mean.iter_mut().for_each(|m| *m /= n);
+                for &i in idx {
+                    var.iter_mut()
+                        .zip(set.row(i))
+                        .zip(&mean)
+                        .for_each(|((v, x), m)| *v += (x - m) * (x - m));
+                }
+            },
+        );
         let inv_sd = var
             .iter()
             .map(|v| {
