@@ -556,11 +556,15 @@ pub fn render(stats: &MaeStats, per_class: bool) -> String {
     if stats.trials > 0 && stats.no_edge == stats.trials {
         // The usual cause on a recording is the front end, not the estimator:
         // say where to look (the guide's troubleshooting page says more).
+        // An estimator that cannot work on the input (WSS on one taxel or on
+        // one line along the slide) warns at the start of the run; this sink
+        // cannot see that warning, so it points at it first.
         let _ = writeln!(
             s,
-            "  every trial came out \"no edge\": check the front end -- `normalize`'s `min_span` is in the \
-             signal's unit (0.1 for volts, 100 for millivolts) and the encoder must fire (a `raster_plot` \
-             stage shows its spikes)"
+            "  every trial came out \"no edge\": unless a warning above gives the reason (an array WSS \
+             cannot read), check the front end -- `normalize`'s `min_span` is in the signal's unit (0.1 \
+             for volts, 100 for millivolts) and the encoder must fire (a `raster_plot` stage shows its \
+             spikes)"
         );
     }
     if let Some(d) = stats.decision_ms {
