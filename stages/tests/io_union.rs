@@ -225,6 +225,49 @@ fn a_union_of_sources_on_different_arrays_is_a_warning_naming_both() {
     );
 }
 
+/// A single scene whose conditions use different arrays is warned about as
+/// a union of sources on different arrays is: at each condition whose array
+/// differs from the first condition's (conditions in name order).
+#[test]
+fn a_scene_with_conditions_on_different_arrays_is_a_warning_naming_both() {
+    palpate_stages::link();
+    let dir = tempfile::tempdir().unwrap();
+    let load = |conditions: &str| {
+        let path = dir.path().join("g.toml");
+        let body = format!(
+            "type = \"scene\"\nangles = [30]\ntrials_per_angle = 1\nconditions = {{ {conditions} }}\n"
+        );
+        std::fs::write(&path, graph("", &body)).unwrap();
+        palpate_core::load_file(&path, &palpate_core::LoadOptions::default()).map_err(|e| e.to_string())
+    };
+    let arrays = |g: &palpate_core::Graph| -> Vec<(Option<String>, String)> {
+        g.warnings
+            .iter()
+            .filter(|w| w.message.contains("array is"))
+            .map(|w| (w.key.clone(), w.message.clone()))
+            .collect()
+    };
+    let g = load("a = {}, b = { array = { rows = 3, cols = 5 } }, c = {}").unwrap();
+    let w = arrays(&g);
+    assert_eq!(w.len(), 1, "{:#?}", g.warnings);
+    assert_eq!(w[0].0.as_deref(), Some("conditions.b"), "{:?}", w[0]);
+    assert!(
+        w[0].1.contains("3 x 5") && w[0].1.contains("4 x 4") && w[0].1.contains("condition `a`"),
+        "{}",
+        w[0].1
+    );
+    let g =
+        load("a = {}, b = { array = { rows = 3, cols = 5 } }, c = { array = { pitch_mm = 4.0 } }").unwrap();
+    let keys: Vec<_> = arrays(&g).into_iter().map(|(k, _)| k).collect();
+    assert_eq!(
+        keys,
+        [Some("conditions.b".to_string()), Some("conditions.c".to_string())]
+    );
+    // Conditions that change something else: no warning.
+    let g = load("a = {}, b = { motion = { speed_mm_s = 4.0 } }").unwrap();
+    assert!(arrays(&g).is_empty(), "{:#?}", g.warnings);
+}
+
 #[test]
 fn a_daq_source_states_its_rate_and_array_before_the_run() {
     palpate_stages::link();

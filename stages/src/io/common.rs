@@ -804,6 +804,29 @@ pub fn describe_layout(l: &TaxelLayout) -> String {
     }
 }
 
+/// The warning for one part of a run (a union's source, a scene's
+/// condition: `what`) on another array than an earlier part `first`: legal
+/// for WSS, wrong for a trained estimator. Keyed `key`.
+pub fn other_array_warning(
+    key: String,
+    l: &TaxelLayout,
+    what: &str,
+    first: &str,
+    fl: &TaxelLayout,
+) -> ConfigError {
+    ConfigError::key(
+        key,
+        format!(
+            "its array is {} but {what} `{first}`'s is {}; WSS matches each trial against its own \
+             array, but a trained estimator fitted on one array cannot score the other's trials \
+             (a different taxel count stops the run; the same count with another geometry mixes \
+             taxels silently)",
+            describe_layout(l),
+            describe_layout(fl)
+        ),
+    )
+}
+
 /// Reads a label sidecar (TOML, CSV, or the `trials.json` of `palpate
 /// simulate`, by extension): trial id -> labels.
 pub fn read_sidecar(path: &Path) -> Result<BTreeMap<String, TrialLabels>, StageError> {

@@ -31,7 +31,7 @@
 //! id), so a scene inside a union draws other noise than the same scene as a
 //! stage of its own; results remain a pure function of graph and seed.
 
-use super::common::describe_layout;
+use super::common::other_array_warning;
 use palpate_core::{
     register_stage, BuildContext, ConfigError, InputSpec, Inspection, OutputFacts, Payload, PayloadKind,
     Source, Stage, StageConfig, StageError, TaxelLayout, TrialContext, TrialMeta,
@@ -229,16 +229,12 @@ impl StageConfig for UnionConfig {
                 (None, _) => one_array = false,
                 (Some(l), None) => layout = Some((name.clone(), l.clone())),
                 (Some(l), Some((first, fl))) if l != fl => {
-                    out.warnings.push(ConfigError::key(
+                    out.warnings.push(other_array_warning(
                         format!("sources.{name}"),
-                        format!(
-                            "its array is {} but source `{first}`'s is {}; WSS matches each trial against its own \
-                             array, but a trained estimator fitted on one array cannot score the other's trials \
-                             (a different taxel count stops the run; the same count with another geometry mixes \
-                             taxels silently)",
-                            describe_layout(l),
-                            describe_layout(fl)
-                        ),
+                        l,
+                        "source",
+                        first,
+                        fl,
                     ));
                     one_array = false;
                 }
