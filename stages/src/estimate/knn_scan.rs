@@ -15,7 +15,10 @@
 //! machine's multiply rate. The scan builds in a copy (the vectors in `f32`,
 //! their norms) and its product is a dense multiply-add kernel: on the
 //! `benches/peers` k-NN workload it both builds and searches faster (the
-//! numbers are in docs/benches.md).
+//! numbers are in docs/benches.md). With AVX2 the build's norms and its
+//! transpose into the lane layout are vector kernels (`x86::norms_of`,
+//! `x86::neg2_block`) doing the scalar loops' operations, so the same bits
+//! (test `the_wide_build_is_the_scalar_build_bit_for_bit`).
 //!
 //! # The scan ([`Scan::search`])
 //!
