@@ -159,6 +159,13 @@ fn bad_unions_are_errors_naming_the_key() {
     assert!(e.contains("sources.b") && e.contains("500"), "{e}");
 }
 
+/// Writes `text` as `g.toml` in `dir` and loads it (the error as text).
+fn load_text(dir: &std::path::Path, text: &str) -> Result<palpate_core::Graph, String> {
+    let path = dir.join("g.toml");
+    std::fs::write(&path, text).unwrap();
+    palpate_core::load_file(&path, &palpate_core::LoadOptions::default()).map_err(|e| e.to_string())
+}
+
 #[test]
 fn a_union_of_sources_on_different_arrays_is_a_warning_naming_both() {
     palpate_stages::link();
@@ -166,11 +173,7 @@ fn a_union_of_sources_on_different_arrays_is_a_warning_naming_both() {
     // Loading builds the sources, and a file source wants its file to exist
     // (it is read only when the run lists the trials).
     std::fs::write(dir.path().join("rec.csv"), "time_s,taxel_0\n").unwrap();
-    let load = |sources: &str| {
-        let path = dir.path().join("g.toml");
-        std::fs::write(&path, graph("", sources)).unwrap();
-        palpate_core::load_file(&path, &palpate_core::LoadOptions::default()).map_err(|e| e.to_string())
-    };
+    let load = |sources: &str| load_text(dir.path(), &graph("", sources));
     let on_arrays = |w: &palpate_core::Diagnostic| w.message.contains("array is");
     let small = r#"{ type = "scene", angles = [30], array = { rows = 3, cols = 5 } }"#;
     let sources = format!("sources.a = {SCENE}\nsources.b = {small}\n");
@@ -233,12 +236,10 @@ fn a_scene_with_conditions_on_different_arrays_is_a_warning_naming_both() {
     palpate_stages::link();
     let dir = tempfile::tempdir().unwrap();
     let load = |conditions: &str| {
-        let path = dir.path().join("g.toml");
         let body = format!(
             "type = \"scene\"\nangles = [30]\ntrials_per_angle = 1\nconditions = {{ {conditions} }}\n"
         );
-        std::fs::write(&path, graph("", &body)).unwrap();
-        palpate_core::load_file(&path, &palpate_core::LoadOptions::default()).map_err(|e| e.to_string())
+        load_text(dir.path(), &graph("", &body))
     };
     let arrays = |g: &palpate_core::Graph| -> Vec<(Option<String>, String)> {
         g.warnings
@@ -272,11 +273,7 @@ fn a_scene_with_conditions_on_different_arrays_is_a_warning_naming_both() {
 fn a_daq_source_states_its_rate_and_array_before_the_run() {
     palpate_stages::link();
     let dir = tempfile::tempdir().unwrap();
-    let write = |text: &str| {
-        let path = dir.path().join("g.toml");
-        std::fs::write(&path, text).unwrap();
-        palpate_core::load_file(&path, &palpate_core::LoadOptions::default()).map_err(|e| e.to_string())
-    };
+    let write = |text: &str| load_text(dir.path(), text);
     let on_arrays = |w: &palpate_core::Diagnostic| w.message.contains("array is");
     // A board on a 3 x 5 array beside a 4 x 4 scene: the union warns (the
     // recording is opened only when the run lists the trials).

@@ -12,7 +12,7 @@
 //! which writes as fast as it can, and it does on a loaded machine. So the
 //! peak may exceed the start by that queue plus jitter, and the median of
 //! the last quarter of the run (a leak's growth, which a transient fill
-//! does not move) may exceed the median of the first samples by jitter only.
+//! does not move) may exceed the median of the first quarter by jitter only.
 
 use palpate_core::stream;
 use palpate_core::LoadOptions;

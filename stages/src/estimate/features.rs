@@ -647,9 +647,9 @@ impl Standardizer {
         let mut mean = vec![0.0; d];
         let mut var = vec![0.0; d];
         // Column sums over the rows, four columns to an instruction inside
-        // the AVX2 function (the same additions in the same order per
-        // column, so the same bits; ~0.1 ms of a k-NN fit of 3060 x 80 on
-        // the baseline's two).
+        // the AVX2 function instead of the baseline's two (the same
+        // additions in the same order per column, so the same bits; timed
+        // only with the k-NN build's kernels, docs/benches.md).
         crate::wide::with_avx2(
             #[inline(always)]
             || {

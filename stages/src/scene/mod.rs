@@ -90,41 +90,40 @@ impl StageConfig for SceneConfig {
     /// (a low-pass checks its cutoff against it), the array when every
     /// condition has the same, and the deprecation warnings of the scene's
     /// keys and file.
+    ///
     /// Conditions on different arrays draw a warning, as a union's sources
     /// do (legal for WSS, wrong for a trained estimator), at each condition
     /// whose array differs from the first condition's.
     fn inspect(&self, ctx: &BuildContext, _inputs: &[OutputFacts]) -> Inspection {
-        match self.resolve_conditions(ctx) {
-            Ok((conditions, mut warnings)) => Inspection {
-                warnings: {
-                    if let Some(((Some(first), _, s0), rest)) = conditions.split_first() {
-                        for (name, _, s) in rest.iter().filter(|(_, _, s)| s.layout != s0.layout) {
-                            warnings.push(crate::io::common::other_array_warning(
-                                format!("conditions.{}", name.as_deref().unwrap_or("")),
-                                &s.layout,
-                                "condition",
-                                first,
-                                &s0.layout,
-                            ));
-                        }
-                    }
-                    warnings
-                },
-                facts: OutputFacts {
-                    // One rate when every condition samples alike.
-                    sample_rate_hz: conditions
-                        .iter()
-                        .map(|(_, _, scene)| scene.motion.sample_rate_hz)
-                        .reduce(|a, b| if a == b { a } else { f64::NAN })
-                        .filter(|r| r.is_finite()),
-                    // One array when every condition uses the same (a union
-                    // warns when its sources' arrays differ).
-                    layout: OutputFacts::one(conditions.iter().map(|(_, _, s)| &s.layout)).cloned(),
-                },
-                errors: Vec::new(),
-            },
+        let Ok((conditions, mut warnings)) = self.resolve_conditions(ctx) else {
             // `build` reported it already.
-            Err(_) => Inspection::default(),
+            return Inspection::default();
+        };
+        if let Some(((Some(first), _, s0), rest)) = conditions.split_first() {
+            for (name, _, s) in rest.iter().filter(|(_, _, s)| s.layout != s0.layout) {
+                warnings.push(crate::io::common::other_array_warning(
+                    format!("conditions.{}", name.as_deref().unwrap_or_default()),
+                    &s.layout,
+                    "condition",
+                    first,
+                    &s0.layout,
+                ));
+            }
+        }
+        Inspection {
+            facts: OutputFacts {
+                // One rate when every condition samples alike.
+                sample_rate_hz: conditions
+                    .iter()
+                    .map(|(_, _, scene)| scene.motion.sample_rate_hz)
+                    .reduce(|a, b| if a == b { a } else { f64::NAN })
+                    .filter(|r| r.is_finite()),
+                // One array when every condition uses the same (warned
+                // above when they differ).
+                layout: OutputFacts::one(conditions.iter().map(|(_, _, s)| &s.layout)).cloned(),
+            },
+            errors: Vec::new(),
+            warnings,
         }
     }
 }
