@@ -1,7 +1,11 @@
 //! WSS benches: one paper-like trial's estimate (17 classes, 10 ms hop, 4x4
 //! array, 2 s holds, crossing at 2 mm/s) by the fast batch path, the streaming
 //! cost per frame, the direct reference on a short trial for scale, and the
-//! templates of one angle (what each probe of a refining search builds).
+//! templates of one angle (what each probe of a refining search builds), and
+//! one trial's estimate refined by `refine = "search"` at the known speed and
+//! with the joint speed search (`speed_tolerance = 0.25`: five grid speeds,
+//! then golden-section probes of speed and angle), the cost that
+//! graphs/paper/speed_error.toml's points pay per trial.
 //!
 //! Trials are ideal spike images built from the geometry (each taxel's count
 //! proportional to the time the edge spends over its area in the frame).
@@ -9,7 +13,9 @@
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 use palpate_core::geometry::Edge;
 use palpate_core::{SpikeImages, TaxelLayout};
-use palpate_stages::estimate::wss::{wss_batch, wss_reference, Templates, WssParams, WssStream};
+use palpate_stages::estimate::wss::{
+    wss_batch, wss_batch_speeds, wss_reference, Refine, Templates, WssParams, WssStream,
+};
 use std::hint::black_box;
 use std::sync::Arc;
 
@@ -75,6 +81,31 @@ fn bench(c: &mut Criterion) {
         g.bench_function(format!("{theta}deg_{frames}frames"), |b| {
             b.iter(|| Templates::for_angles(&layout, 10.0, &params, black_box(&[theta])).unwrap())
         });
+    }
+    g.finish();
+    // Refined searches: templates per speed built once, as the stage does
+    // (each probe still builds its own one-angle templates and spectra).
+    let mut g = c.benchmark_group("wss_search");
+    g.sample_size(20);
+    for (name, tolerance) in [("known_speed", 0.0), ("joint_speed", 0.25)] {
+        let p = WssParams {
+            refine: Refine::Search,
+            speed_tolerance: tolerance,
+            ..params.clone()
+        };
+        let sets: Vec<(f64, Templates)> = p
+            .speed_factors()
+            .into_iter()
+            .map(|f| (f, Templates::new(&layout, 10.0, &p.at_speed(f)).unwrap()))
+            .collect();
+        let sets: Vec<(f64, &Templates)> = sets.iter().map(|(f, t)| (*f, t)).collect();
+        for theta in [47.3, 21.8] {
+            let im = ideal(&layout, theta, 2.0, 2000.0);
+            let _ = wss_batch_speeds(&im, &sets, &p).unwrap();
+            g.bench_function(format!("{name}_{theta}deg_{}frames", im.n_frames), |b| {
+                b.iter(|| wss_batch_speeds(black_box(&im), &sets, &p).unwrap())
+            });
+        }
     }
     g.finish();
     let mut g = c.benchmark_group("wss_reference");
