@@ -536,6 +536,54 @@ def run_baselines(work, seed, repeats):
     return meta, results
 
 
+def merged_time(a, b):
+    """Two timings of one call (`timed`'s dicts, or palpate_side.rs's) as
+    one: every sample of both, their minimum and median."""
+    def batches(t):
+        c = t["calls_per_repeat"]
+        return c if isinstance(c, list) else [c]
+
+    out = {"repeats": a["repeats"] + b["repeats"], "calls_per_repeat": batches(a) + batches(b)}
+    for key in ["wall_s", "cpu_s"]:
+        xs = (a.get(key) or {}).get("all", []) + (b.get(key) or {}).get("all", [])
+        xs = [x for x in xs if x is not None]
+        out[key] = {"median": sorted(xs)[len(xs) // 2], "min": min(xs), "all": xs} if xs else None
+    return out
+
+
+def retime_palpate(work, bmeta, r):
+    """palpate's baseline side again (the example, every baseline, no
+    encoder), into work/rounds/r<r>/: the same export, timed anew."""
+    ids = ",".join(bmeta["models"].keys())
+    out = work / "rounds" / f"r{r}"
+    cmd = ["cargo", "run", "--quiet", "--release", "--example", "peers", "--", "--out", str(out), "--seed", str(bmeta["source"]["seed"]), "--only", ids]
+    subprocess.run(cmd, check=True, cwd=HERE.parent.parent)
+    return json.loads((out / "baselines" / "baselines.json").read_text())
+
+
+def merge_palpate_round(bmeta, again, r):
+    """Adds round `r`'s palpate times to `bmeta`. The round must have
+    fitted the same models: the same per-trial answers and frame accuracy
+    (palpate is deterministic), else the comparison would mix two models."""
+    for mid, m in bmeta["models"].items():
+        pm, qm = m["palpate"], again["models"][mid]["palpate"]
+        if pm["trial_answers_deg"] != qm["trial_answers_deg"] or pm["frame_accuracy"] != qm["frame_accuracy"]:
+            raise SystemExit(f"{mid}: palpate's round {r} answered differently from round 1 (a nondeterministic fit?)")
+        for phase in ["fit_time", "predict_time"]:
+            pm[phase] = merged_time(pm[phase], qm[phase])
+
+
+def merge_sklearn_round(bres, again, r):
+    """Adds round `r`'s scikit-learn times to `bres` (the first round's
+    answers stay; a peer whose answers moved between rounds is noted)."""
+    for mid, res in bres.items():
+        q = again[mid]
+        for phase in ["fit_time", "predict_time"]:
+            res[phase] = merged_time(res[phase], q[phase])
+        if q["trial_answers_deg"] != res["trial_answers_deg"]:
+            res.setdefault("notes", []).append(f"round {r} answered differently from round 1")
+
+
 # ---------------------------------------------------------------------------
 # Report
 # ---------------------------------------------------------------------------
@@ -578,7 +626,15 @@ def main():
     ap.add_argument("--skip-baselines", action="store_true")
     ap.add_argument("--md", type=Path, default=HERE / "RESULTS-peers.md", help="Markdown section to write")
     ap.add_argument("--command", default=None, help="the command line to record in the Markdown")
+    ap.add_argument(
+        "--rounds",
+        type=int,
+        default=2,
+        help="baseline timing rounds, the sides alternated (palpate, scikit-learn, palpate, ...); each side's figure is its best over every round",
+    )
     args = ap.parse_args()
+    if args.rounds < 1:
+        ap.error(f"--rounds must be at least 1, not {args.rounds}")
     work = args.work.resolve()
     load_start = os.getloadavg()
     t_start = time.time()
@@ -619,7 +675,13 @@ def main():
 
     if not args.skip_baselines:
         bmeta, bres = run_baselines(work, 1, max(args.repeats, 5))
-        report["baselines"] = {"meta": bmeta, "sklearn": bres}
+        for r in range(2, args.rounds + 1):
+            print(f"baselines, round {r} of {args.rounds}: palpate, then scikit-learn ...", flush=True)
+            again = retime_palpate(work, bmeta, r)
+            merge_palpate_round(bmeta, again, r)
+            _, bres_r = run_baselines(work, 1, max(args.repeats, 5))
+            merge_sklearn_round(bres, bres_r, r)
+        report["baselines"] = {"meta": bmeta, "sklearn": bres, "rounds": args.rounds}
         names = {"ann_s": "ANN (S)", "ann_st": "ANN (ST)", "edbn": "EDBN", "svm": "SVM", "random_forest": "random forest", "knn": "k-NN", "logistic": "logistic"}
         for mid, r in bres.items():
             pm = bmeta["models"][mid]["palpate"]
@@ -746,7 +808,13 @@ def main():
         f"Produced by `{cmd}` on {time.strftime('%Y-%m-%d %H:%M')} ({mach['cpu']}, {mach['cores']} cores, "
         f"Python {mach['python']}). Load average (1/5/15 min) {load_start[0]:.2f}/{load_start[1]:.2f}/{load_start[2]:.2f} "
         f"at the start, {load_end[0]:.2f}/{load_end[1]:.2f}/{load_end[2]:.2f} at the end. Times are the best of several samples of "
-        "wall time per call (medians and CPU times are in results.json); "
+        "wall time per call (medians and CPU times are in results.json)"
+        + (
+            f", the baselines' over {report['baselines']['rounds']} rounds with the sides alternated (palpate, then scikit-learn, in each round)"
+            if report.get("baselines", {}).get("rounds", 1) > 1
+            else ""
+        )
+        + "; "
         "Brian2's is its simulation loop (code generation and compilation excluded, reported in results.json), "
         "palpate's the encoder kernel or the fit/predict calls on the same arrays. speed-up = peer / palpate. "
         "See benches/peers/README.md for what is measured and how fairness was handled.",
