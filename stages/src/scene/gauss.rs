@@ -155,14 +155,14 @@ impl GaussianSource {
     /// of `*v += sigma * self.sample()` value by value.
     ///
     /// Why not that loop: one sample at a time is a chain of table loads
-    /// and a branch per value, and noise was the largest single part of a
-    /// lab trial's simulation (`perf record` of a scene-and-filter graph,
-    /// 11 % of the run). Here the buffered draws run through the ziggurat's
-    /// fast path eight at a time ([`fast_run`], vectorised where the CPU
-    /// has AVX2), up to the first draw it rejects; that draw and whatever
-    /// its wedge or tail test consumes go through [`Self::sample`] as
-    /// before. Each accepted draw is one value either way, so every value
-    /// gets the same draw and the same two operations (test
+    /// and a branch per value, and noise was the largest single effect of
+    /// a lab trial's simulation (`perf record`). Here the buffered draws
+    /// run through the ziggurat's fast path eight at a time (`fast_run`,
+    /// compiled for AVX2 where the CPU has it, see `fast_run_any`), up to
+    /// the first draw it rejects; that draw and whatever its wedge or tail
+    /// test consumes go through [`Self::sample`] as before. Each accepted
+    /// draw is one value either way, so every value gets the same draw and
+    /// the same two operations (test
     /// `batched_noise_is_the_bits_of_sample_by_sample`).
     pub fn add_scaled(&mut self, data: &mut [f64], sigma: f64) {
         let mut o = 0;
@@ -173,10 +173,7 @@ impl GaussianSource {
             let end = (o + (BUF - self.pos)).min(data.len());
             let (tab, bits) = (self.tab, &self.buf[self.pos..]);
             let out = &mut data[o..end];
-            let took = crate::wide::with_avx2(
-                #[inline(always)]
-                || fast_run(bits, tab, sigma, out),
-            );
+            let took = fast_run_any(bits, tab, sigma, out);
             self.pos += took;
             o += took;
             if o < end {
@@ -186,6 +183,27 @@ impl GaussianSource {
             }
         }
     }
+}
+
+/// [`fast_run`] compiled for AVX2 where the CPU has it, and not for
+/// AVX-512 even where it has that: its table lookups become gathers, and
+/// with 512-bit ones the quickstart's scene median rose on an AMD EPYC
+/// with AVX-512 (`palpate run graphs/quickstart.toml --threads 1`, four
+/// runs alternated with the one-sample loop: 2.27-2.38 against 2.15-2.42
+/// ms, p95 7.78-8.09 against 7.42-7.67 ms), where with 256-bit ones it
+/// fell (2.02-2.25 against 2.14-2.42 ms, p95 7.08-7.21 against 7.37-7.57).
+#[inline]
+fn fast_run_any(bits: &[u64], tab: &Tables, sigma: f64, out: &mut [f64]) -> usize {
+    #[cfg(target_arch = "x86_64")]
+    if crate::wide::avx2() {
+        #[target_feature(enable = "avx2,fma")]
+        fn avx2(bits: &[u64], tab: &Tables, sigma: f64, out: &mut [f64]) -> usize {
+            fast_run(bits, tab, sigma, out)
+        }
+        // SAFETY: the CPU has AVX2 and FMA (checked at run time).
+        return unsafe { avx2(bits, tab, sigma, out) };
+    }
+    fast_run(bits, tab, sigma, out)
 }
 
 /// The ziggurat's fast path of [`GaussianSource::sample`] over consecutive
