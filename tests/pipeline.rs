@@ -137,3 +137,45 @@ fn mirrored_edges_get_mirrored_estimates() {
         }
     }
 }
+
+/// Small arrays (three rows or fewer) on the ideal scene: the grid class
+/// drifts one step towards 90 degrees for some classes (eq. 5's end effect,
+/// documented in the WSS module), never further and never the other way,
+/// while `refine = "timing"`, the remedy the docs give, stays within half a
+/// degree of every true angle. Pins both the finding and the advice.
+#[test]
+fn small_arrays_drift_one_class_towards_90_and_timing_does_not() {
+    for (rows, cols) in [("3", "3"), ("2", "6")] {
+        let geometry = [
+            ("stages.wss.weighting", "constant"),
+            ("stages.scene.array.rows", rows),
+            ("stages.scene.array.cols", cols),
+        ];
+        let grid = run_quickstart(&geometry);
+        assert_eq!(grid.len(), 17);
+        let off: Vec<(f64, f64)> = grid
+            .iter()
+            .map(|&(t, e)| (t, e.expect("an estimate")))
+            .filter(|(t, e)| e != t)
+            .collect();
+        assert!(
+            !off.is_empty(),
+            "{rows} x {cols}: every class exact, the documented drift is gone"
+        );
+        for &(t, e) in &off {
+            assert!(
+                e == t + 5.0,
+                "{rows} x {cols}: class {t} answered {e}, not one step towards 90"
+            );
+        }
+        let mut timed = geometry.to_vec();
+        timed.push(("stages.wss.refine", "\"timing\""));
+        for (t, e) in run_quickstart(&timed) {
+            let e = e.expect("an estimate");
+            assert!(
+                (e - t).abs() <= 0.5,
+                "{rows} x {cols}, timing: {t} deg estimated as {e}"
+            );
+        }
+    }
+}
