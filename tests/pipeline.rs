@@ -170,7 +170,9 @@ fn small_arrays_drift_one_class_towards_90_and_timing_does_not() {
         }
         let mut timed = geometry.to_vec();
         timed.push(("stages.wss.refine", "\"timing\""));
-        for (t, e) in run_quickstart(&timed) {
+        let timed = run_quickstart(&timed);
+        assert_eq!(timed.len(), 17);
+        for (t, e) in timed {
             let e = e.expect("an estimate");
             assert!(
                 (e - t).abs() <= 0.5,
