@@ -26,8 +26,10 @@ from __future__ import annotations
 import copy
 import dataclasses
 import json
+import math
 import os
 import pathlib
+import warnings
 from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
@@ -94,6 +96,51 @@ def _meta_of(raw: dict) -> Optional[dict]:
     return raw.get("meta")
 
 
+def _real(what: str, values: Any) -> np.ndarray:
+    """``values`` as a float64 array. Complex values are an error: NumPy's cast
+    would drop their imaginary parts with only a warning."""
+    a = np.asarray(values)
+    if np.iscomplexobj(a):
+        raise ValueError(f"{what} must be real numbers, got {a.dtype} values")
+    try:
+        return np.asarray(a, dtype=np.float64)
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"{what} must be numbers: {e}") from None
+
+
+def _seed(seed: Any) -> int:
+    """A run seed: an integer in [0, 2**64), as ``[run] seed`` takes (PyO3's
+    own conversion said only "can't convert negative int to unsigned")."""
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
+        raise TypeError(f"seed must be an integer, got {type(seed).__name__}")
+    if not 0 <= int(seed) < 2**64:
+        raise ValueError(f"seed must be an integer in [0, 2**64), got {int(seed)}")
+    return int(seed)
+
+
+def _taxel_indices(values: Any) -> np.ndarray:
+    """Spike taxel indices as uint32, checked: a negative, fractional or
+    too-large index is an error naming the spike, where NumPy's cast would wrap
+    ``-1`` to 4294967295 and cut ``1.7`` to 1 without a word."""
+    a = np.asarray(values)
+    if a.ndim != 1:
+        raise ValueError(f"spikes: `taxel` must be 1-D (one per spike), got shape {a.shape}")
+    if a.size == 0:
+        return np.zeros(0, dtype=np.uint32)
+    if a.dtype.kind == "f":
+        bad = ~np.isfinite(a) | (a != np.floor(a))
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise ValueError(f"spikes: taxel {float(a[i])} of spike {i} is not a whole number")
+    elif a.dtype.kind not in "iu":
+        raise ValueError(f"spikes: `taxel` must be integer indices, got {a.dtype} values")
+    bad = (a < 0) | (a > np.iinfo(np.uint32).max)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise ValueError(f"spikes: taxel {a[i]} of spike {i} is not a taxel index (0 to 2**32 - 1)")
+    return a.astype(np.uint32)
+
+
 # ---------------------------------------------------------------- payloads
 
 
@@ -108,7 +155,7 @@ class Signals:
     meta: Optional[dict] = None
 
     def __post_init__(self) -> None:
-        self.data = np.ascontiguousarray(np.asarray(self.data, dtype=np.float64))
+        self.data = np.ascontiguousarray(_real("signals: `data`", self.data))
         if self.data.ndim != 2:
             raise ValueError(f"signals: `data` must be 2-D (samples, taxels), got shape {self.data.shape}")
 
@@ -139,8 +186,12 @@ class Spikes:
     meta: Optional[dict] = None
 
     def __post_init__(self) -> None:
-        self.taxel = np.asarray(self.taxel, dtype=np.uint32)
-        self.t_ms = np.asarray(self.t_ms, dtype=np.float64)
+        self.taxel = _taxel_indices(self.taxel)
+        self.t_ms = _real("spikes: `t_ms`", self.t_ms)
+        if self.t_ms.ndim != 1:
+            raise ValueError(f"spikes: `t_ms` must be 1-D (one per spike), got shape {self.t_ms.shape}")
+        if len(self.taxel) != len(self.t_ms):
+            raise ValueError(f"spikes: {len(self.taxel)} taxels but {len(self.t_ms)} times")
 
     @property
     def sensor_size(self) -> Tuple[int, int, int]:
@@ -230,9 +281,13 @@ class Images:
     meta: Optional[dict] = None
 
     def __post_init__(self) -> None:
-        c = np.asarray(self.counts, dtype=np.float64)
+        c = _real("images: `counts`", self.counts)
         if c.ndim == 3:
             c = c.reshape(c.shape[0], -1)
+        if c.ndim != 2:
+            raise ValueError(
+                f"images: `counts` must be 2-D (frames, taxels) or 3-D (frames, rows, cols), got shape {c.shape}"
+            )
         self.counts = np.ascontiguousarray(c)
 
     @property
@@ -272,8 +327,8 @@ class Estimate:
     uncertain: bool = False
 
     def __post_init__(self) -> None:
-        self.class_angles = np.asarray(self.class_angles, dtype=np.float64)
-        self.scores = np.asarray(self.scores, dtype=np.float64)
+        self.class_angles = _real("estimate: `class_angles`", self.class_angles)
+        self.scores = _real("estimate: `scores`", self.scores)
         if self.class_deg is None and self.angle_deg is not None and len(self.class_angles) == 0:
             self.class_deg = self.angle_deg
 
@@ -645,7 +700,7 @@ def simulate(scene: Union[str, os.PathLike, dict], seed: int = 1, **keys: Any) -
     else:
         cfg = {"file": str(pathlib.Path(scene).resolve())}
     cfg.update(keys)
-    return _dataset(_palpate.simulate(cfg, seed))
+    return _dataset(_palpate.simulate(cfg, _seed(seed)))
 
 
 def read_signals(
@@ -723,7 +778,7 @@ def apply(type: str, *inputs: Any, seed: int = 1, **config: Any) -> Any:
     if any(len(l) != n for l, _ in lists):
         raise ValueError("every input must hold the same number of trials")
     trials = [[_to_raw(l[i]) for l, _ in lists] for i in range(n)]
-    out = [_from_raw(r) for r in _palpate.apply(type, config, trials, seed)]
+    out = [_from_raw(r) for r in _palpate.apply(type, config, trials, _seed(seed))]
     return out if lists[0][1] else out[0]
 
 
@@ -731,6 +786,10 @@ def _signals(x: Any, sample_rate_hz: Optional[float]) -> Any:
     if isinstance(x, np.ndarray):
         if sample_rate_hz is None:
             raise TypeError("an array of signals needs `sample_rate_hz`")
+        if x.ndim not in (2, 3):
+            raise ValueError(
+                f"an array of signals must be (samples, taxels) or (trials, samples, taxels), got shape {x.shape}"
+            )
         if x.ndim == 3:
             return [Signals(a, sample_rate_hz, grid(), "") if x.shape[2] == 16 else Signals(a, sample_rate_hz, _line(x.shape[2])) for a in x]
         return Signals(x, sample_rate_hz, grid() if x.shape[1] == 16 else _line(x.shape[1]))
@@ -810,8 +869,10 @@ class Model:
 def fit(type: str, train: Sequence[Any], labels: Optional[Sequence[float]] = None, seed: int = 1, **config: Any) -> Model:
     """Fits the registered estimator ``type`` (``ann``, ``edbn``, ``knn``, ``svm``,
     ``wss`` ...) with keys ``config`` on training payloads; ``labels`` are their
-    true angles (default: each payload's ``meta``), one per payload. Returns a
-    ``Model``."""
+    true angles (default: each payload's ``meta``), one per payload. A NaN label
+    means "no label", as in ``Dataset.labels``: that payload is skipped, as a
+    graph skips training trials without an angle, with a warning saying how many.
+    Returns a ``Model``."""
     train = list(train)
     if labels is not None:
         labels = list(labels)
@@ -822,15 +883,27 @@ def fit(type: str, train: Sequence[Any], labels: Optional[Sequence[float]] = Non
                 f"fit: `labels` has {len(labels)} entries but `train` has {len(train)} payloads "
                 "(one label per training payload)"
             )
+        try:
+            labels = [float(v) for v in labels]
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"fit: `labels` must be angles in degrees: {e}") from None
+        unlabelled = sum(1 for v in labels if math.isnan(v))
+        if unlabelled:
+            # Skipped silently, a NaN among the labels (a dropped row in a
+            # table) shrank the training set without a word.
+            warnings.warn(
+                f"fit: {unlabelled} of {len(labels)} training payloads have a NaN label (no label) and are skipped",
+                stacklevel=2,
+            )
     raws = []
     for i, p in enumerate(train):
         r = dict(_to_raw(p))
         meta = dict(r.get("meta") or {"trial_id": f"train{i}", "group": 0})
         if labels is not None:
-            meta["angle_deg"] = float(labels[i])
+            meta["angle_deg"] = labels[i]
         r["meta"] = meta
         raws.append(r)
-    return Model(_palpate.fit(type, config, raws, seed), type)
+    return Model(_palpate.fit(type, config, raws, _seed(seed)), type)
 
 
 # ---------------------------------------------------------------- Python stages

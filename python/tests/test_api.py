@@ -208,6 +208,55 @@ def test_bad_config_and_bad_arrays_raise_named_errors():
         palpate.bin(palpate.Spikes([1], [1.0], 10.0), window_ms=-1.0)
 
 
+@pytest.mark.parametrize(
+    "taxel, match",
+    [
+        ([-1], "taxel -1 of spike 0 is not a taxel index"),  # NumPy's cast made it 4294967295
+        ([3, 2**40], "taxel 1099511627776 of spike 1"),  # ... and this 0
+        ([1.7], "taxel 1.7 of spike 0 is not a whole number"),  # ... and this 1
+        ([np.nan], "not a whole number"),
+        ([True], "integer indices"),
+        ([[1]], "1-D"),
+    ],
+)
+def test_spike_taxels_that_numpy_would_wrap_or_cut_are_refused(taxel, match):
+    with pytest.raises(ValueError, match=match):
+        palpate.Spikes(taxel, [1.0] * len(taxel), 10.0)
+
+
+def test_payload_arrays_of_the_wrong_kind_or_shape_are_refused_at_construction():
+    with pytest.raises(ValueError, match="2 taxels but 1 times"):
+        palpate.Spikes([1, 2], [1.0], 10.0)
+    with pytest.raises(ValueError, match="real numbers"):
+        palpate.Signals(np.ones((10, 16)) * (1 + 1j), 1000.0)  # the cast dropped the imaginary part
+    with pytest.raises(ValueError, match="real numbers"):
+        palpate.Images(np.ones((3, 16), dtype=complex), 100.0, 10.0)
+    with pytest.raises(ValueError, match=r"got shape \(16,\)"):
+        palpate.Images(np.ones(16), 100.0, 10.0)  # was a TypeError about PyArray<T, D>
+    with pytest.raises(ValueError, match=r"got shape \(10,\)"):
+        palpate.lowpass(np.zeros(10), sample_rate_hz=1000.0)  # was an IndexError
+    # What is right still passes: whole floats and an empty list.
+    assert palpate.Spikes([3.0], [1.0], 10.0).taxel.tolist() == [3]
+    assert palpate.bin(palpate.Spikes([], [], 100.0)).counts.sum() == 0
+    assert palpate.Images(np.ones((2, 4, 4)), 100.0, 10.0).counts.shape == (2, 16)
+
+
+def test_seeds_outside_the_run_seed_range_name_the_seed():
+    for seed in (-1, 2**64):
+        with pytest.raises(ValueError, match=r"seed must be an integer in \[0, 2\*\*64\)"):
+            palpate.simulate(GRAPHS / "scenes" / "ideal.toml", seed=seed)
+    with pytest.raises(TypeError, match="seed must be an integer"):
+        palpate.apply("jitter", palpate.Spikes([1], [1.0], 10.0), seed="1")
+
+
+def test_a_nan_label_is_no_label_and_fit_says_it_skipped_it():
+    rng = np.random.default_rng(1)
+    imgs = [palpate.Images(rng.random((10, 16)), 100.0, 10.0) for _ in range(3)]
+    with pytest.warns(UserWarning, match="1 of 3 training payloads have a NaN label"):
+        palpate.fit("knn", imgs, labels=[np.nan, 10.0, 20.0])
+    with pytest.raises(ValueError, match="`labels` must be angles"):
+        palpate.fit("knn", imgs, labels=["a", 10.0, 20.0])
+
 def test_hostile_values_give_no_nan_and_no_panic():
     for value in (np.inf, -np.inf, np.nan, 1e300, -1e300):
         x = np.full((50, 16), value)
