@@ -29,6 +29,9 @@ import json
 import math
 import os
 import pathlib
+import re
+import types
+import typing
 import warnings
 from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple, Union
 
@@ -933,6 +936,55 @@ def _stage_keys(cls: type) -> Dict[str, Any]:
     return {k: (None if v is missing else v, v is missing) for k, v in keys.items()}
 
 
+def _key_types(cls: type) -> Dict[str, Any]:
+    """The annotations of a stage class's keys, resolved (``from __future__
+    import annotations`` makes them strings); an annotation that does not
+    resolve is not checked."""
+    try:
+        return typing.get_type_hints(cls)
+    except Exception:  # a forward reference the class's module cannot resolve
+        hints: Dict[str, Any] = {}
+        for klass in reversed(cls.__mro__[:-1]):
+            hints.update(getattr(klass, "__annotations__", {}))
+        return hints
+
+
+_SIMPLE = {float: "a number", int: "a whole number", str: "a string", bool: "true or false", list: "a list", dict: "a table"}
+
+
+def _check_key(stage_name: str, key: str, value: Any, hint: Any) -> Any:
+    """``value`` of key ``key`` checked against its annotation ``hint`` when
+    that is a plain ``float``, ``int``, ``str``, ``bool``, ``list`` or ``dict``
+    (or ``Optional`` / ``List[...]`` / ``Dict[...]`` of one): a TOML string
+    given for a number is an error naming the key, as for a built-in stage,
+    where unchecked it reached ``process`` and failed there, or not at all.
+    An integer for a ``float`` key becomes a float (TOML's ``level = 1``).
+    Any other annotation is the stage's to check (in ``validate``)."""
+    origin = typing.get_origin(hint)
+    args = typing.get_args(hint)
+    if origin is Union or origin is getattr(types, "UnionType", Union):  # Optional[X], X | None
+        if value is None and type(None) in args:
+            return value
+        inner = [a for a in args if a is not type(None)]
+        if len(inner) == 1:
+            return _check_key(stage_name, key, value, inner[0])
+        return value
+    base = {list: list, dict: dict}.get(origin, hint)  # List[X] -> list
+    if base not in _SIMPLE:
+        return value
+    if base is float and isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_)):
+        return float(value)
+    if base is int and isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_)):
+        return int(value)
+    if base in (str, bool, list, dict) and isinstance(value, base):
+        return value
+    raise _KeyError(
+        key,
+        f"key `{key}` of Python stage `{stage_name}` must be {_SIMPLE[base]} ({base.__name__}), "
+        f"got {type(value).__name__} {value!r}",
+    )
+
+
 class _MapAdapter:
     def __init__(self, obj: Any):
         self.obj = obj
@@ -998,14 +1050,29 @@ def stage(
     (``train`` a list of payloads, ``labels`` their true angles) and
     ``predict(payload, ctx)`` returning an ``Estimate``, an angle or None ("no
     edge"); ``trained = False`` makes it model-based (fit gets no trial). Keys
-    are the class's annotated or plain attributes; an unknown or missing key is
-    an error naming it. ``ctx`` holds ``stage_id``, ``trial_id`` and ``seed``
+    are the class's annotated or plain attributes; an unknown or missing key, or
+    a value that does not fit a plain annotation (see ``_check_key``), is an
+    error naming it, and a class without the method its role needs is refused
+    here. ``ctx`` holds ``stage_id``, ``trial_id`` and ``seed``
     (derived as for built-in stages, for reproducible randomness)."""
     kinds = [inputs] if isinstance(inputs, str) else list(inputs)
     role = "estimator" if output == "estimates" else "map"
 
+    if not isinstance(name, str) or not re.fullmatch(r"[A-Za-z][A-Za-z0-9_-]*", name):
+        # A graph names the type in `type = "..."`; an empty or spaced name
+        # registered fine and could never be used.
+        raise ValueError(f"a stage name starts with a letter and holds letters, digits, `_` or `-`; got {name!r}")
+
     def deco(cls: type) -> type:
         keys = _stage_keys(cls)
+        hints = _key_types(cls)
+        method = "predict" if role == "estimator" else "process"
+        if not callable(getattr(cls, method, None)):
+            # Found only when the first trial reached it, as an AttributeError.
+            raise TypeError(
+                f"Python stage `{name}` ({role}, output {output}) needs a `{method}` method: "
+                + ("`predict(self, payload, ctx)`" if role == "estimator" else "`process(self, *payloads, ctx)`")
+            )
 
         def factory(config: dict) -> Any:
             for k in config:
@@ -1015,7 +1082,7 @@ def stage(
             obj = cls()
             for k, (default, required) in keys.items():
                 if k in config:
-                    setattr(obj, k, config[k])
+                    setattr(obj, k, _check_key(name, k, config[k], hints.get(k)))
                 elif required:
                     raise _KeyError(k, f"missing key `{k}` of Python stage `{name}`")
                 else:

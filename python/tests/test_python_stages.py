@@ -170,3 +170,48 @@ def test_a_python_stage_is_a_stage_type_of_its_own(tmp_path):
         class Shadow:
             def process(self, spikes, ctx):
                 return spikes
+
+
+def test_python_stage_keys_are_checked_against_their_annotations(tmp_path):
+    # `level: float` given a string reached `process` before, where the
+    # comparison failed (or, for a key only stored, nothing did).
+    with pytest.raises(palpate.GraphError) as e:
+        palpate.run(graph(tmp_path, 'config = { level = "high" }'), progress=False)
+    assert e.value.stage == "enc" and e.value.key == "config.level"
+    assert "must be a number (float), got str 'high'" in str(e.value)
+    with pytest.raises(palpate.GraphError, match="must be a number"):
+        palpate.run(graph(tmp_path, "config = { level = true }"), progress=False)
+    # An integer for a float key is the float (TOML's `level = 1`): the same run as 1.0.
+    one = palpate.run(graph(tmp_path, "config = { level = 1 }"), progress=False)
+    one_f = palpate.run(graph(tmp_path, "config = { level = 1.0 }"), progress=False)
+    assert np.array_equal(one.estimates["wss"].scores, one_f.estimates["wss"].scores, equal_nan=True)
+
+
+def test_check_key_follows_optional_and_generic_annotations():
+    from typing import List, Optional
+
+    check = palpate._check_key
+    assert check("s", "k", None, Optional[float]) is None
+    assert check("s", "k", 2, Optional[float]) == 2.0 and isinstance(check("s", "k", 2, Optional[float]), float)
+    assert check("s", "k", [1, 2], List[int]) == [1, 2]
+    assert check("s", "k", "anything", "NotAType") == "anything"  # unresolved: the stage's to check
+    for value, hint in [(2.5, int), ("x", Optional[float]), (1, str), ({"a": 1}, List[int]), (1, bool)]:
+        with pytest.raises(ValueError, match="key `k` of Python stage `s` must be"):
+            check("s", "k", value, hint)
+
+
+def test_a_stage_without_its_method_or_with_an_unusable_name_is_refused_when_registered():
+    with pytest.raises(TypeError, match="needs a `process` method"):
+        @palpate.stage("test_no_process", inputs="signals", output="spikes")
+        class NoProcess:
+            level: float = 0.5
+
+    with pytest.raises(TypeError, match="needs a `predict` method"):
+        @palpate.stage("test_no_predict", inputs="images", output="estimates")
+        class NoPredict:
+            def fit(self, train, labels, ctx):
+                pass
+
+    for name in ["", "two words", "1st", "a.b"]:
+        with pytest.raises(ValueError, match="a stage name starts with a letter"):
+            palpate.stage(name)
