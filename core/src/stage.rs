@@ -538,6 +538,13 @@ pub trait Estimator: Send + Sync {
 pub trait Model: Send + Sync {
     /// Estimates one trial.
     fn predict(&self, item: &Item, ctx: &TrialContext<'_>) -> Result<Estimate, StageError>;
+    /// The model as the bytes of a model file (the file a trained stage's
+    /// `save_model = true` writes and `model_in` reads), or `None` for a model
+    /// that is not saved that way (WSS, built from its config; a Python
+    /// stage's). The Python package's `Model.save` and pickling use it.
+    fn saved_bytes(&self) -> Option<Result<Vec<u8>, StageError>> {
+        None
+    }
 }
 
 /// Every trial of one input of a sink.

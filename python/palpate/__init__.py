@@ -6,6 +6,9 @@ runs a graph exactly as ``palpate run`` does (same reports, same bits); the
 building blocks (``izhikevich``, ``lif``, ``lowpass``, ``drive``, ``bin``,
 ``wss``, ``fit`` ...) build the registered stage of that type from its keys and
 call it, so they are the code the graphs run, not a second implementation.
+A trained baseline's ``Model`` saves to (``save``) and loads from
+(``load_model``) the model file a graph's ``save_model`` / ``model_in`` use,
+and pickles.
 
 Spike events use tonic's convention: a 1-D structured array of ``EVENT_DTYPE``
 (``x``, ``y`` int16 -- the taxel's column and row; ``t`` int64 microseconds;
@@ -30,6 +33,7 @@ import math
 import os
 import pathlib
 import re
+import tempfile
 import types
 import typing
 import warnings
@@ -66,6 +70,7 @@ __all__ = [
     "grid",
     "izhikevich",
     "lif",
+    "load_model",
     "lowpass",
     "normalize",
     "read_signals",
@@ -852,11 +857,45 @@ def wss(images: Any, **config: Any) -> Any:
 
 
 class Model:
-    """A fitted estimator; ``predict`` takes a payload or a list of them."""
+    """A fitted estimator; ``predict`` takes a payload or a list of them.
+
+    A trained baseline's model (``ann``, ``edbn``, ``svm``, ``random_forest``,
+    ``knn``, ``logistic``) can be saved (``save``), loaded (``load_model``) and
+    pickled; the file is the one a graph's ``save_model = true`` writes, so a
+    model fitted in Python runs in a graph with ``model_in = "<file>"`` (and
+    live), and a graph's saved fold loads here. A loaded or unpickled model
+    gives the same estimates, bit for bit, as the one saved, for the same
+    ``seed``."""
 
     def __init__(self, inner: Any, type: str):
         self._inner = inner
         self.type = type
+
+    @property
+    def seed(self) -> int:
+        """The run seed it predicts with (each trial's seed derives from it and the trial id)."""
+        return int(self._inner.seed)
+
+    def _bytes(self, what: str) -> bytes:
+        data = self._inner.saved_bytes()
+        if data is None:
+            raise TypeError(
+                f"cannot {what} a `{self.type}` model: only trained baselines' models are files "
+                "(WSS is rebuilt from its keys; a Python stage's model is its own object)"
+            )
+        return data
+
+    def save(self, path: Union[str, os.PathLike]) -> pathlib.Path:
+        """Writes the model file (JSON, written whole or not at all) and returns its path."""
+        data = self._bytes("save")
+        p = pathlib.Path(path)
+        tmp = p.with_name(p.name + ".partial")
+        tmp.write_bytes(data)
+        os.replace(tmp, p)
+        return p
+
+    def __reduce__(self) -> Any:
+        return (_model_from_bytes, (self.type, self._bytes("pickle"), self.seed))
 
     def predict(self, x: Any) -> Any:
         items, many = _as_list(x)
@@ -869,6 +908,33 @@ class Model:
         return np.array([np.nan if e.angle_deg is None else e.angle_deg for e in self.predict(items)])
 
 
+def load_model(path: Union[str, os.PathLike], seed: int = 1) -> Model:
+    """Loads a model file written by ``Model.save`` or by a graph's ``save_model =
+    true`` (``<out>/<stage id>.fold<f>.model.json``), checked as a graph's
+    ``model_in`` checks it; ``seed`` is the run seed it predicts with."""
+    p = pathlib.Path(path).resolve()
+    try:
+        with open(p, "rb") as f:
+            head = f.read(4096)
+    except OSError as e:
+        raise ValueError(f"{p}: cannot read the model file: {e}") from None
+    # The file's second field (serde keeps the struct's order): reading it from
+    # the head spares parsing a k-NN model's tens of MB twice.
+    m = re.search(rb'"stage_type"\s*:\s*"([A-Za-z0-9_-]+)"', head)
+    if m is None:
+        raise ValueError(f"{p}: not a palpate model file (no `stage_type` near its start)")
+    type = m.group(1).decode()
+    return Model(_palpate.fit(type, {"model_in": str(p)}, [], _seed(seed)), type)
+
+
+def _model_from_bytes(type: str, data: bytes, seed: int) -> Model:
+    """A model from its file's bytes (unpickling)."""
+    with tempfile.TemporaryDirectory(prefix="palpate-model-") as d:
+        p = pathlib.Path(d) / f"{type}.model.json"
+        p.write_bytes(data)
+        return load_model(p, seed)
+
+
 def fit(type: str, train: Sequence[Any], labels: Optional[Sequence[float]] = None, seed: int = 1, **config: Any) -> Model:
     """Fits the registered estimator ``type`` (``ann``, ``edbn``, ``knn``, ``svm``,
     ``wss`` ...) with keys ``config`` on training payloads; ``labels`` are their
@@ -876,6 +942,10 @@ def fit(type: str, train: Sequence[Any], labels: Optional[Sequence[float]] = Non
     means "no label", as in ``Dataset.labels``: that payload is skipped, as a
     graph skips training trials without an angle, with a warning saying how many.
     Returns a ``Model``."""
+    if config.get("save_model"):
+        # A graph writes each fold's model beside its reports; here there is
+        # no run folder, and the file went to the system's temp folder.
+        raise ValueError("fit: `save_model` is for graphs; in Python, call `model.save(path)` on the fitted model")
     train = list(train)
     if labels is not None:
         labels = list(labels)

@@ -10,7 +10,7 @@ use palpate_core::{
     Stage, StageConfig, TrialContext,
 };
 use pyo3::prelude::*;
-use pyo3::types::{PyDict, PyList};
+use pyo3::types::{PyBytes, PyDict, PyList};
 use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 
@@ -808,6 +808,23 @@ impl Model {
             }
         }
         Ok(l)
+    }
+
+    /// The model file's bytes (what `save_model = true` writes, `model_in`
+    /// reads), or None for a model that is not saved as a file (WSS, a Python
+    /// stage's).
+    fn saved_bytes<'py>(&self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyBytes>>> {
+        match self.model.saved_bytes() {
+            None => Ok(None),
+            Some(Ok(b)) => Ok(Some(PyBytes::new(py, &b))),
+            Some(Err(e)) => Err(stage_err(py, &self.stage_id, None, &e.message)),
+        }
+    }
+
+    /// The run seed the model predicts with (its per-trial seeds derive from it).
+    #[getter]
+    fn seed(&self) -> u64 {
+        self.seed
     }
 }
 

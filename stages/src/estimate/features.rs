@@ -950,12 +950,19 @@ impl Model for FittedModel {
         // decision-time rule in `estimate`).
         Ok(super::cap_decision_time(e, images))
     }
+    fn saved_bytes(&self) -> Option<Result<Vec<u8>, StageError>> {
+        Some(model_bytes(self))
+    }
+}
+
+/// A fitted model as the JSON of its model file.
+pub fn model_bytes(model: &FittedModel) -> Result<Vec<u8>, StageError> {
+    serde_json::to_vec(model).map_err(|e| StageError::new(format!("serializing the model: {e}")))
 }
 
 /// Writes a fitted model as JSON (atomically).
 pub fn save_model(model: &FittedModel, path: &Path) -> Result<(), StageError> {
-    let json =
-        serde_json::to_vec(model).map_err(|e| StageError::new(format!("serializing the model: {e}")))?;
+    let json = model_bytes(model)?;
     write_atomic(path, &json).map_err(|e| StageError::new(format!("writing {}: {e}", path.display())))
 }
 

@@ -162,4 +162,7 @@ impl Model for SavedModel {
         self.0.check_images(images, &what)?;
         self.0.model.predict(item, ctx).map_err(|e| self.0.error(e))
     }
+    fn saved_bytes(&self) -> Option<Result<Vec<u8>, StageError>> {
+        self.0.model.saved_bytes()
+    }
 }
