@@ -687,12 +687,26 @@ pub fn apply<'py>(
     stage_id: &str,
     base_dir: Option<PathBuf>,
 ) -> PyResult<Bound<'py, PyList>> {
-    let (_, stage) = build_stage(py, type_name, config, seed, stage_id, base_dir)?;
+    let (config, stage) = build_stage(py, type_name, config, seed, stage_id, base_dir)?;
+    let spec = config.inputs();
     let mut inputs: Vec<Vec<Item>> = Vec::with_capacity(trials.len());
     for (i, t) in trials.iter().enumerate() {
         let t = t.downcast::<PyList>().map_err(|_| {
             pyo3::exceptions::PyTypeError::new_err("each trial must be a list of payloads (one per input)")
         })?;
+        // As the graph loader checks a stage's `inputs`: a stage handed more
+        // inputs than it takes read the first and dropped the rest unseen.
+        let n = t.len();
+        if n < spec.min || spec.max.is_some_and(|max| n > max) {
+            let takes = match spec.max {
+                Some(max) if max == spec.min => format!("{max}"),
+                Some(max) => format!("{} to {max}", spec.min),
+                None => format!("at least {}", spec.min),
+            };
+            return Err(pyo3::exceptions::PyValueError::new_err(format!(
+                "stage type `{type_name}` takes {takes} input(s) per trial, got {n}"
+            )));
+        }
         inputs.push(t.iter().map(|p| item_from_py(&p, i)).collect::<PyResult<_>>()?);
     }
     let outs: Vec<Result<Item, (Option<String>, String)>> = py.allow_threads(|| {

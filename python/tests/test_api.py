@@ -206,6 +206,9 @@ def test_bad_config_and_bad_arrays_raise_named_errors():
         palpate.bin(palpate.Spikes([1], [float("nan")], 10.0))
     with pytest.raises(palpate.ConfigError):
         palpate.bin(palpate.Spikes([1], [1.0], 10.0), window_ms=-1.0)
+    spikes = palpate.Spikes([1], [1.0], 10.0)
+    with pytest.raises(ValueError, match=r"stage type `bin` takes 1 input\(s\) per trial, got 2"):
+        palpate.apply("bin", spikes, spikes)  # the second was dropped unseen
 
 
 @pytest.mark.parametrize(

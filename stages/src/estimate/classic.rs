@@ -847,7 +847,8 @@ pub struct KnnConfig {
     pub min_spikes: f64,
     /// Most vectors a training trial contributes (evenly spaced). Default 20.
     pub max_train_frames: usize,
-    /// Neighbours. Default 10.
+    /// Neighbours. Default 10. Capped at the training vectors a fold has (a
+    /// larger `k` votes over all of them).
     pub k: usize,
     /// `uniform` or `distance`. Default `uniform`.
     pub weight: KnnWeight,
