@@ -114,3 +114,51 @@ fn a_rate_the_lowpass_cannot_design_is_refused_by_the_lowpass() {
         run(dir, "sample_rate_hz = 1000.0", mode).unwrap();
     }
 }
+
+/// `rec.csv` at `rate` Hz through the drive and the encoder `encoder`: the
+/// run's error, if any.
+fn encode(dir: &Path, rate: &str, encoder: &str) -> Result<(), String> {
+    let graph = format!(
+        r#"
+[stages.src]
+type = "signal_file"
+path = "rec.csv"
+sample_rate_hz = {rate}
+
+[stages.drive]
+type = "drive"
+inputs = ["src"]
+kind = "sa_i"
+gain = 20.0
+
+[stages.enc]
+type = "{encoder}"
+inputs = ["drive"]
+"#
+    );
+    common::run_graph_file(dir, "g.toml", &graph).map(|_| ())
+}
+
+#[test]
+fn a_rate_that_makes_a_trial_absurdly_long_is_refused_by_the_encoder_not_an_abort() {
+    // 200 samples at 1e-6 Hz last 2e8 s: 4e11 steps of 0.5 ms per taxel.
+    // The step plan asked for 1.6 TB and the allocation failure aborted the
+    // process (a Python session with it); now the encoder fails the trial.
+    let d = tempfile::tempdir().unwrap();
+    let dir = d.path();
+    write_csv(dir, None);
+    for encoder in ["izhikevich", "lif"] {
+        for rate in ["1e-6", "1e-300", "0.001"] {
+            let e = encode(dir, rate, encoder).unwrap_err();
+            assert!(
+                e.contains(encoder) && e.contains("over the cap of 268435456 neuron steps"),
+                "{encoder} at {rate} Hz: {e}"
+            );
+            assert!(e.lines().all(|l| l.len() < 400), "{e}");
+        }
+        // 200 samples at 0.02 Hz are 10 000 s, 20 M steps x 16 taxels: over;
+        // at 1 Hz, 200 s: 6.4 M neuron steps, well under: runs.
+        assert!(encode(dir, "0.02", encoder).is_err());
+        encode(dir, "1.0", encoder).unwrap();
+    }
+}

@@ -449,6 +449,29 @@ fn hostile_blocks_are_errors_not_panics() {
         e.message.contains("cutoff_hz") && e.message.contains("resample"),
         "{e}"
     );
+    // A stream at a rate that makes each sample hours long stops at the
+    // batch encoder's cap on neuron steps, not after billions of steps.
+    let mut slow = signals(vec![vec![20.0; 40]; 16]);
+    slow.sample_rate_hz = 1e-3;
+    for (name, cfg) in [
+        (
+            "izhikevich",
+            serde_json::to_value(&IzhikevichConfig::default() as &dyn StageConfig).unwrap(),
+        ),
+        (
+            "lif",
+            serde_json::to_value(&LifConfig::default() as &dyn StageConfig).unwrap(),
+        ),
+    ] {
+        let Ok(StreamForm::Streams(enc)) = stream::form(name, &cfg, &ctx()) else {
+            panic!("{name} streams")
+        };
+        let e = stream::run_blocks(enc.as_ref(), &signal_blocks(&slow, 1), &tctx).unwrap_err();
+        assert!(
+            e.message.contains("over the cap of 268435456 neuron steps"),
+            "{name}: {e}"
+        );
+    }
 }
 
 /// The live chain's images, then a saved ANN (spatiotemporal) and a saved

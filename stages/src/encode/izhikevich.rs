@@ -526,7 +526,7 @@ fn crossing(v0: f64, v1: f64, vp: f64) -> f64 {
 impl Map for Izhikevich {
     fn process(&self, inputs: &[&Item], _ctx: &TrialContext<'_>) -> Result<Payload, StageError> {
         let s = inputs[0].payload.signals()?;
-        check_input_shape("izhikevich", s)?;
+        check_input_shape("izhikevich", s, self.dt_ms)?;
         let (events, _, finite) = self.encode_finite(&s.data, s.sample_rate_hz);
         if !finite {
             return Err(crate::signal::non_finite_error("izhikevich", s));

@@ -250,7 +250,7 @@ impl Lif {
 impl Map for Lif {
     fn process(&self, inputs: &[&Item], _ctx: &TrialContext<'_>) -> Result<Payload, StageError> {
         let s = inputs[0].payload.signals()?;
-        check_input_shape("lif", s)?;
+        check_input_shape("lif", s, self.dt_ms)?;
         let (events, finite) = self.encode_finite(&s.data, s.sample_rate_hz);
         if !finite {
             return Err(crate::signal::non_finite_error("lif", s));

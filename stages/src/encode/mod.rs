@@ -281,20 +281,65 @@ pub(crate) fn fmin(a: f64, b: f64) -> f64 {
     }
 }
 
-/// Checks an encoder's input: finite samples, one vector per taxel.
-pub fn check_input(what: &str, s: &Signals) -> Result<(), StageError> {
+/// Checks an encoder's input: finite samples, one vector per taxel, and
+/// at most [`MAX_NEURON_STEPS`] at `dt_ms`.
+pub fn check_input(what: &str, s: &Signals, dt_ms: f64) -> Result<(), StageError> {
     crate::signal::check_signals(what, s)?;
-    check_input_shape(what, s)
+    check_input_shape(what, s, dt_ms)
 }
 
 /// [`check_input`] without the scan for non-finite samples, which the
 /// encoders make while transposing their input ([`interleave`]).
-pub fn check_input_shape(what: &str, s: &Signals) -> Result<(), StageError> {
+pub fn check_input_shape(what: &str, s: &Signals, dt_ms: f64) -> Result<(), StageError> {
     crate::signal::check_shape(what, s)?;
     if s.layout.len() > u32::MAX as usize {
         return Err(StageError::new(format!("{what}: too many taxels")));
     }
-    Ok(())
+    check_steps(
+        what,
+        s.n_samples() as u64,
+        s.sample_rate_hz,
+        s.layout.len(),
+        dt_ms,
+    )
+}
+
+/// Most neuron steps (taxels x steps of `dt_ms`) an encoder runs for one
+/// trial: 2^28 = 268 435 456, e.g. 16 taxels for 4.6 hours at `dt_ms = 0.5`
+/// (a 21 s lab trial takes 0.69 million).
+///
+/// Why: the batch encoder's step plan holds 4 to 12 bytes a step, and a
+/// neuron may fire on every step (16 bytes a spike), so a trial whose
+/// duration is absurd for its sample rate (a rate in kHz given as Hz, 10
+/// samples declared at 10^-6 Hz) asked for tens of gigabytes and aborted the
+/// process, where it must fail the trial with a message. The streaming form
+/// stops at the same count, so the live path refuses the same trials.
+pub const MAX_NEURON_STEPS: u64 = 1 << 28;
+
+/// The [`MAX_NEURON_STEPS`] check for a trial of `n_samples` at `fs` Hz
+/// over `n_taxels` neurons stepped every `dt_ms`.
+pub fn check_steps(
+    what: &str,
+    n_samples: u64,
+    fs: f64,
+    n_taxels: usize,
+    dt_ms: f64,
+) -> Result<(), StageError> {
+    let duration_ms = n_samples as f64 * 1000.0 / fs;
+    let steps = (duration_ms / dt_ms).ceil();
+    let total = steps * n_taxels.max(1) as f64;
+    if total <= MAX_NEURON_STEPS as f64 {
+        return Ok(());
+    }
+    Err(StageError::new(format!(
+        "{what}: {n_samples} samples at {} Hz last {} s, {} steps of dt_ms = {} for each of {n_taxels} \
+         taxels: over the cap of {MAX_NEURON_STEPS} neuron steps a trial (is the sample rate right? a \
+         rate in kHz given as Hz makes a trial 1000 times longer)",
+        palpate_core::fmt_num(fs),
+        palpate_core::fmt_num(duration_ms / 1000.0),
+        palpate_core::fmt_num(steps),
+        palpate_core::fmt_num(dt_ms),
+    )))
 }
 
 /// Sorts events by time, then taxel (stably).

@@ -720,8 +720,37 @@ impl Map for Lowpass {
                     .collect()
             }
         };
+        if let Some(t) = data.iter().position(|ys| !ends_finite(ys)) {
+            return Err(overflow_error(t, &s.data[t]));
+        }
         Ok(s.with_data(s.unit.clone(), data).into())
     }
+}
+
+/// Whether a filtered taxel's first and last samples are finite, which
+/// holds only if every sample is: the sections are recursions, and a value
+/// that overflowed to ±inf makes every later state and output ±inf or NaN
+/// (inf never returns to a finite number). The causal pass computes the last
+/// sample last, the zero-phase backward pass the first, and both passes'
+/// padding feeds those recursions, so two reads per taxel check the whole
+/// trial, where a scan of the output would cost a pass over memory.
+pub(crate) fn ends_finite(ys: &[f64]) -> bool {
+    ys.first().is_none_or(|v| v.is_finite()) && ys.last().is_none_or(|v| v.is_finite())
+}
+
+/// The error of a filtered taxel that overflowed f64: the input's largest
+/// magnitude, near `f64::MAX`, times a section's gain (a higher order's
+/// resonant sections, or the zero-phase pass's reflected padding `2 l - x`)
+/// went past it. Refused rather than passed on as inf or NaN for the next
+/// stage to be blamed for.
+pub(crate) fn overflow_error(taxel: usize, xs: &[f64]) -> StageError {
+    let peak = xs.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    StageError::new(format!(
+        "lowpass: taxel {taxel}: the filtered signal overflows f64: its input reaches {}, too near \
+         f64's largest number ({:e}) for the filter's sections; scale the input down (another unit)",
+        fmt_num(peak),
+        f64::MAX
+    ))
 }
 
 #[cfg(test)]

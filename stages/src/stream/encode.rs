@@ -256,6 +256,15 @@ impl<N: Neuron> StreamState for EncoderState<N> {
                 self.states = vec![self.neuron.initial(); s.data.len()];
             }
         }
+        // The whole trial so far within the batch encoder's cap: a stream at
+        // an absurd rate would otherwise run billions of steps per block.
+        crate::encode::check_steps(
+            N::NAME,
+            self.samples + n as u64,
+            self.fs,
+            s.data.len(),
+            self.neuron.dt_ms(),
+        )?;
         let spp = self.neuron.dt_ms() * self.fs / 1000.0;
         let mut cur = vec![0.0; s.data.len()];
         for i in 0..n {

@@ -131,6 +131,11 @@ impl StreamState for LowpassState {
                 }
                 self.z[t * ns + k] = [z1, z2];
             }
+            // As the batch stage: overflow anywhere in the block leaves its
+            // last sample non-finite (see `ends_finite`).
+            if !crate::signal::lowpass::ends_finite(&ys) {
+                return Err(crate::signal::lowpass::overflow_error(t, xs));
+            }
             data.push(ys);
         }
         out.push(s.with_data(s.unit.clone(), data).into());
