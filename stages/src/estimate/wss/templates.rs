@@ -433,6 +433,15 @@ fn flat_gauss_integral(t: f64, h: f64, sigma: f64) -> f64 {
 
 /// `k(θ)` (frames to cross the array, uncapped, as a float) and the number of
 /// templates kept.
+/// Most template values (frames x taxels, over every class) one set of
+/// templates may hold: 2^27, 1 GiB of f64. The paper's grid (33 classes,
+/// 16 taxels, 10 ms frames) takes about 1 million, and even a 1 ms hop ten
+/// times that. Why a cap: a class's length is capped by `max_template_s /
+/// hop`, which an absurd hop (images built every 10^-6 ms, from a file or
+/// Python) turned into terabytes, and the allocation's failure aborted the
+/// process where it must fail the trial.
+pub const MAX_TEMPLATE_VALUES: usize = 1 << 27;
+
 fn lengths(layout: &TaxelLayout, hop_ms: f64, params: &WssParams, theta_deg: f64) -> (f64, usize) {
     let edge = Edge::new(theta_deg);
     let (lo, hi) = edge.footprint(layout);
@@ -539,10 +548,31 @@ impl Templates {
         layout.validate().map_err(|m| ConfigError::key("layout", m))?;
         palpate_core::check_positive("hop_ms", hop_ms, "ms")?;
         let n = layout.len();
+        // Every class's size first, so that an absurd hop is an error before
+        // anything is allocated (see `MAX_TEMPLATE_VALUES`).
+        let sizes: Vec<(f64, usize)> = angles
+            .iter()
+            .map(|&a| lengths(layout, hop_ms, params, a))
+            .collect();
+        let values = sizes
+            .iter()
+            .fold(0u128, |sum, &(_, len)| sum + len as u128 * n as u128);
+        if values > MAX_TEMPLATE_VALUES as u128 {
+            return Err(ConfigError::key(
+                "hop_ms",
+                format!(
+                    "templates of {} classes for images every {} ms need {values} values (frames x {n} \
+                     taxels), over the cap of {MAX_TEMPLATE_VALUES} (1 GiB): is the images' hop right? \
+                     Or use fewer classes, or a shorter `max_template_s`",
+                    angles.len(),
+                    palpate_core::fmt_num(hop_ms)
+                ),
+            ));
+        }
         let classes = angles
             .iter()
-            .map(|&a| {
-                let (crossing_frames, len) = lengths(layout, hop_ms, params, a);
+            .zip(sizes)
+            .map(|(&a, (crossing_frames, len))| {
                 let mut data = vec![0.0; len * n];
                 let shape = ClassShape::new(layout, hop_ms, params, a);
                 shape.templates_into(&mut data);
@@ -712,6 +742,25 @@ mod tests {
             normalize_frames(&mut v, n);
             let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
             prop_assert_eq!(bits(&v), bits(&one));
+        }
+    }
+
+    /// An absurd hop is refused by name before anything is allocated (it
+    /// asked for 7e12 values and aborted); the paper's hop and a 1 ms hop
+    /// build.
+    #[test]
+    fn templates_over_the_value_cap_are_refused_naming_the_hop() {
+        let layout = TaxelLayout::paper();
+        let params = WssParams::default();
+        for hop in [1e-6, 1e-3] {
+            let e = Templates::new(&layout, hop, &params).err().expect("over the cap");
+            assert_eq!(e.key.as_deref(), Some("hop_ms"));
+            assert!(e.message.contains("over the cap of 134217728"), "{e}");
+        }
+        for hop in [1.0, 10.0] {
+            let t = Templates::new(&layout, hop, &params).unwrap();
+            let values: usize = t.classes().iter().map(|c| c.data.len()).sum();
+            assert!(values <= MAX_TEMPLATE_VALUES, "{hop} ms: {values}");
         }
     }
 
