@@ -753,7 +753,9 @@ mod tests {
         let layout = TaxelLayout::paper();
         let params = WssParams::default();
         for hop in [1e-6, 1e-3] {
-            let e = Templates::new(&layout, hop, &params).err().expect("over the cap");
+            let Err(e) = Templates::new(&layout, hop, &params) else {
+                panic!("{hop} ms: over the cap, built")
+            };
             assert_eq!(e.key.as_deref(), Some("hop_ms"));
             assert!(e.message.contains("over the cap of 134217728"), "{e}");
         }
