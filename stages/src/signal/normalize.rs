@@ -210,6 +210,13 @@ fn map_range(xs: &[f64], lo: f64, hi: f64) -> Vec<f64> {
             .collect();
     }
     let inv = 1.0 / (hi - lo);
+    if !inv.is_finite() {
+        // A span below 1 / f64::MAX (subnormal values): its reciprocal is
+        // inf and the minimum's `0 * inf` NaN, so divide instead (exact
+        // enough there, and only there: the usual path keeps its bits).
+        let d = hi - lo;
+        return xs.iter().map(|&x| ((x - lo) / d).clamp(0.0, 1.0)).collect();
+    }
     xs.iter().map(|&x| ((x - lo) * inv).clamp(0.0, 1.0)).collect()
 }
 
@@ -371,6 +378,22 @@ mod tests {
         assert_eq!(normalize_trial(&noisy, 1e-2), vec![0.0; 10]);
         assert_eq!(normalize_trial(&noisy, 0.0)[1], 1.0);
         assert!(normalize_trial(&[], 0.0).is_empty());
+    }
+
+    /// A taxel whose values are subnormal (a span below 1 / f64::MAX, whose
+    /// reciprocal is inf) maps to [0, 1], not NaN: `0 * inf` gave NaN at
+    /// the minimum (the hammer of the Python building blocks found it).
+    #[test]
+    fn a_subnormal_span_maps_to_0_1_not_nan() {
+        let tiny = f64::from_bits(1); // 5e-324
+        let xs = [0.0, tiny, 0.0, 3.0 * tiny, 2.0 * tiny];
+        let v = normalize_trial(&xs, 0.0);
+        assert_eq!(v, vec![0.0, 1.0 / 3.0, 0.0, 1.0, 2.0 / 3.0]);
+        let v = normalize_trial(&[-1e-310, 1e-310], 0.0);
+        assert_eq!(v, vec![0.0, 1.0]);
+        let out =
+            normalize_trial_taxels_finite(&[xs.to_vec(), vec![1.0, 2.0, 1.5, 1.0, 2.0]], 0.0, 0.0).unwrap();
+        assert!(out.iter().flatten().all(|x| x.is_finite()));
     }
 
     #[test]
