@@ -67,6 +67,11 @@ struct Args {
     /// `--only a,b`: run just these workloads (`encoder` or a baseline id);
     /// empty = all. For profiling one estimator; run.py needs a full export.
     only: Vec<String>,
+    /// `--profile N[:M]`: after building each wanted baseline's sets, fit
+    /// it N times and predict the test set M times (default N), untimed,
+    /// and skip the rest (no export, no timing): a profiler then sees only
+    /// the estimator (`--profile 1:500`: mostly its prediction).
+    profile: Option<(usize, usize)>,
 }
 
 impl Args {
@@ -80,6 +85,7 @@ fn parse_args() -> Res<Args> {
     let mut seed = 1;
     let mut repeats = 15;
     let mut only = Vec::new();
+    let mut profile = None;
     let mut it = std::env::args().skip(1);
     while let Some(a) = it.next() {
         let mut val = |name: &str| it.next().ok_or(format!("{name} needs a value"));
@@ -88,8 +94,14 @@ fn parse_args() -> Res<Args> {
             "--seed" => seed = val("--seed")?.parse().map_err(|e| format!("--seed: {e}"))?,
             "--repeats" => repeats = val("--repeats")?.parse().map_err(|e| format!("--repeats: {e}"))?,
             "--only" => only = val("--only")?.split(',').map(str::to_string).collect(),
+            "--profile" => {
+                let v = val("--profile")?;
+                let (f, p) = v.split_once(':').unwrap_or((&v, &v));
+                let num = |s: &str| s.parse::<usize>().map_err(|e| format!("--profile {v}: {e}"));
+                profile = Some((num(f)?.max(1), num(p)?));
+            }
             "-h" | "--help" => {
-                println!("cargo run --release --example peers -- --out <dir> [--seed N] [--repeats N] [--only encoder,ann_s,...]");
+                println!("cargo run --release --example peers -- --out <dir> [--seed N] [--repeats N] [--only encoder,ann_s,...] [--profile N[:M]]");
                 std::process::exit(0);
             }
             other => return Err(format!("unknown argument `{other}` (try --help)")),
@@ -100,6 +112,7 @@ fn parse_args() -> Res<Args> {
         seed,
         repeats: repeats.max(1),
         only,
+        profile,
     })
 }
 
@@ -502,6 +515,19 @@ fn baselines(args: &Args) -> Res<Value> {
                 t.frame.push(f);
             }
             t.trial_angle.push(angle);
+        }
+        if let Some((fits, predictions)) = args.profile {
+            let mut model = None;
+            for _ in 0..fits {
+                model = Some(black_box(b.fit(set.clone(), &fctx)?));
+            }
+            if let Some(m) = &model {
+                for _ in 0..predictions {
+                    black_box(predict(m, &t));
+                }
+            }
+            println!("{id:>7}: {fits} fits and {predictions} predictions done (--profile)");
+            continue;
         }
         let d = dir.join(id);
         let as_f = |v: &[usize]| v.iter().map(|&x| x as f64).collect::<Vec<f64>>();
