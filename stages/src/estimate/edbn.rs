@@ -28,27 +28,15 @@
 //! differentiate within the first epochs. The layer above is trained on the mean-field activities `p(h | v)` of
 //! the layer below.
 //!
-//! A minibatch's products (`p(h | v)` of its rows and of the chains, the
-//! chains' `p(v | h)`, and the statistics `Σ h vᵀ`) are each one
-//! [`dense::gemm_nn`] call on the weights, their transpose (taken once a
-//! minibatch) or a transposed view of the rows, with [`dense::dot`]'s bits
-//! entry by entry; the Bernoulli samples draw their uniforms in bulk
-//! (`Uniforms`, the same stream as one draw at a time); the gradient and
-//! update loops run vectorised with the same operations. So the fitted
-//! weights are bit for bit those of the straightforward loops, and the
-//! peers EDBN fit fell from ~0.55 to ~0.37 s (docs/benches.md). On a
-//! layer whose training vectors are mostly zeros (the bottom one: spike
-//! counts, four in five zero), the products with the rows and the chains'
-//! visible samples skip the zero terms ([`dense::gemm_nn_sparse`], the same
-//! bits); the chains' visible step (bias, sigmoid, one draw for the whole
-//! batch) and the hidden probabilities of the reconstruction subset and of
-//! the next layer's vectors are each one pass over the batch, also with
-//! the same bits: the peers fit 356-360 -> 322 ms (docs/benches.md). It
-//! stays in `f64` with these bits, about 2.3x faster than scikit-learn's
-//! RBM stack rather than the 3x a shorter `exp`, `f32` training or a
-//! reciprocal in place of the gradient's divisions might reach: each would
-//! change every EDBN result (the decision is in docs/benches.md,
-//! "Decisions on the speed targets not met").
+//! Training runs in `f32` ([`super::rbm32`]: every weight, gradient,
+//! activity and uniform of the minibatch loop; the network is stored in
+//! `f64` before and after, so inference and saved models are unchanged).
+//! Until 2026-12-06 it ran in `f64` with the bits of straightforward
+//! loops, at ~0.33 s a `benches/peers` fit, about twice as fast as
+//! scikit-learn's RBM stack rather than the 3x the project asks of every
+//! baseline; in `f32` the same fit takes ~0.17 s (rbm32's module docs have
+//! the why and the numbers). It moved every EDBN figure in its digits:
+//! RESULTS.md says what.
 //!
 //! The training log records each layer-epoch's mean squared
 //! reconstruction error `‖v - p(v | p(h | v))‖² / D` after the epoch, on a
@@ -192,9 +180,6 @@ impl Default for EdbnConfig {
     }
 }
 
-/// Vectors on which each layer-epoch's reconstruction error is logged.
-const RECON_SAMPLE: usize = 256;
-
 /// One RBM: `w` is hidden x visible, row-major. The top RBM's visible side
 /// ends with `labels` softmax units.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -236,52 +221,6 @@ struct Disc {
     u_ok: bool,
     /// `max |U_jy|`.
     u_max: f64,
-    /// Per label, the discriminative gradient's factor (scratch of
-    /// `Rbm::add_discriminative`).
-    wd: Vec<f64>,
-}
-
-/// Accumulates a batch's statistics `Σ_rows h vᵀ` (the product `hᵀ v`:
-/// a transposed view of the rows `h`, no copy), `Σ h` and `Σ v` (each
-/// column's sum in row order, as summing the column alone does), with
-/// its scratch kept across minibatches.
-struct Outer {
-    prod: Vec<f64>,
-    sums: Vec<f64>,
-    nv: usize,
-    nh: usize,
-}
-
-impl Outer {
-    fn new(nv: usize, nh: usize) -> Self {
-        Outer {
-            prod: vec![0.0; nh * nv],
-            sums: Vec::with_capacity(nv.max(nh)),
-            nv,
-            nh,
-        }
-    }
-
-    /// Adds `scale ·` the statistics of rows `h` (`nh` wide) and `v` (`nv`
-    /// wide) to `gw` (`nh x nv`), `gb` and `ga`.
-    fn add(&mut self, h: &[f64], v: &[f64], scale: f64, gw: &mut [f64], gb: &mut [f64], ga: &mut [f64]) {
-        let (nh, nv) = (self.nh, self.nv);
-        let m = v.len() / nv.max(1);
-        dense::gemm_nn(dense::View::transpose_of(h, m, nh), v, nv, &mut self.prod);
-        gw.iter_mut()
-            .zip(&self.prod[..nh * nv])
-            .for_each(|(g, p)| *g += scale * p);
-        for (g, x) in [(gb, h), (ga, v)] {
-            let w = g.len();
-            // From the first row: `x0` is `-0.0 + x0`, a float sum's start.
-            self.sums.clear();
-            self.sums.extend_from_slice(&x[..w.min(x.len())]);
-            for row in x.chunks_exact(w.max(1)).skip(1) {
-                self.sums.iter_mut().zip(row).for_each(|(s, x)| *s += x);
-            }
-            g.iter_mut().zip(&self.sums).for_each(|(g, s)| *g += scale * s);
-        }
-    }
 }
 
 /// The transposed weights of [`Rbm::hid_prob_rows`]: plain (`n_vis x
@@ -299,19 +238,6 @@ enum Wt<'a> {
 /// activities above it.
 fn mostly_zeros(data: &[f64]) -> bool {
     2 * data.iter().filter(|&&x| x == 0.0).count() >= data.len()
-}
-
-/// `p ← 1[u < p]` entry by entry: Bernoulli samples of the probabilities
-/// `p` from the uniforms `u` ([`Uniforms`]), vectorised.
-fn bernoulli_in_place(p: &mut [f64], u: &[f64]) {
-    crate::wide::with_avx2(
-        #[inline(always)]
-        || {
-            p.iter_mut()
-                .zip(u)
-                .for_each(|(p, &u)| *p = f64::from(u8::from(u < *p)))
-        },
-    );
 }
 
 /// Largest `|z|` whose `e^z` is taken in the product form of the posterior:
@@ -424,7 +350,6 @@ impl Disc {
             e: vec![0; k],
             u_ok: false,
             u_max: 0.0,
-            wd: vec![0.0; k],
         }
     }
 
@@ -462,42 +387,14 @@ fn sigmoid_in_place(v: &mut [f64]) {
     );
 }
 
-/// Uniform draws on `[0, 1)` in bulk: `n` of them are the values `n` calls
-/// of `rng.random::<f64>()` give, in order (the top 53 bits of each
-/// `u64` of the stream times `2^-53`, as `rand` forms them; a `u64` slice
-/// filled from the stream holds the words `next_u64` returns, as the
-/// stream's bytes in order). One fill instead of a call per value: the
-/// Gibbs steps' Bernoulli samples drew ~16 M values a fit one at a time.
-/// The test `bulk_uniforms_are_the_stream_of_single_draws` holds this to
-/// `rand`'s own draws.
-#[derive(Default)]
-struct Uniforms {
-    bits: Vec<u64>,
-    u: Vec<f64>,
-}
-
-impl Uniforms {
-    /// The next `n` uniforms of `rng`.
-    fn draw(&mut self, rng: &mut ChaCha8Rng, n: usize) -> &[f64] {
-        const SCALE: f64 = 1.0 / (1u64 << 53) as f64;
-        self.bits.resize(n, 0);
-        rng.fill(&mut self.bits[..n]);
-        self.u.resize(n, 0.0);
-        crate::wide::with_avx2(
-            #[inline(always)]
-            || {
-                self.u
-                    .iter_mut()
-                    .zip(&self.bits)
-                    .for_each(|(u, &b)| *u = SCALE * (b >> 11) as f64)
-            },
-        );
-        &self.u[..n]
-    }
-}
-
 impl Rbm {
-    fn new(n_vis: usize, n_hid: usize, labels: usize, mean_vis: &[f64], rng: &mut ChaCha8Rng) -> Self {
+    pub(super) fn new(
+        n_vis: usize,
+        n_hid: usize,
+        labels: usize,
+        mean_vis: &[f64],
+        rng: &mut ChaCha8Rng,
+    ) -> Self {
         let sd = 1.0 / (n_vis as f64).sqrt();
         let w = (0..n_vis * n_hid)
             .map(|_| {
@@ -538,23 +435,6 @@ impl Rbm {
         sigmoid_in_place(out);
     }
 
-    /// Visible net inputs `a + Wᵀ h`.
-    fn vis_input(&self, h: &[f64], out: &mut [f64]) {
-        out.copy_from_slice(&self.a);
-        for (j, &hj) in h.iter().enumerate() {
-            if hj != 0.0 {
-                let row = &self.w[j * self.n_vis..(j + 1) * self.n_vis];
-                out.iter_mut().zip(row).for_each(|(o, w)| *o += hj * w);
-            }
-        }
-    }
-
-    /// `p(v | h)`: Bernoulli units, then the label softmax group.
-    fn vis_prob(&self, h: &[f64], out: &mut [f64]) {
-        self.vis_input(h, out);
-        self.vis_activate(out);
-    }
-
     /// `p(h | v)` of every row of `v` (row-major, `n_vis` wide) into the rows
     /// of `out`, as one product with `wt`, the transpose of the weights
     /// (`n_vis x n_hid`): [`dense::gemm_nn`] or, skipping zeros,
@@ -582,75 +462,6 @@ impl Rbm {
             dense::transpose(&self.w, nh, nv, &mut wt);
             self.hid_prob_rows(data, Wt::Dense(&wt), out);
         }
-    }
-
-    /// Turns visible net inputs `out` (biases included) into probabilities:
-    /// sigmoids, and a softmax over the label units.
-    fn vis_activate(&self, out: &mut [f64]) {
-        let nb = self.n_vis - self.labels;
-        sigmoid_in_place(&mut out[..nb]);
-        if self.labels > 0 {
-            softmax(&mut out[nb..]);
-        }
-    }
-
-    /// Samples `v` from its probabilities in place (Bernoulli, and one label),
-    /// with the uniforms drawn in bulk ([`Uniforms`]).
-    fn sample_vis(&self, p: &mut [f64], rng: &mut ChaCha8Rng, uni: &mut Uniforms) {
-        let u = uni.draw(rng, self.vis_draws());
-        self.sample_vis_with(p, u);
-    }
-
-    /// Uniforms [`Self::sample_vis`] draws for one row: one per Bernoulli
-    /// unit, and one for the label.
-    fn vis_draws(&self) -> usize {
-        self.n_vis - self.labels + usize::from(self.labels > 0)
-    }
-
-    /// [`Self::sample_vis`] with its uniforms `u` given.
-    fn sample_vis_with(&self, p: &mut [f64], u: &[f64]) {
-        let nb = self.n_vis - self.labels;
-        bernoulli_in_place(&mut p[..nb], u);
-        if self.labels > 0 {
-            let u = u[nb];
-            let mut acc = 0.0;
-            let mut pick = self.labels - 1;
-            for (k, &q) in p[nb..].iter().enumerate() {
-                acc += q;
-                if u < acc {
-                    pick = k;
-                    break;
-                }
-            }
-            p[nb..]
-                .iter_mut()
-                .enumerate()
-                .for_each(|(k, x)| *x = f64::from(u8::from(k == pick)));
-        }
-    }
-
-    /// The chains' step to the visible side: rows of visible net inputs
-    /// without their biases (`n_vis` wide) to samples, with the bits of
-    /// adding `a`, [`Self::vis_activate`] and [`Self::sample_vis`] row by
-    /// row: the uniforms of all rows drawn at once (the stream's values in
-    /// the same order), and without labels the bias and sigmoid over the
-    /// whole batch ([`dense::add_bias_map`]) and one Bernoulli pass.
-    fn sample_vis_rows(&self, rows: &mut [f64], rng: &mut ChaCha8Rng, uni: &mut Uniforms) {
-        let nv = self.n_vis;
-        let n = rows.len() / nv.max(1);
-        let rows = &mut rows[..n * nv];
-        let draws = self.vis_draws();
-        let u = uni.draw(rng, n * draws);
-        if self.labels > 0 {
-            for (v, u) in rows.chunks_exact_mut(nv.max(1)).zip(u.chunks_exact(draws.max(1))) {
-                v.iter_mut().zip(&self.a).for_each(|(v, a)| *v += a);
-                self.vis_activate(v);
-                self.sample_vis_with(v, u);
-            }
-            return;
-        }
-        dense::add_bias_map(rows, &self.a, vmath::sigmoid);
-        bernoulli_in_place(rows, u);
     }
 
     /// Label posterior `p(y | x)` of a label-augmented RBM, exactly (free
@@ -883,214 +694,6 @@ impl Rbm {
             );
             i0 += L;
         }
-    }
-
-    /// The hidden units' net inputs from the data part of every row of `v`
-    /// (`n_vis` wide), `b_j + W_j·x` as [`Self::label_posterior`] forms
-    /// them, into the rows of `out` (`n_hid` wide): one product for a
-    /// minibatch instead of `n_hid` short dot products per row (the data
-    /// columns of the rows against the first rows of `wt`, the transposed
-    /// weights, `n_vis x n_hid`; [`dense::gemm_nn`] has [`dense::dot`]'s
-    /// bits, and `b + s = s + b`), so the same bits.
-    fn data_bases(&self, v: &[f64], wt: &[f64], out: &mut [f64]) {
-        let (nb, nh) = (self.n_vis - self.labels, self.n_hid);
-        let rows = dense::View {
-            data: v,
-            rows: v.len() / self.n_vis.max(1),
-            cols: nb,
-            rs: self.n_vis,
-            cs: 1,
-        };
-        dense::gemm_nn(rows, &wt[..nb * nh], nh, out);
-        for row in out[..rows.rows * nh].chunks_exact_mut(nh.max(1)) {
-            row.iter_mut().zip(&self.b).for_each(|(o, b)| *o += b);
-        }
-    }
-
-    /// Adds `weight ·` the gradient of `log p(y | x)` (Larochelle & Bengio 2008)
-    /// for the labelled row `v = [x, onehot(y)]` to the accumulators, given
-    /// the row's hidden net inputs `base` ([`Self::data_bases`]).
-    #[allow(clippy::too_many_arguments)]
-    fn add_discriminative(
-        &self,
-        v: &[f64],
-        base: &[f64],
-        weight: f64,
-        gw: &mut [f64],
-        ga: &mut [f64],
-        gb: &mut [f64],
-        d: &mut Disc,
-    ) {
-        let nb = self.n_vis - self.labels;
-        let (nh, nv, k) = (self.n_hid, self.n_vis, self.labels);
-        let y = (0..k).position(|c| v[nb + c] > 0.5).unwrap_or(0);
-        d.base.copy_from_slice(base);
-        self.posterior_from_base(d);
-        // Vector loops (with_avx2): the same operations entry by entry as
-        // the scalar loops they replaced (no contraction into FMAs), so
-        // the same bits; a tenth of the EDBN's fit was these loops scalar.
-        crate::wide::with_avx2(
-            #[inline(always)]
-            || {
-                // σ(o) = e^o / (1 + e^o) from the posterior's e^o: no
-                // exponential here. In place of `t`, which is not read again.
-                d.t.iter_mut().for_each(|t| *t /= 1.0 + *t);
-                // weight·(1[c = y] − p_c), the label weights' factor.
-                for (c, (wd, &p)) in d.wd.iter_mut().zip(&d.p).enumerate() {
-                    *wd = weight * (f64::from(u8::from(c == y)) - p);
-                }
-                for (j, sj) in d.t.chunks_exact(k.max(1)).take(nh).enumerate() {
-                    // Σ_c p_c σ_jc, in label order.
-                    let mut expect = 0.0;
-                    for (&p, &s) in d.p.iter().zip(sj) {
-                        expect += p * s;
-                    }
-                    let gw_j = &mut gw[j * nv..(j + 1) * nv];
-                    let (row, labels) = gw_j.split_at_mut(nb);
-                    labels
-                        .iter_mut()
-                        .zip(sj)
-                        .zip(&d.wd)
-                        .for_each(|((g, &s), &wd)| *g += wd * s);
-                    let gj = sj[y] - expect;
-                    gb[j] += weight * gj;
-                    let wg = weight * gj;
-                    row.iter_mut().zip(&v[..nb]).for_each(|(g, x)| *g += wg * x);
-                }
-                for (g, &wd) in ga[nb..].iter_mut().zip(&d.wd) {
-                    *g += wd;
-                }
-            },
-        );
-    }
-
-    /// Trains with PCD on rows of `data` (each `n_vis` long); returns the
-    /// reconstruction error per epoch. `sparse`: `data` is
-    /// [mostly zeros](mostly_zeros), so the products with its rows and the
-    /// chains' visible samples (which follow them) skip zeros, with the
-    /// same bits.
-    fn train_pcd(&mut self, data: &[f64], sparse: bool, cfg: &EdbnConfig, rng: &mut ChaCha8Rng) -> Vec<f64> {
-        let nv = self.n_vis;
-        let nh = self.n_hid;
-        let n = data.len() / nv;
-        let bs = cfg.batch_size.min(n).max(1);
-        let mut uni = Uniforms::default();
-        // Persistent chains start at binarised random data vectors.
-        let mut chains: Vec<f64> = Vec::with_capacity(bs * nv);
-        for _ in 0..bs {
-            let i = rng.random_range(0..n);
-            let mut v = data[i * nv..(i + 1) * nv].to_vec();
-            self.sample_vis(&mut v, rng, &mut uni);
-            chains.extend_from_slice(&v);
-        }
-        let mut gw = vec![0.0; nh * nv];
-        let mut ga = vec![0.0; nv];
-        let mut gb = vec![0.0; nh];
-        let (mut vw, mut va, mut vb) = (vec![0.0; nh * nv], vec![0.0; nv], vec![0.0; nh]);
-        let mut recon_h = Vec::new();
-        let mut vbuf = vec![0.0; nv];
-        let mut disc = Disc::new(self.labels, nh);
-        // Batch buffers: the batch's rows, hidden probabilities or samples,
-        // the statistics' scratch, the weights' transpose and the rows' bases.
-        let mut rows: Vec<f64> = Vec::with_capacity(bs * nv);
-        let mut hb = vec![0.0; bs * nh];
-        let mut outer = Outer::new(nv, nh);
-        let mut wts = dense::SparseRhs::default();
-        let mut wt = vec![0.0; nv * nh];
-        let mut bases = vec![0.0; bs * nh];
-        let mut order: Vec<usize> = (0..n).collect();
-        let mut errors = Vec::with_capacity(cfg.epochs);
-        for epoch in 0..cfg.epochs {
-            let lr = cfg.learning_rate * (1.0 - 0.9 * epoch as f64 / cfg.epochs.max(1) as f64);
-            let mom = if epoch < 5 { 0.5 } else { 0.9 };
-            rand::seq::SliceRandom::shuffle(order.as_mut_slice(), rng);
-            for batch in order.chunks(bs) {
-                gw.iter_mut().for_each(|g| *g = 0.0);
-                ga.iter_mut().for_each(|g| *g = 0.0);
-                gb.iter_mut().for_each(|g| *g = 0.0);
-                if self.labels > 0 && cfg.discriminative > 0.0 {
-                    disc.prepare(self);
-                }
-                // Positive phase: data with p(h | v), the whole batch at once.
-                let m = batch.len();
-                rows.clear();
-                batch
-                    .iter()
-                    .for_each(|&i| rows.extend_from_slice(&data[i * nv..(i + 1) * nv]));
-                // The weights' transpose, for the products with W below.
-                if sparse {
-                    wts.set_transpose(&self.w, nh, nv);
-                }
-                if !sparse || self.labels > 0 {
-                    dense::transpose(&self.w, nh, nv, &mut wt);
-                }
-                let wv = if sparse { Wt::Sparse(&wts) } else { Wt::Dense(&wt) };
-                self.hid_prob_rows(&rows, wv, &mut hb[..m * nh]);
-                outer.add(&hb[..m * nh], &rows, 1.0, &mut gw, &mut gb, &mut ga);
-                if self.labels > 0 && cfg.discriminative > 0.0 {
-                    // The weights change only after the minibatch: every
-                    // row's net inputs at once.
-                    self.data_bases(&rows, &wt, &mut bases[..m * nh]);
-                    for (v, base) in rows.chunks_exact(nv).zip(bases.chunks_exact(nh.max(1))) {
-                        self.add_discriminative(
-                            v,
-                            base,
-                            cfg.discriminative,
-                            &mut gw,
-                            &mut ga,
-                            &mut gb,
-                            &mut disc,
-                        );
-                    }
-                }
-                // Negative phase: one Gibbs step of every persistent chain:
-                // sample h ~ p(h | v) (chain by chain), v ~ p(v | h), then p(h | v).
-                let scale_neg = m as f64 / bs as f64;
-                self.hid_prob_rows(&chains, wv, &mut hb);
-                bernoulli_in_place(&mut hb, uni.draw(rng, bs * nh));
-                dense::gemm_nn(dense::View::rows_of(&hb, bs, nh), &self.w, nv, &mut chains);
-                self.sample_vis_rows(&mut chains, rng, &mut uni);
-                self.hid_prob_rows(&chains, wv, &mut hb);
-                outer.add(&hb, &chains, -scale_neg, &mut gw, &mut gb, &mut ga);
-                let inv = 1.0 / batch.len() as f64;
-                // Vectorised (the same operations entry by entry).
-                crate::wide::with_avx2(
-                    #[inline(always)]
-                    || {
-                        for ((w, v), g) in self.w.iter_mut().zip(&mut vw).zip(&gw) {
-                            *v = mom * *v + lr * (g * inv - cfg.l2 * *w);
-                            *w += *v;
-                        }
-                        for (a, (v, g)) in self.a.iter_mut().zip(va.iter_mut().zip(&ga)) {
-                            *v = mom * *v + lr * g * inv;
-                            *a += *v;
-                        }
-                        for (b, (v, g)) in self.b.iter_mut().zip(vb.iter_mut().zip(&gb)) {
-                            *v = mom * *v + lr * g * inv;
-                            *b += *v;
-                        }
-                    },
-                );
-            }
-            // Reconstruction error for the log, on a fixed evenly spaced subset
-            // (at most RECON_SAMPLE vectors): a per-step error doubled the cost.
-            // The subset's hidden probabilities in one product.
-            let m = n.min(RECON_SAMPLE);
-            rows.clear();
-            (0..m).for_each(|s| {
-                let i = s * n / m;
-                rows.extend_from_slice(&data[i * nv..(i + 1) * nv]);
-            });
-            recon_h.resize(m * nh, 0.0);
-            self.hid_probs(&rows, sparse, &mut recon_h);
-            let mut err = 0.0;
-            for (v, h) in rows.chunks_exact(nv).zip(recon_h.chunks_exact(nh.max(1))) {
-                self.vis_prob(h, &mut vbuf);
-                err += v.iter().zip(&vbuf).map(|(a, b)| (a - b) * (a - b)).sum::<f64>() / nv as f64;
-            }
-            errors.push(err / m.max(1) as f64);
-        }
-        errors
     }
 }
 
@@ -1391,7 +994,8 @@ impl EdbnConfig {
             let mut rbm = Rbm::new(nv, nh, if top { k } else { 0 }, &mean, rng);
             // Decided once per layer, from its training vectors.
             let sparse = mostly_zeros(&data);
-            log.loss.extend(rbm.train_pcd(&data, sparse, self, rng));
+            log.loss
+                .extend(super::rbm32::train_pcd(&mut rbm, &data, sparse, self, rng));
             if !top {
                 let mut next = vec![0.0; n * nh];
                 rbm.hid_probs(&data, sparse, &mut next);
@@ -1518,30 +1122,6 @@ mod tests {
         r
     }
 
-    /// [`Uniforms`] gives the values of `rng.random::<f64>()` one call after
-    /// another, also after draws that leave the stream between words
-    /// (a `u32`) or at a block's edge, so the Gibbs samples keep their bits.
-    #[test]
-    fn bulk_uniforms_are_the_stream_of_single_draws() {
-        let mut uni = Uniforms::default();
-        for (seed, skip32) in [(1u64, 0usize), (2, 1), (3, 15), (4, 31), (5, 63)] {
-            let mut a = ChaCha8Rng::seed_from_u64(seed);
-            let mut b = ChaCha8Rng::seed_from_u64(seed);
-            for _ in 0..skip32 {
-                let (x, y): (u32, u32) = (a.random(), b.random());
-                assert_eq!(x, y);
-            }
-            for n in [1usize, 7, 31, 32, 33, 80, 81, 200] {
-                let bulk = uni.draw(&mut a, n).to_vec();
-                let single: Vec<f64> = (0..n).map(|_| b.random::<f64>()).collect();
-                assert_eq!(bulk, single, "seed {seed}, after {skip32} u32, n {n}");
-                assert!(bulk.iter().all(|u| (0.0..1.0).contains(u)));
-                let (x, y): (u32, u32) = (a.random(), b.random());
-                assert_eq!(x, y);
-            }
-        }
-    }
-
     /// A batch's hidden probabilities (one product, zeros skipped or not)
     /// have the bits of [`Rbm::hid_prob`] row by row, on mostly-zero rows
     /// (with an all-zero row and signed zeros) and on dense ones.
@@ -1567,64 +1147,6 @@ mod tests {
                 r.hid_probs(&data, sparse, &mut got);
                 let same = want.iter().zip(&got).all(|(w, g)| w.to_bits() == g.to_bits());
                 assert!(same, "nv {nv} rows {rows} zeros {zeros} sparse {sparse}");
-            }
-        }
-    }
-
-    /// The chains' visible step over a whole batch has the bits of the
-    /// row-by-row step it replaced (bias, activation, one draw per row),
-    /// with and without label units, and leaves the stream where it did.
-    #[test]
-    fn batched_visible_samples_are_the_bits_of_row_by_row() {
-        for (nb, nh, k, rows) in [(80, 60, 0, 20), (60, 30, 17, 20), (7, 5, 3, 1), (9, 4, 0, 3)] {
-            let mut r = top_rbm(nb, nh, k, 1.3, 7 + nb as u64);
-            r.labels = k;
-            let mut rng = ChaCha8Rng::seed_from_u64(9);
-            r.a.iter_mut().for_each(|a| *a = rng.random_range(-1.0..1.0));
-            let inputs: Vec<f64> = (0..rows * (nb + k))
-                .map(|_| rng.random_range(-4.0..4.0))
-                .collect();
-            let (mut a, mut b) = (ChaCha8Rng::seed_from_u64(5), ChaCha8Rng::seed_from_u64(5));
-            let mut uni = Uniforms::default();
-            let mut want = inputs.clone();
-            for v in want.chunks_exact_mut(nb + k) {
-                v.iter_mut().zip(&r.a).for_each(|(v, a)| *v += a);
-                r.vis_activate(v);
-                r.sample_vis(v, &mut a, &mut uni);
-            }
-            let mut got = inputs.clone();
-            r.sample_vis_rows(&mut got, &mut b, &mut uni);
-            let same = want.iter().zip(&got).all(|(w, g)| w.to_bits() == g.to_bits());
-            assert!(same, "nb {nb} k {k}: {want:?} vs {got:?}");
-            assert!(got.contains(&1.0) && got.contains(&0.0));
-            assert_eq!(
-                a.random::<u64>(),
-                b.random::<u64>(),
-                "nb {nb} k {k}: stream moved"
-            );
-        }
-    }
-
-    #[test]
-    fn minibatch_bases_are_the_bits_of_row_by_row() {
-        // Odd widths (7, 23, 61 data values) leave remainders in the tiled
-        // product; labels in the rows must not enter the bases.
-        for (nb, nh, k, rows) in [(7, 5, 3, 1), (23, 30, 17, 20), (61, 9, 4, 13)] {
-            let r = top_rbm(nb, nh, k, 1.7, nb as u64);
-            let mut rng = ChaCha8Rng::seed_from_u64(3);
-            let v: Vec<f64> = (0..rows * (nb + k))
-                .map(|_| rng.random_range(-2.0..2.0))
-                .collect();
-            let mut wt = vec![0.0; (nb + k) * nh];
-            dense::transpose(&r.w, nh, nb + k, &mut wt);
-            let mut bases = vec![f64::NAN; rows * nh];
-            r.data_bases(&v, &wt, &mut bases);
-            let mut d = Disc::new(k, nh);
-            d.prepare(&r);
-            for (row, b) in v.chunks_exact(nb + k).zip(bases.chunks_exact(nh)) {
-                r.label_posterior(row, &mut d);
-                let same = d.base.iter().zip(b).all(|(a, b)| a.to_bits() == b.to_bits());
-                assert!(same, "nb {nb} nh {nh}: {:?} vs {b:?}", d.base);
             }
         }
     }

@@ -32,6 +32,7 @@ pub mod features;
 pub mod forest;
 pub mod knn_scan;
 pub mod lbfgs;
+mod rbm32;
 pub mod saved;
 pub mod smo;
 pub mod vmath;
