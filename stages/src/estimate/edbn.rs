@@ -58,10 +58,14 @@
 //!   EDBN prediction (3154 frames) fell from 3.3-3.7 to 2.4-2.7 ms (thread
 //!   CPU, old and new binaries alternated, `RAYON_NUM_THREADS=1
 //!   target/release/examples/peers --out /tmp/wk --seed 1 --only edbn`).
-//!   Sigmoids are [`super::vmath::sigmoid`] over whole slices, vectorised.
-//!   The first layer's product skips the features' zeros (four in five on
-//!   the lab set) with the same bits ([`super::dense::gemm_nt_sparse`]):
-//!   the peers prediction 1.65-1.76 -> 1.36-1.42 ms (docs/benches.md).
+//!   The layers up to the top's net inputs `b_j + W_j·h` run in `f32`, as
+//!   training does ([`super::rbm32::Forward`]: each frame's values times
+//!   `Wᵀ` with the units across the lanes, the features' zeros skipped,
+//!   `σ` from an `f32` exponential), and the posterior in `f64` from those
+//!   net inputs; a frame alone and in a batch take the same path, so the
+//!   same bits (test `batch_scores_are_the_bits_of_frame_by_frame`). Since
+//!   2026-12-06 (before, `f64` products with a fixed four-way split of each
+//!   dot product): the peers prediction ~1.42 -> ~0.9 ms (docs/benches.md).
 //! * `spiking` (event-driven, as O'Connor et al. run their DBN): each input value
 //!   drives a Poisson spike train at `v_i · input_rate_hz` for `duration_ms`, in
 //!   steps of `dt_ms`; every layer is integrate-and-fire units (reset by
@@ -83,10 +87,10 @@
 //! stage given one with `model_in` predicts with it instead of fitting, and
 //! streams under `palpate run --live` (see [`super::saved`]).
 
-use super::dense;
 use super::features::{
     want, FeatureKeys, FittedModel, FrameClassifier, TrainSet, TrainingLog, Vote, MODEL_FORMAT,
 };
+use super::rbm32;
 use super::vmath::{self, softmax};
 use palpate_core::{check_positive, check_range, ConfigChecks, ConfigError, FitContext, Item, StageError};
 use rand::Rng;
@@ -223,19 +227,10 @@ struct Disc {
     u_max: f64,
 }
 
-/// The transposed weights of [`Rbm::hid_prob_rows`]: plain (`n_vis x
-/// n_hid`) or laid out for the product that skips zeros.
-#[derive(Clone, Copy)]
-enum Wt<'a> {
-    Dense(&'a [f64]),
-    Sparse(&'a dense::SparseRhs),
-}
-
-/// Whether at least half of `data` is zero: then an RBM's products with
-/// these rows (and with its chains, whose samples follow them) skip zeros
-/// ([`dense::gemm_nn_sparse`], the same bits). True of the bottom layer's
-/// spike counts (four in five zero on the lab set), not of the mean-field
-/// activities above it.
+/// Whether at least half of `data` is zero: then training's products with
+/// these rows visit only their nonzero values ([`rbm32::train_pcd`]). True
+/// of the bottom layer's spike counts (four in five zero on the lab set),
+/// not of the mean-field activities above it.
 fn mostly_zeros(data: &[f64]) -> bool {
     2 * data.iter().filter(|&&x| x == 0.0).count() >= data.len()
 }
@@ -247,9 +242,9 @@ const EXP_SAFE: f64 = 300.0;
 /// Frames per group of [`Rbm::posterior_rows`] (lanes of its vector loops).
 const POST_LANES: usize = 16;
 
-/// Rows per block of [`Dbn::scores_batch`]: a block's widest layer output
-/// (60 units: 245 KB) stays in L2, and a multiple of [`POST_LANES`] so only
-/// the batch's last frames take the posterior's row-by-row path.
+/// Rows per block of [`Dbn::scores_batch`]: a block's net inputs (30 units:
+/// 123 KB) stay in L2 for the posterior, and a multiple of [`POST_LANES`]
+/// so only the batch's last frames take the posterior's row-by-row path.
 const BLOCK_ROWS: usize = 512;
 
 /// One block of [`Rbm::posterior_rows`]' products, the frames across the
@@ -267,6 +262,12 @@ fn product_block(
 ) {
     let k = m.len();
     assert!(e.len() == k && eu.len() == eb.len() * k);
+    #[cfg(target_arch = "x86_64")]
+    if crate::wide::avx512() {
+        // SAFETY: the CPU supports AVX-512 F (checked at run time); shapes asserted.
+        unsafe { product_block_avx512(m, e, eb, eu) };
+        return;
+    }
     #[cfg(target_arch = "x86_64")]
     if crate::wide::avx2() {
         // SAFETY: the CPU supports AVX2 (checked at run time); shapes asserted.
@@ -333,6 +334,54 @@ unsafe fn product_block_avx(
                 _mm256_storeu_si256(pe, _mm256_add_epi64(_mm256_loadu_si256(pe), ex));
                 let nm = _mm256_or_si256(_mm256_and_si256(b, mant), onev);
                 _mm256_storeu_pd(pm, _mm256_castsi256_pd(nm));
+            }
+        }
+    }
+}
+
+/// [`product_block`] with 512-bit vectors: the same operations lane by
+/// lane, half the instructions of the 256-bit form.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+unsafe fn product_block_avx512(
+    m: &mut [[f64; POST_LANES]],
+    e: &mut [[i64; POST_LANES]],
+    eb: &[[f64; POST_LANES]],
+    eu: &[f64],
+) {
+    use std::arch::x86_64::*;
+    const V: usize = POST_LANES / 8;
+    let k = m.len();
+    let one = _mm512_set1_pd(1.0);
+    for (ebj, uj) in eb.iter().zip(eu.chunks_exact(k.max(1))) {
+        // SAFETY: ebj holds 8·V doubles.
+        let x: [__m512d; V] = std::array::from_fn(|q| unsafe { _mm512_loadu_pd(ebj.as_ptr().add(8 * q)) });
+        for (my, &u) in m.iter_mut().zip(uj) {
+            let uv = _mm512_set1_pd(u);
+            for (q, &xq) in x.iter().enumerate() {
+                // SAFETY: my holds 8·V doubles.
+                unsafe {
+                    let p = my.as_mut_ptr().add(8 * q);
+                    let t = _mm512_add_pd(one, _mm512_mul_pd(xq, uv));
+                    _mm512_storeu_pd(p, _mm512_mul_pd(_mm512_loadu_pd(p), t));
+                }
+            }
+        }
+    }
+    let mant = _mm512_set1_epi64((1 << 52) - 1);
+    let onev = _mm512_set1_epi64(1023 << 52);
+    let bias = _mm512_set1_epi64(1023);
+    for (my, ey) in m.iter_mut().zip(e.iter_mut()) {
+        for q in 0..V {
+            // SAFETY: my and ey hold 8·V values each.
+            unsafe {
+                let pm = my.as_mut_ptr().add(8 * q);
+                let pe = ey.as_mut_ptr().add(8 * q).cast::<__m512i>();
+                let b = _mm512_castpd_si512(_mm512_loadu_pd(pm));
+                let ex = _mm512_sub_epi64(_mm512_srli_epi64::<52>(b), bias);
+                _mm512_storeu_si512(pe, _mm512_add_epi64(_mm512_loadu_si512(pe), ex));
+                let nm = _mm512_or_si512(_mm512_and_si512(b, mant), onev);
+                _mm512_storeu_pd(pm, _mm512_castsi512_pd(nm));
             }
         }
     }
@@ -433,35 +482,6 @@ impl Rbm {
     fn hid_prob(&self, v: &[f64], out: &mut [f64]) {
         self.hid_input(v, out);
         sigmoid_in_place(out);
-    }
-
-    /// `p(h | v)` of every row of `v` (row-major, `n_vis` wide) into the rows
-    /// of `out`, as one product with `wt`, the transpose of the weights
-    /// (`n_vis x n_hid`): [`dense::gemm_nn`] or, skipping zeros,
-    /// [`dense::gemm_nn_sparse`]; [`dense::dot`]'s bits either way.
-    fn hid_prob_rows(&self, v: &[f64], wt: Wt<'_>, out: &mut [f64]) {
-        let m = v.len() / self.n_vis.max(1);
-        match wt {
-            Wt::Sparse(b) => dense::gemm_nn_sparse(v, b, out),
-            Wt::Dense(wt) => dense::gemm_nn(dense::View::rows_of(v, m, self.n_vis), wt, self.n_hid, out),
-        }
-        dense::add_bias_map(&mut out[..m * self.n_hid], &self.b, vmath::sigmoid);
-    }
-
-    /// `p(h | v)` of every row of `data` (`n_vis` wide) into `out`, as
-    /// [`Self::hid_prob`] gives each (the same bits): one product over all
-    /// rows, skipping zeros when `sparse` (see [`Self::train_pcd`]).
-    fn hid_probs(&self, data: &[f64], sparse: bool, out: &mut [f64]) {
-        let (nv, nh) = (self.n_vis, self.n_hid);
-        if sparse {
-            let mut wts = dense::SparseRhs::default();
-            wts.set_transpose(&self.w, nh, nv);
-            self.hid_prob_rows(data, Wt::Sparse(&wts), out);
-        } else {
-            let mut wt = vec![0.0; nv * nh];
-            dense::transpose(&self.w, nh, nv, &mut wt);
-            self.hid_prob_rows(data, Wt::Dense(&wt), out);
-        }
     }
 
     /// Label posterior `p(y | x)` of a label-augmented RBM, exactly (free
@@ -629,18 +649,40 @@ impl Rbm {
         let mut i0 = 0;
         while i0 < n {
             let group = &base[i0 * nh..(i0 + L.min(n - i0)) * nh];
-            // The fast path's test and `g`, per frame as `posterior_from_base`.
-            let mut fast = d.u_ok && n - i0 >= L;
-            let mut g = nh;
-            for row in group.chunks_exact(nh) {
-                let mut top = f64::NEG_INFINITY;
-                for &b in row {
-                    fast &= b.abs() <= EXP_SAFE;
-                    top = top.max(b);
+            let whole = n - i0 >= L;
+            if whole {
+                for (j, ej) in ebt.iter_mut().enumerate() {
+                    for (i, v) in ej.iter_mut().enumerate() {
+                        *v = group[i * nh + j];
+                    }
                 }
-                let bits = (top + d.u_max).max(0.0) * std::f64::consts::LOG2_E + 1.0;
-                g = g.min(((999.0 / bits) as usize).clamp(1, nh));
             }
+            // The fast path's test and `g`, per frame as
+            // `posterior_from_base` takes them, the frames across the lanes
+            // (the maximum is exact whatever the order; a NaN fails the
+            // test).
+            let (fast, g) = crate::wide::with_avx2(
+                #[inline(always)]
+                || {
+                    if !(whole && d.u_ok) {
+                        return (false, nh);
+                    }
+                    let mut top = [f64::NEG_INFINITY; L];
+                    let mut ok = [true; L];
+                    for ej in &ebt {
+                        for i in 0..L {
+                            ok[i] &= ej[i].abs() <= EXP_SAFE;
+                            top[i] = top[i].max(ej[i]);
+                        }
+                    }
+                    let mut g = nh;
+                    for &t in &top {
+                        let bits = (t + d.u_max).max(0.0) * std::f64::consts::LOG2_E + 1.0;
+                        g = g.min(((999.0 / bits) as usize).clamp(1, nh));
+                    }
+                    (ok.iter().all(|&o| o), g)
+                },
+            );
             if !fast {
                 let rows = group.len() / nh;
                 self.posterior_each_row(group, d, &mut out[i0 * stride..], stride);
@@ -648,11 +690,6 @@ impl Rbm {
                 continue;
             }
             let out = &mut out[i0 * stride..(i0 + L) * stride];
-            for (j, ej) in ebt.iter_mut().enumerate() {
-                for (i, v) in ej.iter_mut().enumerate() {
-                    *v = group[i * nh + j];
-                }
-            }
             crate::wide::with_avx2(
                 #[inline(always)]
                 || {
@@ -712,9 +749,57 @@ pub struct Dbn {
     pub duration_ms: f64,
     /// Spiking: step, ms.
     pub dt_ms: f64,
+    /// The rate network in `f32` layouts, built at first use from `rbms`
+    /// (a model is not changed after it is fitted or loaded).
+    #[serde(skip)]
+    pub(crate) net32: Net32,
+}
+
+/// [`Dbn::net32`]: the layers below the top and the top's data columns as
+/// [`rbm32::Forward`] layers, or `None` when the layers do not chain.
+#[derive(Clone, Debug, Default)]
+pub struct Net32(std::sync::OnceLock<Option<Vec<rbm32::Forward>>>);
+
+impl PartialEq for Net32 {
+    /// A cache: models are equal by their weights alone.
+    fn eq(&self, _: &Self) -> bool {
+        true
+    }
 }
 
 impl Dbn {
+    /// The rate network's [`rbm32::Forward`] layers (built once), if its
+    /// layers chain from `dim` inputs to the top's label units.
+    fn forward_layers(&self, dim: usize) -> Option<&[rbm32::Forward]> {
+        let layers = self.net32.0.get_or_init(|| {
+            let (top, below) = self.rbms.split_last()?;
+            let mut fed = below
+                .first()
+                .map_or(top.n_vis.checked_sub(top.labels)?, |r| r.n_vis);
+            let mut out = Vec::with_capacity(self.rbms.len());
+            for r in below {
+                if r.n_vis != fed || r.labels != 0 || r.w.len() != r.n_vis * r.n_hid || r.b.len() != r.n_hid {
+                    return None;
+                }
+                out.push(rbm32::Forward::new(r, r.n_vis, true, out.is_empty()));
+                fed = r.n_hid;
+            }
+            if top.labels != self.classes
+                || top.n_vis.checked_sub(top.labels) != Some(fed)
+                || top.w.len() != top.n_vis * top.n_hid
+                || top.b.len() != top.n_hid
+            {
+                return None;
+            }
+            let first = out.is_empty();
+            out.push(rbm32::Forward::new(top, fed, false, first));
+            Some(out)
+        });
+        layers
+            .as_deref()
+            .filter(|l| l.first().is_some_and(|f| f.inputs() == dim))
+    }
+
     /// Class scores of one normalised vector.
     pub fn frame_scores(&self, x: &[f64], rng: &mut ChaCha8Rng, out: &mut [f64]) {
         match self.inference {
@@ -725,120 +810,71 @@ impl Dbn {
 
     /// [`Self::frame_scores`] of every row of `x` (row-major, `dim` wide) into
     /// the rows of `out` (`classes` wide), in row order: the same bits as row
-    /// by row. Rate inference runs the network over blocks of
-    /// `BLOCK_ROWS` rows, each layer over a block as one tiled product
-    /// ([`dense::gemm_nt`], the bits of a row's dot products).
+    /// by row. Rate inference runs the `f32` layers a row at a time and the
+    /// posterior over blocks of `BLOCK_ROWS` rows, 16 frames across the
+    /// lanes ([`Rbm::posterior_rows`], the bits of
+    /// [`Rbm::posterior_from_base`]).
     pub fn scores_batch(&self, x: &[f64], dim: usize, rng: &mut ChaCha8Rng, out: &mut [f64]) {
         let k = self.classes.max(1);
-        let shapes_ok = |top: &Rbm, below: &[Rbm]| {
-            let mut fed = dim;
-            for r in below {
-                if r.n_vis != fed || r.labels != 0 {
-                    return false;
-                }
-                fed = r.n_hid;
-            }
-            top.labels == self.classes && top.n_vis.checked_sub(top.labels) == Some(fed)
+        let layers = match (self.inference, self.rbms.last()) {
+            (Inference::Rate, Some(top)) => self.forward_layers(dim).map(|l| (l, top)),
+            _ => None,
         };
-        let (Inference::Rate, Some((top, below))) = (self.inference, self.rbms.split_last()) else {
+        let Some((layers, top)) = layers else {
+            // Spiking inference, or a model whose layers do not chain: the
+            // row-by-row path decides.
             for (row, o) in x.chunks_exact(dim.max(1)).zip(out.chunks_exact_mut(k)) {
                 self.frame_scores(row, rng, o);
             }
             return;
         };
-        if !shapes_ok(top, below) {
-            // A model whose layers do not chain: the row-by-row path decides.
-            for (row, o) in x.chunks_exact(dim.max(1)).zip(out.chunks_exact_mut(k)) {
-                self.frame_scores(row, rng, o);
-            }
-            return;
-        }
         let n = (x.len() / dim.max(1)).min(out.len() / k);
-        // The top layer's net inputs without labels, `b + W[:, ..nb] h`, from
-        // a compact copy of the weights' data columns.
-        let nb = top.n_vis - top.labels;
-        let wc: Vec<f64> = top
-            .w
-            .chunks_exact(top.n_vis.max(1))
-            .flat_map(|r| r[..nb].iter().copied())
-            .collect();
         let mut d = Disc::new(self.classes, top.n_hid);
         d.prepare(top);
-        // The whole network over a block of rows at a time, so each layer's
-        // output is still in cache when the next layer (its bias and
-        // sigmoid, then its product) reads it: over the whole batch at once,
-        // the peers test set's first hidden layer (3154 x 60, 1.5 MB) went
-        // through L3 three times (perf: the bias pass alone ~5 % of a
-        // prediction). Rows are independent, so the bits are the batch's.
-        // (A trial's few frames get buffers of their size, not a block's.)
+        // The top layer's net inputs for a block of rows at a time (the
+        // layers in `f32`, row by row: their weights stay in L1), then the
+        // block's posteriors, 16 frames across the lanes.
         let block = n.min(BLOCK_ROWS);
-        let mut acts: Vec<Vec<f64>> = below.iter().map(|r| vec![0.0; block * r.n_hid]).collect();
-        // Each layer's weights laid out for its product once, not once a
-        // block: the first (sparse) layer's transposed with padding
-        // ([`dense::SparseRhs`]), the dense layers' packed in panels
-        // ([`dense::NarrowRhs`]); the products' bits are the same.
-        let mut first_rhs = dense::SparseRhs::default();
-        match below.first() {
-            Some(r) => first_rhs.set_transpose(&r.w, r.n_hid, r.n_vis),
-            None => first_rhs.set_transpose(&wc, top.n_hid, nb),
-        }
-        // The products after the first, in order: the layers above it, then
-        // the top's data columns.
-        let mut packed: Vec<dense::NarrowRhs> = below
-            .iter()
-            .skip(1)
-            .map(|r| dense::NarrowRhs::new(&r.w, r.n_vis))
-            .collect();
-        if !below.is_empty() {
-            packed.push(dense::NarrowRhs::new(&wc, nb));
-        }
         let mut base = vec![0.0; block * top.n_hid];
         for (b0, o) in (0..n)
             .step_by(BLOCK_ROWS)
             .zip(out[..n * k].chunks_mut(BLOCK_ROWS * k))
         {
             let rows = (n - b0).min(BLOCK_ROWS);
-            // The input rows are read in place (a copy of them was 3% of a
-            // prediction).
-            let mut v = &x[b0 * dim..(b0 + rows) * dim];
-            // The first product reads the features, mostly zeros (spike
-            // counts): it skips them, with the same bits
-            // ([`dense::gemm_nn_sparse`]); the layers above are dense.
-            // Product `i` of the block: the sparse first, then `packed[i − 1]`.
-            let product = |i: usize, v: &[f64], h: &mut [f64]| match i.checked_sub(1) {
-                None => dense::gemm_nn_sparse(v, &first_rhs, h),
-                Some(p) => dense::gemm_nt_packed(v, &packed[p], h),
-            };
-            for (i, (r, h)) in below.iter().zip(acts.iter_mut()).enumerate() {
-                let h = &mut h[..rows * r.n_hid];
-                product(i, v, h);
-                dense::add_bias_map(h, &r.b, vmath::sigmoid);
-                v = h;
-            }
             let base = &mut base[..rows * top.n_hid];
-            product(below.len(), v, base);
-            dense::add_bias_map(base, &top.b, |z| z);
+            rbm32::forward_rows(layers, &x[b0 * dim..(b0 + rows) * dim], base, top.n_hid);
             top.posterior_rows(base, &mut d, o, k);
         }
     }
 
-    /// Mean-field label posterior.
+    /// Mean-field label posterior: the layers in `f32`
+    /// ([`rbm32::Forward`]), the posterior in `f64`
+    /// ([`Rbm::posterior_from_base`]); a model whose layers do not chain
+    /// takes the plain `f64` loops.
     pub fn rate_scores(&self, x: &[f64], out: &mut [f64]) {
-        let mut v = x.to_vec();
-        let Some((top, below)) = self.rbms.split_last() else {
+        let Some(top) = self.rbms.last() else {
             out.iter_mut().for_each(|o| *o = 0.0);
             return;
         };
-        for r in below {
-            let mut h = vec![0.0; r.n_hid];
-            r.hid_prob(&v, &mut h);
-            v = h;
-        }
         let k = self.classes;
-        v.extend(std::iter::repeat_n(0.0, k));
         let mut d = Disc::new(k, top.n_hid);
         d.prepare(top);
-        top.label_posterior(&v, &mut d);
+        match self.forward_layers(x.len()) {
+            Some(layers) => {
+                rbm32::forward_rows(layers, x, &mut d.base, top.n_hid);
+                top.posterior_from_base(&mut d);
+            }
+            None => {
+                let mut v = x.to_vec();
+                for r in &self.rbms[..self.rbms.len() - 1] {
+                    let mut h = vec![0.0; r.n_hid];
+                    r.hid_prob(&v, &mut h);
+                    v = h;
+                }
+                v.extend(std::iter::repeat_n(0.0, k));
+                top.label_posterior(&v, &mut d);
+            }
+        }
         out[..k].copy_from_slice(&d.p);
     }
 
@@ -997,8 +1033,14 @@ impl EdbnConfig {
             log.loss
                 .extend(super::rbm32::train_pcd(&mut rbm, &data, sparse, self, rng));
             if !top {
+                // The layer above learns from what inference will feed it.
                 let mut next = vec![0.0; n * nh];
-                rbm.hid_probs(&data, sparse, &mut next);
+                rbm32::forward_rows(
+                    &[rbm32::Forward::new(&rbm, nv, true, l == 0)],
+                    &data,
+                    &mut next,
+                    nh,
+                );
                 data = next;
                 dim = nh;
             }
@@ -1025,6 +1067,7 @@ impl EdbnConfig {
                 input_rate_hz: self.input_rate_hz,
                 duration_ms: self.duration_ms,
                 dt_ms: self.dt_ms,
+                net32: Net32::default(),
             }),
             log,
         })
@@ -1122,35 +1165,6 @@ mod tests {
         r
     }
 
-    /// A batch's hidden probabilities (one product, zeros skipped or not)
-    /// have the bits of [`Rbm::hid_prob`] row by row, on mostly-zero rows
-    /// (with an all-zero row and signed zeros) and on dense ones.
-    #[test]
-    fn batched_hidden_probabilities_are_the_bits_of_row_by_row() {
-        for (nv, nh, rows, zeros) in [
-            (80, 60, 37, 0.8),
-            (80, 60, 20, 0.0),
-            (13, 5, 3, 0.5),
-            (60, 30, 1, 1.0),
-        ] {
-            let r = top_rbm(nv, nh, 0, 1.1, nv as u64);
-            let mut rng = ChaCha8Rng::seed_from_u64(4);
-            let mut data = crate::estimate::dense::tests::with_zeros(&mut rng, rows * nv, zeros, 0.0..3.0);
-            data[..nv].iter_mut().for_each(|x| *x = 0.0);
-            assert_eq!(mostly_zeros(&data), zeros >= 0.5 || rows == 1);
-            let mut want = vec![0.0; rows * nh];
-            for (v, h) in data.chunks_exact(nv).zip(want.chunks_exact_mut(nh)) {
-                r.hid_prob(v, h);
-            }
-            for sparse in [false, true] {
-                let mut got = vec![f64::NAN; rows * nh];
-                r.hid_probs(&data, sparse, &mut got);
-                let same = want.iter().zip(&got).all(|(w, g)| w.to_bits() == g.to_bits());
-                assert!(same, "nv {nv} rows {rows} zeros {zeros} sparse {sparse}");
-            }
-        }
-    }
-
     /// The posterior by its definition: softplus sums, then a softmax.
     fn posterior_by_definition(r: &Rbm, base: &[f64]) -> Vec<f64> {
         let nb = r.n_vis - r.labels;
@@ -1245,6 +1259,7 @@ mod tests {
             input_rate_hz: 200.0,
             duration_ms: 100.0,
             dt_ms: 1.0,
+            net32: Net32::default(),
         };
         // Within one block, and across blocks with a ragged last one (the
         // narrow kernels from 64 rows, the posterior's groups of 16).
@@ -1298,7 +1313,7 @@ mod tests {
             base[2 * nh] = 1e-300;
             base[POST_LANES * nh + 2] = 450.0;
             base[(2 * POST_LANES + 1) * nh] = -1e6;
-            for wide in [true, false] {
+            for path in 0..3 {
                 let run = || {
                     let mut d = Disc::new(k, nh);
                     d.prepare(&r);
@@ -1306,10 +1321,11 @@ mod tests {
                     r.posterior_rows(&base, &mut d, &mut out, k + 2);
                     out
                 };
-                let out = if wide {
-                    run()
-                } else {
-                    crate::wide::baseline_only(run)
+                // AVX-512 where the CPU has it, AVX2, the baseline.
+                let out = match path {
+                    0 => run(),
+                    1 => crate::wide::without_avx512(run),
+                    _ => crate::wide::baseline_only(run),
                 };
                 let mut d = Disc::new(k, nh);
                 d.prepare(&r);

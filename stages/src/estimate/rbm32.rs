@@ -229,17 +229,29 @@ impl Uniforms {
 /// Appends the positions of `row`'s nonzero values to `out`, in order: a
 /// mask of each chunk's nonzeros (a vector comparison), then its bits.
 #[inline(always)]
-fn push_nonzeros(row: &[f32], out: &mut Vec<u32>) {
-    for (c, chunk) in row.chunks(LANES).enumerate() {
+pub(super) fn push_nonzeros(row: &[f32], out: &mut Vec<u32>) {
+    let chunks = row.chunks_exact(LANES);
+    let rest = chunks.remainder();
+    let mut push = |base: usize, mut mask: u32| {
+        while mask != 0 {
+            out.push(base as u32 + mask.trailing_zeros());
+            mask &= mask - 1;
+        }
+    };
+    for (c, chunk) in chunks.enumerate() {
+        // A whole chunk of fixed width: one vector comparison.
+        let chunk: &[f32; LANES] = chunk.try_into().unwrap_or(&[0.0; LANES]);
         let mut mask = 0u32;
         for (l, &x) in chunk.iter().enumerate() {
             mask |= u32::from(x != 0.0) << l;
         }
-        while mask != 0 {
-            out.push((c * LANES) as u32 + mask.trailing_zeros());
-            mask &= mask - 1;
-        }
+        push(c * LANES, mask);
     }
+    let mut mask = 0u32;
+    for (l, &x) in rest.iter().enumerate() {
+        mask |= u32::from(x != 0.0) << l;
+    }
+    push(row.len() - rest.len(), mask);
 }
 
 /// `dst ← srcᵀ` for `src` `rows x cols` (both multiples of 8), row-major.
@@ -372,9 +384,12 @@ impl Rows {
 
 /// `out ← bias + Σ_i x_i w_i` over the positions `idx` of `x` (all of the
 /// first `n` when `idx` is `None`), `w` rows `out.len()` wide (a multiple
-/// of [`LANES`]). Up to four vectors of outputs at a time stay in
-/// registers while the terms pass; each lane adds its terms in input
-/// order, whatever the blocking.
+/// of [`LANES`]): each output adds its terms to its bias in input order,
+/// fused, with up to four vectors of outputs held in registers while the
+/// terms pass. The order depends only on the terms visited, so a row gives
+/// the same bits alone or in any batch, on every path. (Splitting each
+/// output into interleaved partial sums, for more independent chains, was
+/// tried: no faster on the EDBN's shapes.)
 #[inline(always)]
 fn product(x: &[f32], idx: Option<&[u32]>, n: usize, w: &[f32], bias: &[f32], out: &mut [f32]) {
     let width = out.len();
@@ -418,19 +433,20 @@ fn product_block<const V: usize>(
     for (q, a) in acc.iter_mut().enumerate() {
         a.copy_from_slice(&bias[c0 + q * LANES..c0 + (q + 1) * LANES]);
     }
-    // (A helper function, not a closure: a closure called from two places
-    // may be left out of line, compiled without FMA, where `mul_add`
-    // becomes a library call.)
+    let at = |i: usize| i * width + c0;
+    // (Helper functions, not closures, do the arithmetic: a closure called
+    // from two places may be left out of line, compiled without FMA, where
+    // `mul_add` becomes a library call.)
     match idx {
         Some(idx) => {
             for &i in idx {
                 let i = i as usize;
-                fma_row(&mut acc, x[i], &w[i * width + c0..i * width + c0 + V * LANES]);
+                fma_row(&mut acc, x[i], &w[at(i)..at(i) + V * LANES]);
             }
         }
         None => {
             for (i, &xi) in x[..n].iter().enumerate() {
-                fma_row(&mut acc, xi, &w[i * width + c0..i * width + c0 + V * LANES]);
+                fma_row(&mut acc, xi, &w[at(i)..at(i) + V * LANES]);
             }
         }
     }
@@ -688,6 +704,121 @@ impl Trainer {
             *a = scale.mul_add(x, *a);
         }
     }
+}
+
+/// One layer of mean-field inference in `f32`: `σ(b + W x)` (or `b + W x`
+/// for the top RBM's data columns), with `Wᵀ` laid out as in training
+/// (`n_in x nhp`, outputs across the lanes) and the inputs' zeros skipped.
+/// Built from the `f64` [`Rbm`], whose weights an `f32` training left
+/// `f32`-valued, so nothing is rounded.
+#[derive(Clone, Debug)]
+pub(super) struct Forward {
+    wt: Vec<f32>,
+    b: Vec<f32>,
+    n_in: usize,
+    nh: usize,
+    nhp: usize,
+    sigmoid: bool,
+    /// Visit only the nonzero inputs (the first layer's spike counts); the
+    /// layers above read every input (mean-field activities: no zeros).
+    skip_zeros: bool,
+}
+
+impl Forward {
+    /// The layer of `rbm`'s first `n_in` visible units (all but the labels
+    /// for the top RBM); `sigmoid`: apply `σ` (false: the net inputs);
+    /// `skip_zeros`: see the field.
+    pub(super) fn new(rbm: &Rbm, n_in: usize, sigmoid: bool, skip_zeros: bool) -> Self {
+        let (nh, nv) = (rbm.n_hid, rbm.n_vis);
+        let nhp = padded(nh);
+        let mut wt = vec![0.0f32; n_in * nhp];
+        for j in 0..nh {
+            for i in 0..n_in {
+                wt[i * nhp + j] = rbm.w[j * nv + i] as f32;
+            }
+        }
+        let mut b = vec![0.0f32; nhp];
+        for (o, &v) in b.iter_mut().zip(&rbm.b) {
+            *o = v as f32;
+        }
+        Forward {
+            wt,
+            b,
+            n_in,
+            nh,
+            nhp,
+            sigmoid,
+            skip_zeros,
+        }
+    }
+
+    /// Output width (padded to the lanes).
+    pub(super) fn width(&self) -> usize {
+        self.nhp
+    }
+
+    /// Units.
+    pub(super) fn units(&self) -> usize {
+        self.nh
+    }
+
+    /// Inputs.
+    pub(super) fn inputs(&self) -> usize {
+        self.n_in
+    }
+
+    /// `out` (`nhp`) from the first `n_in` values of `x` (`nz` is scratch);
+    /// padding lanes 0.
+    #[inline(always)]
+    pub(super) fn apply(&self, x: &[f32], nz: &mut Vec<u32>, out: &mut [f32]) {
+        let idx = if self.skip_zeros {
+            nz.clear();
+            push_nonzeros(&x[..self.n_in], nz);
+            Some(nz.as_slice())
+        } else {
+            None
+        };
+        product(x, idx, self.n_in, &self.wt, &self.b, &mut out[..self.nhp]);
+        if self.sigmoid {
+            sigmoid_row(&mut out[..self.nhp], self.nh);
+        }
+    }
+}
+
+/// A chain of [`Forward`] layers over rows of `f64` inputs: the last
+/// layer's outputs of every row, as `f64`, `out_width` apart.
+pub(super) fn forward_rows(layers: &[Forward], x: &[f64], out: &mut [f64], out_width: usize) {
+    let Some(first) = layers.first() else {
+        return;
+    };
+    let dim = first.inputs().max(1);
+    let wide = layers
+        .iter()
+        .map(Forward::width)
+        .max()
+        .unwrap_or(0)
+        .max(padded(dim));
+    let mut a = vec![0.0f32; wide];
+    let mut b = vec![0.0f32; wide];
+    let mut nz = Vec::with_capacity(wide);
+    crate::wide::with_avx2(
+        #[inline(always)]
+        || {
+            for (row, o) in x.chunks_exact(dim).zip(out.chunks_exact_mut(out_width.max(1))) {
+                for (a, &v) in a.iter_mut().zip(row) {
+                    *a = v as f32;
+                }
+                for layer in layers {
+                    layer.apply(&a, &mut nz, &mut b);
+                    std::mem::swap(&mut a, &mut b);
+                }
+                let last = layers.last().map_or(0, Forward::units);
+                for (o, &v) in o.iter_mut().zip(&a[..last]) {
+                    *o = f64::from(v);
+                }
+            }
+        },
+    );
 }
 
 /// Trains `rbm` with PCD on the rows of `data` (each `rbm.n_vis` long; the
