@@ -28,7 +28,7 @@
 //! differentiate within the first epochs. The layer above is trained on the mean-field activities `p(h | v)` of
 //! the layer below.
 //!
-//! Training runs in `f32` ([`super::rbm32`]: every weight, gradient,
+//! Training runs in `f32` (`super::rbm32`: every weight, gradient,
 //! activity and uniform of the minibatch loop; the network is stored in
 //! `f64` before and after, so inference and saved models are unchanged).
 //! Until 2026-12-06 it ran in `f64` with the bits of straightforward
@@ -59,7 +59,7 @@
 //!   CPU, old and new binaries alternated, `RAYON_NUM_THREADS=1
 //!   target/release/examples/peers --out /tmp/wk --seed 1 --only edbn`).
 //!   The layers up to the top's net inputs `b_j + W_j·h` run in `f32`, as
-//!   training does ([`super::rbm32::Forward`]: each frame's values times
+//!   training does (`super::rbm32::Forward`: each frame's values times
 //!   `Wᵀ` with the units across the lanes, the features' zeros skipped,
 //!   `σ` from an `f32` exponential), and the posterior in `f64` from those
 //!   net inputs; a frame alone and in a batch take the same path, so the
@@ -755,8 +755,8 @@ pub struct Dbn {
     pub(crate) net32: Net32,
 }
 
-/// [`Dbn::net32`]: the layers below the top and the top's data columns as
-/// [`rbm32::Forward`] layers, or `None` when the layers do not chain.
+/// `Dbn::net32`: the layers below the top and the top's data columns as
+/// `rbm32::Forward` layers, or `None` when the layers do not chain.
 #[derive(Clone, Debug, Default)]
 pub struct Net32(std::sync::OnceLock<Option<Vec<rbm32::Forward>>>);
 
@@ -812,8 +812,8 @@ impl Dbn {
     /// the rows of `out` (`classes` wide), in row order: the same bits as row
     /// by row. Rate inference runs the `f32` layers a row at a time and the
     /// posterior over blocks of `BLOCK_ROWS` rows, 16 frames across the
-    /// lanes ([`Rbm::posterior_rows`], the bits of
-    /// [`Rbm::posterior_from_base`]).
+    /// lanes (`Rbm::posterior_rows`, the bits of
+    /// `Rbm::posterior_from_base`).
     pub fn scores_batch(&self, x: &[f64], dim: usize, rng: &mut ChaCha8Rng, out: &mut [f64]) {
         let k = self.classes.max(1);
         let layers = match (self.inference, self.rbms.last()) {
@@ -848,8 +848,8 @@ impl Dbn {
     }
 
     /// Mean-field label posterior: the layers in `f32`
-    /// ([`rbm32::Forward`]), the posterior in `f64`
-    /// ([`Rbm::posterior_from_base`]); a model whose layers do not chain
+    /// (`rbm32::Forward`), the posterior in `f64`
+    /// (`Rbm::posterior_from_base`); a model whose layers do not chain
     /// takes the plain `f64` loops.
     pub fn rate_scores(&self, x: &[f64], out: &mut [f64]) {
         let Some(top) = self.rbms.last() else {
