@@ -84,6 +84,51 @@
 //! `S_R = Σ_c N_c² − 2X + S_L` at the boundaries: the same integer as
 //! updating `S_R` row by row.
 //!
+//! # The node's classes, ranks as bits, perfect splits (2026-12-06)
+//!
+//! Once per node (not per drawn feature), the classes with rows at the
+//! node are numbered `0..kc` in class order and each row's (multiplicity,
+//! node class) is copied in node order: the passes over a feature then
+//! read it in sequence instead of gathering it by row, and the histogram
+//! has `kc` cells per rank, not `k` (a class without rows at the node adds
+//! `0` to every sum: the same integers). Deep in a tree a node has a few of
+//! the 17 classes, so the histogram sweep over (rank, class), which the
+//! counting sort used to be cheaper than, now pays off at every node.
+//!
+//! A feature with at most `MASKED` (64) distinct values (every feature of
+//! the peers data: 40 to 60) is swept as a histogram at every node: one
+//! pass reads each row's rank, sets its bit in a word of the ranks present
+//! and adds the row to cell `rank · kc + class` (two histograms, alternate
+//! rows, as above; kept out of line, where the loop's pointers stay in
+//! registers), and the sweep visits the set bits in ascending order, each
+//! present rank's cells summed, added to the left side and set back to
+//! zero (so nothing is cleared beforehand, whatever the span). The
+//! boundaries are those between consecutive ranks present, in the same
+//! order as the row sweep's, with the same state: the same splits. Wider
+//! features keep the counting sort or the comparison sort above (sorting
+//! `rank << 32 | position` keys).
+//!
+//! No boundary scores more than `N` (`S_L ≤ N_L²`, so `S_L / N_L ≤ N_L`
+//! and, rounded, the sum is at most `N_L + N_R = N`, while the squares are
+//! exact, `N < 2^26`). Once a node's best split scores `N` (both children
+//! pure), the features still to be drawn are drawn, as before, but not
+//! read: none could score more, and ties go to the first. The score's
+//! integers go to `f64` by the signed conversion below `2^31` rows (one
+//! instruction; the same value). The partition writes each row to both
+//! sides and advances the one it goes to, without a branch.
+//!
+//! Same trees: the reference test, the proptest and the peers forest
+//! scores (`PEERS_DUMP_SCORES=1 cargo run --release --example peers --
+//! --out <dir> --seed 1 --only random_forest`, `scores_test.npy`
+//! `cmp`-identical to 687a64f's). Measured on the peers training set
+//! (2295 x 80, 17 classes, `X_train.npy` of that run): `Prepared::new`
+//! and the 15 trees of a fit, one thread, thread CPU time, the 687a64f
+//! code and this one compiled into one throwaway harness (not kept) and
+//! interleaved, 20 rounds of 5 fits each, on a loaded 2-core host: median
+//! **15.3-16.1 -> 10.4-11.5 ms** per fit (0.69-0.72x, six runs), same
+//! trees. What is left: the histogram pass ~25 %, the sweep ~12 %, the
+//! scores ~5 %, `Prepared::new` ~5 %, the generator ~5 % (`perf`).
+//!
 //! # Predicting: every tree's walks in lock step
 //!
 //! Trees keep their nodes in depth-first order. For prediction, [`Flat`]
@@ -471,6 +516,7 @@ impl Prepared {
         let mut order: Vec<u32> = Vec::new();
         let mut rank_of: Vec<u32> = Vec::new();
         let mut rank = vec![0u32; n * dim];
+
         let mut start = Vec::with_capacity(dim + 1);
         let mut values = Vec::new();
         start.push(0);
@@ -561,11 +607,14 @@ pub fn grow_prepared(p: &Prepared, g: &Growth, rng: &mut ChaCha8Rng) -> Tree {
         features: (0..p.dim as u32).collect(),
         ranks: vec![0; len],
         keys: vec![0; len],
-        spill: Vec::with_capacity(len),
+        spill: vec![0; len],
         bins: vec![0; LANES * widest],
-        hist: vec![0; 2 * (HIST * len + p.k)],
+        hist: vec![0; 2 * (HIST * len + p.k).max(MASKED * p.k)],
         counts: vec![0; p.k],
         left: vec![0; p.k],
+        class_of: vec![0; p.k],
+        node_cw: vec![0; len],
+        node_counts: Vec::with_capacity(p.k),
     };
     let mut nodes = vec![leaf(0)];
     // Depth-first with an explicit stack: (node, rows range, depth, the
@@ -617,6 +666,10 @@ fn first_max(c: &[u64]) -> usize {
     best
 }
 
+/// Features with at most this many distinct values are swept as a
+/// histogram of (rank, class) with the ranks present as the bits of a word.
+const MASKED: usize = 64;
+
 /// Interleaved counts per rank in the counting sort.
 const LANES: usize = 4;
 
@@ -635,6 +688,148 @@ fn halfway(v: f64, next: f64) -> f64 {
     }
 }
 
+/// The set bits of a word, lowest first.
+struct Bits(u64);
+
+impl Iterator for Bits {
+    type Item = usize;
+
+    #[inline]
+    fn next(&mut self) -> Option<usize> {
+        let b = self.0;
+        if b == 0 {
+            return None;
+        }
+        self.0 = b & (b - 1);
+        Some(b.trailing_zeros() as usize)
+    }
+}
+
+/// The histogram pass of a feature with at most 64 distinct values: adds
+/// each row's `1 << 32 |` multiplicity to cell `rank · k + class` of
+/// histogram `q % L` for the row at position `q`, and returns the ranks
+/// present as bits. Kept out of line: inside `best_split` the loop's
+/// pointers lived on the stack.
+#[inline(never)]
+fn fill_masked<const L: usize>(rows: &[u32], ncw: &[u64], col: &[u32], k: usize, hs: [&mut [u64]; L]) -> u64 {
+    let cell = |r: u32, e: u64| r as usize * k + e as u32 as usize;
+    let add = |e: u64| 1 << 32 | e >> 32;
+    let mut masks = [0u64; L];
+    let (rc, ec) = (rows.chunks_exact(L), ncw.chunks_exact(L));
+    let (rr, er) = (rc.remainder(), ec.remainder());
+    for (i, e) in rc.zip(ec) {
+        for l in 0..L {
+            let r = col[i[l] as usize];
+            masks[l] |= 1u64.wrapping_shl(r);
+            hs[l][cell(r, e[l])] += add(e[l]);
+        }
+    }
+    for (l, (&i, &e)) in rr.iter().zip(er).enumerate() {
+        let r = col[i as usize];
+        masks[l] |= 1u64.wrapping_shl(r);
+        hs[l][cell(r, e)] += add(e);
+    }
+    masks.iter().fold(0, |a, m| a | m)
+}
+
+/// The histogram sweep: for each `(bin, rank)` of `bins` (ascending
+/// ranks), the bin's `k` cells summed over the histograms `hs` (rows `<<
+/// 32 |` weight per node class) added to the left side, all of them set
+/// back to zero; `offer(v, next, rows_left, [S_L, X, N_L])` at the
+/// boundary between each two consecutive ranks with rows, with the row
+/// sweep's state there (every row of the ranks below on the left).
+/// `present`: every bin has rows (one pass per bin, else two).
+#[allow(clippy::too_many_arguments)]
+#[inline]
+fn sweep_hist<const L: usize>(
+    mut hs: [&mut [u64]; L],
+    k: usize,
+    bins: impl Iterator<Item = (usize, usize)>,
+    present: bool,
+    counts: &[u64],
+    left: &mut [u64],
+    vals: &[f64],
+    mut offer: impl FnMut(f64, f64, usize, [u64; 3]),
+) {
+    left.iter_mut().for_each(|c| *c = 0);
+    let (mut s_left, mut cross, mut n_left, mut rows_left) = (0u64, 0u64, 0u64, 0usize);
+    let mut prev: Option<usize> = None;
+    for (j, r) in bins {
+        let cells = j * k..(j + 1) * k;
+        if !present {
+            let here: u64 = hs
+                .iter()
+                .map(|h| h[cells.clone()].iter().map(|x| x >> 32).sum::<u64>())
+                .sum();
+            if here == 0 {
+                continue;
+            }
+        }
+        if let Some(pr) = prev {
+            offer(vals[pr], vals[r], rows_left, [s_left, cross, n_left]);
+        }
+        let mut bs = hs.each_mut().map(|h| &mut h[j * k..][..k]);
+        let (left, counts) = (&mut left[..k], &counts[..k]);
+        let mut here = 0u64;
+        for c in 0..k {
+            let mut e = 0;
+            for b in bs.iter_mut() {
+                e += b[c];
+                b[c] = 0;
+            }
+            let (lc, nc) = (left[c], counts[c]);
+            let w = e & 0xFFFF_FFFF;
+            here += e >> 32;
+            // (L + W)² − L² = W (2L + W): the rows' own increments summed,
+            // the same integer.
+            s_left += w * (2 * lc + w);
+            cross += w * nc;
+            left[c] = lc + w;
+            n_left += w;
+        }
+        rows_left += here as usize;
+        prev = Some(r);
+    }
+}
+
+/// The row sweep: `keys` (`rank << 32 | position`, ascending) in order,
+/// each position's `ncw` entry (multiplicity `<< 32 |` node class) added
+/// to the left side, calling `offer(v, next, rows_left, [S_L, X, N_L])` at
+/// each boundary between two ranks. `S_L = Σ L_c²` and `S_R = Σ (N_c −
+/// L_c)² = Σ N_c² − 2 Σ N_c L_c + S_L` from the cross term `X = Σ N_c L_c`
+/// (exact integers, so the same `S_R` as one updated row by row).
+fn sweep_rows(
+    keys: &[u64],
+    ncw: &[u64],
+    counts: &[u64],
+    left: &mut [u64],
+    vals: &[f64],
+    mut offer: impl FnMut(f64, f64, usize, [u64; 3]),
+) {
+    left.iter_mut().for_each(|c| *c = 0);
+    let mut s_left = 0u64;
+    let mut cross = 0u64;
+    let mut n_left = 0u64;
+    for (q, &key) in keys.iter().enumerate() {
+        let rw = ncw[key as u32 as usize];
+        let (c, w) = (rw as u32 as usize, rw >> 32);
+        let lc = left[c];
+        // (n + w)² − n² = w (2n + w)
+        s_left += w * (2 * lc + w);
+        cross += w * counts[c];
+        left[c] = lc + w;
+        n_left += w;
+        let Some(&next_key) = keys.get(q + 1) else {
+            break;
+        };
+        let (r, next_r) = ((key >> 32) as usize, (next_key >> 32) as usize);
+        if next_r == r {
+            continue;
+        }
+        offer(vals[r], vals[next_r], q + 1, [s_left, cross, n_left]);
+    }
+}
+
 /// One tree's growth state and scratch (sized once per tree).
 struct Builder<'a> {
     p: &'a Prepared,
@@ -645,18 +840,25 @@ struct Builder<'a> {
     features: Vec<u32>,
     /// The node's ranks of the feature being tried.
     ranks: Vec<u32>,
-    /// The node's rows as `rank << 32 | row`, in ascending order.
+    /// The node's rows as `rank << 32 | position` (in the node), ascending.
     keys: Vec<u64>,
-    /// Rows going right while partitioning.
+    /// Rows going right while partitioning (one slot per row of the tree).
     spill: Vec<u32>,
     /// Counting-sort bins.
     bins: Vec<u32>,
-    /// Per (rank, class) of the histogram sweep: rows `<< 32 |` weight.
+    /// Two histograms of (rank, node class), each `hist.len() / 2` cells:
+    /// rows `<< 32 |` weight; all zero between uses.
     hist: Vec<u64>,
     /// The node's weighted class counts.
     counts: Vec<u64>,
     /// Weighted class counts left of the sweep.
     left: Vec<u64>,
+    /// Per class: its number among the node's classes.
+    class_of: Vec<u32>,
+    /// Per row of the node, in node order: multiplicity `<< 32 |` node class.
+    node_cw: Vec<u64>,
+    /// The node's weighted counts of its classes (those with rows).
+    node_counts: Vec<u64>,
 }
 
 impl Builder<'_> {
@@ -677,6 +879,12 @@ impl Builder<'_> {
     /// reading its values, as reading them would find it constant again.
     /// The features found constant here are added, for the children. The
     /// draws are the same either way, so the same tree.
+    ///
+    /// The node's classes are renumbered `0..kc` (those with rows here, in
+    /// class order) and each row's (multiplicity, class) copied in node
+    /// order, once per node; a drawn feature whose best split is already
+    /// perfect (the score `N`, which no boundary exceeds) is drawn but not
+    /// read (module docs).
     fn best_split(&mut self, rows: &[u32], rng: &mut ChaCha8Rng, constant: &mut u128) -> Option<(u32, f64)> {
         let Builder {
             p,
@@ -687,8 +895,11 @@ impl Builder<'_> {
             keys,
             bins,
             hist,
-            counts,
+            counts: all_counts,
             left,
+            class_of,
+            node_cw,
+            node_counts,
             ..
         } = self;
         let dim = p.dim;
@@ -696,9 +907,39 @@ impl Builder<'_> {
             return None;
         }
         let len = rows.len();
-        let k = counts.len().max(1);
+        // The node's classes, numbered in class order: a class without rows
+        // here adds nothing to any sum, so the sums are the same integers.
+        node_counts.clear();
+        for (c, &n) in all_counts.iter().enumerate() {
+            class_of[c] = node_counts.len() as u32;
+            if n > 0 {
+                node_counts.push(n);
+            }
+        }
+        let counts = &node_counts[..];
+        let k = counts.len();
+        if k == 0 {
+            return None; // no weight (not reached: every row has some)
+        }
+        // Per row of the node, in node order: multiplicity `<< 32 |` node class.
+        let ncw = &mut node_cw[..len];
+        for (e, &i) in ncw.iter_mut().zip(rows) {
+            let rw = cw[i as usize];
+            *e = rw >> 32 << 32 | u64::from(class_of[rw as u32 as usize]);
+        }
+        let ncw = &*ncw;
         let total: u64 = counts.iter().sum();
         let s_all: u64 = counts.iter().map(|c| c * c).sum();
+        // No score exceeds `N` (`S_L ≤ N_L²`, so `S_L / N_L ≤ N_L` in `f64`
+        // too while the squares are exact, and the sum rounds to at most
+        // `N_L + N_R = N`): once a split scores `N`, no later one is taken.
+        let perfect = if total < 1 << 26 {
+            total as f64
+        } else {
+            f64::INFINITY
+        };
+        // Every sum below 2^62.
+        let small = total < 1 << 31;
         let min_leaf = g.min_samples_leaf.max(1);
         let m = g.m.clamp(1, dim);
         // Scores the boundary between consecutive distinct values `v` and
@@ -718,13 +959,17 @@ impl Builder<'_> {
             }
             let n_right = total - n_left;
             let s_right = s_all + s_left - 2 * cross;
-            let score = s_left as f64 / n_left as f64 + s_right as f64 / n_right as f64;
+            // Below 2^63 the signed conversion is the same value, in one instruction.
+            let float = |x: u64| if small { x as i64 as f64 } else { x as f64 };
+            let score = float(s_left) / float(n_left) + float(s_right) / float(n_right);
             if best.is_none_or(|(b, _, _)| score > b) {
                 *best = Some((score, f as u32, halfway(v, next)));
             }
         };
         let ranks = &mut ranks[..len];
         let keys = &mut keys[..len];
+        let half = hist.len() / 2;
+        let (h, h2) = hist.split_at_mut(half);
         let mut best: Option<(f64, u32, f64)> = None;
         for t in 0..dim {
             if t >= m && best.is_some() {
@@ -735,14 +980,38 @@ impl Builder<'_> {
             features.swap(t, j);
             let f = features[t] as usize;
             let bit = if f < 128 { 1u128 << f } else { 0 };
-            if *constant & bit != 0 {
+            if *constant & bit != 0 || best.is_some_and(|(b, _, _)| b >= perfect) {
                 continue;
             }
             let (col, vals) = p.feature(f);
+            let offer = |v: f64, next: f64, rows_left: usize, sums: [u64; 3]| {
+                offer(&mut best, f, v, next, rows_left, sums)
+            };
+            let add = |e: u64| 1 << 32 | e >> 32;
+            if vals.len() <= MASKED {
+                // At most 64 ranks: their histogram, by rank, in the pass
+                // that reads them, and the ranks present as bits.
+                // Two histograms, rows alternating between them, summed in
+                // the sweep: consecutive rows often fall in one cell (rows
+                // of a trial share a class and, near the root, a spike
+                // count), and one histogram made them a chain of
+                // load-add-stores through that cell.
+                let mask = fill_masked(rows, ncw, col, k, [&mut *h, &mut *h2]);
+                let present = Bits(mask).map(|r| (r, r));
+                let (lo, hi) = (mask.trailing_zeros() as usize, 63 - mask.leading_zeros() as usize);
+                if vals[lo] >= vals[hi] {
+                    // Constant here; the cells back to zero.
+                    for (j, _) in present {
+                        h[j * k..(j + 1) * k].fill(0);
+                        h2[j * k..(j + 1) * k].fill(0);
+                    }
+                    *constant |= bit;
+                    continue;
+                }
+                sweep_hist([&mut *h, &mut *h2], k, present, true, counts, left, vals, offer);
+                continue;
+            }
             let (mut lo, mut hi) = (u32::MAX, 0u32);
-            // The rows in ascending order of rank: a counting sort when the
-            // feature has few distinct values for the node's rows, else a
-            // sort of `rank << 32 | row` keys.
             if vals.len() <= 4 * len {
                 for (r, &i) in ranks.iter_mut().zip(rows) {
                     let v = col[i as usize];
@@ -756,62 +1025,26 @@ impl Builder<'_> {
                 }
                 let span = (hi - lo) as usize + 1;
                 if span * k <= HIST * len {
-                    // Few ranks for the rows: sweep a histogram of the ranks
-                    // instead of the rows in order (module docs).
-                    // Two histograms, rows alternating between them, then
-                    // summed: consecutive rows often fall in one cell (rows
-                    // of a trial share a class and, near the root, a spike
-                    // count), and one histogram made them a chain of
-                    // load-add-stores through that cell. The sums are the
-                    // same integers.
-                    let cells = span * k;
-                    let (h, h2) = hist[..2 * cells].split_at_mut(cells);
-                    h.fill(0);
-                    h2.fill(0);
-                    let cell = |r: u32, rw: u64| (r - lo) as usize * k + rw as u32 as usize;
-                    let add = |rw: u64| 1 << 32 | rw >> 32;
+                    // Few ranks for the rows: a histogram of the ranks
+                    // from `lo` (module docs), two as above.
+                    let cell = |r: u32, e: u64| (r - lo) as usize * k + e as u32 as usize;
                     let (pairs, rest) = ranks.split_at(len & !1);
-                    for (r, i) in pairs.chunks_exact(2).zip(rows.chunks_exact(2)) {
-                        let (a, b) = (cw[i[0] as usize], cw[i[1] as usize]);
-                        h[cell(r[0], a)] += add(a);
-                        h2[cell(r[1], b)] += add(b);
+                    for (r, e) in pairs.chunks_exact(2).zip(ncw.chunks_exact(2)) {
+                        h[cell(r[0], e[0])] += add(e[0]);
+                        h2[cell(r[1], e[1])] += add(e[1]);
                     }
-                    for (&r, &i) in rest.iter().zip(&rows[len & !1..]) {
-                        let rw = cw[i as usize];
-                        h[cell(r, rw)] += add(rw);
+                    for (&r, &e) in rest.iter().zip(&ncw[len & !1..]) {
+                        h[cell(r, e)] += add(e);
                     }
-                    h.iter_mut().zip(&*h2).for_each(|(a, b)| *a += b);
-                    left.iter_mut().for_each(|c| *c = 0);
-                    let (mut s_left, mut cross, mut n_left, mut rows_left) = (0u64, 0u64, 0u64, 0usize);
-                    let mut prev: Option<usize> = None;
-                    for (j, bin) in h.chunks_exact(k).enumerate() {
-                        let here = bin.iter().map(|e| e >> 32).sum::<u64>() as usize;
-                        if here == 0 {
-                            continue;
-                        }
-                        if let Some(pj) = prev {
-                            // The boundary between the previous rank present
-                            // and this one, with every row of the ranks below
-                            // it on the left: the row sweep's state there.
-                            let (v, next) = (vals[lo as usize + pj], vals[lo as usize + j]);
-                            offer(&mut best, f, v, next, rows_left, [s_left, cross, n_left]);
-                        }
-                        for ((lc, &e), &nc) in left.iter_mut().zip(bin).zip(counts.iter()) {
-                            let w = e & 0xFFFF_FFFF;
-                            // (L + W)² − L² = W (2L + W): the rows' own
-                            // increments summed, the same integer.
-                            s_left += w * (2 * *lc + w);
-                            cross += w * nc;
-                            *lc += w;
-                            n_left += w;
-                        }
-                        rows_left += here;
-                        prev = Some(j);
-                    }
+                    let lo = lo as usize;
+                    let bins = (0..span).map(|j| (j, lo + j));
+                    sweep_hist([&mut *h, &mut *h2], k, bins, false, counts, left, vals, offer);
                     continue;
                 }
-                // Four interleaved counts per rank, so that runs of rows of
+                // The rows in ascending order of rank by a counting sort,
+                // four interleaved counts per rank, so that runs of rows of
                 // one rank (common: many zeros) are four chains, not one.
+                // Keys `rank << 32 | position`.
                 let bins = &mut bins[LANES * lo as usize..LANES * (hi as usize + 1)];
                 bins.iter_mut().for_each(|c| *c = 0);
                 for (q, &r) in ranks.iter().enumerate() {
@@ -821,17 +1054,18 @@ impl Builder<'_> {
                 for c in bins.iter_mut() {
                     (*c, at) = (at, at + *c);
                 }
-                for (q, (&r, &i)) in ranks.iter().zip(rows).enumerate() {
+                for (q, &r) in ranks.iter().enumerate() {
                     let at = &mut bins[LANES * (r - lo) as usize + q % LANES];
-                    keys[*at as usize] = u64::from(r) << 32 | u64::from(i);
+                    keys[*at as usize] = u64::from(r) << 32 | q as u64;
                     *at += 1;
                 }
             } else {
-                for (key, &i) in keys.iter_mut().zip(rows) {
+                // Many distinct values for the rows: a sort of the keys.
+                for ((key, &i), q) in keys.iter_mut().zip(rows).zip(0u64..) {
                     let v = col[i as usize];
                     lo = lo.min(v);
                     hi = hi.max(v);
-                    *key = u64::from(v) << 32 | u64::from(i);
+                    *key = u64::from(v) << 32 | q;
                 }
                 if vals[lo as usize] >= vals[hi as usize] {
                     *constant |= bit;
@@ -839,38 +1073,7 @@ impl Builder<'_> {
                 }
                 keys.sort_unstable();
             }
-            left.iter_mut().for_each(|c| *c = 0);
-            // S_L = Σ L_c², and S_R = Σ (N_c − L_c)² = Σ N_c² − 2 Σ N_c L_c + S_L
-            // from the cross term X = Σ N_c L_c (exact integers, so the same
-            // S_R as one updated row by row).
-            let mut s_left = 0u64;
-            let mut cross = 0u64;
-            let mut n_left = 0u64;
-            for (q, &key) in keys.iter().enumerate() {
-                let rw = cw[key as u32 as usize];
-                let (c, w) = (rw as u32 as usize, rw >> 32);
-                let lc = left[c];
-                // (n + w)² − n² = w (2n + w)
-                s_left += w * (2 * lc + w);
-                cross += w * counts[c];
-                left[c] = lc + w;
-                n_left += w;
-                let Some(&next_key) = keys.get(q + 1) else {
-                    break;
-                };
-                let (r, next_r) = ((key >> 32) as usize, (next_key >> 32) as usize);
-                if next_r == r {
-                    continue;
-                }
-                offer(
-                    &mut best,
-                    f,
-                    vals[r],
-                    vals[next_r],
-                    q + 1,
-                    [s_left, cross, n_left],
-                );
-            }
+            sweep_rows(keys, ncw, counts, left, vals, offer);
         }
         best.map(|(_, f, thr)| (f, thr))
     }
@@ -879,18 +1082,19 @@ impl Builder<'_> {
     /// sides in their order; returns how many go left.
     fn partition(&mut self, rows: &mut [u32], feature: usize, threshold: f64) -> usize {
         let (col, vals) = self.p.feature(feature);
-        self.spill.clear();
-        let mut l = 0;
+        let spill = &mut self.spill[..rows.len()];
+        // Without a branch on the side: each row is written to both, and
+        // the side it goes to advances (`l <= q`, so `rows[q]` is read first).
+        let (mut l, mut r) = (0, 0);
         for q in 0..rows.len() {
             let i = rows[q];
-            if vals[col[i as usize] as usize] <= threshold {
-                rows[l] = i;
-                l += 1;
-            } else {
-                self.spill.push(i);
-            }
+            let left = vals[col[i as usize] as usize] <= threshold;
+            rows[l] = i;
+            spill[r] = i;
+            l += usize::from(left);
+            r += usize::from(!left);
         }
-        rows[l..].copy_from_slice(&self.spill);
+        rows[l..].copy_from_slice(&spill[..r]);
         l
     }
 }
@@ -1211,6 +1415,28 @@ mod tests {
                     cases += 1;
                 }
             }
+        }
+        // More than `MASKED` distinct values with duplicates (the span
+        // histogram and the counting sort), and many classes (a few at
+        // each deep node).
+        let wide: Vec<f64> = (0..100).map(|i| f64::from(i) * 0.37 - 9.0).collect();
+        for &(n, dim, k, m) in &[(1500, 4, 3, 2), (900, 5, 17, 2), (600, 3, 2, 3)] {
+            let g = Growth {
+                m,
+                max_depth: 0,
+                min_samples_leaf: 1,
+            };
+            let (x, mut y) = palette_rows(n, dim, k, &wide, n as u64);
+            // Classes from the first feature's value too, so that all `k` occur.
+            for (i, c) in y.iter_mut().enumerate() {
+                *c = (*c + (x[i * dim] * 3.0).abs() as usize) % k;
+            }
+            assert_same_tree(&x, &y, dim, k, &g, n as u64);
+            let g3 = Growth {
+                min_samples_leaf: 3,
+                ..g
+            };
+            assert_same_tree(&x, &y, dim, k, &g3, 7);
         }
         // Continuous values: one distinct value per row (the comparison-sort path).
         let mut rng = ChaCha8Rng::seed_from_u64(3);
