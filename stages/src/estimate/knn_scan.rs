@@ -57,6 +57,55 @@
 //! among them. On the peers workload (`k = 10`) ~10.6 vectors a query pass
 //! it (a temporary counter over its 3154 queries).
 //!
+//! # The sparse path
+//!
+//! The k-NN features are standardised spike counts, mostly 0: a count of 0
+//! in coordinate `i` becomes the same value in every vector (`−mean·/sd`),
+//! so a query differs in few coordinates from a background `c` (on the
+//! peers test set 16 of 80 on average, 18 at the median, at most 47).
+//! With `c'ᵢ = f32(minⱼ x_jᵢ)` (the smallest training value, the image of
+//! a count of 0; any `c'` gives exact answers, a good one gives speed),
+//! `S = {i : z'ᵢ ≠ c'ᵢ}` (`m = |S|`) and `d'ᵢ = z'ᵢ − c'ᵢ` rounded in `f32`:
+//!
+//! * stored per training vector (`background`, built by the first batch
+//!   of at least 96 queries, so a fit's lone query does not pay it):
+//!   `s_j = f32(‖x'_j‖² − 2 c'·x'_j)`, summed in `f64` (the products of two
+//!   `f32` are exact there), so `|s_j − (‖x'_j‖² − 2c'·x'_j)| ≤ 1.001 u P_j`
+//!   with `P_j = ‖x'_j‖² + 2 ‖c'‖ ‖x'_j‖ ≤ P = N_X + 2 ‖c'‖ √N_X`;
+//! * computed per pair: `r̃_j = s_j + Σ_{i∈S} d'ᵢ (−2 x'_jᵢ)`, an `f32`
+//!   chain of `m` terms (fused or not) approximating the same
+//!   `r_j = ‖x'_j‖² − 2 z'·x'_j` as the dense chain (for `i ∉ S`,
+//!   `z'ᵢ = c'ᵢ` exactly).
+//!
+//! Its error: the chain's `γ_{m+1} (|s_j| + 2 ‖d'‖ ‖x'_j‖)`, the rounding of
+//! `s_j` above, and that of the `d'ᵢ` (`u |z'ᵢ − c'ᵢ|` each, so
+//! `2u ‖z' − c'‖ ‖x'_j‖` in all), so with `Q = 2 ‖d'‖ √N_X`,
+//! `|r̃_j − r_j| ≤ u (P + Q) (1.001 + 1.01 (m + 1)(1 + 2u)) ≤ ε_s =
+//! 1.02 (m + 4) u (P + Q)` (the spare terms cover the `f64` rounding of
+//! `P`, `Q`). Bounds 2 and 3 and the threshold are the dense path's with
+//! `ε_s` for `ε`, so the same vectors can win, each with its exact `D̂_j`:
+//! the answer is the dense path's, bit for bit (tests
+//! `sparse_queries_are_the_full_scan`, every path against the full scan on
+//! spike-count-like data at scales 1e-150 to 1e12, all-background queries,
+//! duplicates; `scanned` runs every test's queries through the per-query
+//! choice, all-dense and all-sparse, with each kernel set). Every partial
+//! sum stays below `P + Q (1 + 2u) < 10³¹` (the scan declines a background
+//! with `‖c'‖² >` [`LIMIT`]; `‖d'‖ ≤ ‖z'‖ + ‖c'‖`).
+//!
+//! A query takes the sparse path when `m ≤ 0.7 dim`; otherwise (and for
+//! vectors that are not sparse at all) the dense kernel, its queries packed
+//! into tiles. The sparse kernel (`x86::sparse_partials` with AVX-512,
+//! `Scan::sparse_lanes` elsewhere) takes 8 blocks at a time (8 independent
+//! accumulators), and all of a batch's sparse queries against them, so
+//! those blocks' coordinates are read from L1: a term costs a load and a
+//! fused multiply-add per 16 vectors, against the dense tile's `dim` terms.
+//! On the peers k-NN workload the prediction's thread CPU went from a
+//! median 11.98 ms to 8.8 ms (-27 %; the fit unchanged), alternating the old
+//! and new binaries four times (`RAYON_NUM_THREADS=1
+//! target/release/examples/peers --out DIR --seed 1 --only knn --repeats
+//! 15`, `predict_time.cpu_s.median` in `DIR/baselines/baselines.json`; the
+//! runs in docs/benches.md).
+//!
 //! Inputs out of range are not scanned here: the scan is not built when a
 //! training value is not finite or a squared norm exceeds [`LIMIT`] (so no
 //! `f32` sum can overflow), and a query that is not finite or beyond it is
@@ -90,6 +139,16 @@ const QB: usize = 8 * QT;
 pub const LIMIT: f64 = 1e30;
 /// Most coordinates (keeps `γ_{n+1}` of `f32` below 1%).
 const MAX_DIM: usize = 100_000;
+/// A query takes the sparse path when at most `SPARSE_MAX / 80` of its
+/// coordinates differ from the background: a sparse term costs a load and a
+/// multiply-add per 16 vectors, a dense one a multiply-add shared with the
+/// tile's queries (measured on the peers set, module docs).
+const SPARSE_MAX: usize = 56;
+/// Fewest queries of a batch call that builds the sparse path's data
+/// (`background`, ~0.05 ms on the peers set) when no call has.
+const SPARSE_MIN_QUERIES: usize = 2 * QB;
+/// Blocks per group of the sparse kernel (independent accumulators).
+const SG: usize = 8;
 /// Absolute slack for underflow in the bounds.
 const ABS: f64 = 1e-30;
 /// `f32`'s unit roundoff, `2⁻²⁴`.
@@ -139,6 +198,51 @@ pub struct Scan {
     nx_max: f64,
     /// `u·max_j ‖x_j‖` plus the absolute slack.
     e_x: f64,
+    /// `‖x'_j‖²` and `‖x_j‖²` per vector (`f64`).
+    norms: Vec<(f64, f64)>,
+    /// The sparse path's data, built by the first batch of at least
+    /// [`SPARSE_MIN_QUERIES`] queries (`None`: `‖c'‖²` beyond [`LIMIT`]).
+    sparse: OnceLock<Option<Sparse>>,
+}
+
+/// The sparse path's data (module docs).
+#[derive(Clone)]
+struct Sparse {
+    /// The background `c'` (`f32` of each coordinate's smallest training value).
+    bg: Vec<f32>,
+    /// `s_j = f32(‖x'_j‖² − 2 c'·x'_j)` per vector (summed in `f64`), `+inf`
+    /// in empty lanes.
+    sbase: Vec<f32>,
+    /// `P = N_X + 2 ‖c'‖ √N_X` (bound of `|s_j|`), and `√N_X`.
+    p_bound: f64,
+    sqrt_nx: f64,
+}
+
+/// How a query's `r̃` row is computed (module docs).
+#[derive(Clone, Copy, PartialEq, Eq, Debug)]
+enum Path {
+    /// Chosen per query: sparse when it differs from the background in at
+    /// most [`SPARSE_MAX`] of its coordinates (per 80).
+    Auto,
+    /// Every query in range through the dense kernel (tests).
+    #[cfg_attr(not(test), allow(dead_code))]
+    Dense,
+    /// Every query in range through the sparse kernel when the scan has a
+    /// background (tests).
+    #[cfg_attr(not(test), allow(dead_code))]
+    Sparse,
+}
+
+/// How one query of a batch is scored.
+#[derive(Clone, Copy)]
+enum Mode {
+    /// Not finite or out of range: every vector exactly.
+    Exact,
+    /// `r̃` from the dense kernel in row `row` of the batch, to be cut with
+    /// rounding bound `eps`.
+    Dense { row: usize, eps: f64 },
+    /// `r̃` from the sparse kernel, the batch's `idx`-th sparse query.
+    Sparse { idx: usize, eps: f64 },
 }
 
 /// Buffers reused across the queries of a batch.
@@ -147,6 +251,12 @@ struct Scratch {
     zq: Vec<f32>,
     r: Vec<f32>,
     sel: Select,
+    /// One query's `f32` row.
+    row: Vec<f32>,
+    /// The sparse queries' terms `(i, d'_i)`, and per sparse query its
+    /// terms' range and `r̃` row.
+    terms: Vec<(u32, f32)>,
+    spans: Vec<(usize, usize)>,
 }
 
 /// [`Scan::candidates`]' buffers.
@@ -218,6 +328,8 @@ impl Scan {
             base,
             nx_max,
             e_x: U32 * x_max.sqrt() * (1.0 + 1e-6) + ABS,
+            norms,
+            sparse: OnceLock::new(),
         })
     }
 
@@ -225,58 +337,142 @@ impl Scan {
     /// (rows of `x`, the `f64` vectors the scan was built from), passed to
     /// `each(query, neighbours)` in query order as `(D̂, index)` pairs,
     /// nearest first: exactly the `k` smallest pairs of the full scan.
-    pub fn search(&self, x: &[f64], z: &[f64], k: usize, mut each: impl FnMut(usize, &[(f64, usize)])) {
+    pub fn search(&self, x: &[f64], z: &[f64], k: usize, each: impl FnMut(usize, &[(f64, usize)])) {
+        self.search_on(x, z, k, Path::Auto, each);
+    }
+
+    /// [`Self::search`] with the kernels chosen by `path`.
+    fn search_on(
+        &self,
+        x: &[f64],
+        z: &[f64],
+        k: usize,
+        path: Path,
+        mut each: impl FnMut(usize, &[(f64, usize)]),
+    ) {
         let dim = self.dim;
         let k = k.min(self.n);
         let nq = z.len() / dim;
         let stride = self.blocks * LANES;
+        // The sparse data pays for itself over many queries, not for the
+        // one a fit scores.
+        let sp = match path {
+            Path::Dense => None,
+            Path::Auto if nq < SPARSE_MIN_QUERIES && self.sparse.get().is_none() => None,
+            _ => self
+                .sparse
+                .get_or_init(|| background(x, dim, &self.neg2, &self.norms, self.nx_max))
+                .as_ref(),
+        };
+        let sparse_max = match path {
+            Path::Auto => dim * SPARSE_MAX / 80,
+            _ => dim,
+        };
+        let dim_f = dim as f64;
+        let eps_dense = |nz: f64| 1.02 * (dim_f + 4.0) * U32 * (nz + 2.0 * self.nx_max) + ABS;
         let mut s = Scratch::default();
         s.zq.resize(QB * dim, 0.0);
-        s.r.resize(QB * stride, 0.0);
+        s.r.resize((QB + QT) * stride, 0.0);
+        s.row.resize(dim, 0.0);
         let mut best: Vec<(f64, usize)> = Vec::with_capacity(k + 1);
-        let mut info = [(0.0f64, 0.0f64, false); QB];
+        let mut info = [(0.0f64, 0.0f64, Mode::Exact); QB];
         for q0 in (0..nq).step_by(QB) {
             let qb = QB.min(nq - q0);
-            for (q, zr) in z[q0 * dim..(q0 + qb) * dim].chunks_exact(dim).enumerate() {
-                let row = &mut s.zq[q * dim..(q + 1) * dim];
-                for (o, &v) in row.iter_mut().zip(zr) {
-                    *o = v as f32;
-                }
+            let batch = &z[q0 * dim..(q0 + qb) * dim];
+            // Dense queries first (their rows packed at the top of `zq` and
+            // `r`), then the sparse ones' `r̃` rows after the dense tiles.
+            let mut nd = 0;
+            s.terms.clear();
+            s.spans.clear();
+            for (q, zr) in batch.chunks_exact(dim).enumerate() {
                 let (nz, z2) = norms_of(zr);
                 let ok = nz <= LIMIT && z2 <= LIMIT;
-                if !ok {
-                    row.iter_mut().for_each(|o| *o = 0.0);
+                info[q] = (nz, z2.sqrt(), Mode::Exact);
+                if ok {
+                    for (o, &v) in s.row.iter_mut().zip(zr) {
+                        *o = v as f32;
+                    }
+                    let t0 = s.terms.len();
+                    if let Some(sp) = sp {
+                        for (i, (&v, &c)) in s.row.iter().zip(&sp.bg).enumerate() {
+                            if v != c {
+                                s.terms.push((i as u32, v - c));
+                            }
+                        }
+                    }
+                    let m = s.terms.len() - t0;
+                    if let Some(sp) = sp.filter(|_| m <= sparse_max) {
+                        let d2: f64 = s.terms[t0..]
+                            .iter()
+                            .map(|&(_, d)| f64::from(d) * f64::from(d))
+                            .sum();
+                        let eps =
+                            1.02 * (m as f64 + 4.0) * U32 * (sp.p_bound + 2.0 * d2.sqrt() * sp.sqrt_nx) + ABS;
+                        info[q].2 = Mode::Sparse {
+                            idx: s.spans.len(),
+                            eps,
+                        };
+                        s.spans.push((t0, s.terms.len()));
+                    } else {
+                        s.terms.truncate(t0);
+                        s.zq[nd * dim..(nd + 1) * dim].copy_from_slice(&s.row);
+                        info[q].2 = Mode::Dense {
+                            row: nd,
+                            eps: eps_dense(nz),
+                        };
+                        nd += 1;
+                    }
                 }
-                info[q] = (nz, z2.sqrt(), ok);
             }
-            // Rows past the batch's end keep what they held: finite values
-            // whose results are not read.
-            self.partials(&s.zq, &mut s.r, qb.div_ceil(QT) * QT);
+            let top = nd.div_ceil(QT) * QT;
+            // Rows past the dense queries keep what they held: finite
+            // values whose results are not read.
+            if nd > 0 {
+                self.partials(&s.zq, &mut s.r, top);
+            }
+            if let Some(sp) = sp.filter(|_| !s.spans.is_empty()) {
+                self.sparse_partials(sp, &s.terms, &s.spans, &mut s.r[top * stride..]);
+            }
             // The selection's loops compiled for the widest vectors too.
             let wide = crate::wide::avx512();
             crate::wide::with_avx2(
                 #[inline(always)]
                 || {
-                    for (q, &(nz, zn, ok)) in info[..qb].iter().enumerate() {
-                        let zr = &z[(q0 + q) * dim..(q0 + q + 1) * dim];
+                    for (q, &(nz, zn, mode)) in info[..qb].iter().enumerate() {
+                        let zr = &batch[q * dim..(q + 1) * dim];
                         best.clear();
-                        if k > 0 && ok {
-                            let t = self.candidates(
-                                &s.r[q * stride..(q + 1) * stride],
-                                k,
-                                nz,
-                                zn,
-                                &mut s.sel,
-                                wide,
-                            );
-                            for &(v, j) in &s.sel.cand {
-                                if v <= t {
-                                    offer(&mut best, k, dense::sq_dist(zr, &x[j * dim..(j + 1) * dim]), j);
+                        let scan = match mode {
+                            Mode::Dense { row, eps } => Some((row, eps)),
+                            Mode::Sparse { idx, eps } => Some((top + idx, eps)),
+                            Mode::Exact => None,
+                        };
+                        match scan {
+                            _ if k == 0 => {}
+                            Some((row, eps)) => {
+                                let t = self.candidates(
+                                    &s.r[row * stride..(row + 1) * stride],
+                                    k,
+                                    nz,
+                                    zn,
+                                    eps,
+                                    &mut s.sel,
+                                    wide,
+                                );
+                                for &(v, j) in &s.sel.cand {
+                                    if v <= t {
+                                        offer(
+                                            &mut best,
+                                            k,
+                                            dense::sq_dist(zr, &x[j * dim..(j + 1) * dim]),
+                                            j,
+                                        );
+                                    }
                                 }
                             }
-                        } else if k > 0 {
-                            for (j, xr) in x.chunks_exact(dim).take(self.n).enumerate() {
-                                offer(&mut best, k, dense::sq_dist(zr, xr), j);
+                            None => {
+                                for (j, xr) in x.chunks_exact(dim).take(self.n).enumerate() {
+                                    offer(&mut best, k, dense::sq_dist(zr, xr), j);
+                                }
                             }
                         }
                         each(q0 + q, &best);
@@ -300,7 +496,8 @@ impl Scan {
     ///    the final one): a vector comparison per chunk, rarely true.
     /// 3. `r̃_(k)` is the `k`-th smallest of them, and its threshold the answer.
     #[inline(always)]
-    fn candidates(&self, r: &[f32], k: usize, nz: f64, zn: f64, s: &mut Select, wide: bool) -> f32 {
+    #[allow(clippy::too_many_arguments)]
+    fn candidates(&self, r: &[f32], k: usize, nz: f64, zn: f64, eps: f64, s: &mut Select, wide: bool) -> f32 {
         let chunks = r.len() / LANES;
         let g = (2 * k).div_ceil(LANES).clamp(1, chunks.max(1));
         let per = chunks.div_ceil(g).max(1);
@@ -319,7 +516,7 @@ impl Scan {
         }
         let t0 = kth(&mut s.mins, k);
         let t1 = if t0.is_finite() {
-            self.threshold(t0, nz, zn)
+            self.threshold(t0, nz, zn, eps)
         } else {
             f32::INFINITY
         };
@@ -338,15 +535,15 @@ impl Scan {
         }
         s.vals.clear();
         s.vals.extend(s.cand.iter().map(|c| c.0));
-        self.threshold(kth(&mut s.vals, k), nz, zn)
+        self.threshold(kth(&mut s.vals, k), nz, zn, eps)
     }
 
     /// The `f32` threshold on `r̃` below which a vector may be a neighbour
-    /// (module docs), from `r̃_(k)`, `N_z` and `‖z‖`.
-    fn threshold(&self, rk: f32, nz: f64, zn: f64) -> f32 {
+    /// (module docs), from `r̃_(k)`, `N_z`, `‖z‖` and the bound `ε` on the
+    /// rounding of the query's `r̃` (the dense or the sparse one).
+    fn threshold(&self, rk: f32, nz: f64, zn: f64, eps: f64) -> f32 {
         let n = self.dim as f64;
         let gamma = 1.01 * (n + 2.0) * (f64::EPSILON / 2.0);
-        let eps = 1.02 * (n + 4.0) * U32 * (nz + 2.0 * self.nx_max) + ABS;
         let e = U32 * zn * (1.0 + 1e-6) + ABS + self.e_x;
         let dk = (nz + f64::from(rk) + eps).max(0.0);
         let u = (1.0 + gamma) * (dk.sqrt() + e).powi(2);
@@ -384,6 +581,62 @@ impl Scan {
             #[inline(always)]
             || self.partials_lanes(zq, r, rows),
         );
+    }
+
+    /// `r̃` of the sparse queries (module docs): query `p` has the terms
+    /// `terms[spans[p].0..spans[p].1]`, `(i, d'_i)`, and its row is row `p`
+    /// of `r` ([`LANES`]` · blocks` wide): `s_j` plus each term times
+    /// `−2 x'_jᵢ`, in the terms' order.
+    fn sparse_partials(&self, sp: &Sparse, terms: &[(u32, f32)], spans: &[(usize, usize)], r: &mut [f32]) {
+        let stride = self.blocks * LANES;
+        // The kernels index with these unchecked.
+        assert!(
+            terms.iter().all(|&(i, _)| (i as usize) < self.dim)
+                && spans.iter().all(|&(a, b)| a <= b && b <= terms.len())
+                && r.len() >= spans.len() * stride
+                && sp.sbase.len() >= stride
+                && self.neg2.len() >= stride * self.dim
+        );
+        #[cfg(target_arch = "x86_64")]
+        if crate::wide::avx512() && std::arch::is_x86_feature_detected!("fma") {
+            // SAFETY: the CPU has AVX-512 F and FMA (checked just above);
+            // the indices and sizes are checked above.
+            unsafe { x86::sparse_partials(&self.neg2, &sp.sbase, self.dim, self.blocks, terms, spans, r) };
+            return;
+        }
+        crate::wide::with_avx2(
+            #[inline(always)]
+            || self.sparse_lanes(&sp.sbase, terms, spans, r),
+        );
+    }
+
+    /// [`Self::sparse_partials`] on 16-lane arrays (any CPU): multiply
+    /// then add, [`SG`] blocks at a time.
+    #[inline(always)]
+    fn sparse_lanes(&self, sbase: &[f32], terms: &[(u32, f32)], spans: &[(usize, usize)], r: &mut [f32]) {
+        let (dim, stride) = (self.dim, self.blocks * LANES);
+        let mut b0 = 0;
+        while b0 < self.blocks {
+            let g = SG.min(self.blocks - b0);
+            for (p, &(a, e)) in spans.iter().enumerate() {
+                let mut acc = [[0.0f32; LANES]; SG];
+                for (t, acc) in acc.iter_mut().enumerate().take(g) {
+                    acc.copy_from_slice(&sbase[(b0 + t) * LANES..(b0 + t + 1) * LANES]);
+                }
+                for &(i, d) in &terms[a..e] {
+                    for (t, acc) in acc.iter_mut().enumerate().take(g) {
+                        let xi = &self.neg2[((b0 + t) * dim + i as usize) * LANES..][..LANES];
+                        for l in 0..LANES {
+                            acc[l] += d * xi[l];
+                        }
+                    }
+                }
+                for (t, acc) in acc.iter().enumerate().take(g) {
+                    r[p * stride + (b0 + t) * LANES..][..LANES].copy_from_slice(acc);
+                }
+            }
+            b0 += g;
+        }
     }
 
     /// [`Self::partials`] on 16-lane arrays (any CPU): a block against the
@@ -466,6 +719,71 @@ fn neg2_block(rows: &[f64], dim: usize, from: usize, out: &mut [f32]) {
     }
 }
 
+/// The sparse path's background `c'` (each coordinate's smallest training
+/// value, in `f32`), the `s_j` of the module docs (`‖x'_j‖²` from `norms`,
+/// plus `Σᵢ c'ᵢ (−2 x'_jᵢ)` summed in `f64` along the coordinates, 16 lanes
+/// at a time from the `neg2` layout: the products of two `f32` are exact in
+/// `f64`), rounded to `f32`, and `‖c'‖`. Empty vectors (and 0) when
+/// `‖c'‖²` exceeds [`LIMIT`]. Plain loops (the same operations compiled
+/// with or without AVX2, so the same bits).
+fn background(x: &[f64], dim: usize, neg2: &[f32], norms: &[(f64, f64)], nx_max: f64) -> Option<Sparse> {
+    let n = norms.len();
+    let mut mins = vec![f64::INFINITY; dim];
+    crate::wide::with_avx2(
+        #[inline(always)]
+        || {
+            for row in x.chunks_exact(dim).take(n) {
+                for (m, &v) in mins.iter_mut().zip(row) {
+                    // Finite values (the build checked them).
+                    if v < *m {
+                        *m = v;
+                    }
+                }
+            }
+        },
+    );
+    let bg: Vec<f32> = mins
+        .iter()
+        .map(|&m| if m.is_finite() { m as f32 } else { 0.0 })
+        .collect();
+    let c2: f64 = bg.iter().map(|&c| f64::from(c) * f64::from(c)).sum();
+    // Finite: the squares of finite `f32` values.
+    if c2 > LIMIT {
+        return None;
+    }
+    let mut sbase = vec![f32::INFINITY; n.div_ceil(LANES) * LANES];
+    crate::wide::with_avx2(
+        #[inline(always)]
+        || {
+            for (b, (xb, out)) in neg2
+                .chunks_exact(dim * LANES)
+                .zip(sbase.chunks_exact_mut(LANES))
+                .enumerate()
+            {
+                let mut acc = [0.0f64; LANES];
+                for (xi, &c) in xb.chunks_exact(LANES).zip(&bg) {
+                    let c = f64::from(c);
+                    for l in 0..LANES {
+                        acc[l] += c * f64::from(xi[l]);
+                    }
+                }
+                for (l, (o, a)) in out.iter_mut().zip(acc).enumerate() {
+                    if let Some(&(s32, _)) = norms.get(b * LANES + l) {
+                        *o = (s32 + a) as f32;
+                    }
+                }
+            }
+        },
+    );
+    let sqrt_nx = nx_max.sqrt();
+    Some(Sparse {
+        bg,
+        sbase,
+        p_bound: nx_max + 2.0 * c2.sqrt() * sqrt_nx,
+        sqrt_nx,
+    })
+}
+
 /// [`norms_of`]'s end: the elements after the last whole eight into their
 /// lanes, then each set of lanes summed.
 #[inline(always)]
@@ -506,7 +824,7 @@ pub(crate) fn offer(best: &mut Vec<(f64, usize)>, k: usize, d2: f64, j: usize) {
 /// The AVX-512 + FMA kernel (module docs), and its AVX2 + FMA form.
 #[cfg(target_arch = "x86_64")]
 mod x86 {
-    use super::{LANES, QB, QT};
+    use super::{LANES, QB, QT, SG};
     use std::arch::x86_64::*;
 
     /// [`super::at_or_below`] in one comparison.
@@ -714,6 +1032,70 @@ mod x86 {
         }
     }
 
+    /// [`super::Scan::sparse_partials`] with AVX-512: [`SG`] blocks a group
+    /// (as many independent accumulators), each query's terms against them
+    /// (a load, a broadcast shared by the group, a fused multiply-add), all
+    /// the batch's sparse queries against one group before the next, so the
+    /// group's coordinates (`SG · dim · 64` bytes) are read from L1.
+    ///
+    /// # Safety
+    /// The CPU must have AVX-512 F and FMA; every term's index is below
+    /// `dim`, every span within `terms`, `r` holds `spans.len()` rows of
+    /// `blocks · LANES`, `neg2` and `base` the scan's sizes.
+    #[target_feature(enable = "avx512f,fma")]
+    pub(super) unsafe fn sparse_partials(
+        neg2: &[f32],
+        base: &[f32],
+        dim: usize,
+        blocks: usize,
+        terms: &[(u32, f32)],
+        spans: &[(usize, usize)],
+        r: &mut [f32],
+    ) {
+        let stride = blocks * LANES;
+        let (xp, bp, rp) = (neg2.as_ptr(), base.as_ptr(), r.as_mut_ptr());
+        let mut b0 = 0;
+        // SAFETY (all pointer arithmetic below): blocks below `blocks`,
+        // coordinates below `dim`, rows below `spans.len()` (the caller's
+        // contract).
+        unsafe {
+            while b0 + SG <= blocks {
+                let x = xp.add(b0 * dim * LANES);
+                for (p, &(a, e)) in spans.iter().enumerate() {
+                    let mut acc = [_mm512_setzero_ps(); SG];
+                    for (t, acc) in acc.iter_mut().enumerate() {
+                        *acc = _mm512_loadu_ps(bp.add((b0 + t) * LANES));
+                    }
+                    for &(i, d) in terms.get_unchecked(a..e) {
+                        let u = _mm512_set1_ps(d);
+                        let xi = x.add(i as usize * LANES);
+                        for (t, acc) in acc.iter_mut().enumerate() {
+                            *acc = _mm512_fmadd_ps(u, _mm512_loadu_ps(xi.add(t * dim * LANES)), *acc);
+                        }
+                    }
+                    for (t, acc) in acc.iter().enumerate() {
+                        _mm512_storeu_ps(rp.add(p * stride + (b0 + t) * LANES), *acc);
+                    }
+                }
+                b0 += SG;
+            }
+            for b in b0..blocks {
+                let x = xp.add(b * dim * LANES);
+                for (p, &(a, e)) in spans.iter().enumerate() {
+                    let mut acc = _mm512_loadu_ps(bp.add(b * LANES));
+                    for &(i, d) in terms.get_unchecked(a..e) {
+                        acc = _mm512_fmadd_ps(
+                            _mm512_set1_ps(d),
+                            _mm512_loadu_ps(x.add(i as usize * LANES)),
+                            acc,
+                        );
+                    }
+                    _mm512_storeu_ps(rp.add(p * stride + b * LANES), acc);
+                }
+            }
+        }
+    }
+
     /// [`partials`] with 256-bit vectors, for CPUs with AVX2 and FMA but
     /// not AVX-512: one block (two vectors) against [`QT`] queries, 12
     /// accumulators of the 16 registers, each term fused. Before it those
@@ -797,23 +1179,32 @@ mod tests {
         v.iter().map(|&(d, j)| (d.to_bits(), j)).collect()
     }
 
-    /// Every query's list from the scan, with the AVX-512 kernel (where the
-    /// CPU has it) and with the 16-lane loop, which must agree.
+    /// Every query's list from the scan, with the AVX-512 kernels (where the
+    /// CPU has them), the AVX2 ones and the 16-lane loops, each with the
+    /// path chosen per query, every query dense and every query sparse:
+    /// all must agree.
     fn scanned(scan: &Scan, x: &[f64], q: &[f64], k: usize) -> Vec<Vec<(u64, usize)>> {
-        let run = || {
-            let mut out = Vec::new();
-            scan.search(x, q, k, |i, best| {
-                assert_eq!(i, out.len(), "queries in order");
-                out.push(bits(best));
-            });
-            out
+        let run = |path: Path| {
+            move || {
+                let mut out = Vec::new();
+                scan.search_on(x, q, k, path, |i, best| {
+                    assert_eq!(i, out.len(), "queries in order");
+                    out.push(bits(best));
+                });
+                out
+            }
         };
-        // The kernel the CPU picks, the AVX2 one and the portable lanes.
-        let wide = run();
-        let avx2 = crate::wide::without_avx512(run);
-        let lanes = crate::wide::baseline_only(run);
-        assert_eq!(wide, avx2, "the AVX-512 and AVX2 kernels");
-        assert_eq!(wide, lanes, "the vector kernels and the portable lanes");
+        let wide = run(Path::Auto)();
+        for path in [Path::Auto, Path::Dense, Path::Sparse] {
+            // The kernel the CPU picks, the AVX2 one and the portable lanes.
+            assert_eq!(wide, run(path)(), "{path:?}: the kernels the CPU picks");
+            assert_eq!(wide, crate::wide::without_avx512(run(path)), "{path:?}: AVX2");
+            assert_eq!(
+                wide,
+                crate::wide::baseline_only(run(path)),
+                "{path:?}: portable lanes"
+            );
+        }
         assert_eq!(wide.len(), q.len() / scan.dim, "one list per query");
         wide
     }
@@ -903,6 +1294,108 @@ mod tests {
                 prop_assert_eq!(got, bits(&full_scan(&x, dim, z, k)), "query {}", i);
             }
         }
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(48))]
+
+        /// Spike-count-like data (most counts 0), standardised per column
+        /// with random means and scales from tiny to huge, duplicate rows,
+        /// all-zero queries (every coordinate the background), queries
+        /// that are training rows, one count off one, and batches large
+        /// enough for the sparse path to be built on its own: every path
+        /// (per query, all dense, all sparse) gives the full scan's list.
+        #[test]
+        fn sparse_queries_are_the_full_scan(
+            n in 1usize..400,
+            dim in prop::sample::select(vec![1usize, 5, 16, 80, 83]),
+            k in prop::sample::select(vec![1usize, 3, 10, 50, 500]),
+            zero_pct in prop::sample::select(vec![50u32, 80, 95, 100]),
+            scale_exp in prop::sample::select(vec![-150i32, -12, 0, 6, 12]),
+            queries in prop::sample::select(vec![3usize, 60, 130]),
+            seed in 0u64..1000,
+        ) {
+            let mut rng = ChaCha8Rng::seed_from_u64(seed);
+            let scale = 10f64.powi(scale_exp);
+            let mean: Vec<f64> = (0..dim).map(|_| rng.random_range(0.0..3.0)).collect();
+            let inv_sd: Vec<f64> = (0..dim).map(|_| rng.random_range(0.2..5.0) * scale).collect();
+            let count = |rng: &mut ChaCha8Rng| -> f64 {
+                if rng.random_range(0..100) < zero_pct { 0.0 } else { f64::from(rng.random_range(1..6)) }
+            };
+            let mut raw: Vec<f64> = Vec::with_capacity(n * dim);
+            for r in 0..n {
+                if r > 0 && rng.random_range(0..6) == 0 {
+                    let src = rng.random_range(0..r);
+                    let row: Vec<f64> = raw[src * dim..(src + 1) * dim].to_vec();
+                    raw.extend(row);
+                } else {
+                    for _ in 0..dim {
+                        raw.push(count(&mut rng));
+                    }
+                }
+            }
+            let mut qraw: Vec<f64> = (0..queries * dim).map(|_| count(&mut rng)).collect();
+            qraw.extend(std::iter::repeat_n(0.0, dim));
+            qraw.extend_from_slice(&raw[..dim]);
+            let mut near = raw[(n - 1) * dim..].to_vec();
+            near[0] += 1.0;
+            qraw.extend(near);
+            let std = |v: &[f64]| -> Vec<f64> {
+                v.iter().enumerate().map(|(i, &c)| (c - mean[i % dim]) * inv_sd[i % dim]).collect()
+            };
+            let (x, q) = (std(&raw), std(&qraw));
+            let scan = Scan::build(&x, dim).expect("finite rows in range");
+            for (i, got) in scanned(&scan, &x, &q, k).into_iter().enumerate() {
+                let z = &q[i * dim..(i + 1) * dim];
+                prop_assert_eq!(got, bits(&full_scan(&x, dim, z, k)), "query {}", i);
+            }
+        }
+    }
+
+    /// The per-query choice takes the sparse path for sparse queries in a
+    /// large batch (its data built then, not by a lone query), and declines
+    /// a background whose squared norm exceeds [`LIMIT`].
+    #[test]
+    fn the_sparse_path_is_built_for_large_batches_only() {
+        let mut rng = ChaCha8Rng::seed_from_u64(4);
+        let dim = 80;
+        let raw = |rng: &mut ChaCha8Rng, rows: usize| -> Vec<f64> {
+            (0..rows * dim)
+                .map(|_| {
+                    if rng.random_range(0..5) == 0 {
+                        f64::from(rng.random_range(1..4)) - 0.4
+                    } else {
+                        -0.4
+                    }
+                })
+                .collect()
+        };
+        let x = raw(&mut rng, 300);
+        let q = raw(&mut rng, SPARSE_MIN_QUERIES);
+        let scan = Scan::build(&x, dim).expect("in range");
+        scan.search(&x, &q[..dim], 10, |_, _| {});
+        assert!(scan.sparse.get().is_none(), "a lone query builds no sparse data");
+        let mut got = Vec::new();
+        scan.search(&x, &q, 10, |_, best| got.push(bits(best)));
+        for (i, got) in got.into_iter().enumerate() {
+            assert_eq!(
+                got,
+                bits(&full_scan(&x, dim, &q[i * dim..(i + 1) * dim], 10)),
+                "query {i}"
+            );
+        }
+        let sp = scan
+            .sparse
+            .get()
+            .and_then(|s| s.as_ref())
+            .expect("built by the batch");
+        assert!(sp.bg.iter().all(|&c| c == -0.4f32));
+        // Each row's squared norm within the limit, the columns' minima
+        // (the background) beyond it: no sparse data, the dense path.
+        let x = [-9e14, 0.0, 0.0, -9e14, 1.0, 2.0];
+        let scan = Scan::build(&x, 2).expect("norms within the limit");
+        assert!(background(&x, 2, &scan.neg2, &scan.norms, scan.nx_max).is_none());
+        check(&x, 2, &[0.0, 0.0, -9e14, 1.0, 3.0, -2.0], 2);
     }
 
     /// Degenerate training sets: one vector, all vectors equal, fewer
@@ -1048,7 +1541,7 @@ mod tests {
         let eps = 1.02 * (dim as f64 + 4.0) * U32 * (nz + 2.0 * scan.nx_max);
         let mut last = f32::NEG_INFINITY;
         for rk in [-80.0f32, -60.0, -10.0, 0.0, 5.0, 1e3] {
-            let t = scan.threshold(rk, nz, nz.sqrt());
+            let t = scan.threshold(rk, nz, nz.sqrt(), eps + ABS);
             assert!(f64::from(t) >= f64::from(rk) + 2.0 * eps, "rk {rk}: {t}");
             assert!(t >= last);
             last = t;
