@@ -64,6 +64,32 @@
 //!   that was the first copy of each row, from a whole Gram matrix that did
 //!   not fit in L2; the machines' blocks, computed as each machine starts,
 //!   now are in cache when it copies them).
+//! * **Selections without per-lane branches** (2026-12-06). With
+//!   AVX-512, the scans' running best `(value, variable)` pairs are
+//!   reduced in registers (each half of the lanes offered to the other by
+//!   the same rule, a total order, so the same pick), where they were
+//!   stored and picked by a scalar loop with unpredictable branches
+//!   (~40 % of the `j` scan and ~30 % of the gradient update in `perf
+//!   annotate`); the lanes outside `I_up` / `I_low` are set to a pair that
+//!   never wins before the comparison, which takes the mask off the
+//!   latency chain from one block of positions to the next; and a
+//!   problem's kept kernel rows reuse the thread's buffer of the last
+//!   problem instead of fresh pages (a page fault and a zeroed page each
+//!   time, 166 KB a machine). Every kernel value, gradient update and
+//!   comparison is the IEEE operation it was, so the iterations and bits
+//!   are unchanged (tests `gram_solver_is_the_row_solver_bit_for_bit`,
+//!   `avx512_reductions_pick_as_the_scalar_rule`; the peers SVM's test
+//!   scores `cmp`-identical). Peers SVM fit, CPU time of the one rayon
+//!   worker per fit (`RAYON_NUM_THREADS=1 perf record -e cpu-clock
+//!   target/release/examples/peers --out <dir> --seed 1 --only svm
+//!   --profile N:0`, samples of N = 201 or 301 minus N = 1, per fit; old and new
+//!   binaries alternated on a loaded 2-core AVX-512 host, six and seven
+//!   runs): 11.2-12.4 ms before (median 11.4), 8.6-11.1 ms after (median
+//!   9.6), −16 %; the fit's wall time in the bench's `baselines.json`
+//!   (same command without `--profile`, eight alternated runs each on a
+//!   quieter host) 10.85 ms before and 9.9 ms after (medians), −9 to
+//!   −11 % (it also holds the fit's serial parts); the kernel blocks
+//!   (`dense::sq_cols512`, at the FMA units' rate) are now the largest part.
 //!
 //! Why not smartcore's `SVC`: it is an approximate online solver (LaSVM, a
 //! fixed number of passes) that recomputes and allocates every kernel value it
@@ -871,6 +897,31 @@ struct KRows<'a, K: GramRows + ?Sized> {
     copied: usize,
 }
 
+impl<K: GramRows + ?Sized> Drop for KRows<'_, K> {
+    /// Hands the buffer of kept rows to the thread's next problem (if at
+    /// most [`SPARE_ROWS_BYTES`]).
+    fn drop(&mut self) {
+        if self.kept.capacity() * std::mem::size_of::<f64>() <= SPARE_ROWS_BYTES {
+            let spare = std::mem::take(&mut self.kept);
+            SPARE_ROWS.with(|s| s.set(spare));
+        }
+    }
+}
+
+/// The largest buffer of kept rows [`KRows`] leaves to its thread's next
+/// problem (4 MiB: a problem of ~720 variables).
+const SPARE_ROWS_BYTES: usize = 4 << 20;
+
+thread_local! {
+    /// A thread's buffer of kept rows from its last problem. Why: a
+    /// problem's rows (166 KB for the peers SVM's 144-variable machines)
+    /// were a fresh allocation each, above `malloc`'s threshold for a
+    /// mapping of its own, so every machine's first touch of each page
+    /// went through a page fault and the kernel's zeroing of the page
+    /// (~4 % of the fit in `perf`); reused, they are also still in cache.
+    static SPARE_ROWS: std::cell::Cell<Vec<f64>> = const { std::cell::Cell::new(Vec::new()) };
+}
+
 /// Where [`KRows::fetch`] put a row.
 #[derive(Clone, Copy)]
 enum RowAt {
@@ -882,12 +933,18 @@ impl<'a, K: GramRows + ?Sized> KRows<'a, K> {
     fn new(k: &'a K, n_pad: usize, cache_bytes: usize) -> Self {
         let n = k.len();
         let keep = n.saturating_mul(n_pad).saturating_mul(std::mem::size_of::<f64>()) <= cache_bytes;
+        let mut kept = Vec::new();
+        if keep {
+            kept = SPARE_ROWS.with(std::cell::Cell::take);
+            kept.clear();
+            kept.reserve(n * n_pad);
+        }
         KRows {
             k,
             n,
             n_pad,
             slot: vec![usize::MAX; n],
-            kept: Vec::with_capacity(if keep { n * n_pad } else { 0 }),
+            kept,
             keep,
             scratch: [vec![0.0; n_pad], vec![0.0; n_pad]],
             copied: 0,
@@ -1177,33 +1234,123 @@ mod x86 {
             }
         }
 
-        /// As [`Best::offer`], with the lane mask as bits.
+        /// As [`Best::offer`], with the lane mask as bits. The lanes out
+        /// of `mask` are first made `(∓∞, −1)` (the start value and
+        /// rank, which beat no pair), so the mask does not wait for the
+        /// comparisons with the running best: it was folded into the
+        /// last step of the chain from one position block to the next
+        /// (a masked `vptestmq`), the scans' longest latency.
         #[inline]
         #[target_feature(enable = "avx2,avx512f,avx512vl,avx512dq")]
         fn offer<const CMP: i32>(&mut self, h: usize, v: __m512d, r: __m512d, mask: __mmask8) {
             let (best, br) = (self.v[h], self.r[h]);
+            let none = _mm512_set1_pd(if CMP == _CMP_GT_OQ {
+                f64::NEG_INFINITY
+            } else {
+                f64::INFINITY
+            });
+            let v = _mm512_mask_blend_pd(mask, none, v);
+            let r = _mm512_mask_blend_pd(mask, _mm512_set1_pd(-1.0), r);
             let strict = _mm512_cmp_pd_mask::<CMP>(v, best);
             let eq = _mm512_cmp_pd_mask::<_CMP_EQ_OQ>(v, best);
             let later = _mm512_cmp_pd_mask::<_CMP_GT_OQ>(r, br);
-            let upd = mask & (strict | (eq & later));
+            let upd = strict | (eq & later);
             self.v[h] = _mm512_mask_blend_pd(upd, best, v);
             self.r[h] = _mm512_mask_blend_pd(upd, br, r);
         }
 
-        /// As [`Best::reduce`], over the sixteen pairs.
+        /// Chain 0 takes the pairs `(v, r)` that beat it, every lane.
+        #[inline]
+        #[target_feature(enable = "avx2,avx512f,avx512vl,avx512dq")]
+        fn merge(&mut self, max: bool, v: __m512d, r: __m512d) {
+            if max {
+                self.offer::<_CMP_GT_OQ>(0, v, r, 0xff);
+            } else {
+                self.offer::<_CMP_LT_OQ>(0, v, r, 0xff);
+            }
+        }
+
+        /// As [`Best::reduce`], over the sixteen pairs, in registers and
+        /// without a branch: chain 1 is offered to chain 0, then each
+        /// half of the lanes to the other (256-bit halves, 128-bit
+        /// quarters, neighbours), by [`Self::offer`]'s rule. The rule is
+        /// a total order on the pairs (the value, then the rank; no lane
+        /// holds a NaN, and empty lanes, rank −1, lose to any other), so
+        /// the winner is the one pair [`pick`] returns, whatever the
+        /// order of the merges. It replaced a store of the 32 doubles and
+        /// a scalar loop with unpredictable branches, which took ~40 % of
+        /// `best_low512` and ~30 % of `update_best_up512` (`perf annotate`).
         #[inline]
         #[target_feature(enable = "avx2,avx512f,avx512vl,avx512dq")]
         fn reduce(&self, max: bool) -> (f64, f64) {
-            let (mut vs, mut rs) = ([0.0f64; 16], [0.0f64; 16]);
-            // SAFETY: sixteen doubles each, eight per store.
-            unsafe {
-                for h in 0..2 {
-                    _mm512_storeu_pd(vs.as_mut_ptr().add(8 * h), self.v[h]);
-                    _mm512_storeu_pd(rs.as_mut_ptr().add(8 * h), self.r[h]);
-                }
-            }
-            pick(&vs, &rs, max)
+            let mut b = *self;
+            b.merge(max, self.v[1], self.r[1]);
+            let (v, r) = (b.v[0], b.r[0]);
+            b.merge(
+                max,
+                _mm512_shuffle_f64x2::<0b01_00_11_10>(v, v),
+                _mm512_shuffle_f64x2::<0b01_00_11_10>(r, r),
+            );
+            let (v, r) = (b.v[0], b.r[0]);
+            b.merge(
+                max,
+                _mm512_shuffle_f64x2::<0b10_11_00_01>(v, v),
+                _mm512_shuffle_f64x2::<0b10_11_00_01>(r, r),
+            );
+            let (v, r) = (b.v[0], b.r[0]);
+            b.merge(
+                max,
+                _mm512_permute_pd::<0b0101_0101>(v),
+                _mm512_permute_pd::<0b0101_0101>(r),
+            );
+            (
+                _mm_cvtsd_f64(_mm512_castpd512_pd128(b.r[0])),
+                _mm_cvtsd_f64(_mm512_castpd512_pd128(b.v[0])),
+            )
         }
+    }
+
+    /// The largest of the sixteen lanes of two running maxima of `y G`
+    /// (no lane holds a NaN: `max_pd` keeps its second operand then), in
+    /// registers. The scalar fold ([`last_max`]) keeps the later of two
+    /// equal values, so the two may differ only in the sign of a zero,
+    /// and the one use of the result, `gmax + gmax2 < tol`, is the same
+    /// for both signs.
+    #[inline]
+    #[target_feature(enable = "avx2,avx512f,avx512vl,avx512dq")]
+    fn max16(g: [__m512d; 2]) -> f64 {
+        let m = _mm512_max_pd(g[0], g[1]);
+        let m = _mm512_max_pd(m, _mm512_shuffle_f64x2::<0b01_00_11_10>(m, m));
+        let m = _mm512_max_pd(m, _mm512_shuffle_f64x2::<0b10_11_00_01>(m, m));
+        let m = _mm512_max_pd(m, _mm512_permute_pd::<0b0101_0101>(m));
+        _mm_cvtsd_f64(_mm512_castpd512_pd128(m))
+    }
+
+    /// [`Best512::reduce`] and [`max16`] on sixteen given lanes (lane
+    /// `8h + l` is lane `l` of chain `h`), for the tests.
+    #[cfg(test)]
+    pub(super) fn reduce512_lanes(vs: &[f64; 16], rs: &[f64; 16], max: bool) -> ((f64, f64), f64) {
+        assert!(crate::wide::avx512());
+        // SAFETY: AVX-512 F/VL/DQ are present (asserted); 16 doubles each.
+        unsafe { reduce512_lanes_inner(vs, rs, max) }
+    }
+
+    #[cfg(test)]
+    #[target_feature(enable = "avx2,avx512f,avx512vl,avx512dq")]
+    unsafe fn reduce512_lanes_inner(vs: &[f64; 16], rs: &[f64; 16], max: bool) -> ((f64, f64), f64) {
+        // SAFETY: 16 doubles each, 8 per load.
+        let ld = |a: &[f64; 16], h: usize| unsafe { _mm512_loadu_pd(a.as_ptr().add(8 * h)) };
+        let b = Best512 {
+            v: [ld(vs, 0), ld(vs, 1)],
+            r: [ld(rs, 0), ld(rs, 1)],
+        };
+        (b.reduce(max), max16([ld(vs, 0), ld(vs, 1)]))
+    }
+
+    /// The scalar rule of the reductions, for the tests.
+    #[cfg(test)]
+    pub(super) fn pick_lanes(vs: &[f64], rs: &[f64], max: bool) -> ((f64, f64), f64) {
+        (pick(vs, rs, max), last_max(vs))
     }
 
     /// Eight doubles of `a` from `t` (callers assert `t + 8 <= a.len()`).
@@ -1320,13 +1467,7 @@ mod x86 {
             }
         }
         let (rj, _) = best.reduce(false);
-        let mut gs = [0.0f64; 16];
-        // SAFETY: sixteen doubles, eight per store.
-        unsafe {
-            _mm512_storeu_pd(gs.as_mut_ptr(), g2[0]);
-            _mm512_storeu_pd(gs.as_mut_ptr().add(8), g2[1]);
-        }
-        (rj, last_max(&gs))
+        (rj, max16(g2))
     }
 }
 
@@ -1765,6 +1906,46 @@ mod tests {
         // Tiny problems: a class may be missing from the pair (one class only, or none).
         for seed in 30..40u64 {
             gram_vs_rows(seed, 1 + seed as usize % 5, 2, true, &base);
+        }
+    }
+
+    /// The in-register reductions of the AVX-512 scans pick what the
+    /// scalar rule picks, lane for lane: random values with ties (equal
+    /// values, ±0), empty lanes (rank −1 with the start value), infinite
+    /// values; the largest `y G` equal up to the sign of a zero.
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn avx512_reductions_pick_as_the_scalar_rule() {
+        if !crate::wide::avx512() {
+            return;
+        }
+        let mut rng = ChaCha8Rng::seed_from_u64(9);
+        for round in 0..20_000 {
+            let max = round % 2 == 0;
+            let start = if max { f64::NEG_INFINITY } else { f64::INFINITY };
+            let mut ranks: Vec<f64> = (0..16).map(f64::from).collect();
+            for t in (1..16).rev() {
+                ranks.swap(t, rng.random_range(0..=t));
+            }
+            let (mut vs, mut rs) = ([0.0f64; 16], [0.0f64; 16]);
+            for ((v, r), &rank) in vs.iter_mut().zip(&mut rs).zip(&ranks) {
+                (*v, *r) = match rng.random_range(0..8) {
+                    0 => (start, -1.0),
+                    1 => (0.0, rank),
+                    2 => (-0.0, rank),
+                    3 => (-start, rank),
+                    4 => (start, rank),
+                    _ => (f64::from(rng.random_range(-3i8..3)) * 0.25, rank),
+                };
+            }
+            let ((r, v), g) = x86::reduce512_lanes(&vs, &rs, max);
+            let ((wr, wv), wg) = x86::pick_lanes(&vs, &rs, max);
+            assert_eq!(
+                (r.to_bits(), v.to_bits()),
+                (wr.to_bits(), wv.to_bits()),
+                "{vs:?} {rs:?} {max}"
+            );
+            assert_eq!(g, wg, "{vs:?}");
         }
     }
 
