@@ -32,9 +32,9 @@
 //! activity and uniform of the minibatch loop; the network is stored in
 //! `f64` before and after, so inference and saved models are unchanged).
 //! Until 2026-12-06 it ran in `f64` with the bits of straightforward
-//! loops, at ~0.33 s a `benches/peers` fit, about twice as fast as
+//! loops, at 0.26-0.36 s a `benches/peers` fit (by host), about twice as fast as
 //! scikit-learn's RBM stack rather than the 3x the project asks of every
-//! baseline; in `f32` the same fit takes ~0.17 s (rbm32's module docs have
+//! baseline; in `f32` the same fit takes ~0.14 s (rbm32's module docs have
 //! the why and the numbers). It moved every EDBN figure in its digits:
 //! RESULTS.md says what.
 //!
@@ -65,7 +65,9 @@
 //!   net inputs; a frame alone and in a batch take the same path, so the
 //!   same bits (test `batch_scores_are_the_bits_of_frame_by_frame`). Since
 //!   2026-12-06 (before, `f64` products with a fixed four-way split of each
-//!   dot product): the peers prediction ~1.42 -> ~0.9 ms (docs/benches.md).
+//!   dot product): the peers prediction 1.44 ms on 2026-11-29 and 0.77 ms on
+//!   2026-12-06, both on an AMD EPYC (best wall sample, `benches/peers/run.sh
+//!   --seed 1 -- --skip-encoder`; docs/benches.md).
 //! * `spiking` (event-driven, as O'Connor et al. run their DBN): each input value
 //!   drives a Poisson spike train at `v_i · input_rate_hz` for `duration_ms`, in
 //!   steps of `dt_ms`; every layer is integrate-and-fire units (reset by
