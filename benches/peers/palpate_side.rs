@@ -35,8 +35,9 @@
 //!    (whole trials, drawn from the fold's generator) is exported too, so the peer
 //!    can stop on the same validation trials.
 //!
-//! Timing: each figure is a sample of wall time and of this thread's on-CPU
-//! time (`/proc/thread-self/schedstat`), one thread, per call, averaged over a
+//! Timing: each figure is a sample of wall time and of the process's on-CPU
+//! time (every thread's `/proc/self/task/*/schedstat`: fits run on the
+//! rayon pool's one worker), per call, averaged over a
 //! batch of calls of at least 50 ms; `--repeats` samples, their minimum ("best")
 //! and median. The machine is shared, so the best sample is the one least
 //! disturbed by other processes; run.py compares best with best.
@@ -116,18 +117,33 @@ fn parse_args() -> Res<Args> {
     })
 }
 
-/// This thread's on-CPU time so far (Linux), else `None`.
+/// The process's on-CPU time so far, summed over its live threads (Linux:
+/// the first field of each `/proc/self/task/<tid>/schedstat`, in ns), else
+/// `None`. Every thread, not this one: the forest's trees and the SVM's
+/// machines are fitted on the rayon pool's worker (one, under run.sh's
+/// `RAYON_NUM_THREADS=1`) while this thread waits, so this thread's clock
+/// saw ~1-2 ms of a ~10 ms fit. The pool's threads live as long as the
+/// process, so no time is lost to an exited thread between two readings.
 fn cpu_time() -> Option<Duration> {
-    let s = std::fs::read_to_string("/proc/thread-self/schedstat").ok()?;
-    Some(Duration::from_nanos(s.split_whitespace().next()?.parse().ok()?))
+    let mut ns = 0u64;
+    for task in std::fs::read_dir("/proc/self/task").ok()? {
+        let mut path = task.ok()?.path();
+        path.push("schedstat");
+        // A thread may exit between the listing and the read: skip it.
+        let Ok(s) = std::fs::read_to_string(&path) else {
+            continue;
+        };
+        ns = ns.saturating_add(s.split_whitespace().next()?.parse().ok()?);
+    }
+    Some(Duration::from_nanos(ns))
 }
 
 /// Times `f`: `repeats` samples, each the average of a batch of calls long
-/// enough (>= 50 ms, found from one untimed warm-up call) that the thread's
-/// CPU clock, which this kernel advances in ticks of a few ms, resolves it.
+/// enough (>= 50 ms, found from one untimed warm-up call) that the threads'
+/// CPU clocks, which this kernel advances in ticks of a few ms, resolve it.
 /// Returns the last result and the per-call times as JSON (`wall_s`, `cpu_s`:
 /// every sample, median and minimum; `cpu_s` is null where the kernel does not
-/// report thread time).
+/// report threads' times).
 fn timed<T>(repeats: usize, mut f: impl FnMut() -> T) -> (T, Value) {
     timed_owned(repeats, || (), |()| f(), usize::MAX)
 }
