@@ -1037,6 +1037,18 @@ def section_time(out, wall, docs, criterion):
                 + "; ".join(verdicts)
                 + " | see the verdict per Brian2 target | `benches/peers/run.sh --seed 1` (table below) |"
             )
+        # The trained estimators' verdicts (run.py writes one line per
+        # estimator, "- <id> vs sklearn <model>: fit Ax, predict Bx; ... -> target met").
+        est = [l[2:] for l in text.splitlines() if l.startswith("- ") and " vs sklearn " in l]
+        if est:
+            short = [l.split(";")[0] for l in est]
+            met = all(l.endswith("-> target met") for l in est)
+            targets.append(
+                "| every trained estimator >= 3x faster than its scikit-learn counterpart, fit and predict, "
+                "at equal or better accuracy | "
+                + "; ".join(short)
+                + f" | {yes_no(met)} | `benches/peers/run.sh --seed 1 -- --skip-encoder` (table below) |"
+            )
     memory = os.path.join(out, "memory.json")
     mem = load(memory) if exists(memory) else None
     if mem and len(mem) >= 2:
