@@ -305,32 +305,7 @@ mod x86 {
                 unsafe {
                     let r: [__m256; 8] =
                         std::array::from_fn(|q| _mm256_loadu_ps(s.add((i0 + q) * cols + j0)));
-                    let t0 = _mm256_unpacklo_ps(r[0], r[1]);
-                    let t1 = _mm256_unpackhi_ps(r[0], r[1]);
-                    let t2 = _mm256_unpacklo_ps(r[2], r[3]);
-                    let t3 = _mm256_unpackhi_ps(r[2], r[3]);
-                    let t4 = _mm256_unpacklo_ps(r[4], r[5]);
-                    let t5 = _mm256_unpackhi_ps(r[4], r[5]);
-                    let t6 = _mm256_unpacklo_ps(r[6], r[7]);
-                    let t7 = _mm256_unpackhi_ps(r[6], r[7]);
-                    let u0 = _mm256_shuffle_ps::<0x44>(t0, t2);
-                    let u1 = _mm256_shuffle_ps::<0xEE>(t0, t2);
-                    let u2 = _mm256_shuffle_ps::<0x44>(t1, t3);
-                    let u3 = _mm256_shuffle_ps::<0xEE>(t1, t3);
-                    let u4 = _mm256_shuffle_ps::<0x44>(t4, t6);
-                    let u5 = _mm256_shuffle_ps::<0xEE>(t4, t6);
-                    let u6 = _mm256_shuffle_ps::<0x44>(t5, t7);
-                    let u7 = _mm256_shuffle_ps::<0xEE>(t5, t7);
-                    let o = [
-                        _mm256_permute2f128_ps::<0x20>(u0, u4),
-                        _mm256_permute2f128_ps::<0x20>(u1, u5),
-                        _mm256_permute2f128_ps::<0x20>(u2, u6),
-                        _mm256_permute2f128_ps::<0x20>(u3, u7),
-                        _mm256_permute2f128_ps::<0x31>(u0, u4),
-                        _mm256_permute2f128_ps::<0x31>(u1, u5),
-                        _mm256_permute2f128_ps::<0x31>(u2, u6),
-                        _mm256_permute2f128_ps::<0x31>(u3, u7),
-                    ];
+                    let o = crate::wide::transpose8_ps(r);
                     for (q, &v) in o.iter().enumerate() {
                         _mm256_storeu_ps(d.add((j0 + q) * rows + i0), v);
                     }
@@ -505,20 +480,8 @@ impl Trainer {
     fn new(rbm: &Rbm) -> Self {
         let (nv, nh, k) = (rbm.n_vis, rbm.n_hid, rbm.labels);
         let (nvp, nhp) = (padded(nv), padded(nh));
-        let mut wt = vec![0.0f32; nvp * nhp];
-        for j in 0..nh {
-            for i in 0..nv {
-                wt[i * nhp + j] = rbm.w[j * nv + i] as f32;
-            }
-        }
-        let mut a = vec![0.0f32; nvp];
-        for (o, &v) in a.iter_mut().zip(&rbm.a) {
-            *o = v as f32;
-        }
-        let mut b = vec![0.0f32; nhp];
-        for (o, &v) in b.iter_mut().zip(&rbm.b) {
-            *o = v as f32;
-        }
+        let wt = weights_t(rbm, nv, nvp);
+        let (a, b) = (padded_f32(&rbm.a, nvp), padded_f32(&rbm.b, nhp));
         let mut t = Trainer {
             nv,
             nh,
@@ -732,23 +695,36 @@ pub(super) struct Forward {
     skip_zeros: bool,
 }
 
+/// `rbm`'s weights of its first `n_in` visible units as `f32` `Wᵀ`: `rows`
+/// rows (`n_in` and zero padding) of `padded(n_hid)` values, unit `j` of
+/// input `i` at `i · padded(n_hid) + j`, the padding zero.
+fn weights_t(rbm: &Rbm, n_in: usize, rows: usize) -> Vec<f32> {
+    let (nh, nv, nhp) = (rbm.n_hid, rbm.n_vis, padded(rbm.n_hid));
+    let mut wt = vec![0.0f32; rows * nhp];
+    for j in 0..nh {
+        for i in 0..n_in {
+            wt[i * nhp + j] = rbm.w[j * nv + i] as f32;
+        }
+    }
+    wt
+}
+
+/// `v` as `f32`, zero-padded to `len`.
+fn padded_f32(v: &[f64], len: usize) -> Vec<f32> {
+    let mut o = vec![0.0f32; len];
+    for (o, &v) in o.iter_mut().zip(v) {
+        *o = v as f32;
+    }
+    o
+}
+
 impl Forward {
     /// The layer of `rbm`'s first `n_in` visible units (all but the labels
     /// for the top RBM); `sigmoid`: apply `σ` (false: the net inputs);
     /// `skip_zeros`: see the field.
     pub(super) fn new(rbm: &Rbm, n_in: usize, sigmoid: bool, skip_zeros: bool) -> Self {
-        let (nh, nv) = (rbm.n_hid, rbm.n_vis);
-        let nhp = padded(nh);
-        let mut wt = vec![0.0f32; n_in * nhp];
-        for j in 0..nh {
-            for i in 0..n_in {
-                wt[i * nhp + j] = rbm.w[j * nv + i] as f32;
-            }
-        }
-        let mut b = vec![0.0f32; nhp];
-        for (o, &v) in b.iter_mut().zip(&rbm.b) {
-            *o = v as f32;
-        }
+        let (nh, nhp) = (rbm.n_hid, padded(rbm.n_hid));
+        let (wt, b) = (weights_t(rbm, n_in, n_in), padded_f32(&rbm.b, nhp));
         Forward {
             wt,
             b,
