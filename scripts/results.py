@@ -1049,6 +1049,21 @@ def section_time(out, wall, docs, criterion):
                 + "; ".join(short)
                 + f" | {yes_no(met)} | `benches/peers/run.sh --seed 1 -- --skip-encoder` (table below) |"
             )
+    # The same comparison with both sides on their AVX2 code (run.sh
+    # --avx2): what a CPU without AVX-512 would show.
+    peers_avx2 = "benches/peers/RESULTS-peers-avx2.md"
+    if exists(peers_avx2):
+        text = open(peers_avx2, encoding="utf-8").read()
+        est = [l[2:] for l in text.splitlines() if l.startswith("- ") and " vs sklearn " in l]
+        if est:
+            short = [l.split(";")[0] for l in est]
+            met = all(l.endswith("-> target met") for l in est)
+            targets.append(
+                "| the same on a CPU without AVX-512 (both sides' AVX-512 code switched off) | "
+                + "; ".join(short)
+                + f" | {yes_no(met)} | `benches/peers/run.sh --seed 1 --avx2 -- --skip-encoder` "
+                "(benches/peers/RESULTS-peers-avx2.md) |"
+            )
     memory = os.path.join(out, "memory.json")
     mem = load(memory) if exists(memory) else None
     if mem and len(mem) >= 2:

@@ -478,7 +478,21 @@ impl Mlp {
         let mut a = vec![0.0; n * self.hidden];
         match self.folded() {
             Some((w, b)) => {
-                dense::gemm_nt(&x[..n * self.dim], w, self.dim, &mut a);
+                // Raw spike-count rows are mostly zeros (four in five in
+                // `benches/peers`' ANN sets), which the zero-skipping
+                // product leaves out with `gemm_nt`'s bits when the
+                // weights are finite (its docs). Only without AVX-512:
+                // there it took the ANN (ST)'s prediction (3154 x 80 into
+                // 30) from 0.70-0.73 to 0.60-0.62 ms, while with AVX-512
+                // the dense `narrow512` stays ahead (0.31 against 0.33-0.34
+                // ms), `RAYON_NUM_THREADS=1 target/release/examples/peers
+                // --out <dir> --seed 1 --only ann_st` with and without
+                // `PALPATE_NO_AVX512=1`, 2026-12-07, AMD EPYC.
+                if !crate::wide::avx512() && w.iter().all(|v| v.is_finite()) {
+                    dense::gemm_nt_sparse(&x[..n * self.dim], w, self.dim, &mut a);
+                } else {
+                    dense::gemm_nt(&x[..n * self.dim], w, self.dim, &mut a);
+                }
                 dense::add_bias_map(&mut a, b, tanh);
             }
             None => {
@@ -875,6 +889,46 @@ mod tests {
                 let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
                 assert_eq!(bits(&g), bits(&r), "gradient, d {d}, n {n}");
             }
+        }
+    }
+
+    /// Mostly zero rows (spike counts) take the zero-skipping first layer
+    /// in a batch of 64 or more on a CPU without AVX-512: the bits of the
+    /// row-by-row pass still, on every path this CPU has.
+    #[test]
+    fn sparse_batches_are_the_bits_of_row_by_row() {
+        let mut rng = ChaCha8Rng::seed_from_u64(12);
+        for (d, h, k) in [(16, 30, 17), (80, 30, 17)] {
+            let mut m = random_net(d, h, k, &mut rng);
+            // Counts: a scaler with a mean and spread per feature, which folds.
+            m.scaler.mean = (0..d).map(|i| 0.1 * (i % 5) as f64).collect();
+            m.scaler.inv_sd = (0..d).map(|i| 1.0 + 0.25 * (i % 3) as f64).collect();
+            m.fold = Default::default();
+            assert!(m.folded().is_some());
+            let n = 200;
+            let x: Vec<f64> = (0..n * d)
+                .map(|_| {
+                    if rng.random_range(0..5) == 0 {
+                        rng.random_range(1..4) as f64
+                    } else {
+                        0.0
+                    }
+                })
+                .collect();
+            let check = |path: &str| {
+                let mut batch = vec![0.0; n * k];
+                m.scores_batch(&x, &mut batch);
+                let mut s = m.scratch();
+                for i in 0..n {
+                    m.forward_raw(&x[i * d..(i + 1) * d], &mut s);
+                    let got: Vec<u64> = batch[i * k..(i + 1) * k].iter().map(|v| v.to_bits()).collect();
+                    let want: Vec<u64> = s.p.iter().map(|v| v.to_bits()).collect();
+                    assert_eq!(got, want, "{path}: d {d}, row {i}");
+                }
+            };
+            check("native");
+            crate::wide::without_avx512(|| check("without AVX-512"));
+            crate::wide::baseline_only(|| check("baseline"));
         }
     }
 
