@@ -1051,39 +1051,113 @@ mod x86 {
         }
 
         /// Chain `h` takes `(v, r)` where it beats its pair: `CMP` on the
-        /// values (strictly), or equal values and a larger rank; only in `mask`.
+        /// values (strictly), or equal values and a larger rank; only in
+        /// `mask`. The lanes out of `mask` are first made `(∓∞, −1)`, which
+        /// beat no pair, so the mask stays off the chain from one block of
+        /// positions to the next (as in [`Best512::offer`]).
         #[inline]
         #[target_feature(enable = "avx2")]
         unsafe fn offer<const CMP: i32>(&mut self, h: usize, v: __m256d, r: __m256d, mask: __m256d) {
             let (best, br) = (self.v[h], self.r[h]);
+            let none = _mm256_set1_pd(if CMP == _CMP_GT_OQ {
+                f64::NEG_INFINITY
+            } else {
+                f64::INFINITY
+            });
+            let v = _mm256_blendv_pd(none, v, mask);
+            let r = _mm256_blendv_pd(_mm256_set1_pd(-1.0), r, mask);
             let strict = _mm256_cmp_pd::<CMP>(v, best);
             let eq = _mm256_cmp_pd::<_CMP_EQ_OQ>(v, best);
             let later = _mm256_cmp_pd::<_CMP_GT_OQ>(r, br);
-            let upd = _mm256_and_pd(mask, _mm256_or_pd(strict, _mm256_and_pd(eq, later)));
+            let upd = _mm256_or_pd(strict, _mm256_and_pd(eq, later));
             self.v[h] = _mm256_blendv_pd(best, v, upd);
             self.r[h] = _mm256_blendv_pd(br, r, upd);
         }
 
+        /// Chain 0 takes the pairs `(v, r)` that beat it, every lane.
+        #[inline]
+        #[target_feature(enable = "avx2")]
+        unsafe fn merge(&mut self, max: bool, v: __m256d, r: __m256d) {
+            let all = _mm256_castsi256_pd(_mm256_set1_epi64x(-1));
+            if max {
+                self.offer::<_CMP_GT_OQ>(0, v, r, all);
+            } else {
+                self.offer::<_CMP_LT_OQ>(0, v, r, all);
+            }
+        }
+
         /// The best of the eight pairs: the largest value (`max`) or the
         /// smallest, then the largest rank; `(rank, value)`, rank −1 = none.
+        /// In registers and without a branch, as [`Best512::reduce`] (chain
+        /// 1 offered to chain 0, then the 128-bit halves to each other,
+        /// then neighbours): the rule is a total order on the pairs, so
+        /// the winner is the pair `pick` returns. It replaced a store
+        /// of the 16 doubles and `pick`'s loop, whose branches the
+        /// predictor cannot learn: with the one-vs-one machines' few
+        /// positions per scan, `best_low` and `update_best_up` were 38 %
+        /// of the SVM's fit on the AVX2 path (`perf`, `PALPATE_NO_AVX512=1`).
         #[inline]
         #[target_feature(enable = "avx2")]
         unsafe fn reduce(&self, max: bool) -> (f64, f64) {
-            let (mut vs, mut rs) = ([0.0f64; 8], [0.0f64; 8]);
-            // SAFETY: eight doubles each, four per store.
-            unsafe {
-                for h in 0..2 {
-                    _mm256_storeu_pd(vs.as_mut_ptr().add(4 * h), self.v[h]);
-                    _mm256_storeu_pd(rs.as_mut_ptr().add(4 * h), self.r[h]);
-                }
-            }
-            pick(&vs, &rs, max)
+            let mut b = *self;
+            b.merge(max, self.v[1], self.r[1]);
+            let (v, r) = (b.v[0], b.r[0]);
+            b.merge(
+                max,
+                _mm256_permute2f128_pd::<0x01>(v, v),
+                _mm256_permute2f128_pd::<0x01>(r, r),
+            );
+            let (v, r) = (b.v[0], b.r[0]);
+            b.merge(
+                max,
+                _mm256_permute_pd::<0b0101>(v),
+                _mm256_permute_pd::<0b0101>(r),
+            );
+            (
+                _mm_cvtsd_f64(_mm256_castpd256_pd128(b.r[0])),
+                _mm_cvtsd_f64(_mm256_castpd256_pd128(b.v[0])),
+            )
         }
+    }
+
+    /// The largest of the eight lanes of two running maxima of `y G`, in
+    /// registers (see [`max16`]: the same value as `last_max` up to the
+    /// sign of a zero).
+    #[inline]
+    #[target_feature(enable = "avx2")]
+    unsafe fn max8(g: [__m256d; 2]) -> f64 {
+        let m = _mm256_max_pd(g[0], g[1]);
+        let m = _mm256_max_pd(m, _mm256_permute2f128_pd::<0x01>(m, m));
+        let m = _mm256_max_pd(m, _mm256_permute_pd::<0b0101>(m));
+        _mm_cvtsd_f64(_mm256_castpd256_pd128(m))
+    }
+
+    /// [`Best::reduce`] and [`max8`] on eight given lanes (lane `4h + l`
+    /// is lane `l` of chain `h`), for the tests.
+    #[cfg(test)]
+    pub(super) fn reduce256_lanes(vs: &[f64; 8], rs: &[f64; 8], max: bool) -> ((f64, f64), f64) {
+        assert!(crate::wide::avx2());
+        // SAFETY: AVX2 is present (asserted); 8 doubles each.
+        unsafe { reduce256_lanes_inner(vs, rs, max) }
+    }
+
+    #[cfg(test)]
+    #[target_feature(enable = "avx2")]
+    unsafe fn reduce256_lanes_inner(vs: &[f64; 8], rs: &[f64; 8], max: bool) -> ((f64, f64), f64) {
+        // SAFETY: 8 doubles each, 4 per load.
+        let ld = |a: &[f64; 8], h: usize| unsafe { _mm256_loadu_pd(a.as_ptr().add(4 * h)) };
+        let b = Best {
+            v: [ld(vs, 0), ld(vs, 1)],
+            r: [ld(rs, 0), ld(rs, 1)],
+        };
+        // SAFETY: AVX2 is present (the caller's).
+        unsafe { (b.reduce(max), max8([ld(vs, 0), ld(vs, 1)])) }
     }
 
     /// The best of the lanes' `(value, rank)` pairs: the largest value
     /// (`max`) or the smallest, then the largest rank, skipping rank −1
     /// (none); `(rank, value)`.
+    #[cfg(test)]
     fn pick(vs: &[f64], rs: &[f64], max: bool) -> (f64, f64) {
         let (mut bv, mut br) = (vs[0], rs[0]);
         for (&v, &r) in vs.iter().zip(rs).skip(1) {
@@ -1100,6 +1174,7 @@ mod x86 {
 
     /// The lanes' running maxima of `y G` reduced in lane order, as the
     /// scalar loop's `yg >= gmax2`.
+    #[cfg(test)]
     fn last_max(gs: &[f64]) -> f64 {
         gs.iter()
             .fold(f64::NEG_INFINITY, |m, &v| if v >= m { v } else { m })
@@ -1206,13 +1281,7 @@ mod x86 {
             }
         }
         let (rj, _) = best.reduce(false);
-        let mut gs = [0.0f64; 8];
-        // SAFETY: eight doubles, four per store.
-        unsafe {
-            _mm256_storeu_pd(gs.as_mut_ptr(), g2[0]);
-            _mm256_storeu_pd(gs.as_mut_ptr().add(4), g2[1]);
-        }
-        (rj, last_max(&gs))
+        (rj, max8(g2))
     }
 
     /// [`Best`] with 512-bit vectors: two chains of 8 lanes, lane `l` of
@@ -1276,7 +1345,7 @@ mod x86 {
         /// quarters, neighbours), by [`Self::offer`]'s rule. The rule is
         /// a total order on the pairs (the value, then the rank; no lane
         /// holds a NaN, and empty lanes, rank −1, lose to any other), so
-        /// the winner is the one pair [`pick`] returns, whatever the
+        /// the winner is the one pair `pick` returns, whatever the
         /// order of the merges. It replaced a store of the 32 doubles and
         /// a scalar loop with unpredictable branches, which took ~40 % of
         /// `best_low512` and ~30 % of `update_best_up512` (`perf annotate`).
@@ -1312,7 +1381,7 @@ mod x86 {
 
     /// The largest of the sixteen lanes of two running maxima of `y G`
     /// (no lane holds a NaN: `max_pd` keeps its second operand then), in
-    /// registers. The scalar fold ([`last_max`]) keeps the later of two
+    /// registers. The scalar fold (`last_max`) keeps the later of two
     /// equal values, so the two may differ only in the sign of a zero,
     /// and the one use of the result, `gmax + gmax2 < tol`, is the same
     /// for both signs.
@@ -1919,15 +1988,33 @@ mod tests {
         if !crate::wide::avx512() {
             return;
         }
+        reductions_pick_as_the_scalar_rule::<16>(x86::reduce512_lanes);
+    }
+
+    /// The same for the AVX2 scans' reductions (eight lanes).
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn avx2_reductions_pick_as_the_scalar_rule() {
+        if !crate::wide::avx2() {
+            return;
+        }
+        reductions_pick_as_the_scalar_rule::<8>(x86::reduce256_lanes);
+    }
+
+    /// `reduce` against `x86::pick_lanes` on `L` lanes (see above).
+    #[cfg(target_arch = "x86_64")]
+    fn reductions_pick_as_the_scalar_rule<const L: usize>(
+        reduce: fn(&[f64; L], &[f64; L], bool) -> ((f64, f64), f64),
+    ) {
         let mut rng = ChaCha8Rng::seed_from_u64(9);
         for round in 0..20_000 {
             let max = round % 2 == 0;
             let start = if max { f64::NEG_INFINITY } else { f64::INFINITY };
-            let mut ranks: Vec<f64> = (0..16).map(f64::from).collect();
-            for t in (1..16).rev() {
+            let mut ranks: Vec<f64> = (0..L as u32).map(f64::from).collect();
+            for t in (1..L).rev() {
                 ranks.swap(t, rng.random_range(0..=t));
             }
-            let (mut vs, mut rs) = ([0.0f64; 16], [0.0f64; 16]);
+            let (mut vs, mut rs) = ([0.0f64; L], [0.0f64; L]);
             for ((v, r), &rank) in vs.iter_mut().zip(&mut rs).zip(&ranks) {
                 (*v, *r) = match rng.random_range(0..8) {
                     0 => (start, -1.0),
@@ -1938,7 +2025,7 @@ mod tests {
                     _ => (f64::from(rng.random_range(-3i8..3)) * 0.25, rank),
                 };
             }
-            let ((r, v), g) = x86::reduce512_lanes(&vs, &rs, max);
+            let ((r, v), g) = reduce(&vs, &rs, max);
             let ((wr, wv), wg) = x86::pick_lanes(&vs, &rs, max);
             assert_eq!(
                 (r.to_bits(), v.to_bits()),
