@@ -2001,11 +2001,13 @@ mod tests {
         reductions_pick_as_the_scalar_rule::<8>(x86::reduce256_lanes);
     }
 
+    /// A reduction of `L` lanes of values and ranks: `((rank, value), max)`.
+    #[cfg(target_arch = "x86_64")]
+    type Reduce<const L: usize> = fn(&[f64; L], &[f64; L], bool) -> ((f64, f64), f64);
+
     /// `reduce` against `x86::pick_lanes` on `L` lanes (see above).
     #[cfg(target_arch = "x86_64")]
-    fn reductions_pick_as_the_scalar_rule<const L: usize>(
-        reduce: fn(&[f64; L], &[f64; L], bool) -> ((f64, f64), f64),
-    ) {
+    fn reductions_pick_as_the_scalar_rule<const L: usize>(reduce: Reduce<L>) {
         let mut rng = ChaCha8Rng::seed_from_u64(9);
         for round in 0..20_000 {
             let max = round % 2 == 0;
