@@ -119,6 +119,18 @@ def yes_no(b):
     return "yes" if b else "no"
 
 
+def estimator_verdicts(text, target, command):
+    """The targets-table row of a peers table's trained-estimator verdicts
+    (run.py writes one line per estimator, "- <id> vs sklearn <model>: fit
+    Ax, predict Bx; ... -> target met"), or None when it has none."""
+    est = [l[2:] for l in text.splitlines() if l.startswith("- ") and " vs sklearn " in l]
+    if not est:
+        return None
+    short = [l.split(";")[0] for l in est]
+    met = all(l.endswith("-> target met") for l in est)
+    return f"| {target} | " + "; ".join(short) + f" | {yes_no(met)} | {command} |"
+
+
 SCENES = [("lab", "lab"), ("paper_sensor", "paper_sensor")]
 
 
@@ -1037,33 +1049,23 @@ def section_time(out, wall, docs, criterion):
                 + "; ".join(verdicts)
                 + " | see the verdict per Brian2 target | `benches/peers/run.sh --seed 1` (table below) |"
             )
-        # The trained estimators' verdicts (run.py writes one line per
-        # estimator, "- <id> vs sklearn <model>: fit Ax, predict Bx; ... -> target met").
-        est = [l[2:] for l in text.splitlines() if l.startswith("- ") and " vs sklearn " in l]
-        if est:
-            short = [l.split(";")[0] for l in est]
-            met = all(l.endswith("-> target met") for l in est)
-            targets.append(
-                "| every trained estimator >= 3x faster than its scikit-learn counterpart, fit and predict, "
-                "at equal or better accuracy | "
-                + "; ".join(short)
-                + f" | {yes_no(met)} | `benches/peers/run.sh --seed 1 -- --skip-encoder` (table below) |"
-            )
+        row = estimator_verdicts(
+            text,
+            "every trained estimator >= 3x faster than its scikit-learn counterpart, fit and predict, "
+            "at equal or better accuracy",
+            "`benches/peers/run.sh --seed 1 -- --skip-encoder` (table below)",
+        )
+        targets += [row] if row else []
     # The same comparison with both sides on their AVX2 code (run.sh
     # --avx2): what a CPU without AVX-512 would show.
     peers_avx2 = "benches/peers/RESULTS-peers-avx2.md"
     if exists(peers_avx2):
-        text = open(peers_avx2, encoding="utf-8").read()
-        est = [l[2:] for l in text.splitlines() if l.startswith("- ") and " vs sklearn " in l]
-        if est:
-            short = [l.split(";")[0] for l in est]
-            met = all(l.endswith("-> target met") for l in est)
-            targets.append(
-                "| the same on a CPU without AVX-512 (both sides' AVX-512 code switched off) | "
-                + "; ".join(short)
-                + f" | {yes_no(met)} | `benches/peers/run.sh --seed 1 --avx2 -- --skip-encoder` "
-                "(benches/peers/RESULTS-peers-avx2.md) |"
-            )
+        row = estimator_verdicts(
+            open(peers_avx2, encoding="utf-8").read(),
+            "the same on a CPU without AVX-512 (both sides' AVX-512 code switched off)",
+            "`benches/peers/run.sh --seed 1 --avx2 -- --skip-encoder` (benches/peers/RESULTS-peers-avx2.md)",
+        )
+        targets += [row] if row else []
     memory = os.path.join(out, "memory.json")
     mem = load(memory) if exists(memory) else None
     if mem and len(mem) >= 2:

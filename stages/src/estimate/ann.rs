@@ -841,15 +841,8 @@ mod tests {
             let m = random_net(d, h, k, &mut rng);
             for n in [1, 3, 31, 32, 64, 65, 200] {
                 let x: Vec<f64> = (0..n * d).map(|_| rng.random_range(-3.0..3.0)).collect();
-                let mut batch = vec![0.0; n * k];
-                m.scores_batch(&x, &mut batch);
+                assert_batch_is_row_by_row(&m, &x, &format!("d {d}, n {n}"));
                 let mut s = m.scratch();
-                for i in 0..n {
-                    m.forward_raw(&x[i * d..(i + 1) * d], &mut s);
-                    let got: Vec<u64> = batch[i * k..(i + 1) * k].iter().map(|v| v.to_bits()).collect();
-                    let want: Vec<u64> = s.p.iter().map(|v| v.to_bits()).collect();
-                    assert_eq!(got, want, "d {d}, n {n}, row {i}");
-                }
                 // Loss and gradient: the row-by-row pass, as it was
                 // written before the batched one.
                 let y: Vec<usize> = (0..n).map(|i| i % k).collect();
@@ -915,20 +908,27 @@ mod tests {
                     }
                 })
                 .collect();
-            let check = |path: &str| {
-                let mut batch = vec![0.0; n * k];
-                m.scores_batch(&x, &mut batch);
-                let mut s = m.scratch();
-                for i in 0..n {
-                    m.forward_raw(&x[i * d..(i + 1) * d], &mut s);
-                    let got: Vec<u64> = batch[i * k..(i + 1) * k].iter().map(|v| v.to_bits()).collect();
-                    let want: Vec<u64> = s.p.iter().map(|v| v.to_bits()).collect();
-                    assert_eq!(got, want, "{path}: d {d}, row {i}");
-                }
-            };
-            check("native");
-            crate::wide::without_avx512(|| check("without AVX-512"));
-            crate::wide::baseline_only(|| check("baseline"));
+            assert_batch_is_row_by_row(&m, &x, &format!("native, d {d}"));
+            crate::wide::without_avx512(|| {
+                assert_batch_is_row_by_row(&m, &x, &format!("without AVX-512, d {d}"))
+            });
+            crate::wide::baseline_only(|| assert_batch_is_row_by_row(&m, &x, &format!("baseline, d {d}")));
+        }
+    }
+
+    /// `scores_batch` of the rows of `x` has the bits of `forward_raw` row
+    /// by row.
+    fn assert_batch_is_row_by_row(m: &Mlp, x: &[f64], what: &str) {
+        let (d, k) = (m.dim, m.classes);
+        let n = x.len() / d;
+        let mut batch = vec![0.0; n * k];
+        m.scores_batch(x, &mut batch);
+        let mut s = m.scratch();
+        for i in 0..n {
+            m.forward_raw(&x[i * d..(i + 1) * d], &mut s);
+            let got: Vec<u64> = batch[i * k..(i + 1) * k].iter().map(|v| v.to_bits()).collect();
+            let want: Vec<u64> = s.p.iter().map(|v| v.to_bits()).collect();
+            assert_eq!(got, want, "{what}, row {i}");
         }
     }
 
