@@ -1096,6 +1096,11 @@ mod x86 {
         /// predictor cannot learn: with the one-vs-one machines' few
         /// positions per scan, `best_low` and `update_best_up` were 38 %
         /// of the SVM's fit on the AVX2 path (`perf`, `PALPATE_NO_AVX512=1`).
+        /// With it (and [`Self::offer`]'s pre-blend) that fit went from
+        /// 11.1-11.5 to 10.3-10.8 ms (`RAYON_NUM_THREADS=1
+        /// PALPATE_NO_AVX512=1 target/release/examples/peers --out <dir>
+        /// --seed 1 --only svm --repeats 15`, old and new alternated three
+        /// times, 2026-12-07, AMD EPYC).
         #[inline]
         #[target_feature(enable = "avx2")]
         unsafe fn reduce(&self, max: bool) -> (f64, f64) {
