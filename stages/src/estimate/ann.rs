@@ -34,8 +34,12 @@
 //! fit is bit-identical for the same seed. Loops run in a fixed order on one
 //! thread (folds run in parallel in the runtime).
 //!
+//! Prediction runs in `f32` ([`super::ann32`]: the trained network rounded
+//! once; a frame's probabilities within ~1e-5 of the `f64` pass's, the
+//! same bits alone or in a batch, on every CPU path), training in `f64`.
+//!
 //! A minibatch's forward pass is two tiled products over its rows
-//! ([`dense::gemm_nt`], as prediction does it), and each weight gradient
+//! ([`dense::gemm_nt`]), and each weight gradient
 //! `Σ_rows δ xᵀ` is summed row after row per entry with a strip of entries
 //! in registers: the bits of a row-by-row pass (the test
 //! `batched_passes_are_the_bits_of_row_by_row`), at half its time.
@@ -44,6 +48,7 @@
 //! stage given one with `model_in` predicts with it instead of fitting, and
 //! streams under `palpate run --live` (see [`super::saved`]).
 
+use super::ann32::Infer32;
 use super::features::{
     check_scaler, want, FeatureKeys, FittedModel, FrameClassifier, Standardizer, TrainSet, TrainingLog, Vote,
     MODEL_FORMAT,
@@ -256,8 +261,12 @@ pub struct Mlp {
 /// at every call they were ~2 µs, more than a one-frame prediction itself
 /// (1.4-1.9 µs against 3.3-4.1 µs with them, 80 inputs; the live ANN graph
 /// predicts once a hop).
+/// Also keeps the network in `f32` that predicts ([`Mlp::predictor`]).
 #[derive(Clone, Debug, Default)]
-struct FoldCache(std::sync::OnceLock<Option<(Vec<f64>, Vec<f64>)>>);
+struct FoldCache {
+    fold: std::sync::OnceLock<Option<(Vec<f64>, Vec<f64>)>>,
+    net: std::sync::OnceLock<(Infer32, bool)>,
+}
 
 /// A cache: two networks are equal whether or not either made it.
 impl PartialEq for FoldCache {
@@ -437,7 +446,7 @@ impl Mlp {
     /// Made at the first call and kept (`params` and `scaler` are set
     /// before a network predicts).
     fn folded(&self) -> Option<&(Vec<f64>, Vec<f64>)> {
-        self.fold.0.get_or_init(|| self.make_folded()).as_ref()
+        self.fold.fold.get_or_init(|| self.make_folded()).as_ref()
     }
 
     /// [`Self::folded`]'s weights and biases.
@@ -465,46 +474,39 @@ impl Mlp {
     }
 
     /// [`Self::frame_scores`] of every row of `x` (row-major, `dim` wide) into
-    /// the rows of `out` (`classes` wide): both layers as one tiled product
-    /// each over the whole batch ([`dense::gemm_nt`]), the first with the
-    /// standardisation folded into its weights (`Self::folded`); the same
-    /// bits as `forward` row by row (the tests' reference pass), so a frame
-    /// scored alone (live) and in a batch give the same answer.
+    /// the rows of `out` (`classes` wide), in `f32` ([`super::ann32`]): the
+    /// first layer with the standardisation folded into its weights
+    /// (`Self::folded`) reads the raw rows and skips their zeros; unfolded,
+    /// the rows are standardised (in `f64`) first. A frame scored alone
+    /// (live) and in a batch give the same bits.
     pub fn scores_batch(&self, x: &[f64], out: &mut [f64]) {
-        let (w1, b1, w2, b2) = self.offsets();
-        let p = &self.params;
         let k = self.classes.max(1);
         let n = (x.len() / self.dim.max(1)).min(out.len() / k);
-        let mut a = vec![0.0; n * self.hidden];
-        match self.folded() {
-            Some((w, b)) => {
-                // Raw spike-count rows are mostly zeros (four in five in
-                // `benches/peers`' ANN sets), which the zero-skipping
-                // product leaves out with `gemm_nt`'s bits when the
-                // weights are finite (its docs). Only without AVX-512:
-                // there it took the ANN (ST)'s prediction (3154 x 80 into
-                // 30) from 0.70-0.73 to 0.60-0.62 ms, while with AVX-512
-                // the dense `narrow512` stays ahead (0.31 against 0.33-0.34
-                // ms), `RAYON_NUM_THREADS=1 target/release/examples/peers
-                // --out <dir> --seed 1 --only ann_st` with and without
-                // `PALPATE_NO_AVX512=1`, 2026-12-07, AMD EPYC.
-                if !crate::wide::avx512() && w.iter().all(|v| v.is_finite()) {
-                    dense::gemm_nt_sparse(&x[..n * self.dim], w, self.dim, &mut a);
-                } else {
-                    dense::gemm_nt(&x[..n * self.dim], w, self.dim, &mut a);
-                }
-                dense::add_bias_map(&mut a, b, tanh);
-            }
-            None => {
-                let z = self.scaler.apply_rows(&x[..n * self.dim]);
-                dense::gemm_nt(&z, &p[w1..b1], self.dim, &mut a);
-                dense::add_bias_map(&mut a, &p[b1..w2], tanh);
-            }
+        let (net, folded) = self.predictor();
+        if *folded {
+            net.scores(x, n, out);
+        } else {
+            let z = self.scaler.apply_rows(&x[..n * self.dim]);
+            net.scores(&z, n, out);
         }
-        let out = &mut out[..n * k];
-        dense::gemm_nt(&a, &p[w2..b2], self.hidden, out);
-        dense::add_bias_map(out, &p[b2..], |v| v);
-        vmath::softmax_rows(out, k);
+    }
+
+    /// The network in `f32` that predicts, and whether its first layer
+    /// has the standardisation folded in; made at the first prediction and
+    /// kept, as [`Self::folded`].
+    fn predictor(&self) -> &(Infer32, bool) {
+        self.fold.net.get_or_init(|| {
+            let (w1, b1, w2, b2) = self.offsets();
+            let p = &self.params;
+            let (d, h, k) = (self.dim, self.hidden, self.classes);
+            match self.folded() {
+                Some((w, b)) => (Infer32::new(d, h, k, w, b, &p[w2..b2], &p[b2..]), true),
+                None => (
+                    Infer32::new(d, h, k, &p[w1..b1], &p[b1..w2], &p[w2..b2], &p[b2..]),
+                    false,
+                ),
+            }
+        })
     }
 
     /// Mean cross-entropy of standardised rows `x` (row-major) with labels `y`,
@@ -687,17 +689,23 @@ impl Mlp {
 
 pub(crate) use super::dense::dot;
 
+/// Largest magnitude of a saved network's weights and biases: prediction
+/// runs in `f32`, whose range ends at 3.4e38; a trained network's are a
+/// few units (its L2 term and early stopping), so a larger one is a file
+/// that was damaged or made by hand.
+const MAX_PARAM: f64 = 1e20;
+
 /// Largest `|mean / sd|` of an input for which [`Mlp::folded`] folds the
 /// standardisation into the first layer: the rounding of the folded
 /// product grows with it (a factor 10³ above a standardised input's is
-/// still 2e-13 relative).
+/// about 6e-5 relative in the `f32` prediction, 1e-13 in `f64`).
 const FOLD_LIMIT: f64 = 1e3;
 
-/// The activations, shared with the other baselines and vectorisable
-/// ([`super::vmath`]): `tanh` with one exponential, and the softmax (of a
-/// batch's rows, `vmath::softmax_rows`; one row's in the tests' reference
-/// pass). Used in training and prediction alike, so the network is trained
-/// with the function it predicts with.
+/// The activations of training, shared with the other baselines and
+/// vectorisable ([`super::vmath`]): `tanh` with one exponential, and the
+/// softmax (of a batch's rows, `vmath::softmax_rows`; one row's in the
+/// tests' reference pass). Prediction uses their `f32` forms
+/// ([`super::ann32`]), within ~2.5e-7 of the same functions.
 #[cfg(test)]
 pub(crate) use super::vmath::softmax;
 pub(crate) use super::vmath::tanh;
@@ -729,6 +737,13 @@ impl FrameClassifier for Mlp {
             .and_then(|x| x.checked_add(classes))
             .ok_or("the network's size overflows")?;
         want("the network's parameter count", m.params.len(), n)?;
+        // Prediction runs in `f32` (`super::ann32`): a weight past
+        // `MAX_PARAM` could overflow it where the `f64` network does not.
+        if let Some(p) = m.params.iter().find(|p| !p.is_finite() || p.abs() > MAX_PARAM) {
+            return Err(format!(
+                "the network has a weight or bias of {p}: every one must be a finite number of magnitude at most {MAX_PARAM:e}"
+            ));
+        }
         check_scaler(&m.scaler, dim)
     }
 
@@ -759,7 +774,8 @@ mod tests {
 
     /// The standardisation folded into the first layer gives the scores of
     /// the standardised copy to rounding (a scaler of spike-count scale),
-    /// and a mean past `FOLD_LIMIT` SDs is not folded: the copy's very bits.
+    /// and a mean past `FOLD_LIMIT` SDs is not folded (the copy is made):
+    /// both within `SCORE_TOL` of the `f64` pass of the copy.
     #[test]
     fn folding_the_scaler_keeps_the_scores() {
         let mut rng = ChaCha8Rng::seed_from_u64(21);
@@ -793,14 +809,10 @@ mod tests {
             for i in 0..n {
                 m.forward(&z[i * d..(i + 1) * d], &mut s);
                 for (c, (&g, &w)) in got[i * k..(i + 1) * k].iter().zip(&s.p).enumerate() {
-                    if far {
-                        assert_eq!(g.to_bits(), w.to_bits(), "row {i} class {c}");
-                    } else {
-                        assert!(
-                            (g - w).abs() <= 1e-12 * w.abs().max(1e-3),
-                            "row {i} class {c}: {g} vs {w}"
-                        );
-                    }
+                    assert!(
+                        (g - w).abs() <= SCORE_TOL,
+                        "far {far}, row {i} class {c}: {g} vs {w}"
+                    );
                 }
             }
         }
@@ -830,10 +842,11 @@ mod tests {
         }
     }
 
-    /// The batched passes (`scores_batch`, and `loss_grad`'s forward pass
-    /// and gradient) are the bits of the row-by-row passes, at batch sizes on
-    /// both sides of the product kernels' thresholds and at the paper's
-    /// input widths.
+    /// `loss_grad`'s batched forward pass and gradient are the bits of the
+    /// row-by-row passes, and `scores_batch` (in `f32`) is within
+    /// `SCORE_TOL` of them with each row's bits alone or batched, at batch
+    /// sizes on both sides of the product kernels' thresholds and at the
+    /// paper's input widths.
     #[test]
     fn batched_passes_are_the_bits_of_row_by_row() {
         let mut rng = ChaCha8Rng::seed_from_u64(11);
@@ -885,9 +898,9 @@ mod tests {
         }
     }
 
-    /// Mostly zero rows (spike counts) take the zero-skipping first layer
-    /// in a batch of 64 or more on a CPU without AVX-512: the bits of the
-    /// row-by-row pass still, on every path this CPU has.
+    /// Mostly zero rows (spike counts) through the folded, zero-skipping
+    /// first layer: within `SCORE_TOL` of the `f64` pass, each row's bits
+    /// alone or batched, on every path this CPU has.
     #[test]
     fn sparse_batches_are_the_bits_of_row_by_row() {
         let mut rng = ChaCha8Rng::seed_from_u64(12);
@@ -916,19 +929,52 @@ mod tests {
         }
     }
 
-    /// `scores_batch` of the rows of `x` has the bits of `forward_raw` row
-    /// by row.
+    /// `scores_batch` of the rows of `x` (in `f32`) is within `SCORE_TOL`
+    /// of `forward_raw` (the `f64` pass) row by row, and each row scored
+    /// alone has its bits in the batch.
     fn assert_batch_is_row_by_row(m: &Mlp, x: &[f64], what: &str) {
         let (d, k) = (m.dim, m.classes);
         let n = x.len() / d;
         let mut batch = vec![0.0; n * k];
         m.scores_batch(x, &mut batch);
         let mut s = m.scratch();
+        let mut one = vec![0.0; k];
         for i in 0..n {
-            m.forward_raw(&x[i * d..(i + 1) * d], &mut s);
-            let got: Vec<u64> = batch[i * k..(i + 1) * k].iter().map(|v| v.to_bits()).collect();
-            let want: Vec<u64> = s.p.iter().map(|v| v.to_bits()).collect();
-            assert_eq!(got, want, "{what}, row {i}");
+            let row = &x[i * d..(i + 1) * d];
+            m.forward_raw(row, &mut s);
+            let got = &batch[i * k..(i + 1) * k];
+            for (c, (&g, &w)) in got.iter().zip(&s.p).enumerate() {
+                assert!(
+                    (g - w).abs() <= SCORE_TOL,
+                    "{what}, row {i}, class {c}: {g} vs {w}"
+                );
+            }
+            m.frame_scores(row, &mut one);
+            let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+            assert_eq!(bits(&one), bits(got), "{what}, row {i} alone");
+        }
+    }
+
+    /// How far the `f32` prediction's probabilities may be from the `f64`
+    /// pass's: a few `f32` roundings of each layer, amplified by the
+    /// weights' sizes in these tests (up to 1 and 80 inputs).
+    const SCORE_TOL: f64 = 2e-5;
+
+    /// A saved network with a weight `f32` prediction cannot hold (or a
+    /// NaN) is refused with the value named, not predicted with.
+    #[test]
+    fn weights_past_f32_range_are_refused() {
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let m = random_net(4, 3, 2, &mut rng);
+        assert!(FrameClassifier::check_shape(&m, 4, 2).is_ok());
+        for bad in [1e21, -1e39, f64::INFINITY, f64::NAN] {
+            let mut m = m.clone();
+            m.params[5] = bad;
+            let err = FrameClassifier::check_shape(&m, 4, 2).unwrap_err();
+            assert!(
+                err.contains("weight or bias") && err.contains(&format!("{bad}")),
+                "{err}"
+            );
         }
     }
 

@@ -25,6 +25,7 @@
 //! * "No edge" for want of data (no frame, or no active frame): `None`.
 
 pub mod ann;
+pub mod ann32;
 pub mod classic;
 pub mod dense;
 pub mod edbn;
