@@ -1216,6 +1216,14 @@ def main():
         "and k-NN were sped up the same day keeping every prediction's bits: their numbers are unchanged, "
         "as is every other accuracy on this page.",
         "",
+        "Since 2026-12-07 the ANN (S and ST) predicts in `f32` (the trained `f64` network rounded once; "
+        "`stages/src/estimate/ann32.rs`), for its prediction on CPUs without AVX-512, which was 2.78x "
+        "scikit-learn's there. Training is unchanged; a frame's class probabilities moved by at most "
+        "1.6e-6 (benches/peers' fold 0, per-frame scores of the builds before and after: no frame's winning "
+        "class changed, the closest two leading classes were 1.4e-4 apart), and no number on this page "
+        "moved (every accuracy, MAE and SD the same to the digits shown, compared cell by cell with the "
+        "run before), only times.",
+        "",
         "Reproduce everything (build, every graph in graphs/paper/, this file) with one command:",
         "",
         "    scripts/reproduce.sh",

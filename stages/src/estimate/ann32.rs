@@ -39,9 +39,17 @@
 //! (ST) of `benches/peers`: two products and 95 k `tanh` plus 54 k `exp`.
 //! In `f32` a vector holds twice the values and the functions cost about
 //! half; the network is trained in `f64` (its gradients and early stopping
-//! are as before) and only its outputs' last digits move: `f32`'s rounding,
-//! ~1e-7 relative, is far below the gaps between a frame's class
-//! probabilities that decide the vote. RESULTS.md says what moved.
+//! are as before) and only its outputs' last digits move, far below the
+//! gaps between a frame's class probabilities that decide the vote. On
+//! `benches/peers`' fold 0 (`PEERS_DUMP_SCORES=1`, the builds before and
+//! after, 2026-12-07) the probabilities moved by at most 1.6e-6 (ANN (ST);
+//! 1.1e-6 ANN (S)), no frame's winning class changed, and the closest two
+//! leading classes of any frame were 1.4e-4 apart; no number in RESULTS.md
+//! moved. Prediction of that fold's 3154 x 80 vectors (`RAYON_NUM_THREADS=1
+//! target/release/examples/peers --out <dir> --seed 1 --only ann_st`): with
+//! AVX2 alone (`PALPATE_NO_AVX512=1`) 0.58-0.61 ms in `f64`, 0.39-0.40 ms
+//! in `f32`; with AVX-512 0.31 ms in `f64` (its `narrow512` kernel),
+//! 0.31-0.33 ms in `f32`.
 
 use super::rbm32::{exp_neg, push_nonzeros, LANES};
 
