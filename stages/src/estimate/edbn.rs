@@ -812,7 +812,7 @@ impl Dbn {
 
     /// [`Self::frame_scores`] of every row of `x` (row-major, `dim` wide) into
     /// the rows of `out` (`classes` wide), in row order: the same bits as row
-    /// by row. Rate inference runs the `f32` layers a row at a time and the
+    /// by row. Rate inference runs the `f32` layers two rows at a time and the
     /// posterior over blocks of `BLOCK_ROWS` rows, 16 frames across the
     /// lanes (`Rbm::posterior_rows`, the bits of
     /// `Rbm::posterior_from_base`).
@@ -834,7 +834,7 @@ impl Dbn {
         let mut d = Disc::new(self.classes, top.n_hid);
         d.prepare(top);
         // The top layer's net inputs for a block of rows at a time (the
-        // layers in `f32`, row by row: their weights stay in L1), then the
+        // layers in `f32`, two rows at a time: their weights stay in L1), then the
         // block's posteriors, 16 frames across the lanes.
         let block = n.min(BLOCK_ROWS);
         let mut base = vec![0.0; block * top.n_hid];

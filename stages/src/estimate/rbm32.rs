@@ -438,6 +438,56 @@ fn product_block<const V: usize>(
     }
 }
 
+/// [`product`] over every input (no list) of two rows `x0`, `x1` at once,
+/// into `out0`, `out1`: each row's terms in the order [`product`] adds
+/// them, so the bits of two calls, with twice the independent chains
+/// (a row alone waits on each fused add's latency: its 32 outputs are two
+/// AVX-512 or four AVX2 vectors, against the two or four adds a cycle the
+/// core could start).
+#[inline(always)]
+fn product2(x0: &[f32], x1: &[f32], n: usize, w: &[f32], bias: &[f32], out0: &mut [f32], out1: &mut [f32]) {
+    let width = out0.len();
+    let mut c0 = 0;
+    while c0 < width {
+        let vecs = ((width - c0) / LANES).min(2);
+        match vecs {
+            2 => product_block2::<2>(x0, x1, n, w, width, c0, bias, out0, out1),
+            _ => product_block2::<1>(x0, x1, n, w, width, c0, bias, out0, out1),
+        }
+        c0 += vecs.max(1) * LANES;
+    }
+}
+
+/// [`product2`]'s outputs `c0 .. c0 + V·LANES`.
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn product_block2<const V: usize>(
+    x0: &[f32],
+    x1: &[f32],
+    n: usize,
+    w: &[f32],
+    width: usize,
+    c0: usize,
+    bias: &[f32],
+    out0: &mut [f32],
+    out1: &mut [f32],
+) {
+    let mut acc0 = [[0.0f32; LANES]; V];
+    for (q, a) in acc0.iter_mut().enumerate() {
+        a.copy_from_slice(&bias[c0 + q * LANES..c0 + (q + 1) * LANES]);
+    }
+    let mut acc1 = acc0;
+    for (i, (&a, &b)) in x0[..n].iter().zip(&x1[..n]).enumerate() {
+        let row = &w[i * width + c0..i * width + c0 + V * LANES];
+        fma_row(&mut acc0, a, row);
+        fma_row(&mut acc1, b, row);
+    }
+    for (q, (a, b)) in acc0.iter().zip(&acc1).enumerate() {
+        out0[c0 + q * LANES..c0 + (q + 1) * LANES].copy_from_slice(a);
+        out1[c0 + q * LANES..c0 + (q + 1) * LANES].copy_from_slice(b);
+    }
+}
+
 /// One RBM in training: `f32` weights both ways round, biases, and the
 /// minibatch's buffers.
 struct Trainer {
@@ -769,8 +819,37 @@ impl Forward {
     }
 }
 
+impl Forward {
+    /// [`Self::apply`] of two rows: a layer that reads every input takes
+    /// them together ([`product2`], the same bits); one that skips zeros
+    /// takes them one by one (their lists differ).
+    #[inline(always)]
+    fn apply2(&self, x0: &[f32], x1: &[f32], nz: &mut Vec<u32>, out0: &mut [f32], out1: &mut [f32]) {
+        if self.skip_zeros {
+            self.apply(x0, nz, out0);
+            self.apply(x1, nz, out1);
+            return;
+        }
+        let (o0, o1) = (&mut out0[..self.nhp], &mut out1[..self.nhp]);
+        product2(x0, x1, self.n_in, &self.wt, &self.b, o0, o1);
+        if self.sigmoid {
+            sigmoid_row(o0, self.nh);
+            sigmoid_row(o1, self.nh);
+        }
+    }
+}
+
 /// A chain of [`Forward`] layers over rows of `f64` inputs: the last
 /// layer's outputs of every row, as `f64`, `out_width` apart.
+///
+/// Rows go two at a time through the layers that read every input
+/// ([`Forward::apply2`]): the same bits as one by one (test
+/// `forward_rows_pairs_are_the_bits_of_one_row`). The EDBN's prediction of
+/// `benches/peers`' 3154 x 80 vectors (`RAYON_NUM_THREADS=1
+/// target/release/examples/peers --out <dir> --seed 1 --only edbn`, two
+/// runs each, 2026-12-07): 0.76-0.77 -> 0.62-0.63 ms with AVX-512, 0.85
+/// -> 0.79-0.81 ms with `PALPATE_NO_AVX512=1`; per-frame scores
+/// `cmp`-identical.
 pub(super) fn forward_rows(layers: &[Forward], x: &[f64], out: &mut [f64], out_width: usize) {
     let Some(first) = layers.first() else {
         return;
@@ -784,11 +863,46 @@ pub(super) fn forward_rows(layers: &[Forward], x: &[f64], out: &mut [f64], out_w
         .max(padded(dim));
     let mut a = vec![0.0f32; wide];
     let mut b = vec![0.0f32; wide];
+    let (mut a1, mut b1) = (a.clone(), b.clone());
     let mut nz = Vec::with_capacity(wide);
+    let ow = out_width.max(1);
+    let last = layers.last().map_or(0, Forward::units);
+    let rows = (x.len() / dim).min(out.len() / ow);
+    // Two rows at a time ([`Forward::apply2`]: the same bits as one by
+    // one), the last odd one alone.
+    let pairs = rows / 2;
     crate::wide::with_avx2(
         #[inline(always)]
         || {
-            for (row, o) in x.chunks_exact(dim).zip(out.chunks_exact_mut(out_width.max(1))) {
+            for p in 0..pairs {
+                let (r0, r1) = (
+                    &x[2 * p * dim..(2 * p + 1) * dim],
+                    &x[(2 * p + 1) * dim..(2 * p + 2) * dim],
+                );
+                a.iter_mut().zip(r0).for_each(|(a, &v)| *a = v as f32);
+                a1.iter_mut().zip(r1).for_each(|(a, &v)| *a = v as f32);
+                for layer in layers {
+                    layer.apply2(&a, &a1, &mut nz, &mut b, &mut b1);
+                    std::mem::swap(&mut a, &mut b);
+                    std::mem::swap(&mut a1, &mut b1);
+                }
+                let (o0, o1) = out[2 * p * ow..(2 * p + 2) * ow].split_at_mut(ow);
+                o0.iter_mut()
+                    .zip(&a[..last])
+                    .for_each(|(o, &v)| *o = f64::from(v));
+                o1.iter_mut()
+                    .zip(&a1[..last])
+                    .for_each(|(o, &v)| *o = f64::from(v));
+            }
+        },
+    );
+    crate::wide::with_avx2(
+        #[inline(always)]
+        || {
+            for (row, o) in x[2 * pairs * dim..rows * dim]
+                .chunks_exact(dim)
+                .zip(out[2 * pairs * ow..].chunks_exact_mut(ow))
+            {
                 for (a, &v) in a.iter_mut().zip(row) {
                     *a = v as f32;
                 }
@@ -796,7 +910,6 @@ pub(super) fn forward_rows(layers: &[Forward], x: &[f64], out: &mut [f64], out_w
                     layer.apply(&a, &mut nz, &mut b);
                     std::mem::swap(&mut a, &mut b);
                 }
-                let last = layers.last().map_or(0, Forward::units);
                 for (o, &v) in o.iter_mut().zip(&a[..last]) {
                     *o = f64::from(v);
                 }
@@ -1026,6 +1139,48 @@ mod tests {
             .chain(e)
             .map(|v| v.to_bits())
             .collect()
+    }
+
+    /// `forward_rows` of a batch (rows two at a time, the last odd one
+    /// alone) gives every row the bits of that row passed alone, on every
+    /// path: a sparse first layer, a dense sigmoid layer and a dense top
+    /// without one, of widths on both sides of the lanes.
+    #[test]
+    fn forward_rows_pairs_are_the_bits_of_one_row() {
+        let mut rng = ChaCha8Rng::seed_from_u64(31);
+        for (nb, h1, h2) in [(80, 60, 30), (7, 16, 33), (20, 5, 1)] {
+            let k = 3;
+            let bottom = Rbm::new(nb, h1, 0, &vec![0.3; nb], &mut rng);
+            let mut top = Rbm::new(h1 + k, h2, k, &vec![0.3; h1 + k], &mut rng);
+            top.b.iter_mut().for_each(|b| *b = rng.random_range(-1.0..1.0));
+            let layers = [
+                Forward::new(&bottom, nb, true, true),
+                Forward::new(&top, h1, false, false),
+            ];
+            for n in [1, 2, 3, 5, 8] {
+                let x = data(n, nb, 0, 0.7, n as u64);
+                let run = || {
+                    let mut out = vec![0.0; n * h2];
+                    forward_rows(&layers, &x, &mut out, h2);
+                    out
+                };
+                let batch = run();
+                for i in 0..n {
+                    let mut one = vec![0.0; h2];
+                    forward_rows(&layers, &x[i * nb..(i + 1) * nb], &mut one, h2);
+                    let want: Vec<u64> = one.iter().map(|v| v.to_bits()).collect();
+                    let got: Vec<u64> = batch[i * h2..(i + 1) * h2].iter().map(|v| v.to_bits()).collect();
+                    assert_eq!(got, want, "{nb}-{h1}-{h2}, n {n}, row {i}");
+                }
+                let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+                assert_eq!(
+                    bits(&crate::wide::without_avx512(run)),
+                    bits(&batch),
+                    "without AVX-512"
+                );
+                assert_eq!(bits(&crate::wide::baseline_only(run)), bits(&batch), "baseline");
+            }
+        }
     }
 
     /// The AVX-512, AVX2 and baseline builds of the trainer give the same
