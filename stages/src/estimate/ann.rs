@@ -35,8 +35,9 @@
 //! thread (folds run in parallel in the runtime).
 //!
 //! Prediction runs in `f32` ([`super::ann32`]: the trained network rounded
-//! once; a frame's probabilities within ~1e-5 of the `f64` pass's, the
-//! same bits alone or in a batch, on every CPU path), training in `f64`.
+//! once; a frame's probabilities within 2e-5 of the `f64` pass's in the
+//! tests, 1.6e-6 measured on `benches/peers`' fold 0; the same bits alone
+//! or in a batch, on every CPU path), training in `f64`.
 //!
 //! A minibatch's forward pass is two tiled products over its rows
 //! ([`dense::gemm_nt`]), and each weight gradient
@@ -252,21 +253,17 @@ pub struct Mlp {
     pub params: Vec<f64>,
     /// Input standardisation (set before the first prediction, as `params`).
     pub scaler: Standardizer,
-    /// The folded first layer, made at the first prediction.
+    /// The network in `f32` that predicts, made at the first prediction.
     #[serde(skip)]
     fold: FoldCache,
 }
 
-/// [`Mlp::folded`]'s weights and biases, kept from the first prediction: made
-/// at every call they were ~2 µs, more than a one-frame prediction itself
-/// (1.4-1.9 µs against 3.3-4.1 µs with them, 80 inputs; the live ANN graph
-/// predicts once a hop).
-/// Also keeps the network in `f32` that predicts ([`Mlp::predictor`]).
+/// [`Mlp::predictor`]'s network (with [`Mlp::folded`]'s first layer), kept
+/// from the first prediction: the folded layer alone, made at every call,
+/// was ~2 µs, more than a one-frame prediction itself (1.4-1.9 µs against
+/// 3.3-4.1 µs with it, 80 inputs; the live ANN graph predicts once a hop).
 #[derive(Clone, Debug, Default)]
-struct FoldCache {
-    fold: std::sync::OnceLock<Option<(Vec<f64>, Vec<f64>)>>,
-    net: std::sync::OnceLock<(Infer32, bool)>,
-}
+struct FoldCache(std::sync::OnceLock<(Infer32, bool)>);
 
 /// A cache: two networks are equal whether or not either made it.
 impl PartialEq for FoldCache {
@@ -396,7 +393,7 @@ impl Mlp {
     #[cfg(test)]
     fn forward_raw(&self, x: &[f64], s: &mut Scratch) {
         match self.folded() {
-            Some((w, b)) => self.forward_with(x, w, b, s),
+            Some((w, b)) => self.forward_with(x, &w, &b, s),
             None => {
                 let z = self.scaler.apply_rows(x);
                 self.forward(&z, s)
@@ -443,14 +440,9 @@ impl Mlp {
     /// feature nearly constant at a non-zero value is what the limit
     /// catches.
     ///
-    /// Made at the first call and kept (`params` and `scaler` are set
+    /// Made once, for [`Self::predictor`] (`params` and `scaler` are set
     /// before a network predicts).
-    fn folded(&self) -> Option<&(Vec<f64>, Vec<f64>)> {
-        self.fold.fold.get_or_init(|| self.make_folded()).as_ref()
-    }
-
-    /// [`Self::folded`]'s weights and biases.
-    fn make_folded(&self) -> Option<(Vec<f64>, Vec<f64>)> {
+    fn folded(&self) -> Option<(Vec<f64>, Vec<f64>)> {
         let (w1, b1, w2, _) = self.offsets();
         let p = &self.params;
         let dim = self.dim;
@@ -495,12 +487,12 @@ impl Mlp {
     /// has the standardisation folded in; made at the first prediction and
     /// kept, as [`Self::folded`].
     fn predictor(&self) -> &(Infer32, bool) {
-        self.fold.net.get_or_init(|| {
+        self.fold.0.get_or_init(|| {
             let (w1, b1, w2, b2) = self.offsets();
             let p = &self.params;
             let (d, h, k) = (self.dim, self.hidden, self.classes);
             match self.folded() {
-                Some((w, b)) => (Infer32::new(d, h, k, w, b, &p[w2..b2], &p[b2..]), true),
+                Some((w, b)) => (Infer32::new(d, h, k, &w, &b, &p[w2..b2], &p[b2..]), true),
                 None => (
                     Infer32::new(d, h, k, &p[w1..b1], &p[b1..w2], &p[w2..b2], &p[b2..]),
                     false,
@@ -690,22 +682,23 @@ impl Mlp {
 pub(crate) use super::dense::dot;
 
 /// Largest magnitude of a saved network's weights and biases: prediction
-/// runs in `f32`, whose range ends at 3.4e38; a trained network's are a
-/// few units (its L2 term and early stopping), so a larger one is a file
-/// that was damaged or made by hand.
+/// runs in `f32`, whose range ends at 3.4e38; training keeps weights
+/// orders of magnitude below this (its L2 term and early stopping), so a
+/// larger one is a file that was damaged or made by hand.
 const MAX_PARAM: f64 = 1e20;
 
 /// Largest `|mean / sd|` of an input for which [`Mlp::folded`] folds the
 /// standardisation into the first layer: the rounding of the folded
-/// product grows with it (a factor 10³ above a standardised input's is
-/// about 6e-5 relative in the `f32` prediction, 1e-13 in `f64`).
+/// product grows with it: at the limit, 10³ times a standardised input's,
+/// i.e. up to 10³ times `f32`'s 6e-8 relative rounding in the prediction
+/// (a bound, not a measurement).
 const FOLD_LIMIT: f64 = 1e3;
 
 /// The activations of training, shared with the other baselines and
 /// vectorisable ([`super::vmath`]): `tanh` with one exponential, and the
 /// softmax (of a batch's rows, `vmath::softmax_rows`; one row's in the
 /// tests' reference pass). Prediction uses their `f32` forms
-/// ([`super::ann32`]), within ~2.5e-7 of the same functions.
+/// ([`super::ann32`]; its `tanh` within 2.5e-7 of this one, tested).
 #[cfg(test)]
 pub(crate) use super::vmath::softmax;
 pub(crate) use super::vmath::tanh;

@@ -51,12 +51,7 @@
 //! in `f32`; with AVX-512 0.31 ms in `f64` (its `narrow512` kernel),
 //! 0.31-0.33 ms in `f32`.
 
-use super::rbm32::{exp_neg, push_nonzeros, LANES};
-
-/// `n` rounded up to a multiple of [`LANES`].
-fn padded(n: usize) -> usize {
-    n.div_ceil(LANES) * LANES
-}
+use super::rbm32::{exp_neg, fma_row, padded, padded_f32, push_nonzeros, LANES};
 
 /// `tanh(z)` in `f32` (module docs).
 #[inline(always)]
@@ -66,7 +61,7 @@ pub(super) fn tanh32(z: f32) -> f32 {
 }
 
 /// A one-hidden-layer network's prediction in `f32` (module docs).
-#[derive(Clone, Debug, Default)]
+#[derive(Clone, Debug)]
 pub(super) struct Infer32 {
     dim: usize,
     hidden: usize,
@@ -112,11 +107,6 @@ impl Infer32 {
                 w2t[j * kp + c] = w as f32;
             }
         }
-        let lanes = |v: &[f64], len: usize| {
-            let mut o = vec![0.0f32; len];
-            o.iter_mut().zip(v).for_each(|(o, &v)| *o = v as f32);
-            o
-        };
         Infer32 {
             dim,
             hidden,
@@ -124,9 +114,9 @@ impl Infer32 {
             hp,
             kp,
             w1t,
-            b1: lanes(b1, hp),
+            b1: padded_f32(b1, hp),
             w2t,
-            b2: lanes(b2, kp),
+            b2: padded_f32(b2, kp),
         }
     }
 
@@ -308,17 +298,6 @@ fn softmax(p: &mut [f32], k: usize) {
     lanewise(p, |x| exp_neg(x - top));
     let sum: f32 = p[..k].iter().fold(0.0, |s, &x| s + x);
     p[..k].iter_mut().for_each(|x| *x /= sum);
-}
-
-/// `acc ← acc + x·w` lane by lane, fused (a helper, not a closure, so it is
-/// compiled with the caller's FMA).
-#[inline(always)]
-fn fma_row<const V: usize>(acc: &mut [[f32; LANES]; V], x: f32, w: &[f32]) {
-    for (a, w) in acc.iter_mut().zip(w.chunks_exact(LANES)) {
-        for (a, &w) in a.iter_mut().zip(w) {
-            *a = x.mul_add(w, *a);
-        }
-    }
 }
 
 #[cfg(test)]

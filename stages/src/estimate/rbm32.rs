@@ -82,7 +82,7 @@ pub(crate) const LANES: usize = 16;
 const RECON_SAMPLE: usize = 256;
 
 /// `n` rounded up to a multiple of [`LANES`].
-fn padded(n: usize) -> usize {
+pub(super) fn padded(n: usize) -> usize {
     n.div_ceil(LANES) * LANES
 }
 
@@ -391,7 +391,7 @@ fn product(x: &[f32], idx: Option<&[u32]>, n: usize, w: &[f32], bias: &[f32], ou
 
 /// `acc ← acc + x·row` lane by lane, fused.
 #[inline(always)]
-fn fma_row<const V: usize>(acc: &mut [[f32; LANES]; V], x: f32, row: &[f32]) {
+pub(super) fn fma_row<const V: usize>(acc: &mut [[f32; LANES]; V], x: f32, row: &[f32]) {
     for (a, r) in acc.iter_mut().zip(row.chunks_exact(LANES)) {
         for (a, &r) in a.iter_mut().zip(r) {
             *a = x.mul_add(r, *a);
@@ -760,7 +760,7 @@ fn weights_t(rbm: &Rbm, n_in: usize, rows: usize) -> Vec<f32> {
 }
 
 /// `v` as `f32`, zero-padded to `len`.
-fn padded_f32(v: &[f64], len: usize) -> Vec<f32> {
+pub(super) fn padded_f32(v: &[f64], len: usize) -> Vec<f32> {
     let mut o = vec![0.0f32; len];
     for (o, &v) in o.iter_mut().zip(v) {
         *o = v as f32;
