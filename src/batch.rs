@@ -13,6 +13,13 @@
 //! everything upstream of it are the same; results are the same bits as
 //! running each graph alone (tested).
 //!
+//! Only graphs with a `[sweep]` go through the cache: a graph without one
+//! runs as `palpate run` runs it, depth first, trial by trial through its
+//! stage chains, so its memory stays that of a few trials whatever the
+//! number of trials, and it keeps no stage output to share. A job can opt
+//! in with `set = ["sweep.repeats=1"]` (a one-point sweep; the same
+//! results). The batch's closing line counts such jobs.
+//!
 //! Every job's runs are announced to the cache before any starts
 //! ([`palpate_core::Cache::expect`]), so it keeps an output exactly while a
 //! run still to come needs it, within its memory budget
@@ -383,8 +390,21 @@ pub fn run_batch(path: &Path, workers: usize, threads: usize, fresh: bool, times
     done.sort_by_key(|d| d.index);
     let failed = done.iter().filter(|d| !d.ok).count();
     let not_run = jobs.len() - done.len();
+    // Jobs without a sweep bypass the cache (see `run_job`): say so, or a
+    // batch of such graphs reads "0 reused, 0 computed" without a reason.
+    let unshared = done
+        .iter()
+        .filter(|d| jobs[d.index].graph.sweep.is_none())
+        .count();
+    let unshared = match unshared {
+        0 => String::new(),
+        n => format!(
+            " ({n} job{} without a [sweep] ran trial by trial, sharing nothing: add `sweep.repeats = 1` to share)",
+            if n == 1 { "" } else { "s" }
+        ),
+    };
     eprintln!(
-        "batch: {} job{} in {:.1} s, {failed} failed, {not_run} not started; cache: {} stage outputs reused, {} computed",
+        "batch: {} job{} in {:.1} s, {failed} failed, {not_run} not started; cache: {} stage outputs reused, {} computed{unshared}",
         done.len(),
         if done.len() == 1 { "" } else { "s" },
         t0.elapsed().as_secs_f64(),

@@ -332,3 +332,43 @@ fn each_job_gets_its_share_of_the_threads() {
     assert_eq!(threads_per_job(0, 0, 4), 4);
     assert_eq!(threads_per_job(8, 1, 2), 8);
 }
+
+#[test]
+fn graphs_without_a_sweep_share_nothing_and_the_batch_says_so() {
+    let tmp = tempfile::tempdir().expect("temp dir");
+    let t = tmp.path();
+    let root = env!("CARGO_MANIFEST_DIR");
+    let text = std::fs::read_to_string(format!("{root}/{GRAPH}")).expect("graph");
+    let single = text
+        .split("\n[sweep]")
+        .next()
+        .expect("text before the sweep")
+        .replace(
+            "../../graphs/scenes/ideal.toml",
+            &format!("{root}/graphs/scenes/ideal.toml"),
+        );
+    assert!(!single.contains("[sweep"));
+    let graph = t.join("single.toml");
+    std::fs::write(&graph, single).expect("graph file");
+    let jobs = |set: &str| {
+        format!(
+            "[[job]]\ngraph = \"{g}\"\nout = \"{a}\"\n{set}\n[[job]]\ngraph = \"{g}\"\nout = \"{b}\"\n{set}\n",
+            g = s(&graph),
+            a = s(&t.join(format!("{}a", set.len()))),
+            b = s(&t.join(format!("{}b", set.len()))),
+        )
+    };
+    let file = t.join("jobs.toml");
+    std::fs::write(&file, jobs("")).expect("jobs file");
+    let log = ok(&["batch", s(&file), "--jobs", "1"]);
+    assert_eq!(reused(&log), 0, "{log}");
+    assert!(
+        log.contains("2 jobs without a [sweep] ran trial by trial"),
+        "{log}"
+    );
+    // The one-point sweep the message suggests shares the second job's front end.
+    std::fs::write(&file, jobs("set = [\"sweep.repeats=1\"]")).expect("jobs file");
+    let log = ok(&["batch", s(&file), "--jobs", "1"]);
+    assert!(reused(&log) > 0, "{log}");
+    assert!(!log.contains("without a [sweep]"), "{log}");
+}

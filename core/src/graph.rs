@@ -1522,11 +1522,20 @@ impl<'t> Loader<'t> {
         {
             Ok(c) => c,
             Err(e) => {
-                let path: Vec<String> = e.path().iter().skip(1).map(|s| s.to_string()).collect();
+                // Keys joined by dots, indices appended as written in TOML
+                // paths elsewhere in the messages: `effects[0].kind`.
+                let mut path = String::new();
+                for seg in e.path().iter().skip(1) {
+                    let seg = seg.to_string();
+                    if !path.is_empty() && !seg.starts_with('[') {
+                        path.push('.');
+                    }
+                    path.push_str(&seg);
+                }
                 let key = if path.is_empty() {
                     unknown_field(e.inner().message())
                 } else {
-                    Some(path.join("."))
+                    Some(path)
                 };
                 let first = key
                     .as_deref()

@@ -202,6 +202,30 @@ impl TaxelLayout {
                 {
                     return Err(format!("taxel position {p:?} is not finite"));
                 }
+                // Two taxels at one point cannot be told apart by anything
+                // spatial (a pasted line, most likely): refused, naming both.
+                let mut order: Vec<usize> = (0..positions_mm.len()).collect();
+                order.sort_by(|&a, &b| {
+                    // `+ 0.0` makes −0 and 0 one key, as `==` sees them.
+                    let (p, q) = (positions_mm[a], positions_mm[b]);
+                    (p[0] + 0.0)
+                        .total_cmp(&(q[0] + 0.0))
+                        .then((p[1] + 0.0).total_cmp(&(q[1] + 0.0)))
+                        .then(a.cmp(&b))
+                });
+                if let Some(w) = order
+                    .windows(2)
+                    .find(|w| positions_mm[w[0]] == positions_mm[w[1]])
+                {
+                    let p = positions_mm[w[0]];
+                    return Err(format!(
+                        "taxels {} and {} share the position [{}, {}] mm: every taxel needs its own",
+                        w[0],
+                        w[1],
+                        crate::fmt_num(p[0] + 0.0),
+                        crate::fmt_num(p[1] + 0.0)
+                    ));
+                }
             }
         }
         Ok(())
@@ -801,6 +825,18 @@ mod tests {
             taxel_mm: 1.0,
         };
         assert!(bad.validate().unwrap_err().contains("not finite"));
+        // Two taxels at one point (−0 and 0 are one point), named.
+        let bad = TaxelLayout::Positions {
+            positions_mm: vec![[1.0, 2.0], [-0.0, 5.0], [-0.0, 7.0], [0.0, 5.0]],
+            taxel_mm: 1.0,
+        };
+        let e = bad.validate().unwrap_err();
+        assert!(e.contains("taxels 1 and 3 share the position [0, 5] mm"), "{e}");
+        let ok = TaxelLayout::Positions {
+            positions_mm: vec![[0.0, 5.0], [5.0, 0.0]],
+            taxel_mm: 1.0,
+        };
+        assert!(ok.validate().is_ok());
         assert!(TaxelLayout::paper().validate().is_ok());
     }
 

@@ -442,6 +442,10 @@ fn effects_out_of_phase_order_or_with_bad_values_are_errors() {
     assert!(e.contains("effects[1]") && e.contains("piezo"), "{e}");
     let e = load_err("effects = [{ kind = \"noise\", sigma = -1 }]");
     assert!(e.contains("effects[0].sigma"), "{e}");
+    // An unknown kind names the entry as other messages do (`effects[0]`,
+    // not `effects.[0]`) and lists every kind.
+    let e = load_err("effects = [{ kind = \"bogus\" }]");
+    assert!(e.contains("key `effects[0].kind`") && e.contains("`adc`"), "{e}");
     let e = load_err("effects = [{ kind = \"noise\", sigmaa = 1 }]");
     assert!(e.contains("sigmaa"), "{e}");
     let e = load_err("effects = [{ kind = \"dead\", taxels = [16] }]");

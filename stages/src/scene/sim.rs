@@ -172,7 +172,10 @@ impl Simulator {
             return Err(ConfigError::key(
                 "angles",
                 format!(
-                    "at {theta_deg} degrees a trial lasts {duration:.0} s ({values:.2e} values), more than the limit of {MAX_TRIAL_VALUES:.0e}; use angles further from 0 and 180, a higher speed or a lower sample rate"
+                    "at {theta_deg} degrees a trial lasts {duration:.0} s ({values:.2e} values: the edge travels {travel:.0} mm \
+                     to cross taxels spread over {:.0} mm), more than the limit of {MAX_TRIAL_VALUES:.0e}; use angles further \
+                     from 0 and 180, a higher speed, a lower sample rate, or check the array's size (`array`, `layout`)",
+                    hi + width - lo
                 ),
             ));
         }
