@@ -31,7 +31,10 @@
 //!   palpating the edge; and because `crop`'s share is defined on the crossing,
 //!   so a crop to share `s` caps the decision time at `s · (t₁ − t₀)`. Every
 //!   trial with a decision time counts, "no edge" answers included (the time
-//!   was spent); an answer given before contact gives a negative time. The
+//!   was spent); an answer given before contact gives a negative time,
+//!   kept in the median and counted in the report (such an answer rests on
+//!   activity before the edge arrived: a mis-set front end or frames much
+//!   longer than the crossing, not a fast decision). The
 //!   median, not the mean, because crossing times grow like `1/sin θ` and a few
 //!   shallow angles would dominate a mean.
 //!
@@ -188,6 +191,10 @@ pub struct MaeStats {
     pub decision_trials: usize,
     /// Of those, trials timed from their start (no known crossing).
     pub decision_from_start: usize,
+    /// Of those timed from first contact, trials whose answer came before
+    /// it (a negative time: the answer rests on activity before the edge
+    /// reached the array, e.g. frames far longer than the crossing).
+    pub decision_before_contact: usize,
     /// Trials with a true angle.
     pub labelled: usize,
     /// Labelled trials answered within the tolerance of the truth (see
@@ -310,6 +317,7 @@ pub fn with_decision(mut stats: MaeStats, times: &[(f64, bool)]) -> MaeStats {
     stats.decision_ms = median(&ms);
     stats.decision_trials = times.len();
     stats.decision_from_start = times.iter().filter(|t| t.1).count();
+    stats.decision_before_contact = times.iter().filter(|t| !t.1 && t.0 < 0.0).count();
     stats
 }
 
@@ -570,12 +578,21 @@ pub fn render(stats: &MaeStats, per_class: bool) -> String {
     if let Some(d) = stats.decision_ms {
         let _ = writeln!(
             s,
-            "  decision time: median {d:.0} ms of palpation from first contact ({} trials{})",
+            "  decision time: median {d:.0} ms of palpation from first contact ({} trials{}{})",
             stats.decision_trials,
             if stats.decision_from_start > 0 {
                 format!(
                     "; {} without a known crossing timed from their start",
                     stats.decision_from_start
+                )
+            } else {
+                String::new()
+            },
+            if stats.decision_before_contact > 0 {
+                format!(
+                    "; {} answered before first contact, with negative times: their answers rest on \
+                     activity before the edge arrived (frames much longer than the crossing?)",
+                    stats.decision_before_contact
                 )
             } else {
                 String::new()
@@ -971,6 +988,14 @@ mod tests {
             "{text}"
         );
         assert!(to_overall_csv(&[s]).lines().nth(1).unwrap().ends_with(",200,0"));
+        // An answer before first contact is counted and said.
+        let s = with_decision(
+            mae_stats("w", &[(Some(30.0), Some(30.0)); 3]),
+            &[(-100.0, false), (300.0, false), (-50.0, true)],
+        );
+        assert_eq!(s.decision_before_contact, 1);
+        let text = render(&s, false);
+        assert!(text.contains("1 answered before first contact"), "{text}");
     }
 
     #[test]
