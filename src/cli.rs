@@ -70,8 +70,11 @@ enum Command {
     },
     /// Run several graphs (a jobs file) in one process, a few at a time,
     /// sharing one cache: stages alike in several graphs (a scene and front
-    /// end every graph of a study starts with) run once. Each job's reports
-    /// go to its log; see `palpate::batch` for the jobs file.
+    /// end every graph of a study starts with) run once. Only graphs with a
+    /// `[sweep]` share (one without runs trial by trial, as `palpate run`
+    /// does, keeping nothing; `--set sweep.repeats=1` in its job makes it
+    /// share). Each job's reports go to its log; see `palpate::batch` for
+    /// the jobs file.
     Batch {
         /// The jobs file: `[[job]]` tables with `graph` and optional `out`,
         /// `set`, `name`, `log` (no two jobs may share an `out` or a `log`).
@@ -208,13 +211,22 @@ enum DaqCommand {
         /// Edge angle of the simulated trial, degrees.
         #[arg(long, default_value_t = 45.0)]
         angle: f64,
-        /// Seed of the simulated trial.
+        /// Seed of the simulated trial: the array's and the trial's random
+        /// draws, as a `scene` stage of id `scene` makes them with this run
+        /// seed. The same --scene, --angle and --seed play the same trial as
+        /// `palpate simulate --seed` (its trial at that angle, r00) and
+        /// `palpate daq run --emulate-scene`.
         #[arg(long, default_value_t = 0)]
         seed: u64,
         /// A recording (CSV, NPY, NPZ, MAT or raw DAQ; the first trial is played). Its array is the one a
         /// `labels.toml` or `trials.json` beside it declares (as `palpate simulate` writes), else 4 x 4.
         #[arg(long)]
         recording: Option<PathBuf>,
+        /// With a raw DAQ --recording that ends inside a frame (cut while
+        /// being written): play it without that incomplete frame instead of
+        /// refusing it.
+        #[arg(long, requires = "recording")]
+        allow_cut_end: bool,
         /// Sample rate of the recording, Hz, when the file does not carry it
         /// (with `--recording` only: a scene's rate is its
         /// `motion.sample_rate_hz`, and a flag that changes nothing is refused).
@@ -242,7 +254,12 @@ enum DaqCommand {
         /// Edge angle of the emulated trial, degrees.
         #[arg(long, default_value_t = 45.0)]
         angle: f64,
-        /// Seed of the emulated trial (the graph's `[run] seed`).
+        /// Seed of the emulated trial (the graph's `[run] seed`): the array's
+        /// and the trial's random draws, keyed as a `scene` stage of id
+        /// `scene` keys them (the `daq` stage's `scene_stage_id`). The same
+        /// scene, --angle and --seed play the same trial as `palpate daq
+        /// emulate --seed` and `palpate simulate --seed` (its trial at that
+        /// angle, r00).
         #[arg(long, default_value_t = 0)]
         seed: u64,
         /// Playback speed of the emulated trial: 1 = real time, 0 = as fast as
@@ -932,6 +949,7 @@ fn cmd_daq(command: DaqCommand) -> ExitCode {
             angle,
             seed,
             recording,
+            allow_cut_end,
             sample_rate_hz,
             speed,
             delay,
@@ -966,6 +984,7 @@ fn cmd_daq(command: DaqCommand) -> ExitCode {
                         path: Some(rec.display().to_string()),
                         sample_rate_hz,
                         layout,
+                        allow_cut_end,
                         ..Default::default()
                     };
                     match signal_file::read_signal_files(&cfg, std::path::Path::new(".")) {
@@ -975,7 +994,17 @@ fn cmd_daq(command: DaqCommand) -> ExitCode {
                             return ExitCode::FAILURE;
                         }
                         Err(e) => {
-                            eprintln!("{}: {e}", rec.display());
+                            // The reader's hint names its graph key; here
+                            // the flag sets it.
+                            let e = e
+                                .to_string()
+                                .replace("Set `allow_cut_end = true`", "Pass --allow-cut-end");
+                            let shown = rec.display().to_string();
+                            if e.contains(&shown) {
+                                eprintln!("{e}");
+                            } else {
+                                eprintln!("{shown}: {e}");
+                            }
                             return ExitCode::FAILURE;
                         }
                     }
@@ -1053,6 +1082,9 @@ fn cmd_daq(command: DaqCommand) -> ExitCode {
                     set.push((key("angles"), toml::Value::Array(vec![angle.into()])));
                     set.push((key("trials_per_angle"), 1.into()));
                     set.push((key("speed"), speed.into()));
+                    // Drawn as `daq emulate` and `simulate` draw (a scene
+                    // stage `scene`), not as the graph's daq stage id.
+                    set.push((key("scene_stage_id"), "scene".into()));
                     set.push(("run.seed".into(), core::graph::seed_value(seed)));
                 }
                 (Some(p), None) => {

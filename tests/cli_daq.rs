@@ -241,10 +241,12 @@ fn ctrl_c_ends_a_live_session_with_nothing_in_contact() {
 /// lowest taxel against `contact_v` (here the emulated board's open 3.3 V and
 /// contact ~1.7 V against a threshold of 0.5 V), and the keys to set. A
 /// threshold met, but not for `enter_ms`, says for how many frames it was.
+/// An emulated scene ends on its own: no trial in it is a failure, live as
+/// in a batch run (only a session the user stops is not, above).
 #[test]
 fn a_live_stream_without_contact_says_which_levels_it_saw() {
     let dir = tempfile::tempdir().unwrap();
-    let run = |contact: &str, release: &str, enter: &str| {
+    let run = |contact: &str, release: &str, enter: &str, ok: bool| {
         let out = std::process::Command::new(env!("CARGO_BIN_EXE_palpate"))
             .current_dir(env!("CARGO_MANIFEST_DIR"))
             .args(["run", "graphs/live.toml", "--live", "--out"])
@@ -261,10 +263,18 @@ fn a_live_stream_without_contact_says_which_levels_it_saw() {
             .output()
             .unwrap();
         let stderr = String::from_utf8_lossy(&out.stderr).to_string();
-        assert!(out.status.success(), "{stderr}");
+        assert_eq!(out.status.success(), ok, "{stderr}");
+        if !ok {
+            assert!(
+                stderr.contains(
+                    "live run failed: stage `daq`: the stream held no trial (no contact: is `contact_v` right"
+                ),
+                "{stderr}"
+            );
+        }
         stderr
     };
-    let e = run("0.5", "0.6", "20");
+    let e = run("0.5", "0.6", "20", false);
     let line = e
         .lines()
         .find(|l| l.contains("no contact in"))
@@ -277,7 +287,7 @@ fn a_live_stream_without_contact_says_which_levels_it_saw() {
     );
     // The trial's contact lasts seconds: an `enter_ms` longer than the
     // whole stream finds it, but never long enough.
-    let e = run("3.0", "3.2", "60000");
+    let e = run("3.0", "3.2", "60000", false);
     let line = e
         .lines()
         .find(|l| l.contains("no contact in"))
@@ -287,5 +297,231 @@ fn a_live_stream_without_contact_says_which_levels_it_saw() {
         "{line}"
     );
     // With contact, nothing to explain.
-    assert!(!run("3.0", "3.2", "20").contains("no contact"));
+    assert!(!run("3.0", "3.2", "20", true).contains("no contact"));
+}
+
+/// The lab scene's trial at `angle` (seed 3) played as DAQ frames (f32),
+/// then a second off the object (3.3 V), as `daq run --record` writes it.
+fn lab_recording(angle: f64) -> Vec<u8> {
+    use palpate::stages::io::daq::{emulate, simulate_trial, EmulateOptions};
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    let mut s = simulate_trial(&root.join("graphs/scenes/lab.toml"), angle, 3).unwrap();
+    for col in &mut s.data {
+        col.extend(std::iter::repeat_n(3.3, 1000));
+    }
+    let mut out = Vec::new();
+    let opts = EmulateOptions {
+        speed: f64::INFINITY,
+        ..EmulateOptions::default()
+    };
+    emulate(&s, &mut out, &opts).unwrap();
+    out
+}
+
+/// graphs/live.toml with its `daq` source reading `recording` (written to
+/// `dir`) instead of emulating the scene, plus `keys`; returns the graph.
+fn recording_graph(dir: &std::path::Path, name: &str, bytes: &[u8], keys: &str) -> std::path::PathBuf {
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    let text = std::fs::read_to_string(root.join("graphs/live.toml")).unwrap();
+    let rec = dir.join(format!("{name}.daq"));
+    std::fs::write(&rec, bytes).unwrap();
+    let line = format!("recording = {:?}\n{keys}", rec.display().to_string());
+    assert!(text.contains("scene = \"scenes/lab.toml\"\n"));
+    let text = text.replacen("scene = \"scenes/lab.toml\"\n", &format!("{line}\n"), 1);
+    let graph = dir.join(format!("{name}.toml"));
+    std::fs::write(&graph, text).unwrap();
+    graph
+}
+
+/// `palpate run GRAPH [--live]` into `out`: success, stdout, stderr.
+fn run_graph(graph: &std::path::Path, live: bool, out: &std::path::Path) -> (bool, String, String) {
+    let mut cmd = std::process::Command::new(env!("CARGO_BIN_EXE_palpate"));
+    cmd.current_dir(env!("CARGO_MANIFEST_DIR")).arg("run").arg(graph);
+    if live {
+        cmd.arg("--live");
+    }
+    let o = cmd.arg("--out").arg(out).output().unwrap();
+    (
+        o.status.success(),
+        String::from_utf8_lossy(&o.stdout).into_owned(),
+        String::from_utf8_lossy(&o.stderr).into_owned(),
+    )
+}
+
+/// What a failed run said after "run failed: " (batch) or "live run failed: ".
+fn failure(stderr: &str) -> &str {
+    stderr
+        .lines()
+        .find_map(|l| l.split_once("run failed: ").map(|(_, m)| m))
+        .unwrap_or_else(|| panic!("no failure in:\n{stderr}"))
+}
+
+/// A recording cut inside a frame (half of it, in contact; or its last 7
+/// bytes) is refused by the `daq` source, batch and live, naming the file,
+/// the byte and `allow_cut_end`, before any trial is scored. With
+/// `allow_cut_end = true` the cut frame is dropped, and a recording that
+/// ends in contact warns that its trial was cut short, and scores it.
+#[test]
+fn a_daq_recording_cut_inside_a_frame_is_refused_unless_allowed() {
+    let dir = tempfile::tempdir().unwrap();
+    let full = lab_recording(60.0);
+    let half = &full[..full.len() / 2];
+    let short = &full[..full.len() - 7];
+    for (name, bytes) in [("half", half), ("short", short)] {
+        let graph = recording_graph(dir.path(), name, bytes, "");
+        for live in [false, true] {
+            let (ok, stdout, stderr) = run_graph(&graph, live, &dir.path().join("o"));
+            assert!(!ok, "{name} live={live}: {stdout}\n{stderr}");
+            let m = failure(&stderr);
+            assert!(
+                m.starts_with("stage `daq`: ")
+                    && m.contains(&format!("{name}.daq: the recording ends inside a frame ("))
+                    && m.contains("Set `allow_cut_end = true`"),
+                "{name} live={live}: {m}"
+            );
+            // Refused before anything streamed or was scored.
+            assert!(!stdout.contains("wss: "), "{stdout}");
+        }
+        let allowed = recording_graph(dir.path(), name, bytes, "allow_cut_end = true");
+        for live in [false, true] {
+            let (ok, stdout, stderr) = run_graph(&allowed, live, &dir.path().join("o"));
+            assert!(ok, "{name} live={live}: {stdout}\n{stderr}");
+            assert!(
+                stderr.contains("ends inside a frame") && stderr.contains("dropped it"),
+                "{stderr}"
+            );
+            let cut = stderr.lines().find(|l| l.contains("cut short"));
+            if name == "half" {
+                let w = cut.unwrap_or_else(|| panic!("{stderr}"));
+                assert!(
+                    w.contains("half.daq ends in contact, inside trial `daq-0000`")
+                        && w.contains("still scored"),
+                    "{w}"
+                );
+            } else {
+                // The whole trial and its release are in: nothing was cut short.
+                assert_eq!(cut, None, "{stderr}");
+            }
+            if live {
+                assert!(
+                    stdout.contains("daq-0000") && stdout.contains("wss: final"),
+                    "{stdout}"
+                );
+            }
+        }
+    }
+}
+
+/// `daq emulate --recording` refuses a recording cut inside a frame with a
+/// hint this command can follow (`--allow-cut-end`, not a graph key), and
+/// plays it without the cut frame when given the flag.
+#[test]
+fn daq_emulate_refuses_a_cut_recording_unless_its_flag_allows_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let full = lab_recording(60.0);
+    // Ten whole frames (86 bytes each: 16 f32 taxels) and half of one.
+    let rec = dir.path().join("cut.daq");
+    std::fs::write(&rec, &full[..10 * 86 + 40]).unwrap();
+    let emulate = |flag: &[&str]| {
+        let o = std::process::Command::new(env!("CARGO_BIN_EXE_palpate"))
+            .args(["daq", "emulate", "--delay", "0", "--speed", "100", "--recording"])
+            .arg(&rec)
+            .args(flag)
+            .output()
+            .unwrap();
+        (
+            o.status.success(),
+            String::from_utf8_lossy(&o.stdout).into_owned(),
+            String::from_utf8_lossy(&o.stderr).into_owned(),
+        )
+    };
+    let (ok, _, stderr) = emulate(&[]);
+    assert!(!ok, "{stderr}");
+    assert!(
+        stderr.contains("ends inside a frame")
+            && stderr.contains("Pass --allow-cut-end")
+            && !stderr.contains("allow_cut_end"),
+        "{stderr}"
+    );
+    let (ok, stdout, stderr) = emulate(&["--allow-cut-end"]);
+    assert!(ok, "{stdout}\n{stderr}");
+    assert!(stdout.contains("played 10 frames"), "{stdout}");
+}
+
+/// A recording that holds no trial (empty, random bytes, one frame's header
+/// alone) fails a live run as it fails a batch run, with the same message
+/// naming the file and what it held; a live run used to end "no trial
+/// began" with exit 0.
+#[test]
+fn a_recording_without_a_trial_fails_live_as_in_batch() {
+    let dir = tempfile::tempdir().unwrap();
+    // Noise from a fixed generator (xorshift), so the test is repeatable.
+    let mut x = 0x9e37_79b9_7f4a_7c15u64;
+    let random: Vec<u8> = (0..5000)
+        .map(|_| {
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            (x >> 24) as u8
+        })
+        .collect();
+    let full = lab_recording(60.0);
+    for (name, bytes) in [
+        ("empty", &[][..]),
+        ("random", &random[..]),
+        ("header", &full[..18]),
+    ] {
+        let graph = recording_graph(dir.path(), name, bytes, "");
+        let (ok, _, batch) = run_graph(&graph, false, &dir.path().join("o"));
+        assert!(!ok, "{batch}");
+        let (ok, stdout, live) = run_graph(&graph, true, &dir.path().join("o"));
+        assert!(!ok, "{stdout}\n{live}");
+        assert_eq!(failure(&live), failure(&batch), "{name}");
+        let m = failure(&live);
+        assert!(
+            m.starts_with(&format!(
+                "stage `daq`: the recording {}",
+                dir.path().join(name).display()
+            )) && m.contains(".daq held no trial: no valid DAQ frame")
+                && m.contains(&format!("({} bytes)", bytes.len())),
+            "{m}"
+        );
+        assert!(!stdout.contains("no trial began"), "{stdout}");
+    }
+}
+
+/// `daq run --emulate-scene` plays the trial `daq emulate --scene` plays
+/// (and `palpate simulate`) for the same scene, angle and seed: the raw
+/// stream it records begins with that trial's samples, to the f32 bit. It
+/// used to draw them keyed by the graph's `daq` stage id instead.
+#[test]
+fn daq_run_and_daq_emulate_play_the_same_trial() {
+    use palpate::stages::io::daq::{decode_recording, simulate_trial};
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    let dir = tempfile::tempdir().unwrap();
+    let rec = dir.path().join("r30.daq");
+    let scene = root.join("graphs/scenes/lab.toml");
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_palpate"))
+        .current_dir(dir.path())
+        .args(["daq", "run", "--emulate-scene"])
+        .arg(&scene)
+        .args(["--angle", "30", "--seed", "0", "--speed", "0", "--record"])
+        .arg(&rec)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{stderr}");
+    let played = decode_recording(&std::fs::read(&rec).unwrap(), 1.0, 0.0, false).unwrap();
+    let want = simulate_trial(&scene, 30.0, 0).unwrap();
+    let n = want.n_samples();
+    assert!(played.data[0].len() > n, "{} frames", played.data[0].len());
+    for (ch, (got, want)) in played.data.iter().zip(&want.data).enumerate() {
+        let want: Vec<f64> = want.iter().map(|&v| f64::from(v as f32)).collect();
+        assert!(
+            got[..n] == want[..],
+            "taxel {ch}: {:?} vs {:?}",
+            &got[..3],
+            &want[..3]
+        );
+    }
 }

@@ -550,9 +550,11 @@ fn a_session_with_nothing_in_contact_can_be_stopped() {
     assert_eq!((run.trials, run.stopped, updates), (0, true, 0));
     // Not asked again once stopped.
     assert_eq!(polls, 200);
-    // Never stopped: the whole stream, one poll per frame, and no trial.
+    // Never stopped: the whole stream, one poll per frame, and no trial. A
+    // stream that ended by itself without a trial is an error, live or not
+    // (the `daq` stage's docs): only a stop by the user is not.
     let mut polls = 0usize;
-    let run = stream::replay_polled(
+    let err = match stream::replay_polled(
         &g,
         &plan,
         1,
@@ -561,8 +563,10 @@ fn a_session_with_nothing_in_contact_can_be_stopped() {
             polls += 1;
             false
         },
-    )
-    .unwrap_or_else(|e| panic!("{e}"));
-    assert_eq!((run.trials, run.stopped), (0, false));
+    ) {
+        Ok(run) => panic!("a stream without contact gave {} trials and no error", run.trials),
+        Err(e) => e.to_string(),
+    };
+    assert!(err.contains("held no trial"), "{err}");
     assert!(polls > 10_000, "{polls} polls");
 }

@@ -27,9 +27,11 @@
 //!   ends, `release_v < contact_v`. The frames of a run that does not complete
 //!   belong to the state it interrupted (a short dip back to the open level
 //!   stays inside its trial). A trial still open when the stream ends ends
-//!   there. Latency: the first `N_in` frames of a trial are handed on
-//!   together once contact is confirmed; frames during a possible release are
-//!   held until it is confirmed or denied (at most `N_out` frames).
+//!   there (and is scored); when a `recording` ends so, in contact, a
+//!   warning names the file and the trial cut short. Latency: the first
+//!   `N_in` frames of a trial are handed on together once contact is
+//!   confirmed; frames during a possible release are held until it is
+//!   confirmed or denied (at most `N_out` frames).
 //! * `segment = "fixed"`: consecutive trials of `W = round(window_ms·fs/1000)`
 //!   frames from the first frame on (the last may be shorter).
 //!
@@ -43,6 +45,24 @@
 //! grid of the frames before it ([`FrameCheck`](super::FrameCheck), checked
 //! as the frames arrive, in constant memory). Anomalies (CRC errors, gaps,
 //! out-of-order frames, stalls) are reported on stderr as they happen.
+//!
+//! A `recording` is decoded once before it streams (constant memory): one
+//! that ends inside a frame (copied or stopped while being written) is
+//! refused with an error naming the file and the byte, as `signal_file`
+//! refuses it, unless `allow_cut_end = true`, which drops that frame.
+//!
+//! A stream that ends without a trial is an error, offline and live alike,
+//! naming why (no valid frame, with a recording's counts; or no contact,
+//! with the levels seen, on stderr): the end of a recording or of an
+//! emulated scene, a pseudo-terminal's hang-up, or `seconds` elapsed. Only a
+//! live session the user stops (Ctrl-C) before any contact is not a failure:
+//! a board streams until stopped, and nothing touched it yet.
+//!
+//! An emulated scene's random draws (the array's and each trial's) are
+//! keyed by the stage id `scene_stage_id` (default this stage's id), as a
+//! `scene` stage of that id keys its own: `scene_stage_id = "scene"` plays
+//! the trials `palpate simulate` and `palpate daq emulate` give for the same
+//! run seed and angles.
 //!
 //! Offline (`palpate run`), the stream is acquired to its end (a recording's
 //! end, the scene's last trial, `seconds`, or a pseudo-terminal's hang-up) and
@@ -135,6 +155,11 @@ pub struct DaqConfig {
     /// A recorded raw DAQ stream (what `record` writes), relative to the
     /// graph's folder. Default none.
     pub recording: Option<PathBuf>,
+    /// With `recording`: accept a recording that ends inside a frame (a
+    /// recording stopped or copied while being written); that incomplete
+    /// frame is dropped. Without it such a recording is refused before any
+    /// of it streams, as `signal_file` refuses it. Default false.
+    pub allow_cut_end: bool,
     /// A scene file to emulate, relative to the graph's folder: its trials
     /// are simulated and played as DAQ frames (f32), `gap_ms` apart. Default none.
     pub scene: Option<PathBuf>,
@@ -150,6 +175,13 @@ pub struct DaqConfig {
     /// With `scene`: what every taxel reads off the object, DAQ units (V).
     /// Default 3.3 (the paper's board saturates at its supply).
     pub open_v: f64,
+    /// With `scene`: the stage id the emulated scene draws its random
+    /// numbers as (array and per-trial noise). A `scene` stage of this id
+    /// with the same file, angles and run seed simulates the same trials to
+    /// the bit; `palpate simulate` and `palpate daq emulate` draw as
+    /// `scene`, and `palpate daq run --emulate-scene` sets that. Default
+    /// none: this stage's own id.
+    pub scene_stage_id: Option<String>,
     /// Taxel layout; channel `i` is taxel `i`. Default: with `scene` (and no
     /// `port` or `recording`), the emulated scene's array (a layout of
     /// another taxel count is then an error); else the paper's 4x4 grid
@@ -206,12 +238,14 @@ impl Default for DaqConfig {
             port: None,
             baud: 921_600,
             recording: None,
+            allow_cut_end: false,
             scene: None,
             angles: None,
             trials_per_angle: None,
             speed: 0.0,
             gap_ms: 1000.0,
             open_v: 3.3,
+            scene_stage_id: None,
             layout: None,
             sample_rate_hz: None,
             scale: 1.0,
@@ -430,6 +464,9 @@ struct Checked {
     gap_frames: usize,
     open_v: f64,
     speed: f64,
+    /// The stage id an emulated scene's draws are keyed by.
+    scene_stage: String,
+    allow_cut_end: bool,
     record: Option<PathBuf>,
     seconds: Option<f64>,
     max_gap: u64,
@@ -497,6 +534,36 @@ impl DaqConfig {
                 "only with `scene` (the angles to emulate)",
             ));
         }
+        if self.scene_stage_id.is_some() && self.scene.is_none() {
+            c.push(ConfigError::key(
+                "scene_stage_id",
+                "only with `scene` (the id the emulated scene draws as)",
+            ));
+        }
+        if self
+            .scene_stage_id
+            .as_deref()
+            .is_some_and(|id| id.trim().is_empty())
+        {
+            c.push(ConfigError::key(
+                "scene_stage_id",
+                "must not be empty (leave it out to draw as this stage)",
+            ));
+        }
+        if self.allow_cut_end && self.recording.is_none() {
+            c.push(ConfigError::key(
+                "allow_cut_end",
+                "only with `recording` (a live port's stream has no end to cut)",
+            ));
+        }
+        // The emulated scene is built as a `scene` stage of this id would be.
+        let scene_ctx = BuildContext {
+            stage_id: self
+                .scene_stage_id
+                .clone()
+                .unwrap_or_else(|| ctx.stage_id.clone()),
+            ..ctx.clone()
+        };
         let mut emulated: Option<(TaxelLayout, f64)> = None;
         let input = match (&self.port, &self.recording, self.emulated_scene()) {
             (Some(p), _, _) => Some(Input::Port(p.clone())),
@@ -504,10 +571,10 @@ impl DaqConfig {
             (None, None, Some(scene)) => {
                 // The board an emulated scene stands for has the scene's
                 // array and rate unless the keys say otherwise.
-                if let Ok(sc) = scene.resolve(ctx) {
+                if let Ok(sc) = scene.resolve(&scene_ctx) {
                     emulated = Some((sc.layout.clone(), sc.motion.sample_rate_hz));
                 }
-                match c.take(scene.build(ctx).map_err(|e| e.within("scene"))) {
+                match c.take(scene.build(&scene_ctx).map_err(|e| e.within("scene"))) {
                     Some(Stage::Source(src)) => Some(Input::Scene(Arc::from(src))),
                     _ => None,
                 }
@@ -601,6 +668,8 @@ impl DaqConfig {
             gap_frames: (gap_ms * fs / 1000.0).round() as usize,
             open_v,
             speed,
+            scene_stage: scene_ctx.stage_id,
+            allow_cut_end: self.allow_cut_end,
             record: self.record.as_ref().map(|r| ctx.out_dir.join(r)),
             seconds: self.seconds,
             max_gap: (max_gap_ms * fs / 1000.0).floor() as u64,
@@ -721,13 +790,26 @@ impl DaqSource {
             max_duration: self.c.seconds.map(Duration::from_secs_f64),
             ..AcquireOptions::default()
         };
+        // A recording is checked whole before any of it streams: one that
+        // ends inside a frame is refused (unless `allow_cut_end`), not
+        // found out after its trials were scored.
+        let scanned = match &self.c.input {
+            Input::Recording(path) => Some(self.check_recording(path)?),
+            _ => None,
+        };
         let mut seg = Segmenter::new(self.c.plan);
-        let mut trial = 0usize;
+        // Trials begun so far (a cell: read after the stream, while the
+        // closure that counts them still lives).
+        let trial = std::cell::Cell::new(0usize);
+        let trial_id = |k: usize| {
+            metas
+                .get(k)
+                .map_or_else(|| format!("{}-{k:04}", self.stage_id), |m| m.trial_id.clone())
+        };
         let mut last: Option<Vec<f64>> = None;
         let mut fail: Option<RunError> = None;
         let mut frames = 0u64;
         let mut check = super::protocol::FrameCheck::default();
-        let stage = self.stage_id.clone();
         // `None`: a tick (see `SourceEvent::Tick`); one closure holds `on`.
         let mut on_event = |ev: Option<SegEvent<'_>>| -> Result<(), RunError> {
             let Some(ev) = ev else {
@@ -735,12 +817,13 @@ impl DaqSource {
             };
             match ev {
                 SegEvent::Start => {
-                    let meta = metas.get(trial).cloned().unwrap_or_else(|| TrialMeta {
-                        trial_id: format!("{stage}-{trial:04}"),
-                        group: trial,
+                    let k = trial.get();
+                    let meta = metas.get(k).cloned().unwrap_or_else(|| TrialMeta {
+                        trial_id: trial_id(k),
+                        group: k,
                         ..TrialMeta::default()
                     });
-                    trial += 1;
+                    trial.set(k + 1);
                     on(SourceEvent::Start(meta))
                 }
                 SegEvent::Frame(f) => on(SourceEvent::Block(self.block(f))),
@@ -884,14 +967,92 @@ impl DaqSource {
         };
         if let Some(e) = fail {
             if e.message == palpate_core::stream::STOPPED {
-                diagnose(trial, &seg);
+                diagnose(trial.get(), &seg);
             }
             return Err(e);
         }
         result.map_err(|e| self.error(e.message))?;
+        // A recording that ends in contact cut its last trial short (a
+        // board's stream, stopped by `seconds` or its emulator, is not
+        // warned of: it was stopped, not cut).
+        if let (Input::Recording(path), true) = (&self.c.input, seg.in_trial()) {
+            eprintln!(
+                "daq `{}`: warning: the recording {} ends in contact, inside trial `{}`: that trial \
+                 is cut short (it is still scored, on the frames recorded)",
+                self.stage_id,
+                path.display(),
+                trial_id(trial.get().saturating_sub(1))
+            );
+        }
         seg.finish(&mut |e| on_event(Some(e)))?;
-        diagnose(trial, &seg);
+        diagnose(trial.get(), &seg);
+        // The stream ended on its own (or after `seconds`) without a trial:
+        // a failure, live as offline; only a stop by the user is not (see
+        // the module docs).
+        if trial.get() == 0 {
+            return Err(self.error(self.no_trial(frames, scanned.as_ref())));
+        }
         Ok(())
+    }
+
+    /// Decodes the recording at `path` once (in constant memory) for what
+    /// streaming it cannot tell in time: its counts, and whether it ends
+    /// inside a frame, which is an error naming the file and byte unless
+    /// `allow_cut_end` (then the frame is dropped, said on stderr). A
+    /// recording without a valid frame is left to [`Self::no_trial`].
+    fn check_recording(&self, path: &std::path::Path) -> Result<(super::DaqStats, usize), RunError> {
+        let shown = path.display();
+        let mut file =
+            std::fs::File::open(path).map_err(|e| self.error(format!("cannot read {shown}: {e}")))?;
+        let mut dec = super::Decoder::new(Some(self.c.layout.len()), self.c.scale, self.c.offset);
+        let mut buf = vec![0u8; 1 << 16];
+        loop {
+            match file.read(&mut buf) {
+                Ok(0) => break,
+                Ok(n) => dec.feed(&buf[..n], |_| {}),
+                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+                Err(e) => return Err(self.error(format!("cannot read {shown}: {e}"))),
+            }
+        }
+        let (stats, cut) = (dec.stats().clone(), dec.pending());
+        if stats.frames > 0 && cut > 0 {
+            let at = stats.bytes - cut as u64;
+            if !self.c.allow_cut_end {
+                return Err(self.error(format!(
+                    "{shown}: the recording ends inside a frame ({cut} bytes of an incomplete frame at \
+                     byte {at}): cut while being written? Set `allow_cut_end = true` to drop that frame"
+                )));
+            }
+            eprintln!(
+                "daq `{}`: {shown} ends inside a frame ({cut} bytes at byte {at}): dropped it (`allow_cut_end`)",
+                self.stage_id
+            );
+        }
+        Ok((stats, cut))
+    }
+
+    /// Why a stream that ended on its own held no trial: no valid frame in
+    /// it (a recording's counts, and the bytes of an incomplete frame at its
+    /// end, say what was there instead), or no contact (the levels were said
+    /// on stderr).
+    fn no_trial(&self, frames: u64, scanned: Option<&(super::DaqStats, usize)>) -> String {
+        let what = match &self.c.input {
+            Input::Recording(path) => format!("the recording {}", path.display()),
+            _ => "the stream".to_string(),
+        };
+        match (frames, scanned) {
+            (0, Some((stats, cut))) => format!(
+                "{what} held no trial: no valid DAQ frame of the layout's {} channels in it ({stats}{})",
+                self.c.layout.len(),
+                if *cut > 0 {
+                    format!("; {cut} bytes of an incomplete frame at its end")
+                } else {
+                    String::new()
+                }
+            ),
+            (0, None) => format!("{what} held no trial: no valid DAQ frame came"),
+            _ => format!("{what} held no trial (no contact: is `contact_v` right for the board?)"),
+        }
     }
 
     /// Why a stream of `frames` frames began no trial: the `levels` of
@@ -954,7 +1115,8 @@ impl DaqSource {
         metas: Vec<TrialMeta>,
         tx: mpsc::SyncSender<Vec<u8>>,
     ) -> std::thread::JoinHandle<Result<(), String>> {
-        let (stage, seed, c) = (self.stage_id.clone(), self.seed, self.c.clone());
+        // Keyed as the scene stage `scene_stage_id` would key its trials.
+        let (stage, seed, c) = (self.c.scene_stage.clone(), self.seed, self.c.clone());
         std::thread::spawn(move || {
             let mut out = ChanWriter(tx);
             // Frames played so far: the next trial's sequence and time go on from them.
@@ -1080,13 +1242,11 @@ impl Source for DaqSource {
                 })
                 .collect())
         });
+        // `run` fails a stream that held no trial, with the message a live
+        // run gives; the caller names the stage.
         match all {
-            Ok(t) if t.is_empty() => Err(StageError::new(format!(
-                "daq `{}`: the stream held no trial (no contact: is `contact_v` right for the board?)",
-                self.stage_id
-            ))),
             Ok(t) => Ok(t.iter().map(|(m, _)| m.clone()).collect()),
-            Err(e) => Err(StageError::new(format!("daq `{}`: {e}", self.stage_id))),
+            Err(e) => Err(StageError::new(e.clone())),
         }
     }
 
@@ -1367,10 +1527,9 @@ mod tests {
             &f32s,
         )
         .unwrap_err();
+        // The caller names the stage (`stage `daq`: ...`), live and offline alike.
         assert!(
-            e.contains("daq `daq`")
-                && e.contains("frame 700 (sequence 700)")
-                && e.contains("off the uniform grid"),
+            e.contains("frame 700 (sequence 700)") && e.contains("off the uniform grid"),
             "{e}"
         );
         let e = trials("mixed.daq", &|k| k * 10_000, &|k| {
@@ -1382,6 +1541,159 @@ mod tests {
         })
         .unwrap_err();
         assert!(e.contains("frame 1 (sequence 1)") && e.contains("u16"), "{e}");
+    }
+
+    /// A one-taxel source reading `name` in `d` (100 Hz, contact below 3.0).
+    fn one_taxel(d: &std::path::Path, name: &str, allow_cut_end: bool) -> DaqSource {
+        let ctx = BuildContext {
+            stage_id: "daq".into(),
+            seed: 0,
+            out_dir: d.to_path_buf(),
+            base_dir: d.to_path_buf(),
+        };
+        let cfg = DaqConfig {
+            recording: Some(name.into()),
+            allow_cut_end,
+            layout: Some(LayoutConfig::Positions {
+                positions_mm: vec![[0.0, 0.0]],
+                taxel_mm: 2.0,
+            }),
+            sample_rate_hz: Some(100.0),
+            enter_ms: 10.0,
+            exit_ms: 10.0,
+            ..DaqConfig::default()
+        };
+        DaqSource::new(&cfg, &ctx).unwrap()
+    }
+
+    /// Frames of one taxel at 100 Hz: `open` frames at 3.3 V, then
+    /// `contact` at 1.0 V.
+    fn one_taxel_frames(open: u64, contact: u64) -> Vec<u8> {
+        let mut b = Vec::new();
+        for k in 0..open + contact {
+            let v = if k < open { 3.3 } else { 1.0 };
+            super::super::encode_frame(
+                &mut b,
+                super::super::SampleFormat::F32,
+                k as u32,
+                k * 10_000,
+                &[v],
+            );
+        }
+        b
+    }
+
+    /// A recording that ends inside a frame is refused before any frame
+    /// streams, naming the file and byte, unless `allow_cut_end`; a trial
+    /// still in contact at its end is streamed (and scored) whole.
+    #[test]
+    fn a_recording_cut_inside_a_frame_is_refused_unless_allowed() {
+        let d = tempfile::tempdir().unwrap();
+        let whole = one_taxel_frames(20, 30);
+        let frame = whole.len() / 50;
+        std::fs::write(d.path().join("cut.daq"), &whole[..whole.len() - 3]).unwrap();
+        let mut events = 0;
+        let e = one_taxel(d.path(), "cut.daq", false)
+            .run(&mut |_| {
+                events += 1;
+                Ok(())
+            })
+            .unwrap_err();
+        assert_eq!(events, 0, "frames streamed before the refusal");
+        let at = 49 * frame;
+        assert!(
+            e.stage == "daq"
+                && e.message.contains("cut.daq: the recording ends inside a frame")
+                && e.message.contains(&format!(
+                    "({} bytes of an incomplete frame at byte {at})",
+                    frame - 3
+                ))
+                && e.message.contains("`allow_cut_end = true`"),
+            "{e}"
+        );
+        // Allowed: the 49 whole frames; the trial (in contact at the end)
+        // closed there with its 29 frames.
+        assert_eq!(one_taxel(d.path(), "cut.daq", true).trials().unwrap().len(), 1);
+        let mut blocks = 0;
+        one_taxel(d.path(), "cut.daq", true)
+            .run(&mut |ev| {
+                blocks += usize::from(matches!(ev, SourceEvent::Block(_)));
+                Ok(())
+            })
+            .unwrap();
+        assert_eq!(blocks, 29);
+        // A whole recording needs no key.
+        std::fs::write(d.path().join("whole.daq"), &whole).unwrap();
+        assert_eq!(one_taxel(d.path(), "whole.daq", false).trials().unwrap().len(), 1);
+    }
+
+    /// A stream that ends on its own without a trial fails, live (`run`)
+    /// as offline (`trials`), with one message: why, naming the recording.
+    #[test]
+    fn a_recording_without_a_trial_fails_live_and_offline_alike() {
+        let d = tempfile::tempdir().unwrap();
+        std::fs::write(d.path().join("empty.daq"), b"").unwrap();
+        std::fs::write(d.path().join("open.daq"), one_taxel_frames(40, 0)).unwrap();
+        for (name, why) in [
+            (
+                "empty.daq",
+                "held no trial: no valid DAQ frame of the layout's 1 channels in it (0 frames (0 bytes)",
+            ),
+            (
+                "open.daq",
+                "held no trial (no contact: is `contact_v` right for the board?)",
+            ),
+        ] {
+            let live = one_taxel(d.path(), name, false).run(&mut |_| Ok(())).unwrap_err();
+            let offline = one_taxel(d.path(), name, false).trials().unwrap_err();
+            assert_eq!(live.message, offline.message);
+            assert!(
+                live.message.starts_with("the recording ") && live.message.contains(&format!("{name} {why}")),
+                "{live}"
+            );
+        }
+    }
+
+    /// `scene_stage_id` keys an emulated scene's draws as a `scene` stage
+    /// of that id: `"scene"` plays what [`simulate_trial`] (`palpate daq
+    /// emulate`, `palpate simulate`) gives; the stage's own id, another draw.
+    #[test]
+    fn an_emulated_scene_draws_as_its_scene_stage_id() {
+        let lab = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../graphs/scenes/lab.toml");
+        let ctx = BuildContext {
+            stage_id: "daq".into(),
+            seed: 0,
+            out_dir: std::env::temp_dir(),
+            base_dir: std::env::temp_dir(),
+        };
+        let first = |scene_stage_id: Option<&str>| {
+            let cfg = DaqConfig {
+                scene: Some(lab.clone()),
+                angles: Some(vec![30.0]),
+                trials_per_angle: Some(1),
+                scene_stage_id: scene_stage_id.map(str::to_string),
+                ..DaqConfig::default()
+            };
+            let mut first: Option<Vec<f64>> = None;
+            DaqSource::new(&cfg, &ctx)
+                .unwrap()
+                .run(&mut |ev| {
+                    if let (None, SourceEvent::Block(b)) = (&first, ev) {
+                        first = Some(b.signals().unwrap().data.iter().map(|c| c[0]).collect());
+                    }
+                    Ok(())
+                })
+                .unwrap();
+            first.unwrap()
+        };
+        let want: Vec<f64> = simulate_trial(&lab, 30.0, 0)
+            .unwrap()
+            .data
+            .iter()
+            .map(|c| f64::from(c[0] as f32))
+            .collect();
+        assert_eq!(first(Some("scene")), want);
+        assert_ne!(first(None), want);
     }
 
     #[test]
@@ -1403,6 +1715,17 @@ mod tests {
         };
         let e = cfg.build(&ctx).err().unwrap().to_string();
         for key in ["release_v", "window_ms", "sample_rate_hz"] {
+            assert!(e.contains(key), "{key}: {e}");
+        }
+        // Keys of one input, given for another.
+        let cfg = DaqConfig {
+            port: Some("/dev/null".into()),
+            allow_cut_end: true,
+            scene_stage_id: Some("scene".into()),
+            ..DaqConfig::default()
+        };
+        let e = cfg.build(&ctx).err().unwrap().to_string();
+        for key in ["allow_cut_end", "scene_stage_id"] {
             assert!(e.contains(key), "{key}: {e}");
         }
     }
