@@ -1518,37 +1518,47 @@ impl<'t> Loader<'t> {
         inner.remove("inputs");
         let mut tagged = toml::Table::new();
         tagged.insert(type_name.clone(), toml::Value::Table(inner));
-        let config: Box<dyn StageConfig> = match serde_path_to_error::deserialize(toml::Value::Table(tagged))
-        {
-            Ok(c) => c,
-            Err(e) => {
-                // Keys joined by dots, indices appended as written in TOML
-                // paths elsewhere in the messages: `effects[0].kind`.
-                let mut path = String::new();
-                for seg in e.path().iter().skip(1) {
-                    let seg = seg.to_string();
-                    if !path.is_empty() && !seg.starts_with('[') {
-                        path.push('.');
+        let config: Box<dyn StageConfig> =
+            match serde_path_to_error::deserialize(toml::Value::Table(tagged.clone())) {
+                Ok(c) => c,
+                Err(e) => {
+                    let segments: Vec<serde_path_to_error::Segment> = e.path().iter().cloned().collect();
+                    // Keys joined by dots, indices appended as written in TOML
+                    // paths elsewhere in the messages: `effects[0].kind`.
+                    let mut path = String::new();
+                    for seg in e.path().iter().skip(1) {
+                        let seg = seg.to_string();
+                        if !path.is_empty() && !seg.starts_with('[') {
+                            path.push('.');
+                        }
+                        path.push_str(&seg);
                     }
-                    path.push_str(&seg);
+                    let key = if path.is_empty() {
+                        unknown_field(e.inner().message())
+                    } else {
+                        Some(path)
+                    };
+                    let first = key
+                        .as_deref()
+                        .map(|k| k.split(['.', '[']).next().unwrap_or(k).to_string());
+                    let l = first.as_deref().map(key_line).unwrap_or(line);
+                    let text = first_line(e.inner().message()).to_string();
+                    let text = if text.starts_with("invalid type: unit variant")
+                        || (text.starts_with("invalid type:")
+                            && text.ends_with("expected variant identifier"))
+                    {
+                        names_expected(&tagged, &segments).unwrap_or(text)
+                    } else {
+                        text
+                    };
+                    let msg = match &key {
+                        Some(k) => format!("key `{k}`: {text}"),
+                        None => text,
+                    };
+                    self.error(l, Some(id), key.as_deref(), msg);
+                    return None;
                 }
-                let key = if path.is_empty() {
-                    unknown_field(e.inner().message())
-                } else {
-                    Some(path)
-                };
-                let first = key
-                    .as_deref()
-                    .map(|k| k.split(['.', '[']).next().unwrap_or(k).to_string());
-                let l = first.as_deref().map(key_line).unwrap_or(line);
-                let msg = match &key {
-                    Some(k) => format!("key `{k}`: {}", first_line(e.inner().message())),
-                    None => first_line(e.inner().message()).to_string(),
-                };
-                self.error(l, Some(id), key.as_deref(), msg);
-                return None;
-            }
-        };
+            };
         let ctx = BuildContext {
             stage_id: id.to_string(),
             seed: run.seed,
@@ -1832,6 +1842,32 @@ impl<'t> Loader<'t> {
         };
         (order, input_index)
     }
+}
+
+/// A better message for a choice key given a value that is not a string
+/// (`weighting = 3.5`, `kind = 3`), where serde's TOML deserializer says
+/// only "invalid type: unit variant, expected string only" (or "expected
+/// variant identifier"), naming neither the value nor the choices: the config is deserialized
+/// again with a string no choice has at that `path`, whose "unknown
+/// variant" error lists the choices. `None` when that does not work out.
+fn names_expected(tagged: &toml::Table, path: &[serde_path_to_error::Segment]) -> Option<String> {
+    use serde_path_to_error::Segment;
+    const PROBE: &str = "\u{1}";
+    let mut probe = toml::Value::Table(tagged.clone());
+    let mut at = &mut probe;
+    for seg in path {
+        at = match (seg, at) {
+            (Segment::Map { key }, toml::Value::Table(t)) => t.get_mut(key)?,
+            (Segment::Seq { index }, toml::Value::Array(a)) => a.get_mut(*index)?,
+            _ => return None,
+        };
+    }
+    let given = at.to_string();
+    *at = toml::Value::String(PROBE.into());
+    let e = serde_path_to_error::deserialize::<_, Box<dyn StageConfig>>(probe).err()?;
+    let m = first_line(e.inner().message()).to_string();
+    let (_, choices) = m.split_once(&format!("unknown variant `{PROBE}`, "))?;
+    Some(format!("{given} is not a choice: {choices} (a string)"))
 }
 
 /// toml's messages append a location ("in `key`") after a blank line; we give our own.

@@ -446,6 +446,12 @@ fn effects_out_of_phase_order_or_with_bad_values_are_errors() {
     // not `effects.[0]`) and lists every kind.
     let e = load_err("effects = [{ kind = \"bogus\" }]");
     assert!(e.contains("key `effects[0].kind`") && e.contains("`adc`"), "{e}");
+    // Not a string: the value and the choices are named all the same.
+    let e = load_err("effects = [{ kind = 3 }]");
+    assert!(
+        e.contains("key `effects[0].kind`: 3 is not a choice") && e.contains("`adc`"),
+        "{e}"
+    );
     let e = load_err("effects = [{ kind = \"noise\", sigmaa = 1 }]");
     assert!(e.contains("sigmaa"), "{e}");
     let e = load_err("effects = [{ kind = \"dead\", taxels = [16] }]");

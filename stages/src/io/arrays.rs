@@ -58,7 +58,8 @@ pub const MAX_NPY_NESTING: usize = 8;
 /// actually be in the file.
 pub const MAX_ELEMENTS: u64 = 1 << 31;
 
-/// Most bytes one NPZ member may decompress to (1 GiB).
+/// Most bytes one NPZ member, or one compressed variable of a MAT v5 file,
+/// may decompress to (1 GiB).
 pub const MAX_NPZ_MEMBER_BYTES: u64 = 1 << 30;
 
 /// A numeric array in C order.
@@ -562,6 +563,12 @@ fn mat73_variable(d: &hdf5_reader::Dataset) -> Result<Option<NdArray>, String> {
 /// one runs past the end of the file: `matfile` silently drops a truncated
 /// trailing variable, which would lose a trial without a word.
 fn check_mat_elements(bytes: &[u8], what: &str) -> Result<(), String> {
+    check_mat_elements_within(bytes, what, MAX_NPZ_MEMBER_BYTES)
+}
+
+/// [`check_mat_elements`] with compressed variables capped at `cap` bytes
+/// inflated.
+fn check_mat_elements_within(bytes: &[u8], what: &str, cap: u64) -> Result<(), String> {
     let big = match &bytes[126..128] {
         b"IM" => false,
         b"MI" => true,
@@ -585,6 +592,34 @@ fn check_mat_elements(bytes: &[u8], what: &str) -> Result<(), String> {
             ));
         }
         let ty = u32_at(pos);
+        let whole = (pos + 8)
+            .checked_add(u32_at(pos + 4) as usize)
+            .filter(|&e| e <= bytes.len());
+        if let (15, Some(end)) = (ty, whole) {
+            // miCOMPRESSED: `matfile` inflates it whole, however large, so
+            // its size is counted first (inflated into nothing, stopping
+            // past the cap): a small file cannot claim gigabytes. (A cut
+            // element is reported as truncated below.)
+            let body = &bytes[pos + 8..end];
+            let mut inflated =
+                std::io::Read::take(flate2::read::ZlibDecoder::new(body), cap.saturating_add(1));
+            match std::io::copy(&mut inflated, &mut std::io::sink()) {
+                Ok(size) if size > cap => {
+                    return Err(format!(
+                        "{what}: variable {} is over {cap} bytes uncompressed (a compressed variable may \
+                         inflate to at most {cap})",
+                        k + 1
+                    ))
+                }
+                Ok(_) => {}
+                Err(e) => {
+                    return Err(format!(
+                    "{what}: variable {}: its compressed data does not inflate ({e}); truncated or corrupt?",
+                    k + 1
+                ))
+                }
+            }
+        }
         if ty == 14 && ty >> 16 == 0 {
             let n = u32_at(pos + 4) as usize;
             if pos + 8 + n <= bytes.len() {
@@ -691,6 +726,46 @@ mod tests {
         assert_eq!(mat73_read_cap(10_856), gib);
         assert_eq!(mat73_read_cap(gib), 8 * gib);
         assert_eq!(mat73_read_cap(usize::MAX), 16 * gib);
+    }
+
+    /// A compressed MAT v5 variable: `payload` (a miMATRIX element, or
+    /// anything) zlib-compressed behind a miCOMPRESSED tag.
+    fn compressed_mat(payload: &[u8]) -> Vec<u8> {
+        use std::io::Write;
+        let mut z = flate2::write::ZlibEncoder::new(Vec::new(), flate2::Compression::fast());
+        z.write_all(payload).unwrap();
+        let comp = z.finish().unwrap();
+        let mut b = b"MATLAB 5.0 MAT-file, test".to_vec();
+        b.resize(124, b' ');
+        b.extend_from_slice(&0x0100u16.to_le_bytes());
+        b.extend_from_slice(b"IM");
+        b.extend_from_slice(&15u32.to_le_bytes());
+        b.extend_from_slice(&(comp.len() as u32).to_le_bytes());
+        b.extend_from_slice(&comp);
+        b
+    }
+
+    /// A small file whose compressed variable inflates past the cap is
+    /// refused before `matfile` inflates it, naming the variable; within
+    /// the cap it passes; a corrupt stream is named too.
+    #[test]
+    fn compressed_mat_variables_are_capped_before_inflating() {
+        let b = compressed_mat(&vec![0u8; 1 << 20]);
+        assert!(b.len() < 10_000, "{} bytes", b.len());
+        let e = check_mat_elements_within(&b, "x.mat", 1 << 16).unwrap_err();
+        assert!(
+            e.contains("x.mat: variable 1 is over 65536 bytes uncompressed"),
+            "{e}"
+        );
+        assert!(check_mat_elements_within(&b, "x.mat", 1 << 20).is_ok());
+        let mut bad = b.clone();
+        let last = bad.len() - 5;
+        bad[136..last].iter_mut().for_each(|x| *x ^= 0x5a);
+        let e = check_mat_elements_within(&bad, "x.mat", 1 << 20).unwrap_err();
+        assert!(e.contains("x.mat: variable 1") && e.contains("inflate"), "{e}");
+        // A cut compressed element is still reported as truncated.
+        let e = check_mat_elements_within(&b[..b.len() - 10], "x.mat", 1 << 20).unwrap_err();
+        assert!(e.contains("truncated"), "{e}");
     }
 
     #[test]
