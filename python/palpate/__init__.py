@@ -805,6 +805,14 @@ def _signals(x: Any, sample_rate_hz: Optional[float]) -> Any:
 
 
 def _line(n: int) -> dict:
+    # A plain array says nothing of where its taxels sit: a count other than
+    # the paper's 16 is taken as one row, and said, since spatial stages
+    # (``wss``, ``bin`` images) read the layout.
+    warnings.warn(
+        f"an array of {n} taxels (not 16) is taken as a 1 x {n} row of taxels; "
+        "for another layout pass palpate.Signals(data, sample_rate_hz, palpate.grid(rows=..., cols=...))",
+        stacklevel=3,
+    )
     return grid(rows=1, cols=n)
 
 

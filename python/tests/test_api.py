@@ -189,6 +189,10 @@ def test_encoders_on_plain_arrays():
     assert set(l.taxel.tolist()) <= {5}
     batch = palpate.izhikevich(np.stack([currents, currents]), sample_rate_hz=fs)
     assert len(batch) == 2 and np.array_equal(batch[0].t_ms, batch[1].t_ms)
+    # Another taxel count: one row of taxels, said.
+    with pytest.warns(UserWarning, match="1 x 17 row"):
+        s = palpate.izhikevich(np.zeros((200, 17)), sample_rate_hz=fs)
+    assert (s.layout["rows"], s.layout["cols"]) == (1, 17)
 
 
 def test_bad_config_and_bad_arrays_raise_named_errors():

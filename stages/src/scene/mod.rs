@@ -372,7 +372,42 @@ pub fn simulate_to_dir(
         .map_err(|e| StageError::new(format!("writing {}: {e}", path.display())))?;
         files.push(path);
     }
+    if let Some(w) = stale_recordings(out, &files) {
+        eprintln!("warning: {w}");
+    }
     Ok(files)
+}
+
+/// A warning when `out` holds recordings (`.npy`, `.csv`) this run did not
+/// write: trials of an earlier `simulate` into the same folder, which the
+/// new `labels.toml` does not list, so the `path = "<out>/*.npy"` it
+/// suggests would fail on them. Kept, not deleted: they are the user's.
+fn stale_recordings(out: &Path, written: &[PathBuf]) -> Option<String> {
+    let mut stale: Vec<String> = std::fs::read_dir(out)
+        .ok()?
+        .flatten()
+        .map(|e| e.path())
+        .filter(|p| {
+            p.extension()
+                .is_some_and(|x| x.eq_ignore_ascii_case("npy") || x.eq_ignore_ascii_case("csv"))
+                && !written.contains(p)
+        })
+        .filter_map(|p| p.file_name().map(|n| n.to_string_lossy().into_owned()))
+        .collect();
+    if stale.is_empty() {
+        return None;
+    }
+    stale.sort();
+    let n = stale.len();
+    let shown = stale.iter().take(3).cloned().collect::<Vec<_>>().join(", ");
+    Some(format!(
+        "{} holds {n} recording{} this run did not write ({shown}{}), not in its new labels.toml: a \
+         `path = \"{}/*\"` pattern would take them too; remove them or simulate into an empty folder",
+        out.display(),
+        if n == 1 { "" } else { "s" },
+        if n > 3 { ", ..." } else { "" },
+        out.display()
+    ))
 }
 
 fn write_file(path: &Path, bytes: &[u8]) -> Result<(), StageError> {

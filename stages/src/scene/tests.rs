@@ -481,3 +481,27 @@ fn an_inline_layout_over_a_scene_files_grid_is_no_warning() {
     assert_eq!(warnings(""), (64, 0));
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// Recordings an earlier run left in the folder are named (a few, and the
+/// count); the files this run wrote and other files are not.
+#[test]
+fn stale_recordings_in_the_output_folder_are_named() {
+    let d = tempfile::tempdir().unwrap();
+    let out = d.path();
+    let mut written = Vec::new();
+    for name in ["a.npy", "b.npy", "labels.toml"] {
+        std::fs::write(out.join(name), b"x").unwrap();
+        written.push(out.join(name));
+    }
+    assert_eq!(super::stale_recordings(out, &written), None);
+    for name in ["old1.npy", "old2.CSV", "old3.npy", "old4.npy", "notes.txt"] {
+        std::fs::write(out.join(name), b"x").unwrap();
+    }
+    let w = super::stale_recordings(out, &written).unwrap();
+    assert!(
+        w.contains("holds 4 recordings")
+            && w.contains("old1.npy, old2.CSV, old3.npy, ...")
+            && !w.contains("notes"),
+        "{w}"
+    );
+}
