@@ -24,7 +24,8 @@
 //!   estimator's `decision_time_ms` counts from the trial's start (see
 //!   `estimate`'s module docs for how each estimator sets it); `t₀` is the
 //!   edge's first contact with the array, the trial's `crossing_ms[0]`, when the
-//!   source knows it (simulated scenes), else 0 (the trial's start: a recording
+//!   source knows it (simulated scenes, or a label file's `crossing_ms`, as in
+//!   the `trials.json` of `palpate simulate`), else 0 (the trial's start: a recording
 //!   without a known crossing; such trials are counted in the report). Counted
 //!   from first contact because the hold before it is the protocol's (the
 //!   paper's robot waits 2 s at P1), the same for every estimator and no part of

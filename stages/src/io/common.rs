@@ -371,6 +371,12 @@ pub struct TrialLabels {
     /// `leave_one_condition_out` and `train_test` protocols split on.
     #[serde(default, deserialize_with = "de_conditions")]
     pub conditions: BTreeMap<String, String>,
+    /// When the edge first and last touched the array, `[first, last]` in ms
+    /// from the trial's start (a simulated scene knows it; `palpate
+    /// simulate`'s `trials.json` carries it). The `mae` sink counts decision
+    /// times from the first, so trials read back from files are timed as
+    /// the scene's were. Default none: timed from the trial's start.
+    pub crossing_ms: Option<[f64; 2]>,
 }
 
 fn de_conditions<'de, D: serde::Deserializer<'de>>(d: D) -> Result<BTreeMap<String, String>, D::Error> {
@@ -406,6 +412,7 @@ impl TrialLabels {
             group: other.group.or(self.group),
             duration_ms: other.duration_ms.or(self.duration_ms),
             speed_mm_s: other.speed_mm_s.or(self.speed_mm_s),
+            crossing_ms: other.crossing_ms.or(self.crossing_ms),
             conditions: {
                 let mut c = self.conditions.clone();
                 c.extend(other.conditions.clone());
@@ -606,6 +613,13 @@ pub fn check_label_numbers(l: &TrialLabels) -> Result<(), String> {
         return Err(format!(
             "speed_mm_s = {v} must be a finite, positive number of mm/s"
         ));
+    }
+    if let Some([a, b]) = l.crossing_ms {
+        if !(a.is_finite() && b.is_finite() && 0.0 <= a && a <= b) {
+            return Err(format!(
+                "crossing_ms = [{a}, {b}] must be two finite times in ms, 0 <= first <= last"
+            ));
+        }
     }
     Ok(())
 }
@@ -939,6 +953,8 @@ struct JsonTrial {
     conditions: BTreeMap<String, String>,
     #[serde(default)]
     speed_mm_s: Option<f64>,
+    #[serde(default)]
+    crossing_ms: Option<[f64; 2]>,
 }
 
 #[derive(Deserialize)]
@@ -955,7 +971,7 @@ struct TrialsJson {
 }
 
 /// Reads the labels of a `trials.json`: `{"trials": [{"trial_id": ..., "label":
-/// {"stimulus": ..., "angle_deg": ...}, "group": ..., "speed_mm_s": ...}, ...]}` (other keys are
+/// {"stimulus": ..., "angle_deg": ...}, "group": ..., "speed_mm_s": ..., "crossing_ms": [t0, t1]}, ...]}` (other keys are
 /// ignored: they are metadata, not labels).
 fn read_trials_json(text: &str) -> Result<BTreeMap<String, TrialLabels>, String> {
     let parsed: TrialsJson = serde_json::from_str(text).map_err(|e| e.to_string())?;
@@ -968,6 +984,7 @@ fn read_trials_json(text: &str) -> Result<BTreeMap<String, TrialLabels>, String>
             duration_ms: None,
             speed_mm_s: t.speed_mm_s,
             conditions: t.conditions,
+            crossing_ms: t.crossing_ms,
         };
         // JSON has no NaN, but an angle of 400 or a speed of -1 is as wrong
         // here as in a TOML sidecar.
@@ -1098,7 +1115,7 @@ pub fn build_metas(
                 index,
                 label,
                 group,
-                crossing_ms: None,
+                crossing_ms: l.crossing_ms,
                 speed_mm_s,
                 conditions: l.conditions.clone(),
                 provenance: vec![],
@@ -1489,6 +1506,33 @@ mod tests {
         let ok = parse_sidecar("trial,angle_deg\na,0.001\nb,179.999\nc,\n", "csv", "l.csv").unwrap();
         assert_eq!(ok["a"].angle_deg, Some(0.001));
         assert_eq!(ok["c"].angle_deg, None);
+    }
+
+    /// A sidecar's `crossing_ms` (TOML, or `trials.json` as `palpate
+    /// simulate` writes it) reaches the trial's metadata, where the `mae`
+    /// sink times decisions from it; a reversed or negative one is refused.
+    #[test]
+    fn crossing_times_are_read_and_checked() {
+        let json =
+            r#"{"trials": [{"trial_id": "r7", "label": {"angle_deg": 45}, "crossing_ms": [2000.5, 9000]}]}"#;
+        let l = parse_sidecar(json, "json", "trials.json").unwrap();
+        assert_eq!(l["r7"].crossing_ms, Some([2000.5, 9000.0]));
+        let l = parse_sidecar("[trials.t1]\ncrossing_ms = [100, 200]\n", "toml", "labels.toml").unwrap();
+        let metas = build_metas(&[("t1".to_string(), l["t1"].clone())], &["t1.csv".to_string()]).unwrap();
+        assert_eq!(metas[0].crossing_ms, Some([100.0, 200.0]));
+        for bad in ["[200, 100]", "[-1, 5]"] {
+            let e = parse_sidecar(
+                &format!("[trials.t1]\ncrossing_ms = {bad}\n"),
+                "toml",
+                "labels.toml",
+            )
+            .unwrap_err()
+            .message;
+            assert!(
+                e.contains("trial `t1`") && e.contains("crossing_ms"),
+                "{bad}: {e}"
+            );
+        }
     }
 
     #[test]
