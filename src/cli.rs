@@ -996,9 +996,10 @@ fn cmd_daq(command: DaqCommand) -> ExitCode {
                         Err(e) => {
                             // The reader's hint names its graph key; here
                             // the flag sets it.
-                            let e = e
-                                .to_string()
-                                .replace("Set `allow_cut_end = true`", "Pass --allow-cut-end");
+                            let e = e.to_string().replace(
+                                crate::stages::io::daq::CUT_END_HINT,
+                                "Pass --allow-cut-end to drop that frame",
+                            );
                             let shown = rec.display().to_string();
                             if e.contains(&shown) {
                                 eprintln!("{e}");

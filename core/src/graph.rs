@@ -1513,13 +1513,15 @@ impl<'t> Loader<'t> {
             return None;
         }
 
-        let mut inner = table.clone();
-        inner.remove("type");
-        inner.remove("inputs");
-        let mut tagged = toml::Table::new();
-        tagged.insert(type_name.clone(), toml::Value::Table(inner));
+        // The config as typetag reads it: `{ <type> = { keys but type and inputs } }`.
+        let tagged = || {
+            let mut inner = table.clone();
+            inner.remove("type");
+            inner.remove("inputs");
+            toml::Table::from_iter([(type_name.clone(), toml::Value::Table(inner))])
+        };
         let config: Box<dyn StageConfig> =
-            match serde_path_to_error::deserialize(toml::Value::Table(tagged.clone())) {
+            match serde_path_to_error::deserialize(toml::Value::Table(tagged())) {
                 Ok(c) => c,
                 Err(e) => {
                     let segments: Vec<serde_path_to_error::Segment> = e.path().iter().cloned().collect();
@@ -1547,7 +1549,7 @@ impl<'t> Loader<'t> {
                         || (text.starts_with("invalid type:")
                             && text.ends_with("expected variant identifier"))
                     {
-                        names_expected(&tagged, &segments).unwrap_or(text)
+                        names_expected(&tagged(), &segments).unwrap_or(text)
                     } else {
                         text
                     };

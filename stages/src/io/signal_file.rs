@@ -700,11 +700,10 @@ pub fn read_signal_bytes(
                 ));
             }
             if rec.trailing_bytes > 0 && !cfg.allow_cut_end {
-                return Err(format!(
-                    "{shown}: the recording ends inside a frame ({} bytes of an incomplete frame at byte {}): \
-                     cut while being written? Set `allow_cut_end = true` to drop that frame",
+                return Err(super::daq::cut_end_error(
+                    &shown,
                     rec.trailing_bytes,
-                    bytes.len() - rec.trailing_bytes
+                    (bytes.len() - rec.trailing_bytes) as u64,
                 ));
             }
             vec![RawTrial {

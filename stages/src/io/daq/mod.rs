@@ -26,8 +26,8 @@ pub use live::{
     EmulateReport, Pty, RawRecorder, StopReason, READ_AHEAD_BYTES,
 };
 pub use protocol::{
-    crc32, decode_recording, encode_frame, frame_len, DaqStats, DecodeEvent, DecodedRecording, Decoder,
-    Frame, FrameCheck, SampleFormat,
+    crc32, cut_end_error, decode_recording, encode_frame, frame_len, DaqStats, DecodeEvent, DecodedRecording,
+    Decoder, Frame, FrameCheck, SampleFormat, CUT_END_HINT,
 };
 pub use source::{
     is_pseudo_terminal, simulate_trial, DaqConfig, DaqSource, SegEvent, SegmentMode, SegmentPlan, Segmenter,

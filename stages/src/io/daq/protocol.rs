@@ -537,6 +537,19 @@ pub struct DecodedRecording {
     pub trailing_bytes: usize,
 }
 
+/// The hint of [`cut_end_error`], which `palpate daq emulate` swaps for its flag.
+pub const CUT_END_HINT: &str = "Set `allow_cut_end = true` to drop that frame";
+
+/// The error for a recording `shown` that ends inside a frame: `trailing`
+/// bytes of an incomplete frame starting at byte `at`. One wording for every
+/// reader of recordings (the `signal_file` and `daq` sources).
+pub fn cut_end_error(shown: impl std::fmt::Display, trailing: usize, at: u64) -> String {
+    format!(
+        "{shown}: the recording ends inside a frame ({trailing} bytes of an incomplete frame at byte {at}): \
+         cut while being written? {CUT_END_HINT}"
+    )
+}
+
 /// Decodes a raw recording. Lost frames (gaps) are an error unless
 /// `fill_gaps`, which holds the previous frame's values over each lost frame
 /// (at most as many lost frames as received ones, see the module docs);

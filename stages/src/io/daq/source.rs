@@ -1018,10 +1018,7 @@ impl DaqSource {
         if stats.frames > 0 && cut > 0 {
             let at = stats.bytes - cut as u64;
             if !self.c.allow_cut_end {
-                return Err(self.error(format!(
-                    "{shown}: the recording ends inside a frame ({cut} bytes of an incomplete frame at \
-                     byte {at}): cut while being written? Set `allow_cut_end = true` to drop that frame"
-                )));
+                return Err(self.error(super::cut_end_error(&shown, cut, at)));
             }
             eprintln!(
                 "daq `{}`: {shown} ends inside a frame ({cut} bytes at byte {at}): dropped it (`allow_cut_end`)",
