@@ -252,6 +252,13 @@ pub struct PlotReference {
 /// before the first runs.
 pub const MAX_SWEEP_RUNS: usize = 1000;
 
+/// Stage ids a graph may not use (in any letter case, for case-insensitive
+/// file systems): a sink names its reports after its id (`<id>.csv`,
+/// `<id>.json`, `<id>.md`), and every run writes `run.json`, `timing.md` /
+/// `timing.csv` and, live, `live_timing.md` / `.csv` into the same folder,
+/// which would overwrite a sink called so without a word.
+pub const RESERVED_STAGE_IDS: [&str; 3] = ["run", "timing", "live_timing"];
+
 /// One series of a sweep: one key, its values, and constant overrides.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
@@ -1366,6 +1373,16 @@ impl<'t> Loader<'t> {
                 Some(id),
                 None,
                 "a stage id may hold only letters, digits, `_` and `-`".into(),
+            );
+        }
+        if let Some(r) = RESERVED_STAGE_IDS.iter().find(|r| r.eq_ignore_ascii_case(id)) {
+            self.error(
+                line,
+                Some(id),
+                None,
+                format!(
+                    "`{r}` is reserved: a sink's reports are named after its id, and the run writes                      its own {r}.* files beside them (rename the stage)"
+                ),
             );
         }
         let Some(table) = value.as_table() else {

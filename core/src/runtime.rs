@@ -1048,6 +1048,8 @@ pub fn run(graph: &Graph, opts: &RunOptions<'_>) -> Result<RunResult, RunError> 
                 let report = sink
                     .consume(&sink_inputs, &ctx)
                     .map_err(|e| RunError::new(id, None, e.message))?;
+                crate::stage::check_sink_files(&result.reports, id, &report)
+                    .map_err(|e| RunError::new(id, None, e))?;
                 tick(opts);
                 result.reports.push((node.id.clone(), report));
                 None

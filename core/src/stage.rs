@@ -581,6 +581,27 @@ pub struct SinkReport {
     pub class_metrics: Vec<ClassMetric>,
 }
 
+/// Fails when `report` (sink `id`'s) lists a file an earlier sink of the
+/// same run also wrote: sinks name their files after their ids (`mae` writes
+/// `mae_trials.csv`, so a second sink called `mae_trials` writes over it), and
+/// the one written first is lost. The error names both sinks and the file.
+pub fn check_sink_files(
+    earlier: &[(String, SinkReport)],
+    id: &str,
+    report: &SinkReport,
+) -> Result<(), String> {
+    for f in &report.files {
+        if let Some((other, _)) = earlier.iter().find(|(_, r)| r.files.contains(f)) {
+            return Err(format!(
+                "sinks `{other}` and `{id}` both write {}: the second overwrote the first's; rename one of \
+                 them (a sink's files are named after its id)",
+                f.display()
+            ));
+        }
+    }
+    Ok(())
+}
+
 /// One class's value of a metric: see [`SinkReport::class_metrics`].
 #[derive(Clone, Debug, PartialEq)]
 pub struct ClassMetric {

@@ -1018,6 +1018,8 @@ pub fn replay_polled(
             out_dir: &graph.out_dir,
         };
         let report = sink.consume(&inputs, &ctx).map_err(|e| rerr(&node.id, None, e))?;
+        crate::stage::check_sink_files(&run.reports, &node.id, &report)
+            .map_err(|e| rerr(&node.id, None, StageError::new(e)))?;
         run.reports.push((node.id.clone(), report));
     }
     run.estimates = estimators

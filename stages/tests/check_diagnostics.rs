@@ -259,3 +259,24 @@ fn a_grid_beside_an_explicit_layout_is_a_warning_naming_array() {
     let g = load(&graph(&cond, "cutoff_hz = 10.0", "")).unwrap();
     assert_eq!(keys(&g), ["conditions.b.array"], "{:#?}", g.warnings);
 }
+
+/// A stage called `run`, `timing` or `live_timing` (any case) is refused at
+/// check, naming the stage: a sink's reports are named after its id, and the
+/// run's own `run.json` and `timing.*` would overwrite them without a word.
+#[test]
+fn ids_the_run_writes_files_under_are_refused() {
+    for id in ["run", "timing", "Timing", "live_timing"] {
+        let text =
+            graph("angles = [45]", "cutoff_hz = 10.0", "").replace("[stages.out]", &format!("[stages.{id}]"));
+        let d = load(&text).unwrap_err();
+        let e = errors(&d);
+        assert!(
+            e.iter()
+                .any(|d| d.stage.as_deref() == Some(id) && d.message.contains("reserved")),
+            "{id}: {d:#?}"
+        );
+    }
+    // Ids that merely contain one are fine.
+    let text = graph("angles = [45]", "cutoff_hz = 10.0", "").replace("[stages.out]", "[stages.timing_sink]");
+    assert!(load(&text).is_ok());
+}

@@ -1331,3 +1331,40 @@ fn read_signal_files_works_outside_a_graph_and_spikes_on_explicit_layouts() {
     .unwrap();
     assert!(e.contains("y must be 0"), "{e}");
 }
+
+/// Two sinks whose files share a name (`mae` writes `m_trials.csv` for a
+/// sink `m`, and a sink `m_trials` writes `m_trials.csv` too): the run fails
+/// naming both and the file, where before the second silently overwrote the
+/// first's table.
+#[test]
+fn two_sinks_writing_one_file_fail_the_run() {
+    let d = tempfile::tempdir().unwrap();
+    let scene = concat!(env!("CARGO_MANIFEST_DIR"), "/../graphs/scenes/ideal.toml");
+    let chain = format!(
+        "[stages.scene]\ntype = \"scene\"\nfile = \"{scene}\"\nangles = [30, 60]\ntrials_per_angle = 1\n\
+         [stages.filter]\ntype = \"lowpass\"\ninputs = [\"scene\"]\n\
+         [stages.norm]\ntype = \"normalize\"\ninputs = [\"filter\"]\n\
+         [stages.drive]\ntype = \"drive\"\ninputs = [\"norm\"]\n\
+         [stages.enc]\ntype = \"izhikevich\"\ninputs = [\"drive\"]\n\
+         [stages.bins]\ntype = \"bin\"\ninputs = [\"enc\"]\n\
+         [stages.wss]\ntype = \"wss\"\ninputs = [\"bins\"]\nangles = [30, 60]\n\
+         [stages.m]\ntype = \"mae\"\ninputs = [\"wss\"]\n"
+    );
+    let e = match run_graph(
+        d.path(),
+        &format!("{chain}[stages.m_trials]\ntype = \"mae\"\ninputs = [\"wss\"]\n"),
+    ) {
+        Ok(_) => panic!("two sinks writing m_trials.csv ran"),
+        Err(e) => e,
+    };
+    assert!(
+        e.contains("`m`") && e.contains("`m_trials`") && e.contains("m_trials.csv"),
+        "{e}"
+    );
+    // Other ids: the same run goes through.
+    run_graph(
+        d.path(),
+        &format!("{chain}[stages.other]\ntype = \"mae\"\ninputs = [\"wss\"]\n"),
+    )
+    .unwrap();
+}

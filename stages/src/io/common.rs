@@ -1139,8 +1139,9 @@ pub fn loaded_trial<T>(
 }
 
 /// Writes the label sidecar (TOML) the sources read: one `[trials."<id>"]`
-/// table per trial with `angle_deg` (when known), `stimulus`, `group` and, for
-/// spikes, `duration_ms`, and first the array's `[layout]` when given (what
+/// table per trial with `angle_deg` (when known), `stimulus`, `group`,
+/// `speed_mm_s` and `crossing_ms` (when known), for spikes `duration_ms`,
+/// and first the array's `[layout]` when given (what
 /// the file sources read the files with, see the module docs). TOML rather
 /// than CSV so that a `*.csv` glob over the data files does not pick the
 /// sidecar up. Numbers use Rust's round-trip form.
@@ -1182,6 +1183,11 @@ pub fn sidecar_toml(
         }
         if let Some(v) = m.speed_mm_s {
             s.push_str(&format!("speed_mm_s = {v:?}\n"));
+        }
+        // When the edge touched the array: decision times are counted from
+        // it, so trials read back are timed as the scene timed them.
+        if let Some([a, b]) = m.crossing_ms.filter(|c| c.iter().all(|t| t.is_finite())) {
+            s.push_str(&format!("crossing_ms = [{a:?}, {b:?}]\n"));
         }
         if !m.conditions.is_empty() {
             let q = |x: &str| format!("\"{}\"", x.replace('\\', "\\\\").replace('"', "\\\""));
@@ -1520,6 +1526,16 @@ mod tests {
         let l = parse_sidecar("[trials.t1]\ncrossing_ms = [100, 200]\n", "toml", "labels.toml").unwrap();
         let metas = build_metas(&[("t1".to_string(), l["t1"].clone())], &["t1.csv".to_string()]).unwrap();
         assert_eq!(metas[0].crossing_ms, Some([100.0, 200.0]));
+        // The sidecar the writers make (`palpate simulate`'s labels.toml,
+        // the write_* sinks') carries it back.
+        let meta = TrialMeta {
+            trial_id: "t2".into(),
+            crossing_ms: Some([1234.5, 6789.25]),
+            ..TrialMeta::default()
+        };
+        let text = sidecar_toml(&[("t2".into(), &meta, None)], None, None);
+        let l = parse_sidecar(&text, "toml", "labels.toml").unwrap();
+        assert_eq!(l["t2"].crossing_ms, Some([1234.5, 6789.25]), "{text}");
         for bad in ["[200, 100]", "[-1, 5]"] {
             let e = parse_sidecar(
                 &format!("[trials.t1]\ncrossing_ms = {bad}\n"),
