@@ -337,6 +337,31 @@ fn every_trained_type_loads_its_own_model_and_refuses_bad_ones_naming_stage_key_
         hop_ms: 20.0,
         ..good.clone()
     };
+    // 16 taxels as the model's 4 x 4 grid, but in a 2 x 8 strip: the count
+    // agrees, the taxels are not the ones the model learnt.
+    let strip = SpikeImages {
+        layout: TaxelLayout::Grid {
+            rows: 2,
+            cols: 8,
+            pitch_mm: 3.0,
+            taxel_mm: 2.0,
+        },
+        ..good.clone()
+    };
+    // The model's grid at another pitch, its taxels given as positions: the
+    // same arrangement, accepted.
+    let wide = SpikeImages {
+        layout: TaxelLayout::Positions {
+            positions_mm: good
+                .layout
+                .positions()
+                .iter()
+                .map(|p| [2.0 * p[0] + 1.0, 2.0 * p[1]])
+                .collect(),
+            taxel_mm: 2.0,
+        },
+        ..good.clone()
+    };
     for (t, f) in &models {
         let name = f.file_name().unwrap().to_string_lossy().to_string();
         let cfg: Box<dyn StageConfig> =
@@ -358,7 +383,7 @@ fn every_trained_type_loads_its_own_model_and_refuses_bad_ones_naming_stage_key_
         let Ok(StreamForm::Streams(s)) = stream::form(t, &settings, &ctx(&dir)) else {
             panic!("{t} streams")
         };
-        for (images, want) in [(&nine, "9 taxels"), (&hop, "hop")] {
+        for (images, want) in [(&nine, "9 taxels"), (&hop, "hop"), (&strip, "a 2 x 8 grid")] {
             let item = Item {
                 meta: Arc::new(meta.clone()),
                 payload: images.clone().into(),
@@ -378,6 +403,11 @@ fn every_trained_type_loads_its_own_model_and_refuses_bad_ones_naming_stage_key_
         let b = model.predict(&item, &tctx).unwrap();
         let out = stream::run_blocks(s.as_ref(), &[good.clone().into()], &tctx).unwrap();
         assert_eq!(out.last().unwrap().estimate().unwrap().as_ref(), &b, "{t}");
+        let item = Item {
+            meta: Arc::new(meta.clone()),
+            payload: wide.clone().into(),
+        };
+        model.predict(&item, &tctx).unwrap();
     }
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -126,6 +126,12 @@ pub struct FeatureSpec {
     pub window_ms: f64,
     /// Frame hop of the training images, ms.
     pub hop_ms: f64,
+    /// The array the training images came from. A saved model applied to
+    /// images of another taxel arrangement is refused (see
+    /// [`super::saved`]); absent from models saved before it was recorded,
+    /// which are then checked on the taxel count alone.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub layout: Option<palpate_core::TaxelLayout>,
 }
 
 /// The feature keys as a config states them (0 = auto for `step` and `stride`).
@@ -185,6 +191,7 @@ impl FeatureKeys {
             n_taxels: images.n_taxels(),
             window_ms: images.window_ms,
             hop_ms: images.hop_ms,
+            layout: Some(images.layout.clone()),
         }
     }
 }
@@ -1703,6 +1710,7 @@ mod tests {
                 n_taxels: n,
                 window_ms: 100.0,
                 hop_ms: 10.0,
+                layout: None,
             };
             let images = |counts: Vec<f64>| SpikeImages {
                 layout: layout.clone(),
@@ -1761,6 +1769,7 @@ mod tests {
             n_taxels: 16,
             window_ms: 100.0,
             hop_ms: 10.0,
+            layout: None,
         };
         let mut counts = vec![0.0; 2 * 16];
         counts[0] = 1.0;
@@ -1805,6 +1814,7 @@ mod tests {
                 n_taxels: 16,
                 window_ms: 100.0,
                 hop_ms: 10.0,
+                layout: None,
             };
             let images = SpikeImages {
                 layout: TaxelLayout::paper(),
@@ -1887,6 +1897,7 @@ mod tests {
                 n_taxels: 2,
                 window_ms: 100.0,
                 hop_ms: 10.0,
+                layout: None,
             },
             vote: Vote::Winner,
             classifier: Box::new(NearestCentre {

@@ -44,7 +44,10 @@
 //! an `ann` stage), and a model whose classes, feature spec or classifier
 //! shape disagree with each other ([`FittedModel::check`]). When a trial
 //! comes, naming the key and file too: images whose taxel count, frame
-//! window or hop differ from the model's training images.
+//! window or hop differ from the model's training images, or whose taxels
+//! are arranged otherwise ([`same_arrangement`]: the same grid at another
+//! pitch passes, a 2 x 8 strip for a 4 x 4 grid does not; a model saved
+//! before models recorded their array is checked on the count alone).
 
 use super::features::{load_model, FittedModel};
 use palpate_core::{
@@ -97,16 +100,53 @@ impl ModelIn {
     /// Checks that `images` fit the model (taxels, window, hop), naming the
     /// key and file.
     pub fn check_images(&self, images: &SpikeImages, what: &str) -> Result<(), StageError> {
-        self.model
-            .features
-            .check_images(images, what)
-            .map_err(|e| self.error(e))
+        let f = &self.model.features;
+        f.check_images(images, what).map_err(|e| self.error(e))?;
+        match &f.layout {
+            Some(l) if *l != images.layout && !same_arrangement(l, &images.layout) => {
+                Err(self.error(StageError::new(format!(
+                    "{what}: images come from {}, the model was trained on {}: its inputs are taxels by \
+                 index, so another arrangement mixes them (retrain on this array)",
+                    crate::io::common::describe_layout(&images.layout),
+                    crate::io::common::describe_layout(l)
+                ))))
+            }
+            _ => Ok(()),
+        }
     }
 
     /// `e`, naming the key and the file.
     pub fn error(&self, e: StageError) -> StageError {
         StageError::new(format!("key `model_in` ({}): {}", self.file.display(), e.message))
     }
+}
+
+/// Whether two layouts place their taxels alike up to a uniform scale and a
+/// shift: taxel `i` of one sits where taxel `i` of the other does once each
+/// array's positions are centred and divided by their largest distance from
+/// the centre (within 1e-6). So a model transfers to the same arrangement at
+/// another pitch (whether it then works is for the user to measure), but
+/// not to a transposed grid, a 2 x 8 strip, or renumbered taxels.
+pub fn same_arrangement(a: &palpate_core::TaxelLayout, b: &palpate_core::TaxelLayout) -> bool {
+    let norm = |l: &palpate_core::TaxelLayout| -> Vec<[f64; 2]> {
+        let p = l.positions();
+        let n = p.len().max(1) as f64;
+        let c = p
+            .iter()
+            .fold([0.0, 0.0], |s, q| [s[0] + q[0] / n, s[1] + q[1] / n]);
+        let r = p
+            .iter()
+            .map(|q| (q[0] - c[0]).hypot(q[1] - c[1]))
+            .fold(0.0, f64::max);
+        let r = if r > 0.0 { r } else { 1.0 };
+        p.iter().map(|q| [(q[0] - c[0]) / r, (q[1] - c[1]) / r]).collect()
+    };
+    let (pa, pb) = (norm(a), norm(b));
+    pa.len() == pb.len()
+        && pa
+            .iter()
+            .zip(&pb)
+            .all(|(x, y)| (x[0] - y[0]).abs() <= 1e-6 && (x[1] - y[1]).abs() <= 1e-6)
 }
 
 /// The model a trained estimator's `model_in` names, or `None` without it;
