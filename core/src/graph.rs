@@ -472,12 +472,26 @@ pub struct LoadOptions {
 
 impl LoadOptions {
     /// Parses `path=value` (from `--set`) into an override; a value that does not
-    /// parse as a TOML value is taken as a string, so `--set stages.s.mode=trial` works.
+    /// parse as a TOML value is taken as a string, so `--set stages.s.mode=trial` works,
+    /// except one that starts as an array, a table or a quoted string does
+    /// (`[`, `{`, `"`, `'`): that is an error saying why it does not parse.
     pub fn parse_set(arg: &str) -> Result<(String, toml::Value), String> {
         let (k, v) = arg
             .split_once('=')
             .ok_or_else(|| format!("`--set {arg}` needs the form stages.<id>.<key>=<value>"))?;
-        Ok((k.trim().to_string(), parse_value(v.trim())))
+        let v = v.trim();
+        // A bare word is a string (`mode=trial`), but an array, a table or a
+        // quoted string was meant as TOML: say why it does not parse rather
+        // than pass its text on as a string.
+        if v.starts_with(['[', '{', '"', '\'']) {
+            if let Err(e) = toml::from_str::<toml::Table>(&format!("v = {v}")) {
+                return Err(format!(
+                    "`--set {arg}`: `{v}` is not a TOML value ({})",
+                    first_line(e.message())
+                ));
+            }
+        }
+        Ok((k.trim().to_string(), parse_value(v)))
     }
 }
 
@@ -1567,8 +1581,10 @@ impl<'t> Loader<'t> {
                             && text.ends_with("expected variant identifier"))
                     {
                         names_expected(&tagged(), &segments).unwrap_or(text)
+                    } else if text.starts_with("data did not match any variant of untagged enum") {
+                        angles_expected(&tagged(), &segments).unwrap_or(text)
                     } else {
-                        text
+                        too_large_integer(&text).unwrap_or(text)
                     };
                     let msg = match &key {
                         Some(k) => format!("key `{k}`: {text}"),
@@ -1887,6 +1903,65 @@ fn names_expected(tagged: &toml::Table, path: &[serde_path_to_error::Segment]) -
     let m = first_line(e.inner().message()).to_string();
     let (_, choices) = m.split_once(&format!("unknown variant `{PROBE}`, "))?;
     Some(format!("{given} is not a choice: {choices} (a string)"))
+}
+
+/// The value at `path` in `tagged` (`None` when the path leads nowhere).
+fn value_at<'a>(tagged: &'a toml::Table, path: &[serde_path_to_error::Segment]) -> Option<&'a toml::Value> {
+    use serde_path_to_error::Segment;
+    let mut at: Option<&toml::Value> = None;
+    for seg in path {
+        let next = match (seg, at) {
+            (Segment::Map { key }, None) => tagged.get(key),
+            (Segment::Map { key }, Some(toml::Value::Table(t))) => t.get(key),
+            (Segment::Seq { index }, Some(toml::Value::Array(a))) => a.get(*index),
+            _ => None,
+        };
+        at = Some(next?);
+    }
+    at
+}
+
+/// A better message for an angle key (`angles` of `scene` and `wss`, a list
+/// or a `{ from, to, step }` range) given neither form, where serde says
+/// only "data did not match any variant of untagged enum Angles": the forms,
+/// and the first element that is not a number.
+fn angles_expected(tagged: &toml::Table, path: &[serde_path_to_error::Segment]) -> Option<String> {
+    let forms = "expected a list of angles in degrees (`[30, 45, 60]`) or a range (`{ from = 10, to = 90, step = 5 }`)";
+    let v = value_at(tagged, path)?;
+    let number = |x: &toml::Value| x.is_integer() || x.is_float();
+    Some(match v {
+        toml::Value::Array(items) => match items.iter().enumerate().find(|(_, x)| !number(x)) {
+            Some((i, x)) => format!("{forms}; element [{i}] is {x}, a {}, not a number", x.type_str()),
+            None => forms.to_string(),
+        },
+        toml::Value::Table(t) => match t.iter().find(|(_, x)| !number(x)) {
+            Some((k, x)) => format!("{forms}; `{k}` is {x}, a {}, not a number", x.type_str()),
+            None => format!("{forms}; a range takes only `from`, `to` and `step`"),
+        },
+        other => format!("{forms}, got {other}, a {}", other.type_str()),
+    })
+}
+
+/// A better message for a whole number beyond TOML's integers: `--set k=<digits>`
+/// and a value the TOML parser cannot hold become strings, and serde then
+/// says "invalid type: string \"99999999999999999999\", expected usize".
+fn too_large_integer(text: &str) -> Option<String> {
+    let rest = text.strip_prefix("invalid type: string \"")?;
+    let (digits, expected) = rest.split_once("\", expected ")?;
+    let plain = digits.strip_prefix('-').unwrap_or(digits);
+    if plain.is_empty() || !plain.bytes().all(|b| b.is_ascii_digit()) {
+        return None;
+    }
+    let expected = match expected {
+        "usize" | "u64" | "u32" | "u16" | "u8" => "a whole number from 0",
+        "isize" | "i64" | "i32" | "i16" | "i8" => "a whole number",
+        "f64" | "f32" => "a number",
+        other => other,
+    };
+    Some(format!(
+        "{digits} is out of range: TOML's whole numbers go from -9223372036854775808 to \
+         9223372036854775807 (this key takes {expected})"
+    ))
 }
 
 /// toml's messages append a location ("in `key`") after a blank line; we give our own.

@@ -280,3 +280,76 @@ fn ids_the_run_writes_files_under_are_refused() {
     let text = graph("angles = [45]", "cutoff_hz = 10.0", "").replace("[stages.out]", "[stages.timing_sink]");
     assert!(load(&text).is_ok());
 }
+
+/// Values of the wrong form say what was wrong in the user's terms: an
+/// angle list with a string in it names the element (serde said only "data
+/// did not match any variant of untagged enum Angles"), a whole number past
+/// TOML's range says so (it said "invalid type: string ..., expected
+/// usize"), and a `--set` array that does not parse is refused as such.
+#[test]
+fn wrong_forms_are_named_in_the_users_terms() {
+    for (scene, key) in [
+        ("angles = [30, \"60\", 90]", "angles"),
+        (
+            "angles = [30, 60]\n[stages.wss]\ntype = \"wss\"\ninputs = [\"bins\"]\nangles = [30, \"60\"]",
+            "angles",
+        ),
+    ] {
+        let d = load(&graph(scene, "cutoff_hz = 10.0", "")).unwrap_err();
+        let e = errors(&d);
+        assert!(
+            e.iter().any(|d| d.key.as_deref() == Some(key)
+                && d.message.contains("element [1] is \"60\", a string")
+                && d.message.contains("{ from = 10, to = 90, step = 5 }")),
+            "{scene}: {d:#?}"
+        );
+    }
+    let d = load(&graph(
+        "angles = { from = 10, to = \"90\" }",
+        "cutoff_hz = 10.0",
+        "",
+    ))
+    .unwrap_err();
+    assert!(
+        errors(&d)
+            .iter()
+            .any(|d| d.message.contains("`to` is \"90\", a string")),
+        "{d:#?}"
+    );
+
+    palpate_stages::link();
+    let opts = LoadOptions {
+        base_dir: Some(concat!(env!("CARGO_MANIFEST_DIR"), "/../graphs").into()),
+        overrides: vec![
+            LoadOptions::parse_set("stages.scene.trials_per_angle=99999999999999999999").unwrap(),
+        ],
+        ..LoadOptions::default()
+    };
+    let d = load_str(
+        &graph("angles = [45]", "cutoff_hz = 10.0", ""),
+        "test.toml",
+        "test",
+        &opts,
+    )
+    .unwrap_err()
+    .0;
+    assert!(
+        errors(&d)
+            .iter()
+            .any(|d| d.key.as_deref() == Some("trials_per_angle")
+                && d.message.contains("99999999999999999999 is out of range")
+                && d.message.contains("a whole number from 0")),
+        "{d:#?}"
+    );
+
+    let e = LoadOptions::parse_set("sweep.values=[9223372036854775808]").unwrap_err();
+    assert!(
+        e.contains("is not a TOML value") && e.contains("sweep.values"),
+        "{e}"
+    );
+    // A bare word is still a string, and a quoted one too.
+    let (_, v) = LoadOptions::parse_set("stages.s.mode=trial").unwrap();
+    assert_eq!(v.as_str(), Some("trial"));
+    let (_, v) = LoadOptions::parse_set("run.seed=\"18446744073709551615\"").unwrap();
+    assert_eq!(v.as_str(), Some("18446744073709551615"));
+}

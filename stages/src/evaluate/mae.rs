@@ -512,6 +512,16 @@ fn fmt_opt(v: Option<f64>, prec: usize) -> String {
 
 /// Renders the statistics as a terminal table.
 pub fn render(stats: &MaeStats, per_class: bool) -> String {
+    // A class's angle with one decimal, or every digit it needs when one
+    // decimal would round it (30.0001 and 30 are two rows, both "30.0").
+    let class_label = |a: f64| {
+        let one = format!("{a:.1}");
+        if one.parse::<f64>() == Ok(a) {
+            one
+        } else {
+            palpate_core::fmt_num(a)
+        }
+    };
     let mut s = String::new();
     if stats.trials == 0 {
         // A live session stopped before its first trial ended: say so
@@ -529,8 +539,8 @@ pub fn render(stats: &MaeStats, per_class: bool) -> String {
         for c in &stats.classes {
             let _ = writeln!(
                 s,
-                "  {:>8.1}°  {:>6}  {:>12}°  {:>7}°  {:>7}",
-                c.angle_deg,
+                "  {:>8}°  {:>6}  {:>12}°  {:>7}°  {:>7}",
+                class_label(c.angle_deg),
                 c.trials,
                 fmt_opt(c.mean_estimate_deg, 2),
                 fmt_opt(c.mae_deg, 2),
@@ -921,6 +931,22 @@ mod tests {
         assert_eq!(s.max_class_mae_deg, Some(2.5));
         let text = render(&s, true);
         assert!(text.contains("MAE 1.67°"), "{text}");
+        assert!(text.contains("    10.0°"), "{text}");
+    }
+
+    /// Classes one decimal would round together are printed with every
+    /// digit they need: 30 and 30.0001 are two rows, not two "30.0°".
+    #[test]
+    fn class_rows_keep_the_digits_that_tell_classes_apart() {
+        let pairs = vec![
+            (Some(30.0), Some(30.0)),
+            (Some(30.0001), Some(30.0)),
+            (Some(45.25), Some(45.0)),
+        ];
+        let text = render(&mae_stats("w", &pairs), true);
+        for row in ["    30.0°", "30.0001°", "45.25°"] {
+            assert!(text.contains(row), "{row}: {text}");
+        }
     }
 
     /// No trial (a live session stopped before its first ended): one line

@@ -140,16 +140,23 @@ impl Simulator {
         let base = sc.motion.margin_mm + self.reach() + 3.0 * sd_x + shear;
         // margin = base + k (x_mid + R), x_mid = (half + margin) / sin θ.
         if k >= 0.5 * sin {
+            // sin θ > 6 SD holds between asin(6 SD) and 180° minus it (the
+            // sine is symmetric about 90°), rounded inwards.
+            let lo = ((6.0 * sd_a).min(1.0).asin().to_degrees() * 1e2).ceil() / 1e2 + 0.01;
+            let range = if lo < 90.0 {
+                format!(", or use angles from {lo:.2} to {:.2} degrees", 180.0 - lo)
+            } else {
+                String::new()
+            };
             return Err(ConfigError::key(
                 "effects",
                 format!(
                     "the placement-angle variation ({} degrees SD) is too large for the angle {theta_deg}: the edge could start under the array; \
-                     keep the variations' `angle_sd_deg` (summed) at or under {:.3} degrees for this angle, or use angles of at least {:.2} degrees \
+                     keep the variations' `angle_sd_deg` (summed) at or under {:.3} degrees for this angle{range} \
                      (3 SD of rotation must stay under half the sine of the edge's angle)",
                     sd_a.to_degrees(),
                     // Rounded towards the side that works.
                     ((sin / 6.0).to_degrees() * 1e3).floor() / 1e3,
-                    ((6.0 * sd_a).min(1.0).asin().to_degrees() * 1e2).ceil() / 1e2 + 0.01,
                 ),
             ));
         }

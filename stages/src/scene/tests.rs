@@ -179,26 +179,42 @@ fn placement_variation_too_large_for_a_grazing_angle_is_a_config_error() {
     // It names both ways out, and each works: the largest SD for the angle
     // (sin 2° / 6 rad = 0.333°), or the smallest angle for the SD.
     assert!(
-        e.message.contains("at or under 0.333 degrees") && e.message.contains("at least 6.0"),
+        e.message.contains("at or under 0.333 degrees") && e.message.contains("from 6.0"),
         "{e}"
     );
     let ok = |text: &str| toml::from_str::<SceneConfig>(text).unwrap().build(&ctx).is_ok();
     assert!(ok(
         "angles = [2]\neffects = [{ kind = \"variation\", angle_sd_deg = 0.333 }]"
     ));
-    let min_angle: f64 = e
-        .message
-        .split("at least ")
-        .nth(1)
-        .unwrap()
-        .split(' ')
-        .next()
-        .unwrap()
-        .parse()
-        .unwrap();
-    assert!(ok(&format!(
-        "angles = [{min_angle}]\neffects = [{{ kind = \"variation\", angle_sd_deg = 1.0 }}]"
-    )));
+    let bound = |after: &str| -> f64 {
+        e.message
+            .split(after)
+            .nth(1)
+            .unwrap()
+            .split(' ')
+            .next()
+            .unwrap()
+            .parse()
+            .unwrap()
+    };
+    let (min_angle, max_angle) = (bound("angles from "), bound(" to "));
+    assert!((min_angle + max_angle - 180.0).abs() < 1e-9, "{e}");
+    for a in [min_angle, max_angle] {
+        assert!(ok(&format!(
+            "angles = [{a}]\neffects = [{{ kind = \"variation\", angle_sd_deg = 1.0 }}]"
+        )));
+    }
+    // Near 180 degrees the way out is the range's upper end, not a lower
+    // bound the angle already meets.
+    let cfg: SceneConfig =
+        toml::from_str("angles = [179]\neffects = [{ kind = \"variation\", angle_sd_deg = 1.0 }]").unwrap();
+    let e = cfg.build(&ctx).err().expect("an error");
+    assert!(e.message.contains(&format!("to {max_angle:.2} degrees")), "{e}");
+    // An SD no angle can take names no range.
+    let cfg: SceneConfig =
+        toml::from_str("angles = [90]\neffects = [{ kind = \"variation\", angle_sd_deg = 10.0 }]").unwrap();
+    let e = cfg.build(&ctx).err().expect("an error");
+    assert!(!e.message.contains("angles from"), "{e}");
 }
 
 #[test]
