@@ -85,7 +85,9 @@ pub fn stage_page(type_name: &str) -> Option<String> {
 /// (the guide's "Metrics" page says the same at more length).
 pub const EXPLAIN: &str = "\
 Definitions (docs/guide/src/metrics.md has them at length):
-  error        |answer - true angle| of one trial, degrees.
+  error        the angle between answer and true edge lines, degrees:
+               d = |answer - true angle| mod 180, error = min(d, 180 - d)
+               (170 for 10 is 20 off); within 0..90 simply |answer - true|.
   no edge      the estimator declined to answer: WSS when no frame has a spike or
                its best score is under `threshold`; a trained estimator when no
                frame of the trial is active. Left out of the MAE, counted wrong.

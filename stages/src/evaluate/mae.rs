@@ -2,7 +2,11 @@
 //! class.
 //!
 //! For trial `n` with true angle `θ_n` and estimate `θ̂_n`, the absolute error is
-//! `e_n = |θ̂_n - θ_n|` (degrees). Reported per estimator (one per input):
+//! the angle between the two edge lines, `d = |θ̂_n - θ_n| mod 180`,
+//! `e_n = min(d, 180 - d)` (degrees): orientations are lines, so an edge at
+//! 170° is 20° from one at 10°, not 160° ([`angle_error`]). Within the paper's
+//! 10..90 classes no two angles are over 90° apart and `e_n = |θ̂_n - θ_n|`
+//! exactly. Reported per estimator (one per input):
 //!
 //! * overall MAE `= mean_n e_n` and its SD `= sqrt(mean_n (e_n - MAE)^2)` (the
 //!   population SD, as the paper's "MAE (±SD)" reads);
@@ -208,7 +212,17 @@ pub struct MaeStats {
 /// Whether an answer is correct: an angle within `tolerance` degrees of the
 /// truth (plus 1e-6° for rounding); "no edge" is never correct.
 pub fn is_correct(truth: f64, estimate: Option<f64>, tolerance: f64) -> bool {
-    estimate.is_some_and(|e| (e - truth).abs() <= tolerance + 1e-6)
+    estimate.is_some_and(|e| angle_error(e, truth) <= tolerance + 1e-6)
+}
+
+/// The error of an orientation estimate, degrees: the angle between the two
+/// lines, `d = |θ̂ − θ| mod 180` folded to `min(d, 180 − d)`. An edge at
+/// 170° is the line at −10°, 20° from one at 10°, not 160°. Equal to
+/// `|θ̂ − θ|`, bit for bit, whenever that is at most 90° (every pair of
+/// angles within 0..90, as the paper's classes are).
+pub fn angle_error(estimate: f64, truth: f64) -> f64 {
+    let d = (estimate - truth).abs() % 180.0;
+    d.min(180.0 - d)
 }
 
 /// Adds accuracy: the share of labelled trials answered within `tolerance`
@@ -234,7 +248,7 @@ pub fn trials_csv(rows: &[TrialRow]) -> String {
     );
     let f = |v: Option<f64>| v.map_or(String::new(), |x| format!("{x}"));
     for r in rows {
-        let err = r.truth.zip(r.estimate).map(|(t, e)| (e - t).abs());
+        let err = r.truth.zip(r.estimate).map(|(t, e)| angle_error(e, t));
         let correct = r.truth.map_or(String::new(), |t| {
             is_correct(t, r.estimate, r.tolerance).to_string()
         });
@@ -327,7 +341,11 @@ pub fn coarse_mae(pairs: &[(Option<f64>, Option<f64>)], acuity: f64, origin: f64
     let bin = |a: f64| ((a - origin) / acuity + 1e-9).floor();
     let errs: Vec<f64> = pairs
         .iter()
-        .filter_map(|&(t, e)| Some((bin(t?) - bin(e?)).abs() * acuity))
+        .filter_map(|&(t, e)| {
+            let d = (bin(t?) - bin(e?)).abs() * acuity;
+            // Folded as [`angle_error`] folds: lines 180° apart are one.
+            Some(d.min((180.0 - d).abs()))
+        })
         .collect();
     (!errs.is_empty()).then(|| errs.iter().sum::<f64>() / errs.len() as f64)
 }
@@ -350,7 +368,7 @@ pub fn mae_stats(estimator: &str, pairs: &[(Option<f64>, Option<f64>)]) -> MaeSt
         let key = (truth * 1e6).round() as i64;
         by_class.entry(key).or_insert((truth, Vec::new())).1.push(est);
         match est {
-            Some(e) => errors.push((e - truth).abs()),
+            Some(e) => errors.push(angle_error(e, truth)),
             None => stats.no_edge += 1,
         }
     }
@@ -369,7 +387,7 @@ pub fn mae_stats(estimator: &str, pairs: &[(Option<f64>, Option<f64>)]) -> MaeSt
             no_edge: ests.len() - answered.len(),
             mean_estimate_deg: (!answered.is_empty()).then(|| answered.iter().sum::<f64>() / n),
             mae_deg: (!answered.is_empty())
-                .then(|| answered.iter().map(|e| (e - angle).abs()).sum::<f64>() / n),
+                .then(|| answered.iter().map(|&e| angle_error(e, angle)).sum::<f64>() / n),
         };
         stats.classes.push(c);
     }
@@ -932,6 +950,25 @@ mod tests {
         let text = render(&s, true);
         assert!(text.contains("MAE 1.67°"), "{text}");
         assert!(text.contains("    10.0°"), "{text}");
+    }
+
+    /// Orientations are lines: 10° answered 170° is 20° off, not 160°, in
+    /// the MAE, the per-class MAE, the per-trial table and accuracy; within
+    /// 90° the error is the plain difference, bit for bit.
+    #[test]
+    fn errors_are_angles_between_lines() {
+        assert_eq!(angle_error(170.0, 10.0), 20.0);
+        assert_eq!(angle_error(10.0, 170.0), 20.0);
+        assert_eq!(angle_error(95.0, 5.0), 90.0);
+        for (e, t) in [(45.3, 10.1), (10.1, 90.0), (0.1, 90.1), (33.3, 33.3)] {
+            assert_eq!(angle_error(e, t).to_bits(), (e - t).abs().to_bits());
+        }
+        let pairs = vec![(Some(10.0), Some(170.0)), (Some(170.0), Some(170.0))];
+        let s = mae_stats("w", &pairs);
+        assert_eq!(s.mae_deg, Some(10.0));
+        assert_eq!(s.classes[0].mae_deg, Some(20.0));
+        assert!(is_correct(179.0, Some(1.0), 2.5));
+        assert!(!is_correct(179.0, Some(5.0), 2.5));
     }
 
     /// Classes one decimal would round together are printed with every
