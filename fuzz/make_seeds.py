@@ -95,8 +95,11 @@ put("signal_npz", "deflated.npz", npz(members, True))
 colmajor = [sig[k][x] for x in range(16) for k in range(12)]
 put("signal_mat", "2d.mat", mat([("fs", [1, 1], [1000.0]), ("data", [12, 16], colmajor)]))
 put("signal_mat", "3d.mat", mat([("data", [6, 16, 2], colmajor), ("angle_deg", [1, 2], [10.0, 20.0])]))
-# MATLAB v7.3 (HDF5) files as libhdf5 writes them (stages/tests/data/make_mat73.py).
-for path in sorted(glob.glob(os.path.join(root, "stages", "tests", "data", "mat73_*.mat"))):
+# MATLAB v7.3 (HDF5) files as libhdf5 writes them (stages/tests/data/make_mat73.py),
+# and v5 files as SciPy writes them (make_mat5.py: int32, logical, char, cell,
+# struct, sparse, complex; compressed and not).
+mats = ["mat73_*.mat", "mat5_*.mat"]
+for path in sorted(p for m in mats for p in glob.glob(os.path.join(root, "stages", "tests", "data", m))):
     with open(path, "rb") as f:
         put("signal_mat", os.path.basename(path), f.read())
 

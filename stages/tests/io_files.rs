@@ -545,6 +545,42 @@ fn mat_two_and_three_dimensional_with_fs() {
     assert_eq!(it[1].meta.label.angle_deg, Some(70.0));
 }
 
+/// SciPy's v5 files of int32 ADC counts (tests/data/make_mat5.py): an
+/// int32 `fs` and a 2x16 int32 `data`, compressed or not, read as one trial
+/// of 2 samples on 16 taxels with the counts as values; the char, cell,
+/// struct and logical variables beside them are no signal. (The `matfile`
+/// crate used before read no int32 variable.)
+#[test]
+fn mat_v5_int32_counts_and_fs() {
+    let d = tempfile::tempdir().unwrap();
+    let fixtures = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data");
+    for f in ["mat5_int32.mat", "mat5_int32_z.mat"] {
+        std::fs::copy(fixtures.join(f), d.path().join(f)).unwrap();
+        let grid = r#"layout = { kind = "grid", rows = 4, cols = 4, pitch_mm = 3.0, taxel_mm = 2.0 }"#;
+        let r = run_graph(
+            d.path(),
+            &format!(
+                "[stages.src]\ntype = \"signal_file\"\npath = \"{f}\"\nvariables = [\"data\"]\n{grid}\n"
+            ),
+        )
+        .unwrap_or_else(|e| panic!("{f}: {e}"));
+        let it = items(&r, "src");
+        assert_eq!(it.len(), 1, "{f}");
+        let s = signals(&it[0]);
+        assert_eq!((s.n_samples(), s.sample_rate_hz), (2, 1000.0), "{f}");
+        for (x, col) in s.data.iter().enumerate() {
+            for (k, v) in col.iter().enumerate() {
+                let n = (16 * k + x) as f64;
+                assert_eq!(
+                    *v,
+                    if n % 2.0 == 1.0 { -n } else { n },
+                    "{f}: taxel {x} sample {k}"
+                );
+            }
+        }
+    }
+}
+
 /// MATLAB v7.3 (HDF5) files, written by libhdf5 through h5py as MATLAB lays
 /// them out (tests/data/make_mat73.py): the same trials as the v5 files
 /// above, a chunked and deflated stack, integer ADC counts, the variables

@@ -1,4 +1,4 @@
-//! Numeric arrays from NPY, NPZ and MATLAB v5 `.mat` files, and NPY writing.
+//! Numeric arrays from NPY, NPZ and MATLAB `.mat` (v5/v7 and v7.3) files, and NPY writing.
 //!
 //! Every array is returned in C (row-major) order with its shape, as `f64`:
 //! a NumPy file in Fortran order and every MATLAB array (column-major) are
@@ -11,9 +11,12 @@
 //!   neuromorphic event tools save events (`x`, `y`, `t`, `p` fields).
 //! * NPZ: a zip of NPY files (`np.savez` stored, `np.savez_compressed`
 //!   deflated), read in archive order (NumPy writes keyword arrays in call order).
-//! * MAT: MATLAB v5/v7 files (`save -v7`, compressed or not) through the
-//!   `matfile` crate; numeric real arrays only (char, cell and struct variables
-//!   are skipped).
+//! * MAT: MATLAB v5/v7 files (`save`, `save -v7`, SciPy's `savemat`;
+//!   compressed or not, either byte order) through our own reader,
+//!   [`super::mat5`]: numeric real arrays of every class (`double`, `single`,
+//!   the integers, `logical`), whatever narrower type MATLAB stored them as;
+//!   char, cell, struct and object variables are skipped; sparse and complex
+//!   variables are errors.
 //! * MAT v7.3 (`save -v7.3`, MATLAB's format for variables over 2 GB): HDF5
 //!   behind a 512-byte user block, read by the pure-Rust `hdf5-reader`. Each
 //!   root dataset is a variable whose `MATLAB_class` attribute names its
@@ -40,9 +43,15 @@
 //! (elements are at least 1 byte): memory is bounded by 8x the file (16x for
 //! a Fortran-order array, transposed through a copy). An NPZ member is read
 //! into a buffer of at most its declared size, itself capped by
-//! [`MAX_NPZ_MEMBER_BYTES`] (deflate can expand 1000-fold). A v7.3 variable
+//! [`MAX_NPZ_MEMBER_BYTES`] (deflate can expand 1000-fold). A v5 MAT file
+//! checks every element's size against its parent, inflates compressed
+//! variables as a stream, and allocates each array once, at its exact size,
+//! after its dimensions are checked: a file's variables may decode to at most
+//! [`mat73_read_cap`] bytes in all ([`super::mat5`] docs). A v7.3 variable
 //! may decode to at most [`mat73_read_cap`] bytes (checked by the HDF5 reader
-//! before it allocates), reads no external file or link, and a panic
+//! before it allocates; widening to `f64` and the transposition then copy
+//! it, so a 10 KB file can still reach 2 GB at its peak: an open limit,
+//! test `the_fuzz_oom_v73_file_is_an_error_quickly`), reads no external file or link, and a panic
 //! inside the HDF5 decoder on a malformed file becomes an error naming the
 //! file (the decoder is a dependency; fuzz target `signal_mat` covers it).
 
@@ -58,8 +67,7 @@ pub const MAX_NPY_NESTING: usize = 8;
 /// actually be in the file.
 pub const MAX_ELEMENTS: u64 = 1 << 31;
 
-/// Most bytes one NPZ member, or one compressed variable of a MAT v5 file,
-/// may decompress to (1 GiB).
+/// Most bytes one NPZ member may decompress to (1 GiB).
 pub const MAX_NPZ_MEMBER_BYTES: u64 = 1 << 30;
 
 /// A numeric array in C order.
@@ -394,7 +402,8 @@ pub fn read_npz(bytes: &[u8], what: &str) -> Result<Vec<(String, NpyContent)>, S
     Ok(out)
 }
 
-/// Reads every numeric variable of a MATLAB v5/v7 `.mat` file, in file order.
+/// Reads every numeric variable of a MATLAB `.mat` file, in file order: v5/v7
+/// by [`super::mat5`], v7.3 (HDF5) by `hdf5-reader` (module docs).
 pub fn read_mat(bytes: &[u8], what: &str) -> Result<Vec<(String, NdArray)>, String> {
     if bytes.starts_with(b"MATLAB 7.3") {
         return read_mat73(bytes, what);
@@ -404,41 +413,7 @@ pub fn read_mat(bytes: &[u8], what: &str) -> Result<Vec<(String, NdArray)>, Stri
             "{what}: not a MATLAB .mat file (truncated, or no `MATLAB` header)"
         ));
     }
-    check_mat_elements(bytes, what)?;
-    let mat = matfile::MatFile::parse(bytes)
-        .map_err(|e| format!("{what}: not a readable MAT v5/v7 file ({e}); truncated?"))?;
-    let mut out = Vec::new();
-    for a in mat.arrays() {
-        use matfile::NumericData as N;
-        fn cv<T: Copy + Into<f64>>(v: &[T]) -> Vec<f64> {
-            v.iter().map(|&x| x.into()).collect()
-        }
-        let (real, complex) = match a.data() {
-            N::Double { real, imag } => (real.clone(), imag.is_some()),
-            N::Single { real, imag } => (cv(real), imag.is_some()),
-            N::Int8 { real, imag } => (cv(real), imag.is_some()),
-            N::UInt8 { real, imag } => (cv(real), imag.is_some()),
-            N::Int16 { real, imag } => (cv(real), imag.is_some()),
-            N::UInt16 { real, imag } => (cv(real), imag.is_some()),
-            N::Int32 { real, imag } => (cv(real), imag.is_some()),
-            N::UInt32 { real, imag } => (cv(real), imag.is_some()),
-            N::Int64 { real, imag } => (real.iter().map(|&x| x as f64).collect(), imag.is_some()),
-            N::UInt64 { real, imag } => (real.iter().map(|&x| x as f64).collect(), imag.is_some()),
-        };
-        if complex {
-            return Err(format!(
-                "{what}: variable `{}` is complex; only real data is supported",
-                a.name()
-            ));
-        }
-        let shape = a.size().clone();
-        if shape.iter().try_fold(1usize, |p, &d| p.checked_mul(d)) != Some(real.len()) {
-            return Err(format!("{what}: variable `{}` is truncated", a.name()));
-        }
-        let data = fortran_to_c(&shape, &real);
-        out.push((a.name().to_string(), NdArray { shape, data }));
-    }
-    Ok(out)
+    super::mat5::read_mat5(bytes, what)
 }
 
 /// Reads every numeric variable of a MATLAB v7.3 (HDF5) `.mat` file (module
@@ -559,147 +534,6 @@ fn mat73_variable(d: &hdf5_reader::Dataset) -> Result<Option<NdArray>, String> {
     Ok(Some(NdArray { shape, data }))
 }
 
-/// Walks the top-level data elements of a MAT v5 file and fails if the last
-/// one runs past the end of the file: `matfile` silently drops a truncated
-/// trailing variable, which would lose a trial without a word.
-fn check_mat_elements(bytes: &[u8], what: &str) -> Result<(), String> {
-    check_mat_elements_within(bytes, what, MAX_NPZ_MEMBER_BYTES)
-}
-
-/// [`check_mat_elements`] with compressed variables capped at `cap` bytes
-/// inflated.
-fn check_mat_elements_within(bytes: &[u8], what: &str, cap: u64) -> Result<(), String> {
-    let big = match &bytes[126..128] {
-        b"IM" => false,
-        b"MI" => true,
-        _ => return Err(format!("{what}: not a MAT v5 file (bad endian indicator)")),
-    };
-    let u32_at = |o: usize| {
-        let b = [bytes[o], bytes[o + 1], bytes[o + 2], bytes[o + 3]];
-        if big {
-            u32::from_be_bytes(b)
-        } else {
-            u32::from_le_bytes(b)
-        }
-    };
-    let mut pos = 128usize;
-    let mut k = 0;
-    while pos < bytes.len() {
-        if bytes.len() - pos < 8 {
-            return Err(format!(
-                "{what}: truncated: {} stray bytes after variable {k}",
-                bytes.len() - pos
-            ));
-        }
-        let ty = u32_at(pos);
-        let whole = (pos + 8)
-            .checked_add(u32_at(pos + 4) as usize)
-            .filter(|&e| e <= bytes.len());
-        if let (15, Some(end)) = (ty, whole) {
-            // miCOMPRESSED: `matfile` inflates it whole, however large, so
-            // its size is counted first (inflated into nothing, stopping
-            // past the cap): a small file cannot claim gigabytes. (A cut
-            // element is reported as truncated below.)
-            let body = &bytes[pos + 8..end];
-            let mut inflated =
-                std::io::Read::take(flate2::read::ZlibDecoder::new(body), cap.saturating_add(1));
-            match std::io::copy(&mut inflated, &mut std::io::sink()) {
-                Ok(size) if size > cap => {
-                    return Err(format!(
-                        "{what}: variable {} is over {cap} bytes uncompressed (a compressed variable may \
-                         inflate to at most {cap})",
-                        k + 1
-                    ))
-                }
-                Ok(_) => {}
-                Err(e) => {
-                    return Err(format!(
-                    "{what}: variable {}: its compressed data does not inflate ({e}); truncated or corrupt?",
-                    k + 1
-                ))
-                }
-            }
-        }
-        if ty == 14 && ty >> 16 == 0 {
-            let n = u32_at(pos + 4) as usize;
-            if pos + 8 + n <= bytes.len() {
-                check_mat_tags(&bytes[pos + 8..pos + 8 + n], &u32_at, pos + 8, 0)
-                    .map_err(|at| format!("{what}: variable {}: corrupt data element at byte {at}", k + 1))?;
-            }
-        }
-        let len = if ty >> 16 != 0 {
-            // Small data element: 4 bytes of data inside the 8-byte tag.
-            0
-        } else {
-            let n = u32_at(pos + 4) as usize;
-            // miCOMPRESSED (15) is not padded; every other element is padded to 8 bytes.
-            if ty == 15 {
-                n
-            } else {
-                n.div_ceil(8) * 8
-            }
-        };
-        let end = pos + 8 + len;
-        if end > bytes.len() {
-            return Err(format!(
-                "{what}: truncated: variable {} needs {} bytes, the file ends after {}",
-                k + 1,
-                end - pos,
-                bytes.len() - pos
-            ));
-        }
-        pos = end;
-        k += 1;
-    }
-    Ok(())
-}
-
-/// Walks the data elements inside an uncompressed miMATRIX (`body` starts at
-/// file offset `base`): every tag's length must fit in its parent and leave
-/// room for padding. `matfile` multiplies a length near 2^32 without overflow
-/// checks (a panic in debug builds; found by fuzzing). Nested matrices (cells,
-/// structs) are walked to depth 8. Compressed variables are checked by
-/// `matfile` alone. Returns the offset of the bad tag.
-fn check_mat_tags(
-    body: &[u8],
-    u32_at: &dyn Fn(usize) -> u32,
-    base: usize,
-    depth: usize,
-) -> Result<(), usize> {
-    if depth > 8 {
-        return Err(base);
-    }
-    let mut p = 0usize;
-    let mut idx = 0usize;
-    while p + 8 <= body.len() {
-        let ty = u32_at(base + p);
-        idx += 1;
-        if ty >> 16 != 0 {
-            p += 8;
-            continue;
-        }
-        let n = u32_at(base + p + 4);
-        if n > u32::MAX - 7 || p + 8 + n as usize > body.len() {
-            return Err(base + p);
-        }
-        // The 2nd element of a matrix is its dimensions (miINT32): `matfile`
-        // multiplies them as i32 unchecked (a panic in debug builds; found by
-        // fuzzing), so their product must fit, and none may be negative.
-        if idx == 2 && ty == 5 {
-            let mut prod: i32 = 1;
-            for k in 0..(n as usize / 4) {
-                let d = u32_at(base + p + 8 + 4 * k) as i32;
-                prod = prod.checked_mul(d).filter(|_| d >= 0).ok_or(base + p)?;
-            }
-        }
-        if ty == 14 {
-            check_mat_tags(&body[p + 8..p + 8 + n as usize], u32_at, base + p + 8, depth + 1)?;
-        }
-        p += 8 + (n as usize).div_ceil(8) * 8;
-    }
-    Ok(())
-}
-
 /// Encodes a C-order `f64` array as NPY bytes (`<f8`).
 pub fn npy_bytes(shape: &[usize], data: &[f64]) -> std::io::Result<Vec<u8>> {
     debug_assert_eq!(shape.iter().product::<usize>(), data.len());
@@ -726,46 +560,6 @@ mod tests {
         assert_eq!(mat73_read_cap(10_856), gib);
         assert_eq!(mat73_read_cap(gib), 8 * gib);
         assert_eq!(mat73_read_cap(usize::MAX), 16 * gib);
-    }
-
-    /// A compressed MAT v5 variable: `payload` (a miMATRIX element, or
-    /// anything) zlib-compressed behind a miCOMPRESSED tag.
-    fn compressed_mat(payload: &[u8]) -> Vec<u8> {
-        use std::io::Write;
-        let mut z = flate2::write::ZlibEncoder::new(Vec::new(), flate2::Compression::fast());
-        z.write_all(payload).unwrap();
-        let comp = z.finish().unwrap();
-        let mut b = b"MATLAB 5.0 MAT-file, test".to_vec();
-        b.resize(124, b' ');
-        b.extend_from_slice(&0x0100u16.to_le_bytes());
-        b.extend_from_slice(b"IM");
-        b.extend_from_slice(&15u32.to_le_bytes());
-        b.extend_from_slice(&(comp.len() as u32).to_le_bytes());
-        b.extend_from_slice(&comp);
-        b
-    }
-
-    /// A small file whose compressed variable inflates past the cap is
-    /// refused before `matfile` inflates it, naming the variable; within
-    /// the cap it passes; a corrupt stream is named too.
-    #[test]
-    fn compressed_mat_variables_are_capped_before_inflating() {
-        let b = compressed_mat(&vec![0u8; 1 << 20]);
-        assert!(b.len() < 10_000, "{} bytes", b.len());
-        let e = check_mat_elements_within(&b, "x.mat", 1 << 16).unwrap_err();
-        assert!(
-            e.contains("x.mat: variable 1 is over 65536 bytes uncompressed"),
-            "{e}"
-        );
-        assert!(check_mat_elements_within(&b, "x.mat", 1 << 20).is_ok());
-        let mut bad = b.clone();
-        let last = bad.len() - 5;
-        bad[136..last].iter_mut().for_each(|x| *x ^= 0x5a);
-        let e = check_mat_elements_within(&bad, "x.mat", 1 << 20).unwrap_err();
-        assert!(e.contains("x.mat: variable 1") && e.contains("inflate"), "{e}");
-        // A cut compressed element is still reported as truncated.
-        let e = check_mat_elements_within(&b[..b.len() - 10], "x.mat", 1 << 20).unwrap_err();
-        assert!(e.contains("truncated"), "{e}");
     }
 
     #[test]

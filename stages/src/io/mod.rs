@@ -28,6 +28,7 @@ pub mod arrays;
 pub mod common;
 pub mod daq;
 pub mod image_file;
+pub mod mat5;
 pub mod signal_file;
 pub mod sinks;
 pub mod spike_file;
