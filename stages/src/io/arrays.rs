@@ -49,9 +49,11 @@
 //! after its dimensions are checked: a file's variables may decode to at most
 //! [`mat73_read_cap`] bytes in all ([`super::mat5`] docs). A v7.3 variable
 //! may decode to at most [`mat73_read_cap`] bytes (checked by the HDF5 reader
-//! before it allocates; widening to `f64` and the transposition then copy
-//! it, so a 10 KB file can still reach 2 GB at its peak: an open limit,
-//! test `the_fuzz_oom_v73_file_is_an_error_quickly`), reads no external file or link, and a panic
+//! before it allocates), and a file's variables to at most that in all,
+//! counting the `f64` output and, for other types, the decoded values held
+//! while converting: a `f64` variable is decoded into its output and
+//! transposed in place ([`fortran_to_c_in_place`]), any other converted
+//! straight to its C-order index. The file reads no external file or link, and a panic
 //! inside the HDF5 decoder on a malformed file becomes an error naming the
 //! file (the decoder is a dependency; fuzz target `signal_mat` covers it).
 
@@ -442,9 +444,12 @@ fn read_mat73(bytes: &[u8], what: &str) -> Result<Vec<(String, NdArray)>, String
         }
         let (_, datasets) = file.root_group().and_then(|g| g.members()).map_err(bad)?;
         let mut out = Vec::new();
+        // The file's decoded output in all, as for v5 (io::mat5).
+        let mut left = cap as u64;
         for d in datasets {
             let name = d.name().to_string();
-            if let Some(array) = mat73_variable(&d).map_err(|e| format!("{what}: variable `{name}`: {e}"))? {
+            let read = mat73_variable(&d, &mut left, bytes.len());
+            if let Some(array) = read.map_err(|e| format!("{what}: variable `{name}`: {e}"))? {
                 out.push((name, array));
             }
         }
@@ -466,7 +471,11 @@ pub fn mat73_read_cap(file_len: usize) -> usize {
 
 /// One v7.3 variable as a C-order array of its MATLAB shape, or `None` for
 /// a variable that holds no numeric data (module docs).
-fn mat73_variable(d: &hdf5_reader::Dataset) -> Result<Option<NdArray>, String> {
+fn mat73_variable(
+    d: &hdf5_reader::Dataset,
+    left: &mut u64,
+    file_len: usize,
+) -> Result<Option<NdArray>, String> {
     use hdf5_reader::Datatype as T;
     if d.name().starts_with('#') {
         return Ok(None);
@@ -487,29 +496,76 @@ fn mat73_variable(d: &hdf5_reader::Dataset) -> Result<Option<NdArray>, String> {
     if empty.is_some_and(|e| e != 0.0) {
         return Ok(None);
     }
-    // Every element of `d` as `T`, widened to `f64` (exact up to 2^53).
-    fn widen<T: hdf5_reader::H5Type + Copy>(
+    // MATLAB's shape is HDF5's reversed; a scalar or 1-D dataset (written by
+    // other tools) is a column, as MATLAB would load it.
+    let mut shape: Vec<usize> = d.shape().iter().rev().map(|&n| n as usize).collect();
+    match shape.len() {
+        0 => shape = vec![1, 1],
+        1 => shape.push(1),
+        _ => {}
+    }
+    let n = d
+        .shape()
+        .iter()
+        .try_fold(1u64, |p, &k| p.checked_mul(k).filter(|&p| p <= MAX_ELEMENTS));
+    let Some(n) = n else {
+        return Err(format!(
+            "shape {shape:?} makes more than {MAX_ELEMENTS} elements (the cap)"
+        ));
+    };
+    // The decoded values (`item` bytes each) and the `f64` output are both
+    // held while converting (a `f64` dataset is decoded into the output and
+    // transposed in place): both count against what the file may decode to.
+    let item = d.raw_element_size().unwrap_or(8) as u64;
+    let is_f64 = matches!(d.dtype(), T::FloatingPoint { size: 8, .. });
+    let held = n * 8 + if is_f64 { 0 } else { n * item };
+    if held > *left {
+        return Err(format!(
+            "shape {shape:?} makes {n} elements ({held} bytes decoded and as f64), past what this \
+             {file_len}-byte file may decode to ({} bytes in all, {} left: 8x the file, at least 1 GiB)",
+            mat73_read_cap(file_len),
+            *left
+        ));
+    }
+    let n = n as usize;
+    fn alloc<V: Clone + Default>(n: usize) -> Result<Vec<V>, String> {
+        let mut v = Vec::new();
+        v.try_reserve_exact(n)
+            .map_err(|e| format!("cannot allocate {n} elements ({e})"))?;
+        v.resize(n, V::default());
+        Ok(v)
+    }
+    // Every element of `d` as `V`, written straight to its C-order index as
+    // `f64` (exact up to 2^53).
+    fn widen<V: hdf5_reader::H5Type + Copy + Default>(
         d: &hdf5_reader::Dataset,
-        f: fn(T) -> f64,
+        shape: &[usize],
+        n: usize,
+        f: fn(V) -> f64,
     ) -> Result<Vec<f64>, String> {
-        Ok(d.read_array::<T>()
-            .map_err(|e| e.to_string())?
-            .iter()
-            .map(|&v| f(v))
-            .collect())
+        let mut raw = alloc::<V>(n)?;
+        d.read_into(&mut raw).map_err(|e| e.to_string())?;
+        let mut w = super::mat5::COrder::new(shape, alloc(n)?);
+        raw.iter().for_each(|&v| w.push(f(v)));
+        Ok(w.into_data())
     }
     let data = match d.dtype() {
-        T::FloatingPoint { size: 8, .. } => widen::<f64>(d, |v| v)?,
-        T::FloatingPoint { size: 4, .. } => widen::<f32>(d, f64::from)?,
+        T::FloatingPoint { size: 8, .. } => {
+            let mut v = alloc::<f64>(n)?;
+            d.read_into(&mut v).map_err(|e| e.to_string())?;
+            fortran_to_c_in_place(&shape, &mut v);
+            v
+        }
+        T::FloatingPoint { size: 4, .. } => widen::<f32>(d, &shape, n, f64::from)?,
         T::FixedPoint { size, signed, .. } => match (size, signed) {
-            (1, true) => widen::<i8>(d, f64::from)?,
-            (1, false) => widen::<u8>(d, f64::from)?,
-            (2, true) => widen::<i16>(d, f64::from)?,
-            (2, false) => widen::<u16>(d, f64::from)?,
-            (4, true) => widen::<i32>(d, f64::from)?,
-            (4, false) => widen::<u32>(d, f64::from)?,
-            (8, true) => widen::<i64>(d, |v| v as f64)?,
-            (8, false) => widen::<u64>(d, |v| v as f64)?,
+            (1, true) => widen::<i8>(d, &shape, n, f64::from)?,
+            (1, false) => widen::<u8>(d, &shape, n, f64::from)?,
+            (2, true) => widen::<i16>(d, &shape, n, f64::from)?,
+            (2, false) => widen::<u16>(d, &shape, n, f64::from)?,
+            (4, true) => widen::<i32>(d, &shape, n, f64::from)?,
+            (4, false) => widen::<u32>(d, &shape, n, f64::from)?,
+            (8, true) => widen::<i64>(d, &shape, n, |v| v as f64)?,
+            (8, false) => widen::<u64>(d, &shape, n, |v| v as f64)?,
             _ => return Err(format!("{size}-byte integers are not a MATLAB class")),
         },
         T::Compound { fields, .. } if fields.iter().any(|f| f.name == "imag") => {
@@ -519,19 +575,53 @@ fn mat73_variable(d: &hdf5_reader::Dataset) -> Result<Option<NdArray>, String> {
         // An unclassed dataset of another type (strings, say) is no variable.
         _ => return Ok(None),
     };
-    // MATLAB's shape is HDF5's reversed; a scalar or 1-D dataset (written by
-    // other tools) is a column, as MATLAB would load it.
-    let mut shape: Vec<usize> = d.shape().iter().rev().map(|&n| n as usize).collect();
-    match shape.len() {
-        0 => shape = vec![1, 1],
-        1 => shape.push(1),
-        _ => {}
-    }
-    if shape.iter().try_fold(1usize, |p, &n| p.checked_mul(n)) != Some(data.len()) {
-        return Err("its data do not fill its shape".into());
-    }
-    let data = fortran_to_c(&shape, &data);
+    *left -= n as u64 * 8;
     Ok(Some(NdArray { shape, data }))
+}
+
+/// Transposes a column-major buffer of `shape` into C order in place, by
+/// following the permutation's cycles (a bit per element marks those
+/// placed). `data` holds the product of `shape` elements (else unchanged).
+pub fn fortran_to_c_in_place(shape: &[usize], data: &mut [f64]) {
+    let n = data.len();
+    if shape.iter().try_fold(1usize, |a, &d| a.checked_mul(d)) != Some(n)
+        || shape.iter().filter(|&&d| d > 1).count() < 2
+    {
+        // At most one dimension over 1: both orders are the same.
+        return;
+    }
+    // C-order stride of each dimension.
+    let mut stride = vec![1usize; shape.len()];
+    for d in (0..shape.len() - 1).rev() {
+        stride[d] = stride[d + 1] * shape[d + 1];
+    }
+    let c_of = |mut f: usize| {
+        let mut c = 0;
+        for (d, &k) in shape.iter().enumerate() {
+            c += (f % k) * stride[d];
+            f /= k;
+        }
+        c
+    };
+    let mut done = vec![0u64; n.div_ceil(64)];
+    for start in 0..n {
+        if done[start / 64] >> (start % 64) & 1 == 1 {
+            continue;
+        }
+        // Move the value at `cur` (held in `carry`) to its C index, taking
+        // the value found there along, until the cycle closes.
+        let mut cur = start;
+        let mut carry = data[start];
+        loop {
+            let to = c_of(cur);
+            std::mem::swap(&mut carry, &mut data[to]);
+            done[to / 64] |= 1 << (to % 64);
+            cur = to;
+            if to == start {
+                break;
+            }
+        }
+    }
 }
 
 /// Encodes a C-order `f64` array as NPY bytes (`<f8`).
@@ -579,6 +669,53 @@ mod tests {
                     assert_eq!(c[(i * 2 + j) * 3 + k], (i + 2 * (j + 2 * k)) as f64);
                 }
             }
+        }
+    }
+
+    /// A v7.3 variable is refused from its shape, before it is decoded,
+    /// when it would pass what is left of the file's budget (the fuzz
+    /// target's out-of-memory file: 16775449 x 4 x 2 doubles, 1 GiB).
+    #[test]
+    fn a_v73_file_may_decode_to_its_budget_in_all() {
+        let b = include_bytes!("../../tests/data/fuzz_oom_v73.mat");
+        let file = hdf5_reader::Hdf5File::from_bytes(b).unwrap();
+        let (_, datasets) = file.root_group().and_then(|g| g.members()).unwrap();
+        let d = datasets.iter().find(|d| d.name() == "data").unwrap();
+        // 16775449 x 4 x 2 x 8 = 1073628736 bytes: 512 MiB left refuses it.
+        let mut left = 1 << 29;
+        let e = match mat73_variable(d, &mut left, b.len()) {
+            Ok(a) => panic!("read {:?}", a.map(|a| a.shape)),
+            Err(e) => e,
+        };
+        assert!(
+            e.contains("[16775449, 4, 2]")
+                && e.contains("past what this 10856-byte file")
+                && e.contains("536870912 left"),
+            "{e}"
+        );
+        assert_eq!(left, 1 << 29);
+    }
+
+    /// The in-place transposition equals the copying one, for shapes of 1
+    /// to 4 dimensions (some of length 1 or 0).
+    #[test]
+    fn in_place_transpose_matches_the_copy() {
+        for shape in [
+            vec![7],
+            vec![1, 5],
+            vec![5, 1],
+            vec![3, 4],
+            vec![4, 3, 2],
+            vec![2, 1, 3],
+            vec![3, 2, 2, 5],
+            vec![0, 4],
+            vec![64, 3],
+        ] {
+            let n: usize = shape.iter().product();
+            let f: Vec<f64> = (0..n).map(|v| v as f64).collect();
+            let mut g = f.clone();
+            fortran_to_c_in_place(&shape, &mut g);
+            assert_eq!(g, fortran_to_c(&shape, &f), "{shape:?}");
         }
     }
 

@@ -479,8 +479,9 @@ fn convert(ty: u32, big: bool, chunk: &[u8], w: &mut COrder) {
     }
 }
 
-/// Writes values given in column-major order to their C-order index.
-struct COrder {
+/// Writes values given in column-major order to their C-order index (also
+/// used by the v7.3 reader in [`super::arrays`]).
+pub(super) struct COrder {
     data: Vec<f64>,
     dims: Vec<usize>,
     /// C-order stride of each dimension.
@@ -493,7 +494,7 @@ struct COrder {
 
 impl COrder {
     /// `data` holds the product of `dims` elements.
-    fn new(dims: &[usize], data: Vec<f64>) -> Self {
+    pub(super) fn new(dims: &[usize], data: Vec<f64>) -> Self {
         let mut stride = vec![1usize; dims.len()];
         for d in (0..dims.len().saturating_sub(1)).rev() {
             stride[d] = stride[d + 1].saturating_mul(dims[d + 1]);
@@ -507,7 +508,7 @@ impl COrder {
         }
     }
 
-    fn push(&mut self, v: f64) {
+    pub(super) fn push(&mut self, v: f64) {
         if let Some(s) = self.data.get_mut(self.off) {
             *s = v;
         }
@@ -520,6 +521,10 @@ impl COrder {
             self.off -= self.stride[d] * self.dims[d];
             self.idx[d] = 0;
         }
+    }
+
+    pub(super) fn into_data(self) -> Vec<f64> {
+        self.data
     }
 }
 
