@@ -20,8 +20,11 @@
 //! absurd currents) while the others keep theirs. A trial whose drive is 0
 //! everywhere (nothing changes) gives `I = 0`, never NaN. A slope or current
 //! larger than f64 holds (an absurd sample rate or gain, values near
-//! `f64::MAX`) is clamped to `f64::MAX`, and is 0 under a zero gain (also
-//! the per-trial gain when the peak itself overflowed), never NaN.
+//! `f64::MAX`) is clamped to `f64::MAX`, and is 0 under a zero gain, never
+//! NaN; but when the slope that sets a per-trial gain overflows (the peak
+//! `P` itself), the stage fails naming the taxel and sample, as
+//! `derivative` does: `G = target / inf` would make every current 0, a
+//! silent trial.
 //!
 //! Default, when neither key is set: `target_peak_current = 20`. Why: on the
 //! ideal edge crossing (a taxel's normalized signal ramps 1 -> 0 over 1 s at
@@ -254,13 +257,25 @@ impl Drive {
                         || slope_peak(xs, fs),
                     );
                     // A non-finite slope comes from a non-finite sample or
-                    // from an overflow of finite ones (allowed: clamped).
+                    // from an overflow of finite ones (clamped, unless it
+                    // sets the gain: below).
                     if !all_finite && first_non_finite(xs).is_some() {
                         return Err(non_finite_error("drive", s));
                     }
                     peaks.push(p);
                 }
-                let peak = peak_of(peaks.into_iter(), of);
+                let peak = peak_of(peaks.iter().copied(), of);
+                if peak == f64::INFINITY {
+                    // The reference peak itself overflowed: `target / inf`
+                    // would be a zero gain and a silent trial (every
+                    // current 0). Named as `derivative` names it.
+                    let t = peaks.iter().position(|p| *p == f64::INFINITY).unwrap_or(0);
+                    let i = abs_slope(&s.data[t], fs)
+                        .iter()
+                        .position(|v| !v.is_finite())
+                        .unwrap_or(0);
+                    return Err(super::derivative::overflow_error("drive", t, i, fs));
+                }
                 // No change anywhere: zero current (not target/0).
                 if peak > 0.0 && peak.is_finite() {
                     target / peak
@@ -562,7 +577,14 @@ mod tests {
                 Some(g) => Gain::Fixed(g),
             };
             let d = drive(DriveKind::FaI, gain);
-            let one = d.checked_currents(&s).unwrap();
+            let one = match d.checked_currents(&s) {
+                Ok(one) => one,
+                Err(e) => {
+                    // Only a per-trial gain whose reference peak overflowed.
+                    proptest::prop_assert!(matches!(gain, Gain::TargetPeak(..)) && e.message.contains("larger than f64 holds"), "{e}");
+                    return Ok(());
+                }
+            };
             let two = d.currents(&s.data, s.sample_rate_hz);
             let bits = |v: &[Vec<f64>]| v.iter().flatten().map(|x| x.to_bits()).collect::<Vec<_>>();
             proptest::prop_assert_eq!(bits(&one), bits(&two));
@@ -570,18 +592,34 @@ mod tests {
     }
 
     /// At an absurd sample rate a slope overflows f64: the current is
-    /// clamped (a positive gain) or 0 (a zero gain, or a per-trial gain
-    /// whose peak overflowed), never NaN or negative.
+    /// clamped (a positive gain) or 0 (a zero gain), never NaN or negative;
+    /// a per-trial gain whose reference peak overflowed is an error naming
+    /// the taxel and sample (it gave every current 0: a silent trial).
     #[test]
     fn overflowing_slopes_give_finite_non_negative_currents() {
         let mut s = ramps(f64::MAX, 0.0, 0.0, 0.0, 0.0);
         s.data = vec![vec![0.0, 2.0, 0.0, 0.0, 1e-300, 0.0]; 16];
         for gain in [
-            Gain::Fixed(0.0),
-            Gain::Fixed(30.0),
             Gain::TargetPeak(20.0, PeakOf::Max),
             Gain::TargetPeak(20.0, PeakOf::MedianTaxel),
         ] {
+            let e = drive(DriveKind::FaI, gain).checked_currents(&s).unwrap_err();
+            assert!(
+                e.message.contains("taxel 0, sample 0") && e.message.contains("larger than f64 holds"),
+                "{gain:?}: {e}"
+            );
+        }
+        // One taxel's overflow does not set the median taxel's peak: the
+        // others' currents stand, that taxel's is clamped.
+        let mut one = ramps(1000.0, 0.0, 0.0, 0.0, 0.0);
+        one.data = vec![vec![0.0, 0.5, 1.0, 0.5, 0.0]; 16];
+        one.data[3] = vec![0.0, f64::MAX, -f64::MAX, 0.0, 0.0];
+        let i = drive(DriveKind::FaI, Gain::TargetPeak(20.0, PeakOf::MedianTaxel))
+            .checked_currents(&one)
+            .unwrap();
+        assert_eq!(i[0].iter().copied().fold(0.0, f64::max), 20.0);
+        assert_eq!(i[3].iter().copied().fold(0.0, f64::max), f64::MAX);
+        for gain in [Gain::Fixed(0.0), Gain::Fixed(30.0)] {
             let i = drive(DriveKind::FaI, gain).checked_currents(&s).unwrap();
             assert!(
                 i.iter().flatten().all(|v| v.is_finite() && *v >= 0.0),
