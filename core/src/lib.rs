@@ -58,3 +58,26 @@ pub mod __private {
     pub use schemars;
     pub use serde_json;
 }
+
+/// Where a stage's run-time warnings go (WSS's "taxels all lie on one line"
+/// and "no palpation speed", a spike file's unused edges, `simulate_to_dir`'s
+/// scene warnings): standard error, unless a host has set a sink
+/// ([`set_warning_sink`]; the Python package raises them as Python
+/// warnings). The DAQ source's device messages (dropped frames, stalls)
+/// still print directly: they are a live session's log, not a result's caveat.
+static WARNING_SINK: std::sync::RwLock<Option<fn(&str)>> = std::sync::RwLock::new(None);
+
+/// Reports a run-time warning: to the sink if one is set, else to standard
+/// error as it is.
+pub fn warn(message: &str) {
+    let sink = *WARNING_SINK.read().unwrap_or_else(|e| e.into_inner());
+    match sink {
+        Some(f) => f(message),
+        None => eprintln!("{message}"),
+    }
+}
+
+/// Sends every later [`warn`] to `sink` instead of standard error.
+pub fn set_warning_sink(sink: fn(&str)) {
+    *WARNING_SINK.write().unwrap_or_else(|e| e.into_inner()) = Some(sink);
+}

@@ -317,7 +317,7 @@ impl SpikeFileSource {
         }
         if let Some(id) = &self.assumed {
             if let Some(m) = unused_edges(&self.layout, raw.iter().flat_map(|t| &t.events)) {
-                eprintln!("warning: spike_file `{id}`: {m}");
+                palpate_core::warn(&format!("warning: spike_file `{id}`: {m}"));
             }
         }
         let mut labelled: Vec<(String, TrialLabels)> =

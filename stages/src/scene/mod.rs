@@ -271,7 +271,7 @@ pub fn simulate_to_dir(
         .map_err(|e| StageError::new(e.to_string()))?;
     // Deprecated spellings in the scene file: said, as `check` says them.
     for w in &warnings {
-        eprintln!("warning: {w}");
+        palpate_core::warn(&format!("warning: {w}"));
     }
     for (name, cfg, scene) in conditions {
         let sim = Simulator::new(scene, array_seed(&ctx, cfg.array_copy.unwrap_or(0)))
@@ -373,7 +373,7 @@ pub fn simulate_to_dir(
         files.push(path);
     }
     if let Some(w) = stale_recordings(out, &files) {
-        eprintln!("warning: {w}");
+        palpate_core::warn(&format!("warning: {w}"));
     }
     Ok(files)
 }

@@ -358,7 +358,7 @@ pub(super) fn warn_once(kind: &'static str, stage_id: &str, message: impl FnOnce
         return false;
     }
     w.push((kind, stage_id.to_string()));
-    eprintln!("{}", message());
+    palpate_core::warn(&message());
     true
 }
 
