@@ -126,6 +126,18 @@ def _seed(seed: Any) -> int:
     return int(seed)
 
 
+def _count(name: str, value: Any, least: int, most: int, note: str = "") -> int:
+    """A whole-number argument checked by name (PyO3's own conversion said only
+    "can't convert negative int to unsigned")."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+        raise TypeError(f"`{name}` must be a whole number{note}, got {type(value).__name__} {value!r}")
+    if int(value) < least:
+        raise ValueError(f"`{name}` must be >= {least}{note}, got {int(value)}")
+    if int(value) > most:
+        raise ValueError(f"`{name}` must be <= {most}{note}, got {int(value)}")
+    return int(value)
+
+
 def _taxel_indices(values: Any) -> np.ndarray:
     """Spike taxel indices as uint32, checked: a negative, fractional or
     too-large index is an error naming the spike, where NumPy's cast would wrap
@@ -200,6 +212,13 @@ class Spikes:
             raise ValueError(f"spikes: `t_ms` must be 1-D (one per spike), got shape {self.t_ms.shape}")
         if len(self.taxel) != len(self.t_ms):
             raise ValueError(f"spikes: {len(self.taxel)} taxels but {len(self.t_ms)} times")
+        try:
+            d = float(self.duration_ms)
+        except (TypeError, ValueError):
+            raise TypeError(f"spikes: `duration_ms` must be a number, got {type(self.duration_ms).__name__}") from None
+        if not (math.isfinite(d) and d >= 0.0):
+            # A negative duration was binned into a 1-frame image.
+            raise ValueError(f"spikes: `duration_ms` must be a finite number of ms >= 0, got {d}")
 
     @property
     def sensor_size(self) -> Tuple[int, int, int]:
@@ -254,7 +273,13 @@ class Spikes:
             taxel = y * cols + x
         else:
             taxel = x
-        t_ms = events["t"].astype(np.float64) / 1000.0
+        t_us = events["t"]
+        if len(t_us) and t_us.min() < 0:
+            i = int(np.argmin(t_us))
+            raise ValueError(
+                f"event {i} has time t = {t_us[i]} us: event times are microseconds from the trial's start (>= 0)"
+            )
+        t_ms = t_us.astype(np.float64) / 1000.0
         order = np.lexsort((taxel, t_ms))
         taxel, t_ms = taxel[order], t_ms[order]
         if duration_ms is None:
@@ -390,14 +415,33 @@ def _to_raw(p: Any) -> dict:
 _MAX_TEXT_FILE_BYTES = 64 << 20
 
 
+def _graph_error(file: str, message: str) -> GraphError:
+    """A ``GraphError`` raised here (not by the loader), with every attribute the
+    loader's carry: ``file``, ``line``, ``stage``, ``key`` and one diagnostic."""
+    text = f"{file}: error: {message}"
+    e = GraphError(f"{file}: {message}")
+    e.file, e.line, e.stage, e.key = file, None, None, None
+    e.diagnostics = [
+        {"severity": "error", "file": file, "line": None, "stage": None, "key": None, "message": message, "text": text}
+    ]
+    return e
+
+
+def _looks_like_path(graph: str) -> bool:
+    """Whether a one-line string names a graph file rather than holding TOML text:
+    it names an existing file, or ends in ``.toml``, or holds no ``=`` (which
+    every TOML key-value line has). A path may hold ``=`` (``sweep/lr=0.1/``)."""
+    if "\n" in graph:
+        return False
+    return os.path.isfile(graph) or graph.rstrip().endswith(".toml") or "=" not in graph
+
+
 def _graph_text(graph: Any) -> dict:
-    """(text, file, stem, base_dir) of a graph given as a path, TOML text or dict."""
+    """(text, file, stem, base_dir, hint) of a graph given as a path, TOML text or dict."""
     if isinstance(graph, dict):
         text = _palpate_toml(graph)
-        return {"text": text, "file": "<dict>", "stem": "graph", "base_dir": os.getcwd()}
-    if isinstance(graph, pathlib.PurePath) or (
-        isinstance(graph, str) and "\n" not in graph and "=" not in graph
-    ):
+        return {"text": text, "file": "<dict>", "stem": "graph", "base_dir": os.getcwd(), "hint": None}
+    if isinstance(graph, pathlib.PurePath) or (isinstance(graph, str) and _looks_like_path(graph)):
         path = pathlib.Path(graph)
         try:
             # Capped as the CLI caps it (64 MiB): /dev/zero or an endless pipe
@@ -405,24 +449,32 @@ def _graph_text(graph: Any) -> dict:
             with open(path, "rb") as f:
                 raw = f.read(_MAX_TEXT_FILE_BYTES + 1)
             if len(raw) > _MAX_TEXT_FILE_BYTES:
-                raise GraphError(
-                    f"{graph}: cannot read the graph file: it is larger than the cap of "
-                    f"{_MAX_TEXT_FILE_BYTES} bytes (or never ends)"
+                raise _graph_error(
+                    str(graph),
+                    f"cannot read the graph file: it is larger than the cap of "
+                    f"{_MAX_TEXT_FILE_BYTES} bytes (or never ends)",
                 )
             text = raw.decode("utf-8")
         except (OSError, UnicodeDecodeError) as e:
-            raise GraphError(f"{graph}: cannot read the graph file: {e}") from None
-        return {"text": text, "file": str(graph), "stem": path.stem, "base_dir": str(path.parent)}
+            raise _graph_error(str(graph), f"cannot read the graph file: {e}") from None
+        return {"text": text, "file": str(graph), "stem": path.stem, "base_dir": str(path.parent), "hint": None}
     if isinstance(graph, str):
-        return {"text": graph, "file": "<string>", "stem": "graph", "base_dir": os.getcwd()}
+        # One line holding `=` that names no file: TOML text, said if it does
+        # not parse (a mistyped path read as TOML said only "not valid TOML").
+        hint = None
+        if "\n" not in graph:
+            hint = f"the string was read as TOML text because no file `{graph}` exists"
+        return {"text": graph, "file": "<string>", "stem": "graph", "base_dir": os.getcwd(), "hint": hint}
     raise TypeError(f"a graph is a path, a TOML string or a dict, got {type(graph).__name__}")
 
 
 def _palpate_toml(d: dict) -> str:
     """A dict as TOML text (tables after plain keys, as TOML requires)."""
 
-    def value(v: Any) -> str:
-        if isinstance(v, bool):
+    def value(v: Any, key: str) -> str:
+        if v is None:
+            raise TypeError(f"`{key}` is None: TOML has no null; leave the key out")
+        if isinstance(v, (bool, np.bool_)):
             return "true" if v else "false"
         if isinstance(v, (int, np.integer)):
             # TOML's integers stop at 2**63 - 1; a seed above it is read from
@@ -433,10 +485,10 @@ def _palpate_toml(d: dict) -> str:
         if isinstance(v, (str, pathlib.PurePath)):
             return json.dumps(str(v))
         if isinstance(v, (list, tuple, np.ndarray)):
-            return "[" + ", ".join(value(x) for x in v) + "]"
+            return "[" + ", ".join(value(x, f"{key}[{i}]") for i, x in enumerate(v)) + "]"
         if isinstance(v, dict):
-            return "{ " + ", ".join(f"{json.dumps(k)} = {value(x)}" for k, x in v.items()) + " }"
-        raise TypeError(f"cannot write a {type(v).__name__} in a graph")
+            return "{ " + ", ".join(f"{json.dumps(k)} = {value(x, f'{key}.{k}')}" for k, x in v.items()) + " }"
+        raise TypeError(f"`{key}`: cannot write a {type(v).__name__} in a graph")
 
     lines: List[str] = []
 
@@ -446,7 +498,7 @@ def _palpate_toml(d: dict) -> str:
         if prefix:
             lines.append("[" + ".".join(json.dumps(p) if not p.replace("_", "").replace("-", "").isalnum() else p for p in prefix) + "]")
         for k, v in plain.items():
-            lines.append(f"{json.dumps(k)} = {value(v)}")
+            lines.append(f"{json.dumps(k)} = {value(v, '.'.join(prefix + [str(k)]))}")
         for k, v in sub.items():
             table(prefix + [k], v)
 
@@ -632,6 +684,9 @@ def run(
     point's folder and completion marker, then the sweep report) and returns a
     ``SweepResult``; points already complete in ``out`` from an earlier run of
     the same graph are reused unless ``fresh``."""
+    if threads is not None:
+        # Above the cap of 4096, the core's own message says so.
+        threads = _count("threads", threads, 0, 2**63 - 1, " (0 or None: one per core)")
     raw = _palpate.run(_graph_text(graph), set, threads, None if out is None else str(out), progress, fresh)
     if "runs" in raw:
         return SweepResult(raw)
@@ -660,6 +715,7 @@ def run_live(
     dropped, the reports and ``run.json`` (``live.stopped``) cover the trials
     finished, and the exception is raised. The GIL is released while the
     stages run."""
+    block = _count("block", block, 1, 2**63 - 1, " (samples per block)")
     raw = _palpate.run_live(_graph_text(graph), set, None if out is None else str(out), block, on_update)
     return LiveResult(raw)
 
@@ -698,17 +754,19 @@ class Dataset:
         return len(self.trials)
 
 
-def simulate(scene: Union[str, os.PathLike, dict], seed: int = 1, **keys: Any) -> Dataset:
-    """Simulates a scene (the graph's ``scene`` stage, stage id ``scene``, run seed
-    ``seed``): ``scene`` is a scene file's path or a dict of the stage's keys;
-    ``keys`` override it (e.g. ``angles=[30, 60], trials_per_angle=2``). The same
-    seed gives the same bits as a graph whose ``[run] seed`` it is."""
+def simulate(scene: Union[str, os.PathLike, dict], seed: int = 1, stage_id: str = "scene", **keys: Any) -> Dataset:
+    """Simulates a scene (the graph's ``scene`` stage, run seed ``seed``): ``scene``
+    is a scene file's path or a dict of the stage's keys; ``keys`` override it
+    (e.g. ``angles=[30, 60], trials_per_angle=2``). Each trial's seed derives
+    from ``seed``, ``stage_id`` and the trial's id, as in a graph: the same seed
+    and the graph's stage id (default ``scene``) give the same bits as that
+    graph's scene stage."""
     if isinstance(scene, dict):
         cfg = dict(scene)
     else:
         cfg = {"file": str(pathlib.Path(scene).resolve())}
     cfg.update(keys)
-    return _dataset(_palpate.simulate(cfg, _seed(seed)))
+    return _dataset(_palpate.simulate(cfg, _seed(seed), None, _stage_id(stage_id)))
 
 
 def read_signals(
@@ -772,13 +830,23 @@ def _as_list(x: Any) -> Tuple[List[Any], bool]:
     return [x], False
 
 
-def apply(type: str, *inputs: Any, seed: int = 1, **config: Any) -> Any:
+def _stage_id(stage_id: Any) -> str:
+    if not isinstance(stage_id, str) or not stage_id:
+        raise TypeError(f"`stage_id` must be a non-empty string (a graph's stage id), got {stage_id!r}")
+    return stage_id
+
+
+def apply(type: str, *inputs: Any, seed: int = 1, stage_id: str = "stage", **config: Any) -> Any:
     """Applies the registered stage ``type`` with keys ``config`` to payloads (one
     per input of the stage; each a payload or a list of payloads, one per
     trial). Works for every map stage (filters, drives, encoders, spike stages,
     binning) and model-based estimator (WSS); returns a payload, or a list when
-    given lists. The stage's seed derives from ``seed``, its id (``stage``) and
-    each trial's id, as in a graph."""
+    given lists. The stage's seed derives from ``seed``, its id ``stage_id``
+    (default ``stage``) and each trial's id, as in a graph: give a graph's run
+    seed and stage id to get that stage's bits (``apply("jitter", spikes, seed=3,
+    stage_id="jit", tau_ms=5.0)`` is the graph's stage ``jit`` at seed 3). A stage
+    registered with ``@palpate.stage`` is applied by its name, its keys as
+    ``config``."""
     if not inputs:
         raise TypeError("apply needs at least one input payload")
     lists = [_as_list(i) for i in inputs]
@@ -786,7 +854,7 @@ def apply(type: str, *inputs: Any, seed: int = 1, **config: Any) -> Any:
     if any(len(l) != n for l, _ in lists):
         raise ValueError("every input must hold the same number of trials")
     trials = [[_to_raw(l[i]) for l, _ in lists] for i in range(n)]
-    out = [_from_raw(r) for r in _palpate.apply(type, config, trials, _seed(seed))]
+    out = [_from_raw(r) for r in _palpate.apply(type, config, trials, _seed(seed), _stage_id(stage_id))]
     return out if lists[0][1] else out[0]
 
 
@@ -881,8 +949,13 @@ class Model:
 
     @property
     def seed(self) -> int:
-        """The run seed it predicts with (each trial's seed derives from it and the trial id)."""
+        """The run seed it predicts with (each trial's seed derives from it, ``stage_id`` and the trial id)."""
         return int(self._inner.seed)
+
+    @property
+    def stage_id(self) -> str:
+        """The stage id its per-trial seeds derive from (a graph's stage id; default ``stage``)."""
+        return str(self._inner.stage_id)
 
     def _bytes(self, what: str) -> bytes:
         data = self._inner.saved_bytes()
@@ -903,7 +976,7 @@ class Model:
         return p
 
     def __reduce__(self) -> Any:
-        return (_model_from_bytes, (self.type, self._bytes("pickle"), self.seed))
+        return (_model_from_bytes, (self.type, self._bytes("pickle"), self.seed, self.stage_id))
 
     def predict(self, x: Any) -> Any:
         items, many = _as_list(x)
@@ -916,10 +989,12 @@ class Model:
         return np.array([np.nan if e.angle_deg is None else e.angle_deg for e in self.predict(items)])
 
 
-def load_model(path: Union[str, os.PathLike], seed: int = 1) -> Model:
+def load_model(path: Union[str, os.PathLike], seed: int = 1, stage_id: str = "stage") -> Model:
     """Loads a model file written by ``Model.save`` or by a graph's ``save_model =
     true`` (``<out>/<stage id>.fold<f>.model.json``), checked as a graph's
-    ``model_in`` checks it; ``seed`` is the run seed it predicts with."""
+    ``model_in`` checks it; ``seed`` is the run seed it predicts with and
+    ``stage_id`` the stage id its per-trial seeds derive from: a graph's run seed
+    and the id of its ``model_in`` stage give that graph's bits."""
     p = pathlib.Path(path).resolve()
     try:
         with open(p, "rb") as f:
@@ -932,24 +1007,33 @@ def load_model(path: Union[str, os.PathLike], seed: int = 1) -> Model:
     if m is None:
         raise ValueError(f"{p}: not a palpate model file (no `stage_type` near its start)")
     type = m.group(1).decode()
-    return Model(_palpate.fit(type, {"model_in": str(p)}, [], _seed(seed)), type)
+    return Model(_palpate.fit(type, {"model_in": str(p)}, [], _seed(seed), _stage_id(stage_id)), type)
 
 
-def _model_from_bytes(type: str, data: bytes, seed: int) -> Model:
+def _model_from_bytes(type: str, data: bytes, seed: int, stage_id: str = "stage") -> Model:
     """A model from its file's bytes (unpickling)."""
     with tempfile.TemporaryDirectory(prefix="palpate-model-") as d:
         p = pathlib.Path(d) / f"{type}.model.json"
         p.write_bytes(data)
-        return load_model(p, seed)
+        return load_model(p, seed, stage_id)
 
 
-def fit(type: str, train: Sequence[Any], labels: Optional[Sequence[float]] = None, seed: int = 1, **config: Any) -> Model:
+def fit(
+    type: str,
+    train: Sequence[Any],
+    labels: Optional[Sequence[float]] = None,
+    seed: int = 1,
+    stage_id: str = "stage",
+    **config: Any,
+) -> Model:
     """Fits the registered estimator ``type`` (``ann``, ``edbn``, ``knn``, ``svm``,
-    ``wss`` ...) with keys ``config`` on training payloads; ``labels`` are their
-    true angles (default: each payload's ``meta``), one per payload. A NaN label
-    means "no label", as in ``Dataset.labels``: that payload is skipped, as a
-    graph skips training trials without an angle, with a warning saying how many.
-    Returns a ``Model``."""
+    ``wss``, or a ``@palpate.stage`` estimator by its name ...) with keys
+    ``config`` on training payloads; ``labels`` are their true angles (default:
+    each payload's ``meta``), one per payload. A NaN or infinite label means "no
+    label", as in ``Dataset.labels``: that payload is skipped, as a graph skips
+    training trials without an angle, with a warning saying how many. The fit's
+    and the model's per-trial seeds derive from ``seed`` and ``stage_id`` (a
+    graph's run seed and stage id give that stage's bits). Returns a ``Model``."""
     if config.get("save_model"):
         # A graph writes each fold's model beside its reports; here there is
         # no run folder, and the file went to the system's temp folder.
@@ -968,14 +1052,18 @@ def fit(type: str, train: Sequence[Any], labels: Optional[Sequence[float]] = Non
             labels = [float(v) for v in labels]
         except (TypeError, ValueError) as e:
             raise ValueError(f"fit: `labels` must be angles in degrees: {e}") from None
-        unlabelled = sum(1 for v in labels if math.isnan(v))
-        if unlabelled:
+        nan = sum(1 for v in labels if math.isnan(v))
+        inf = sum(1 for v in labels if math.isinf(v))
+        if nan or inf:
             # Skipped silently, a NaN among the labels (a dropped row in a
-            # table) shrank the training set without a word.
-            warnings.warn(
-                f"fit: {unlabelled} of {len(labels)} training payloads have a NaN label (no label) and are skipped",
-                stacklevel=2,
-            )
+            # table) shrank the training set without a word; an infinite
+            # one is no angle either (the trial's metadata drops it).
+            said = []
+            if nan:
+                said.append(f"{nan} of {len(labels)} training payloads have a NaN label (no label)")
+            if inf:
+                said.append(f"{inf} of {len(labels)} training payloads have an infinite label (no label)")
+            warnings.warn(f"fit: {'; '.join(said)} and are skipped", stacklevel=2)
     raws = []
     for i, p in enumerate(train):
         r = dict(_to_raw(p))
@@ -984,7 +1072,20 @@ def fit(type: str, train: Sequence[Any], labels: Optional[Sequence[float]] = Non
             meta["angle_deg"] = labels[i]
         r["meta"] = meta
         raws.append(r)
-    return Model(_palpate.fit(type, config, raws, _seed(seed)), type)
+    try:
+        inner = _palpate.fit(type, config, raws, _seed(seed), _stage_id(stage_id))
+    except RunError as e:
+        if labels and not any(math.isfinite(v) for v in labels):
+            # The estimator said only that it got no class ("got 0 ()").
+            err = RunError(
+                f"{e}; every one of the {len(labels)} labels given is non-finite (NaN or inf: no label), "
+                "so no payload was left to fit on"
+            )
+            for k in ("file", "stage", "trial", "key"):
+                setattr(err, k, getattr(e, k, None))
+            raise err from None
+        raise
+    return Model(inner, type)
 
 
 # ---------------------------------------------------------------- Python stages

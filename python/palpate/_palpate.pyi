@@ -11,7 +11,9 @@ class PalpateError(Exception):
     """Base class of palpate's errors."""
 
 class GraphError(PalpateError):
-    """A graph did not load."""
+    """A graph did not load (or its file could not be read). Every attribute is
+    always there: None where there is none, ``diagnostics`` empty only on an
+    instance built by hand."""
 
     file: Optional[str]
     line: Optional[int]
@@ -20,13 +22,14 @@ class GraphError(PalpateError):
     diagnostics: List["DiagnosticDict"]
 
 class ConfigError(PalpateError):
-    """A stage's config is wrong."""
+    """A stage's config is wrong (attributes always there; None if unknown)."""
 
     stage: Optional[str]
     key: Optional[str]
 
 class RunError(PalpateError):
-    """A stage failed while running."""
+    """A stage failed while running (attributes always there; ``file`` is None
+    for a building block, which runs no graph file)."""
 
     file: Optional[str]
     stage: Optional[str]
@@ -47,6 +50,9 @@ class GraphText(TypedDict):
     file: str
     stem: str
     base_dir: Optional[str]
+    # Appended to a TOML syntax error: why the text was read as TOML (a
+    # one-line string that named no file), or None.
+    hint: Optional[str]
 
 RawPayload = Dict[str, Any]
 
@@ -83,7 +89,9 @@ def fit(
     seed: int = 1,
     stage_id: str = "stage",
 ) -> Model: ...
-def simulate(config: Dict[str, Any], seed: int = 1, base_dir: Optional[str] = None) -> List[RawPayload]: ...
+def simulate(
+    config: Dict[str, Any], seed: int = 1, base_dir: Optional[str] = None, stage_id: str = "scene"
+) -> List[RawPayload]: ...
 def read_source(
     type_name: str,
     config: Dict[str, Any],
@@ -107,3 +115,5 @@ class Model:
     def saved_bytes(self) -> Optional[bytes]: ...
     @property
     def seed(self) -> int: ...
+    @property
+    def stage_id(self) -> str: ...

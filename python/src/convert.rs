@@ -80,7 +80,10 @@ fn py_to_json_at(obj: &Bound<'_, PyAny>, depth: usize) -> PyResult<serde_json::V
         if let Ok(i) = obj.extract::<i64>() {
             return Ok(V::from(i));
         }
-        return Ok(V::from(obj.extract::<u64>()?));
+        // PyO3's own conversion raised a bare OverflowError.
+        return obj.extract::<u64>().map(V::from).map_err(|_| {
+            PyValueError::new_err(format!("{obj} is outside the 64-bit integers a key can hold"))
+        });
     }
     if obj.is_instance_of::<PyFloat>() {
         let f: f64 = obj.extract()?;
@@ -120,6 +123,113 @@ fn py_to_json_at(obj: &Bound<'_, PyAny>, depth: usize) -> PyResult<serde_json::V
     }
     Err(PyTypeError::new_err(format!(
         "cannot use a value of type {} in a config",
+        obj.get_type().name()?
+    )))
+}
+
+/// `err` (from converting the value of `what`) with `what` named at the head of
+/// its message: a `TypeError` stays one, anything else (a bare `ValueError`,
+/// PyO3's `OverflowError`) becomes a `ValueError`.
+pub fn named(py: Python<'_>, what: &str, err: PyErr) -> PyErr {
+    let msg = format!("{what}: {}", err.value(py));
+    if err.is_instance_of::<PyTypeError>(py) {
+        PyTypeError::new_err(msg)
+    } else {
+        PyValueError::new_err(msg)
+    }
+}
+
+/// A stage's keys (a dict) as a JSON object, converted key by key so that an
+/// error names the key (`` `cutoff_hz`: NaN is not a finite number ``).
+pub fn config_to_json(py: Python<'_>, obj: &Bound<'_, PyAny>) -> PyResult<serde_json::Value> {
+    let Ok(d) = obj.downcast::<PyDict>() else {
+        return py_to_json(obj);
+    };
+    let mut m = serde_json::Map::new();
+    for (k, v) in d.iter() {
+        let key: String = k
+            .extract()
+            .map_err(|_| PyTypeError::new_err(format!("keys must be strings, got {k}")))?;
+        let j = py_to_json(&v).map_err(|e| named(py, &format!("key `{key}`"), e))?;
+        m.insert(key, j);
+    }
+    Ok(serde_json::Value::Object(m))
+}
+
+/// A Python value as a TOML value (`set=` of a graph), `what` naming it in
+/// errors. NaN and infinities are TOML floats (the graph's checks then name
+/// the stage and key, as for `--set key=nan`); None, and integers outside
+/// TOML's 64 bits, are errors naming `what`. Integers from 2**63 to 2**64 - 1
+/// (seeds) become their digits, which `run.seed` reads alike.
+pub fn py_to_toml(obj: &Bound<'_, PyAny>, what: &str, depth: usize) -> PyResult<toml::Value> {
+    use toml::Value as T;
+    if depth > 64 {
+        return Err(PyValueError::new_err(format!(
+            "{what}: nested more than 64 levels deep"
+        )));
+    }
+    if obj.is_none() {
+        return Err(PyTypeError::new_err(format!(
+            "{what} is None: TOML has no null; leave the key out"
+        )));
+    }
+    if obj.is_instance_of::<PyBool>() {
+        return Ok(T::Boolean(obj.extract()?));
+    }
+    if obj.is_instance_of::<PyInt>() {
+        if let Ok(i) = obj.extract::<i64>() {
+            return Ok(T::Integer(i));
+        }
+        if depth == 0 {
+            if let Ok(u) = obj.extract::<u64>() {
+                return Ok(T::String(u.to_string()));
+            }
+        }
+        return Err(PyValueError::new_err(format!(
+            "{what}: {obj} is outside TOML's integers (-2**63 to 2**63 - 1{})",
+            if depth == 0 {
+                "; a seed: up to 2**64 - 1"
+            } else {
+                ""
+            }
+        )));
+    }
+    if obj.is_instance_of::<PyFloat>() {
+        return Ok(T::Float(obj.extract()?));
+    }
+    if let Ok(s) = obj.downcast::<PyString>() {
+        return Ok(T::String(s.extract()?));
+    }
+    if let Ok(d) = obj.downcast::<PyDict>() {
+        let mut t = toml::Table::new();
+        for (k, v) in d.iter() {
+            let key: String = k
+                .extract()
+                .map_err(|_| PyTypeError::new_err(format!("{what}: dict keys must be strings, got {k}")))?;
+            let sub = format!("{what}.{key}");
+            t.insert(key, py_to_toml(&v, &sub, depth + 1)?);
+        }
+        return Ok(T::Table(t));
+    }
+    if obj.is_instance_of::<PyList>() || obj.is_instance_of::<PyTuple>() {
+        let mut a = Vec::new();
+        for x in obj.try_iter()? {
+            a.push(py_to_toml(&x?, what, depth + 1)?);
+        }
+        return Ok(T::Array(a));
+    }
+    // NumPy arrays and scalars (np.bool_ included), pathlib paths.
+    if obj.hasattr("tolist")? {
+        let l = obj.call_method0("tolist")?;
+        if !l.is(obj) {
+            return py_to_toml(&l, what, depth);
+        }
+    }
+    if obj.hasattr("__fspath__")? {
+        return Ok(T::String(obj.call_method0("__fspath__")?.extract()?));
+    }
+    Err(PyTypeError::new_err(format!(
+        "{what}: cannot use a value of type {} in a graph",
         obj.get_type().name()?
     )))
 }
@@ -335,6 +445,12 @@ pub fn payload_from_py(obj: &Bound<'_, PyAny>) -> PyResult<Payload> {
             }
             let layout = layout_from_py(&get(d, "layout", "spikes")?)?;
             let duration_ms = finite(get(d, "duration_ms", "spikes")?.extract()?, "duration_ms")?;
+            if duration_ms < 0.0 {
+                // Binned into a 1-frame image without a word.
+                return Err(PyValueError::new_err(format!(
+                    "spikes: `duration_ms` must be >= 0, got {duration_ms}"
+                )));
+            }
             let n = layout.len() as i64;
             let mut events = Vec::with_capacity(t.len());
             for (&k, &tm) in taxel.iter().zip(t.iter()) {

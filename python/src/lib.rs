@@ -78,6 +78,36 @@ pub(crate) fn with_attrs(py: Python<'_>, err: PyErr, attrs: &[(&str, Option<Stri
     err
 }
 
+/// Warnings the Rust core reported ([`palpate_core::warn`]) since the last
+/// [`flushed`]: from any thread (a run's workers), without the GIL.
+static PENDING_WARNINGS: std::sync::Mutex<Vec<String>> = std::sync::Mutex::new(Vec::new());
+
+fn keep_warning(message: &str) {
+    PENDING_WARNINGS
+        .lock()
+        .unwrap_or_else(|e| e.into_inner())
+        .push(message.to_string());
+}
+
+/// `r`, after raising the core's pending warnings as Python `UserWarning`s
+/// (which `warnings` filters, records, and turns into errors: then that
+/// error is raised, unless `r` is an error already). Nothing reaches stderr
+/// twice: with the sink set, the core prints none of them.
+pub(crate) fn flushed<T>(py: Python<'_>, r: PyResult<T>) -> PyResult<T> {
+    let pending = std::mem::take(&mut *PENDING_WARNINGS.lock().unwrap_or_else(|e| e.into_inner()));
+    let mut raised = Ok(());
+    for m in pending {
+        let m = m.strip_prefix("warning: ").unwrap_or(&m).replace('\0', " ");
+        let msg = std::ffi::CString::new(m).unwrap_or_else(|_| c"palpate warning".into());
+        if let Err(e) = PyErr::warn(py, &py.get_type::<pyo3::exceptions::PyUserWarning>(), &msg, 1) {
+            raised = Err(e);
+            break;
+        }
+    }
+    let v = r?;
+    raised.map(|_| v)
+}
+
 /// The version of the Rust crates this module was built from.
 #[pyfunction]
 fn version() -> &'static str {
@@ -87,11 +117,26 @@ fn version() -> &'static str {
 #[pymodule]
 fn _palpate(m: &Bound<'_, PyModule>) -> PyResult<()> {
     palpate::link();
+    palpate_core::set_warning_sink(keep_warning);
     let py = m.py();
     m.add("PalpateError", py.get_type::<PalpateError>())?;
     m.add("GraphError", py.get_type::<GraphError>())?;
     m.add("ConfigError", py.get_type::<ConfigError>())?;
     m.add("RunError", py.get_type::<RunError>())?;
+    // Every attribute the docs declare is there on every instance (None, or
+    // an empty `diagnostics`), also on one raised by the Python half or
+    // built by hand: the class holds the defaults, a raise sets its own.
+    for (ty, names) in [
+        (py.get_type::<GraphError>(), &["file", "line", "stage", "key"][..]),
+        (py.get_type::<ConfigError>(), &["stage", "key"][..]),
+        (py.get_type::<RunError>(), &["file", "stage", "trial", "key"][..]),
+    ] {
+        for n in names {
+            ty.setattr(*n, py.None())?;
+        }
+    }
+    py.get_type::<GraphError>()
+        .setattr("diagnostics", pyo3::types::PyTuple::empty(py))?;
     m.add_function(wrap_pyfunction!(version, m)?)?;
     m.add_function(wrap_pyfunction!(run::check, m)?)?;
     m.add_function(wrap_pyfunction!(run::run, m)?)?;

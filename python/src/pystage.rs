@@ -158,12 +158,12 @@ impl StageConfig for PythonStageConfig {
     }
     fn build(&self, _ctx: &BuildContext) -> Result<Stage, ConfigError> {
         Python::with_gil(|py| {
-            let (role, factory) = {
+            let (role, output, factory) = {
                 let r = registry()
                     .lock()
                     .map_err(|_| ConfigError::general("the Python stage registry is poisoned"))?;
                 match r.get(&self.stage) {
-                    Some(e) => (e.role.clone(), e.factory.clone_ref(py)),
+                    Some(e) => (e.role.clone(), e.output, e.factory.clone_ref(py)),
                     None => {
                         let mut names: Vec<&String> = r.keys().collect();
                         names.sort();
@@ -204,6 +204,7 @@ impl StageConfig for PythonStageConfig {
             })?;
             let stage = PyStage {
                 name: self.stage.clone(),
+                output,
                 adapter,
             };
             Ok(if role == "map" {
@@ -218,7 +219,17 @@ register_stage!("python", PythonStageConfig);
 
 struct PyStage {
     name: String,
+    /// The kind the class declared (`output=`): what `process` must return.
+    output: PayloadKind,
     adapter: PyObject,
+}
+
+/// The name `@palpate.stage(output=...)` takes for a kind.
+fn kind_name(k: PayloadKind) -> String {
+    serde_json::to_value(k)
+        .ok()
+        .and_then(|v| v.as_str().map(str::to_string))
+        .unwrap_or_else(|| k.to_string())
 }
 
 /// A Python exception as a stage error: its type, message and the last line
@@ -266,7 +277,20 @@ impl Map for PyStage {
                 self.adapter.call_method1(py, "process", (l, c))
             };
             let out = go().map_err(|e| py_err(py, &self.name, "failed", &e))?;
-            to_payload(py, &self.name, "returned a bad payload", out.bind(py))
+            let p = to_payload(py, &self.name, "returned a bad payload", out.bind(py))?;
+            // Unchecked, the next stage failed, blaming itself ("expected
+            // spike events, got analog signals").
+            if p.kind() != self.output {
+                return Err(StageError::new(format!(
+                    "Python stage `{}` declares output=\"{}\" ({}) but its `process` returned {} ({})",
+                    self.name,
+                    kind_name(self.output),
+                    self.output,
+                    kind_name(p.kind()),
+                    p.kind()
+                )));
+            }
+            Ok(p)
         })
     }
 }

@@ -1,7 +1,7 @@
 //! Graphs (check, run) and building blocks (apply one stage, fit a baseline,
 //! simulate a scene), each through the same registered stages the graphs use.
 
-use crate::convert::{item_from_py, item_to_py, json_to_py, py_to_json};
+use crate::convert::{item_from_py, item_to_py, json_to_py};
 use crate::{
     no_panic, with_attrs, ConfigError as PyConfigError, GraphError, PalpateError, RunError as PyRunError,
 };
@@ -22,6 +22,21 @@ pub struct GraphText {
     file: String,
     stem: String,
     base_dir: Option<PathBuf>,
+    /// Said after a TOML syntax error: a one-line string that named no file
+    /// was read as TOML text (`Some("no file `...` exists")`).
+    hint: Option<String>,
+}
+
+/// `e` with the text's `hint` after its TOML syntax error, if any.
+fn with_hint(g: &GraphText, mut e: LoadErrors) -> LoadErrors {
+    if let Some(h) = &g.hint {
+        for d in &mut e.0 {
+            if d.severity == Severity::Error && d.message.starts_with("not valid TOML") {
+                d.message = format!("{} ({h})", d.message);
+            }
+        }
+    }
+    e
 }
 
 fn diag_dicts<'py>(py: Python<'py>, e: &LoadErrors) -> PyResult<Bound<'py, PyList>> {
@@ -74,20 +89,25 @@ fn overrides(set: Option<&Bound<'_, PyAny>>) -> PyResult<Vec<(String, toml::Valu
         .downcast::<PyDict>()
         .map_err(|_| pyo3::exceptions::PyTypeError::new_err("`set` must be a dict of key -> value"))?;
     for (k, v) in d.iter() {
-        let key: String = k.extract()?;
+        let key: String = k.extract().map_err(|_| {
+            pyo3::exceptions::PyTypeError::new_err(format!("`set` keys must be strings, got {k}"))
+        })?;
         let value = match v.extract::<String>() {
             // A string is read as `--set` reads it: a TOML value if it parses.
             Ok(s) => palpate_core::graph::parse_value(&s),
-            Err(_) => match py_to_json(&v)? {
-                // Above TOML's integers (a seed up to 2^64 - 1): its digits,
-                // which `run.seed` reads alike.
-                serde_json::Value::Number(n) if n.as_u64().is_some_and(|u| i64::try_from(u).is_err()) => {
-                    toml::Value::String(n.to_string())
+            Err(_) => {
+                // A seed past 2**64 - 1 was PyO3's bare OverflowError.
+                if key == "run.seed"
+                    && v.is_instance_of::<pyo3::types::PyInt>()
+                    && v.extract::<i64>().is_err()
+                    && v.extract::<u64>().is_err()
+                {
+                    return Err(pyo3::exceptions::PyValueError::new_err(format!(
+                        "`set` value of `run.seed`: seed must be an integer in [0, 2**64), got {v}"
+                    )));
                 }
-                j => toml::Value::try_from(j).map_err(|e| {
-                    pyo3::exceptions::PyValueError::new_err(format!("`set` value of `{key}`: {e}"))
-                })?,
-            },
+                crate::convert::py_to_toml(&v, &format!("`set` value of `{key}`"), 0)?
+            }
         };
         out.push((key, value));
     }
@@ -109,8 +129,31 @@ fn load(
         Ok(palpate_core::load_str(&g.text, &g.file, &g.stem, &opts))
     })?;
     match r {
-        Ok(graph) => Ok((graph, opts)),
-        Err(e) => Err(graph_error(py, &e)),
+        Ok(graph) => {
+            // The load's warnings (deprecated spellings, a bin window shorter
+            // than its hop, ...) as Python warnings, which `warnings` filters,
+            // records and turns into errors; `check` returns them as data.
+            for w in &graph.warnings {
+                let msg = std::ffi::CString::new(w.to_string().replace('\0', " "))
+                    .unwrap_or_else(|_| c"graph warning".into());
+                PyErr::warn(py, &py.get_type::<pyo3::exceptions::PyUserWarning>(), &msg, 2)?;
+            }
+            Ok((graph, opts))
+        }
+        Err(e) => Err(graph_error(py, &with_hint(g, e))),
+    }
+}
+
+/// An output folder that is an existing file is refused before anything
+/// runs, as the CLI refuses it (`prepare_out_dir`); otherwise every stage ran
+/// and the first sink failed.
+fn refuse_file_out(graph: &palpate_core::Graph) -> PyResult<()> {
+    match std::fs::metadata(&graph.out_dir) {
+        Ok(m) if !m.is_dir() => Err(PalpateError::new_err(format!(
+            "output directory {}: exists and is not a directory; give `out` (or `[run] out`) a folder",
+            graph.out_dir.display()
+        ))),
+        _ => Ok(()),
     }
 }
 
@@ -118,6 +161,15 @@ fn load(
 #[pyfunction]
 #[pyo3(signature = (graph, set=None))]
 pub fn check<'py>(
+    py: Python<'py>,
+    graph: GraphText,
+    set: Option<&Bound<'py, PyAny>>,
+) -> PyResult<Bound<'py, PyList>> {
+    let r = check_impl(py, graph, set);
+    crate::flushed(py, r)
+}
+
+fn check_impl<'py>(
     py: Python<'py>,
     graph: GraphText,
     set: Option<&Bound<'py, PyAny>>,
@@ -137,7 +189,7 @@ pub fn check<'py>(
     })?;
     match r {
         Ok(g) => diag_dicts(py, &LoadErrors(g.warnings.clone())),
-        Err(e) => diag_dicts(py, &e),
+        Err(e) => diag_dicts(py, &with_hint(&graph, e)),
     }
 }
 
@@ -266,9 +318,23 @@ pub fn run<'py>(
     progress: bool,
     fresh: bool,
 ) -> PyResult<Bound<'py, PyDict>> {
+    let r = run_impl(py, graph, set, threads, out, progress, fresh);
+    crate::flushed(py, r)
+}
+
+fn run_impl<'py>(
+    py: Python<'py>,
+    graph: GraphText,
+    set: Option<&Bound<'py, PyAny>>,
+    threads: Option<usize>,
+    out: Option<PathBuf>,
+    progress: bool,
+    fresh: bool,
+) -> PyResult<Bound<'py, PyDict>> {
     let text = graph.text.clone();
     let base_dir = graph.base_dir.clone();
     let (graph, opts) = load(py, &graph, set, out)?;
+    refuse_file_out(&graph)?;
     let pool = palpate_core::thread_pool(threads.unwrap_or(0), "threads=")
         .map_err(pyo3::exceptions::PyValueError::new_err)?;
     let bars = Bars::new(progress);
@@ -376,12 +442,25 @@ pub fn run_live<'py>(
     block: usize,
     on_update: Option<PyObject>,
 ) -> PyResult<Bound<'py, PyDict>> {
+    let r = run_live_impl(py, graph, set, out, block, on_update);
+    crate::flushed(py, r)
+}
+
+fn run_live_impl<'py>(
+    py: Python<'py>,
+    graph: GraphText,
+    set: Option<&Bound<'py, PyAny>>,
+    out: Option<PathBuf>,
+    block: usize,
+    on_update: Option<PyObject>,
+) -> PyResult<Bound<'py, PyDict>> {
     if block == 0 {
         return Err(pyo3::exceptions::PyValueError::new_err(
             "block: samples per block must be at least 1",
         ));
     }
     let (graph, _) = load(py, &graph, set, out)?;
+    refuse_file_out(&graph)?;
     let plan = palpate_core::stream::plan(&graph).map_err(|problems| {
         let lines: Vec<String> = problems.iter().map(|p| format!("  {p}")).collect();
         PalpateError::new_err(format!("{}: cannot run live:\n{}", graph.file, lines.join("\n")))
@@ -610,6 +689,19 @@ fn build_stage(
     stage_id: &str,
     base_dir: Option<PathBuf>,
 ) -> PyResult<(Box<dyn StageConfig>, Stage)> {
+    let alias = palpate_core::registry::registered_aliases()
+        .into_iter()
+        .find(|(name, _)| name == type_name)
+        .map(|(_, a)| a);
+    if let (None, Some(alias)) = (palpate_core::registry::find(type_name), alias) {
+        // A stage type registered at run time (a `@palpate.stage` class):
+        // its keys go where the graph loader puts them, as it rewrites
+        // `type = "<name>"` (the long form: `apply("python", stage=..., config=...)`).
+        let inner = pyo3::types::PyDict::new(py);
+        inner.set_item(alias.name_key, type_name)?;
+        inner.set_item(alias.keys_into, config)?;
+        return build_stage(py, alias.target, inner.as_any(), seed, stage_id, base_dir);
+    }
     if palpate_core::registry::find(type_name).is_none() {
         let close = palpate_core::registry::close_matches(type_name);
         let hint = if close.is_empty() {
@@ -626,7 +718,8 @@ fn build_stage(
             ],
         ));
     }
-    let cfg = py_to_json(config)?;
+    let cfg = crate::convert::config_to_json(py, config)
+        .map_err(|e| crate::convert::named(py, &format!("stage `{stage_id}` ({type_name})"), e))?;
     let tagged = serde_json::json!({ type_name: cfg });
     let config: Box<dyn StageConfig> = serde_path_to_error::deserialize(tagged).map_err(|e| {
         let path: Vec<String> = e.path().iter().skip(1).map(|s| s.to_string()).collect();
@@ -666,6 +759,7 @@ fn stage_err(py: Python<'_>, stage_id: &str, trial: Option<&str>, msg: &str) -> 
             trial.map(|t| format!(", trial `{t}`")).unwrap_or_default()
         )),
         &[
+            ("file", None),
             ("stage", Some(stage_id.to_string())),
             ("trial", trial.map(str::to_string)),
             ("key", None),
@@ -679,6 +773,19 @@ fn stage_err(py: Python<'_>, stage_id: &str, trial: Option<&str>, msg: &str) -> 
 #[pyfunction]
 #[pyo3(signature = (type_name, config, trials, seed=1, stage_id="stage", base_dir=None))]
 pub fn apply<'py>(
+    py: Python<'py>,
+    type_name: &str,
+    config: &Bound<'py, PyAny>,
+    trials: &Bound<'py, PyList>,
+    seed: u64,
+    stage_id: &str,
+    base_dir: Option<PathBuf>,
+) -> PyResult<Bound<'py, PyList>> {
+    let r = apply_impl(py, type_name, config, trials, seed, stage_id, base_dir);
+    crate::flushed(py, r)
+}
+
+fn apply_impl<'py>(
     py: Python<'py>,
     type_name: &str,
     config: &Bound<'py, PyAny>,
@@ -802,6 +909,40 @@ pub struct Model {
 impl Model {
     /// Estimates each raw payload; returns raw estimates.
     fn predict<'py>(&self, py: Python<'py>, trials: &Bound<'py, PyList>) -> PyResult<Bound<'py, PyList>> {
+        let r = self.predict_impl(py, trials);
+        crate::flushed(py, r)
+    }
+
+    /// The model file's bytes (what `save_model = true` writes, `model_in`
+    /// reads), or None for a model that is not saved as a file (WSS, a Python
+    /// stage's).
+    fn saved_bytes<'py>(&self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyBytes>>> {
+        match self.model.saved_bytes() {
+            None => Ok(None),
+            Some(Ok(b)) => Ok(Some(PyBytes::new(py, &b))),
+            Some(Err(e)) => Err(stage_err(py, &self.stage_id, None, &e.message)),
+        }
+    }
+
+    /// The run seed the model predicts with (its per-trial seeds derive from it).
+    #[getter]
+    fn seed(&self) -> u64 {
+        self.seed
+    }
+
+    /// The stage id its per-trial seeds derive from (a graph's stage id).
+    #[getter]
+    fn stage_id(&self) -> &str {
+        &self.stage_id
+    }
+}
+
+impl Model {
+    fn predict_impl<'py>(
+        &self,
+        py: Python<'py>,
+        trials: &Bound<'py, PyList>,
+    ) -> PyResult<Bound<'py, PyList>> {
         let inputs: Vec<Vec<Item>> = trials
             .iter()
             .enumerate()
@@ -823,23 +964,6 @@ impl Model {
         }
         Ok(l)
     }
-
-    /// The model file's bytes (what `save_model = true` writes, `model_in`
-    /// reads), or None for a model that is not saved as a file (WSS, a Python
-    /// stage's).
-    fn saved_bytes<'py>(&self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyBytes>>> {
-        match self.model.saved_bytes() {
-            None => Ok(None),
-            Some(Ok(b)) => Ok(Some(PyBytes::new(py, &b))),
-            Some(Err(e)) => Err(stage_err(py, &self.stage_id, None, &e.message)),
-        }
-    }
-
-    /// The run seed the model predicts with (its per-trial seeds derive from it).
-    #[getter]
-    fn seed(&self) -> u64 {
-        self.seed
-    }
 }
 
 /// Fits a registered estimator on raw payloads (each with `meta` carrying its
@@ -847,6 +971,18 @@ impl Model {
 #[pyfunction]
 #[pyo3(signature = (type_name, config, train, seed=1, stage_id="stage"))]
 pub fn fit<'py>(
+    py: Python<'py>,
+    type_name: &str,
+    config: &Bound<'py, PyAny>,
+    train: &Bound<'py, PyList>,
+    seed: u64,
+    stage_id: &str,
+) -> PyResult<Model> {
+    let r = fit_impl(py, type_name, config, train, seed, stage_id);
+    crate::flushed(py, r)
+}
+
+fn fit_impl<'py>(
     py: Python<'py>,
     type_name: &str,
     config: &Bound<'py, PyAny>,
@@ -894,17 +1030,18 @@ pub fn fit<'py>(
     })
 }
 
-/// Simulates a scene (the `scene` stage with these keys, stage id `scene`, the
-/// given run seed): every trial's raw signals with its metadata.
+/// Simulates a scene (the `scene` stage with these keys, stage id `stage_id`,
+/// the given run seed): every trial's raw signals with its metadata.
 #[pyfunction]
-#[pyo3(signature = (config, seed=1, base_dir=None))]
+#[pyo3(signature = (config, seed=1, base_dir=None, stage_id="scene"))]
 pub fn simulate<'py>(
     py: Python<'py>,
     config: &Bound<'py, PyAny>,
     seed: u64,
     base_dir: Option<PathBuf>,
+    stage_id: &str,
 ) -> PyResult<Bound<'py, PyList>> {
-    read_source(py, "scene", config, seed, base_dir, "scene")
+    read_source(py, "scene", config, seed, base_dir, stage_id)
 }
 
 /// Every trial of the source stage `type_name` with these keys (stage id
@@ -913,6 +1050,18 @@ pub fn simulate<'py>(
 #[pyfunction]
 #[pyo3(signature = (type_name, config, seed=1, base_dir=None, stage_id="source"))]
 pub fn read_source<'py>(
+    py: Python<'py>,
+    type_name: &str,
+    config: &Bound<'py, PyAny>,
+    seed: u64,
+    base_dir: Option<PathBuf>,
+    stage_id: &str,
+) -> PyResult<Bound<'py, PyList>> {
+    let r = read_source_impl(py, type_name, config, seed, base_dir, stage_id);
+    crate::flushed(py, r)
+}
+
+fn read_source_impl<'py>(
     py: Python<'py>,
     type_name: &str,
     config: &Bound<'py, PyAny>,

@@ -490,3 +490,274 @@ inputs = ["knn"]
         palpate.fit("knn", images, save_model=True)  # wrote /tmp/stage.fold0.model.json before
     with pytest.raises(ValueError, match="not a palpate model file"):
         palpate.load_model(tmp_path / "out" / "run.json")
+
+
+# ---------------------------------------------------------------- QA fixes
+
+
+def _filter_graph(tmp_path):
+    """A small graph with a `lowpass` stage `filter` (for `set=` checks)."""
+    return {
+        "run": {"seed": 1, "out": str(tmp_path / "out")},
+        "stages": {
+            "scene": {"type": "scene", "file": str(GRAPHS / "scenes" / "ideal.toml"), "angles": [30.0, 60.0], "trials_per_angle": 1},
+            "filter": {"type": "lowpass", "inputs": ["scene"], "cutoff_hz": 10.0},
+            "drive": {"type": "drive", "inputs": ["filter"], "kind": "fa_i"},
+            "enc": {"type": "izhikevich", "inputs": ["drive"]},
+            "bins": {"type": "bin", "inputs": ["enc"]},
+            "wss": {"type": "wss", "inputs": ["bins"]},
+            "mae": {"type": "mae", "inputs": ["wss"], "per_class": False},
+        },
+    }
+
+
+def test_a_graph_path_holding_an_equals_sign_is_a_path(tmp_path, monkeypatch):
+    """`sweep/lr=0.1/graph.toml` was read as TOML text ("not valid TOML" in
+    `<string>`); a one-line string naming no file that fails as TOML says it
+    was read as TOML text."""
+    monkeypatch.chdir(tmp_path)
+    d = tmp_path / "sweep" / "lr=0.1"
+    d.mkdir(parents=True)
+    (d / "graph.toml").write_text(palpate._palpate_toml(_filter_graph(tmp_path)))
+    assert [x for x in palpate.check("sweep/lr=0.1/graph.toml") if x.severity == "error"] == []
+    # A file without the .toml ending, named by a string holding `=`, too.
+    (d / "graph").write_text((d / "graph.toml").read_text())
+    assert [x for x in palpate.check("sweep/lr=0.1/graph") if x.severity == "error"] == []
+    # A .toml path that does not exist is a path (cannot read), not TOML text.
+    with pytest.raises(palpate.GraphError, match="cannot read the graph file") as e:
+        palpate.run("sweep/lr=0.2/graph.toml", progress=False)
+    assert e.value.file == "sweep/lr=0.2/graph.toml"
+    # No such file, no .toml ending, holds `=`: TOML text, and the error says so.
+    diags = palpate.check("sweep/lr=0.2/graph")
+    assert any("not valid TOML" in x.message and "no file `sweep/lr=0.2/graph` exists" in x.message for x in diags), diags
+    with pytest.raises(palpate.GraphError, match="read as TOML text because no file"):
+        palpate.run("sweep/lr=0.2/graph", progress=False)
+
+
+def _stochastic_graph(tmp_path, seed):
+    return f"""
+[run]
+seed = {seed}
+out = "{tmp_path / 'out_a'}"
+[stages.sim]
+type = "scene"
+file = "{GRAPHS / 'scenes' / 'lab.toml'}"
+angles = [40.0]
+trials_per_angle = 1
+[stages.enc]
+type = "izhikevich"
+inputs = ["sim"]
+[stages.jit]
+type = "jitter"
+inputs = ["enc"]
+tau_ms = 5.0
+[stages.ws]
+type = "write_signals"
+inputs = ["sim"]
+format = "npy"
+[stages.wsp]
+type = "write_spikes"
+inputs = ["jit"]
+format = "npy"
+"""
+
+
+def test_building_blocks_reproduce_a_graph_stage_by_its_id(tmp_path):
+    """`stage_id=` gives a building block the graph stage's seeds: simulate
+    as scene `sim`, apply as stage `jit`, bit for bit at the same run seed;
+    the defaults (`scene`, `stage`) keep their bits."""
+    palpate.run(_stochastic_graph(tmp_path, 3), progress=False)
+    sig = np.load(tmp_path / "out_a" / "ws" / "edge-40deg-r00.npy")
+    ev = np.load(tmp_path / "out_a" / "wsp" / "edge-40deg-r00.npy")
+    lab = GRAPHS / "scenes" / "lab.toml"
+    d = palpate.simulate(lab, seed=3, stage_id="sim", angles=[40.0], trials_per_angle=1)
+    assert np.array_equal(sig, d.trials[0].data)
+    default = palpate.simulate(lab, seed=3, angles=[40.0], trials_per_angle=1)
+    assert not np.array_equal(sig, default.trials[0].data)  # the id matters: the check above could fail
+    raw = palpate._palpate.read_source("scene", {"file": str(lab), "angles": [40.0], "trials_per_angle": 1}, 3, None, "scene")
+    assert np.array_equal(default.trials[0].data, raw[0]["data"])  # the default id is still `scene`
+    sp = palpate.izhikevich(d.trials[0])
+    j = palpate.apply("jitter", sp, seed=3, stage_id="jit", tau_ms=5.0)
+    assert np.array_equal(ev["t"], j.events["t"])
+    assert not np.array_equal(ev["t"], palpate.apply("jitter", sp, seed=3, tau_ms=5.0).events["t"])
+    with pytest.raises(TypeError, match="stage_id"):
+        palpate.apply("jitter", sp, seed=3, stage_id=3, tau_ms=5.0)
+
+
+def test_fit_and_load_model_reproduce_a_graph_estimator_by_its_id(tmp_path):
+    """EDBN's spiking inference: a model fitted or loaded with the graph's
+    stage id predicts the graph's scores bit for bit (not so with the
+    default id), and a pickled model keeps its id."""
+    import pickle
+
+    ideal = GRAPHS / "scenes" / "ideal.toml"
+    d = palpate.simulate(ideal, seed=5, angles=[30.0, 60.0, 90.0], trials_per_angle=2)
+    images = palpate.bin(palpate.izhikevich(palpate.drive(d.trials, kind="fa_i")), window_ms=100.0, hop_ms=10.0)
+    edbn = palpate.fit("edbn", images, seed=5, stage_id="edbn", inference="spiking")
+    assert edbn.stage_id == "edbn"
+    path = edbn.save(tmp_path / "edbn.model.json")
+    g = f"""
+[run]
+seed = 5
+out = "{tmp_path / 'out_b'}"
+[stages.scene]
+type = "scene"
+file = "{ideal}"
+angles = [30.0, 60.0, 90.0]
+trials_per_angle = 2
+[stages.drive]
+type = "drive"
+inputs = ["scene"]
+kind = "fa_i"
+[stages.enc]
+type = "izhikevich"
+inputs = ["drive"]
+[stages.bins]
+type = "bin"
+inputs = ["enc"]
+window_ms = 100.0
+hop_ms = 10.0
+[stages.edbn]
+type = "edbn"
+inputs = ["bins"]
+model_in = "{path}"
+inference = "spiking"
+[stages.mae]
+type = "mae"
+inputs = ["edbn"]
+"""
+    want = palpate.run(g, progress=False).estimates["edbn"].scores
+    scores = lambda m: np.stack([e.scores for e in m.predict(images)])
+    assert np.array_equal(want, scores(edbn))
+    assert np.array_equal(want, scores(palpate.load_model(path, seed=5, stage_id="edbn")))
+    assert not np.array_equal(want, scores(palpate.load_model(path, seed=5)))
+    again = pickle.loads(pickle.dumps(edbn))
+    assert again.stage_id == "edbn" and np.array_equal(want, scores(again))
+
+
+@pytest.mark.parametrize(
+    "call, kind, match",
+    [
+        (lambda g: palpate.check(g, set={"run.seed": 2**64}), ValueError, r"`run.seed`: seed must be an integer in \[0, 2\*\*64\)"),
+        (lambda g: palpate.check(g, set={"stages.scene.trials_per_angle": 10**30}), ValueError, "`stages.scene.trials_per_angle`: 10+ is outside TOML's integers"),
+        (lambda g: palpate.check(g, set={"stages.mae.per_class": None}), TypeError, "`stages.mae.per_class` is None: TOML has no null"),
+        (lambda g: palpate.lowpass(np.ones((200, 16)), sample_rate_hz=100.0, cutoff_hz=float("nan")), ValueError, "key `cutoff_hz`: NaN"),
+        (lambda g: palpate.simulate(GRAPHS / "scenes" / "ideal.toml", angles=[float("nan")]), ValueError, "key `angles`: NaN"),
+        (lambda g: palpate.fit("knn", [], k=10**30), ValueError, "key `k`: 10+ is outside the 64-bit integers"),
+        (lambda g: palpate.run(g, threads=-1), ValueError, "`threads` must be >= 0.*got -1"),
+        (lambda g: palpate.run(g, threads=1.5), TypeError, "`threads` must be a whole number"),
+        (lambda g: palpate.run_live(g, block=-1), ValueError, "`block` must be >= 1.*got -1"),
+    ],
+)
+def test_values_out_of_range_raise_errors_naming_the_key(tmp_path, call, kind, match):
+    """Were bare "NaN is not a finite number", OverflowError, "can't convert
+    negative int to unsigned"."""
+    with pytest.raises(kind, match=match):
+        call(_filter_graph(tmp_path))
+
+
+def test_nan_and_inf_through_set_are_diagnosed_as_in_a_dict_graph(tmp_path):
+    """`set=` NaN or inf is a TOML float, checked by the stage as the same value
+    in a dict graph (and `--set key=nan`) is: a diagnostic naming stage and key."""
+    g = _filter_graph(tmp_path)
+    for v in (float("nan"), float("inf")):
+        via_set = [x for x in palpate.check(g, set={"stages.filter.cutoff_hz": v}) if x.severity == "error"]
+        assert via_set and via_set[0].stage == "filter" and via_set[0].key == "cutoff_hz", via_set
+        d = json.loads(json.dumps(g))
+        d["stages"]["filter"]["cutoff_hz"] = v
+        in_dict = [x for x in palpate.check(d) if x.severity == "error"]
+        assert [x.message for x in via_set] == [x.message for x in in_dict]
+
+
+def test_numpy_bools_are_bools_and_none_names_its_key(tmp_path):
+    g = _filter_graph(tmp_path)
+    g["stages"]["mae"]["per_class"] = np.bool_(True)
+    assert [x for x in palpate.check(g) if x.severity == "error"] == []
+    assert '"per_class" = true' in palpate._palpate_toml(g)  # was "cannot write a bool_ in a graph"
+    g["stages"]["mae"]["per_class"] = None
+    with pytest.raises(TypeError, match=r"`stages.mae.per_class` is None: TOML has no null; leave the key out"):
+        palpate.check(g)
+    g["stages"]["mae"]["per_class"] = False
+    g["stages"]["scene"]["angles"] = [30.0, None]
+    with pytest.raises(TypeError, match=r"`stages.scene.angles\[1\]` is None"):
+        palpate.check(g)
+
+
+def test_every_declared_exception_attribute_is_always_there(tmp_path):
+    with pytest.raises(palpate.GraphError) as e:
+        palpate.run(tmp_path / "no_such_graph.toml")
+    err = e.value
+    assert err.file == str(tmp_path / "no_such_graph.toml") and err.line is None and err.stage is None and err.key is None
+    assert len(err.diagnostics) == 1 and "cannot read the graph file" in err.diagnostics[0]["message"]
+    with pytest.raises(palpate.RunError) as e:
+        palpate.lowpass(np.full((10, 16), np.nan), sample_rate_hz=100.0)
+    assert e.value.file is None and e.value.stage == "stage" and e.value.key is None
+    with pytest.raises(palpate.RunError) as e:
+        palpate.fit("knn", [])
+    assert e.value.file is None and e.value.trial is None
+    # Built by hand, too: the class holds the defaults.
+    assert palpate.GraphError("x").diagnostics == () and palpate.RunError("x").file is None
+    assert palpate.ConfigError("x").key is None
+
+
+def test_an_output_folder_that_is_a_file_is_refused_before_running(tmp_path):
+    f = tmp_path / "not_a_dir"
+    f.write_text("x")
+    progress = []
+
+    class Stop(Exception):
+        pass
+
+    g = _filter_graph(tmp_path)
+    with pytest.raises(palpate.PalpateError, match="exists and is not a directory") as e:
+        palpate.run(g, out=f, progress=False)
+    assert not isinstance(e.value, palpate.RunError)  # refused, not failed at the sink
+    with pytest.raises(palpate.PalpateError, match="exists and is not a directory"):
+        palpate.run_live(g, out=f, on_update=progress.append)
+    assert progress == [] and f.read_text() == "x"
+
+
+def test_negative_durations_and_event_times_are_refused():
+    with pytest.raises(ValueError, match="`duration_ms` must be a finite number of ms >= 0, got -5.0"):
+        palpate.Spikes([], [], -5.0)
+    with pytest.raises(ValueError, match="`duration_ms` must be >= 0"):
+        palpate._palpate.apply("bin", {}, [[{"kind": "spikes", "taxel": np.zeros(0, np.uint32), "t_ms": np.zeros(0), "duration_ms": -5.0, "layout": palpate.grid()}]])
+    ev = np.array([(0, 0, -5, True)], dtype=palpate.EVENT_DTYPE)
+    with pytest.raises(ValueError, match="event 0 has time t = -5 us"):
+        palpate.Spikes.from_events(ev, (3, 2, 1))
+    assert palpate.bin(palpate.Spikes([], [], 0.0)).counts.sum() == 0  # an empty trial still bins
+
+
+def test_core_warnings_are_python_warnings():
+    """WSS's warnings came straight to stderr, out of reach of `warnings`."""
+    import warnings
+
+    with warnings.catch_warnings(record=True) as w:
+        warnings.simplefilter("always")
+        est = palpate.wss(palpate.Images(np.zeros((5, 16)), 100.0, 10.0), stage_id="wss_no_speed")
+    assert est.angle_deg is None or np.isfinite(est.angle_deg)
+    msgs = [str(x.message) for x in w if issubclass(x.category, UserWarning)]
+    assert any("declares no palpation speed" in m and "wss_no_speed" in m for m in msgs), msgs
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(UserWarning, match="all lie on one line"):
+            palpate.wss(palpate.Images(np.zeros((5, 4)), 100.0, 10.0, palpate.grid(rows=1, cols=4)), stage_id="wss_line", speed_mm_s=2.0)
+
+
+def test_a_graphs_load_warnings_are_python_warnings(tmp_path):
+    g = _filter_graph(tmp_path)
+    g["stages"]["bins"]["window_ms"] = 5.0  # shorter than its hop: a load warning
+    g["stages"]["scene"]["trials_per_angle"] = 1
+    assert any(x.severity == "warning" for x in palpate.check(g))
+    with pytest.warns(UserWarning, match="bins"):
+        palpate.run(g, progress=False)
+
+
+def test_infinite_labels_are_no_label_and_all_non_finite_is_said():
+    ims = [palpate.Images(np.random.default_rng(i).poisson(1.0, (20, 16)), 100.0, 10.0) for i in range(6)]
+    with pytest.warns(UserWarning, match="2 of 6 training payloads have an infinite label"):
+        palpate.fit("knn", ims, labels=[30.0, 30.0, 60.0, 60.0, np.inf, -np.inf])
+    with pytest.warns(UserWarning):
+        with pytest.raises(palpate.RunError, match="every one of the 6 labels given is non-finite") as e:
+            palpate.fit("knn", ims, labels=[np.inf] * 3 + [np.nan] * 3)
+    assert e.value.stage == "stage"

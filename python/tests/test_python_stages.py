@@ -215,3 +215,43 @@ def test_a_stage_without_its_method_or_with_an_unusable_name_is_refused_when_reg
     for name in ["", "two words", "1st", "a.b"]:
         with pytest.raises(ValueError, match="a stage name starts with a letter"):
             palpate.stage(name)
+
+
+def test_a_registered_stage_is_applied_and_fitted_by_its_name():
+    """`apply("test_threshold", ...)` said "unknown stage type"; only the long
+    form `apply("python", stage=..., config=...)` worked."""
+    s = palpate.Signals(np.tile(np.linspace(0.0, 1.0, 100)[:, None], (1, 16)), 1000.0)
+    short = palpate.apply("test_threshold", s, level=0.3)
+    long = palpate.apply("python", s, stage="test_threshold", config={"level": 0.3})
+    assert len(short.taxel) > 0
+    assert np.array_equal(short.taxel, long.taxel) and np.array_equal(short.t_ms, long.t_ms)
+    with pytest.raises(palpate.ConfigError, match="unknown key `levle`"):
+        palpate.apply("test_threshold", s, levle=0.3)
+    rng = np.random.default_rng(0)
+    ims = [palpate.Images(rng.random((3, 16)) + (i % 2), 100.0, 10.0) for i in range(4)]
+    m = palpate.fit("test_centroid", ims, labels=[10.0, 20.0, 10.0, 20.0])
+    assert list(m.predict_angles(ims)) == [10.0, 20.0, 10.0, 20.0]
+
+
+@palpate.stage("test_wrong_kind", inputs="signals", output="spikes")
+class WrongKind:
+    def process(self, signals, ctx):
+        return signals  # declared spikes
+
+
+def test_a_python_stage_returning_another_kind_than_declared_is_named(tmp_path):
+    """The next stage (`bins`) failed with "expected spike events, got analog
+    signals", blaming itself."""
+    g = {
+        "run": {"seed": 1, "out": str(tmp_path / "out")},
+        "stages": {
+            "scene": {"type": "scene", "file": str(GRAPHS / "scenes" / "ideal.toml"), "angles": [30.0, 60.0], "trials_per_angle": 1},
+            "enc": {"type": "test_wrong_kind", "inputs": ["scene"]},
+            "bins": {"type": "bin", "inputs": ["enc"]},
+            "wss": {"type": "wss", "inputs": ["bins"]},
+            "mae": {"type": "mae", "inputs": ["wss"]},
+        },
+    }
+    with pytest.raises(palpate.RunError, match=r'Python stage `test_wrong_kind` declares output="spikes" .* returned signals') as e:
+        palpate.run(g, progress=False)
+    assert e.value.stage == "enc"
