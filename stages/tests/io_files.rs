@@ -277,6 +277,18 @@ fn spreadsheet_and_logger_csv_variants_read_the_same_samples() {
         "ignore_columns = [\"time_ms\"]\nsample_rate_hz = 1000.0",
     );
     assert_data(&s, 0, 12);
+    // An absurd time is printed as a number, not 301 digits.
+    let far: String = plain
+        .lines()
+        .enumerate()
+        .map(|(k, l)| match (k, l.split_once(',')) {
+            (3, Some((_, rest))) => format!("1e300,{rest}\n"),
+            _ => format!("{l}\n"),
+        })
+        .collect();
+    std::fs::write(p.join("far.csv"), far).unwrap();
+    let e = source_error(p, &src("far.csv", ""));
+    assert!(e.contains("1e300 ms") && e.len() < 600, "{e}");
     // A delimiter after every value (loggers that print `v,` per value),
     // in `,`- and `;`-separated files: the same samples; a value under the
     // unnamed last column is an error naming its line, not dropped.

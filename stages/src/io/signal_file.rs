@@ -1211,19 +1211,26 @@ fn rate_from_times(times: &[(u64, f64)], origin: &str) -> Result<Option<f64>, St
     let way_out = "(a missing or repeated row? if the times only jitter, e.g. stamped by the \
                    host, give the rate in `sample_rate_hz` and list the time column in \
                    `ignore_columns`)";
+    // Times as messages print numbers: 1e300 in exponent form, not 301 digits.
+    let n_ = palpate_core::fmt_num;
     let mut grid = TimeGrid::default();
     for &(line, t) in times {
         match grid.push(t, 1) {
             Ok(()) => {}
             Err(GridBreak::NotIncreasing { before }) => {
                 return Err(format!(
-                    "{origin}, line {line}: the time column does not increase: {t} ms after {before} ms"
+                    "{origin}, line {line}: the time column does not increase: {} ms after {} ms",
+                    n_(t),
+                    n_(before)
                 ))
             }
             Err(GridBreak::Off { step, interval }) => {
                 return Err(format!(
-                    "{origin}, line {line}: time {t} ms is off the uniform grid of {step} ms of the \
-                     lines before it ({interval} ms after the line before) {way_out}"
+                    "{origin}, line {line}: time {} ms is off the uniform grid of {} ms of the \
+                     lines before it ({} ms after the line before) {way_out}",
+                    n_(t),
+                    n_(step),
+                    n_(interval)
                 ))
             }
         }
@@ -1239,7 +1246,9 @@ fn rate_from_times(times: &[(u64, f64)], origin: &str) -> Result<Option<f64>, St
         .find(|&(k, &(_, t))| off_grid(t, times[0].1, k as f64, dt))
         .map_or((0, f64::NAN), |(_, &lt)| lt);
     Err(format!(
-        "{origin}, line {line}: time {t} ms is off the uniform grid of {dt} ms {way_out}"
+        "{origin}, line {line}: time {} ms is off the uniform grid of {} ms {way_out}",
+        n_(t),
+        n_(dt)
     ))
 }
 
