@@ -49,7 +49,13 @@
 //! A `recording` is decoded once before it streams (constant memory): one
 //! that ends inside a frame (copied or stopped while being written) is
 //! refused with an error naming the file and the byte, as `signal_file`
-//! refuses it, unless `allow_cut_end = true`, which drops that frame.
+//! refuses it, unless `allow_cut_end = true`, which drops that frame; one
+//! holding valid frames of another channel count is refused too.
+//!
+//! The frames' timestamps must keep the pace of `sample_rate_hz` (within
+//! half a sample and 0.1 %, [`RateCheck`]): a board stamping 500 Hz read
+//! at the default 1 kHz is an error naming both rates, not trials stretched
+//! twofold. A board without a clock (every timestamp equal) is not timed.
 //!
 //! A stream that ends without a trial is an error, offline and live alike,
 //! naming why (no valid frame, with a recording's counts; or no contact,
@@ -88,6 +94,61 @@ use std::ops::ControlFlow;
 use std::path::PathBuf;
 use std::sync::{mpsc, Arc, OnceLock};
 use std::time::Duration;
+
+/// Holds a stream's timestamps to the source's `sample_rate_hz`: time is
+/// the frame count over that rate, so frames stamped at another rate (a
+/// board at 500 Hz read as 1 kHz) would silently stretch every trial. Over
+/// each run of consecutive sequence numbers from frame `(q0, t0)`, frame
+/// `(q, t)` with `n = q − q0` must satisfy `|t − t0 − n·T| <= T/2 + 0.001·n·T`
+/// (`T = 1e6 / fs` µs): the half sample [`FrameCheck`](super::FrameCheck)'s
+/// quarter-sample grid allows at both ends, plus a 0.1 % clock tolerance
+/// (the one `signal_file` holds a recording's rate to). Lost frames keep
+/// the run (their time passed too: `n` counts sequence steps); a reset
+/// (the sequence or the clock going back) starts a new one; a board without
+/// a clock (every timestamp equal) is not checked.
+struct RateCheck {
+    period_us: f64,
+    run: Option<(u32, u64)>,
+}
+
+impl RateCheck {
+    fn new(fs: f64) -> Self {
+        RateCheck {
+            period_us: 1e6 / fs,
+            run: None,
+        }
+    }
+
+    fn push(&mut self, k: u64, seq: u32, t: u64) -> Result<(), String> {
+        let Some((q0, t0)) = self.run else {
+            self.run = Some((seq, t));
+            return Ok(());
+        };
+        let n = seq.wrapping_sub(q0);
+        if !(1..1 << 31).contains(&n) || t < t0 {
+            self.run = Some((seq, t));
+            return Ok(());
+        }
+        if t == t0 {
+            return Ok(());
+        }
+        let p = self.period_us;
+        let n = f64::from(n);
+        let span = (t - t0) as f64;
+        if (span - n * p).abs() > 0.5 * p + 0.001 * n * p {
+            let per = span / n;
+            return Err(format!(
+                "frame {k} (sequence {seq}): the timestamps advance {} µs a frame ({} Hz), but \
+                 `sample_rate_hz` is {} Hz ({} µs): set `sample_rate_hz` to the board's rate",
+                (per * 1e3).round() / 1e3,
+                fmt_num((1e9 / per).round() / 1e3),
+                fmt_num(1e6 / p),
+                (p * 1e3).round() / 1e3
+            ));
+        }
+        Ok(())
+    }
+}
 
 /// How the stream is cut into trials.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
@@ -810,6 +871,8 @@ impl DaqSource {
         let mut fail: Option<RunError> = None;
         let mut frames = 0u64;
         let mut check = super::protocol::FrameCheck::default();
+        let mut clock = RateCheck::new(self.c.fs);
+        let mut crc_errors = 0u64;
         // `None`: a tick (see `SourceEvent::Tick`); one closure holds `on`.
         let mut on_event = |ev: Option<SegEvent<'_>>| -> Result<(), RunError> {
             let Some(ev) = ev else {
@@ -840,6 +903,9 @@ impl DaqSource {
                         )));
                     }
                     check.push(f).map_err(|m| self.error(m))?;
+                    clock
+                        .push(frames, f.seq, f.timestamp_us)
+                        .map_err(|m| self.error(m))?;
                     frames += 1;
                     seg.push(&f.samples, &mut |e| on_event(Some(e)))?;
                     // A frame outside a trial streams nothing: a tick, so
@@ -871,7 +937,16 @@ impl DaqSource {
                     }
                 }
                 DaqEvent::CrcError => {
-                    eprintln!("daq `{}`: a frame failed its CRC and was dropped", self.stage_id)
+                    // The first few, then at 2^k: a noisy link's log stays
+                    // short (every error printed made 22,646 lines of one
+                    // bad recording) and still says how bad it is.
+                    crc_errors += 1;
+                    if crc_errors <= 5 || crc_errors.is_power_of_two() {
+                        eprintln!(
+                            "daq `{}`: a frame failed its CRC and was dropped ({crc_errors} so far)",
+                            self.stage_id
+                        )
+                    }
                 }
                 DaqEvent::OutOfOrder => {
                     eprintln!("daq `{}`: a frame from the past (device reset?)", self.stage_id)
@@ -1015,6 +1090,18 @@ impl DaqSource {
             }
         }
         let (stats, cut) = (dec.stats().clone(), dec.pending());
+        // Frames of another channel count are skipped by the decoder (on a
+        // live link, noise that happens to parse); a recording holding
+        // whole valid ones is another board's or a mixed file, refused as
+        // `signal_file` refuses it rather than half scored.
+        if stats.wrong_channels > 0 {
+            return Err(self.error(format!(
+                "{shown}: channel mismatch: the layout has {} taxels but {} valid frames carry another \
+                 count ({stats})",
+                self.c.layout.len(),
+                stats.wrong_channels
+            )));
+        }
         if stats.frames > 0 && cut > 0 {
             let at = stats.bytes - cut as u64;
             if !self.c.allow_cut_end {
@@ -1511,6 +1598,21 @@ mod tests {
         };
         let f32s = |_| SampleFormat::F32;
         assert_eq!(trials("ok.daq", &|k| k * 10_000, &f32s).unwrap().len(), 14);
+        // Stamped at 200 Hz, read at the key's 100: refused by the third
+        // frame (past the half sample of slack), naming both rates (every
+        // trial was stretched 2x before).
+        let e = trials("fast.daq", &|k| k * 5_000, &f32s).unwrap_err();
+        assert!(
+            e.contains("frame 2 (sequence 2)") && e.contains("(200 Hz)") && e.contains("is 100 Hz"),
+            "{e}"
+        );
+        // A board clock 0.05 % fast, or one with a quarter sample of jitter,
+        // is the key's rate.
+        assert_eq!(trials("drift.daq", &|k| k * 9_995, &f32s).unwrap().len(), 14);
+        let jitter = |k: u64| k * 10_000 + if k >= 10 && k.is_multiple_of(2) { 2_000 } else { 0 };
+        assert_eq!(trials("jitter.daq", &jitter, &f32s).unwrap().len(), 14);
+        // A board without a clock (every stamp the same) is not timed.
+        assert_eq!(trials("clockless.daq", &|_| 7, &f32s).unwrap().len(), 14);
         // 100 Hz for 700 frames, then 200 Hz.
         let e = trials(
             "rate.daq",
@@ -1622,6 +1724,31 @@ mod tests {
         // A whole recording needs no key.
         std::fs::write(d.path().join("whole.daq"), &whole).unwrap();
         assert_eq!(one_taxel(d.path(), "whole.daq", false).trials().unwrap().len(), 1);
+    }
+
+    /// A recording whose frames change their channel count half way is
+    /// refused before it streams, with the counts (the decoder skipped the
+    /// others' frames, and the half trial was scored).
+    #[test]
+    fn a_recording_of_mixed_channel_counts_is_refused() {
+        let d = tempfile::tempdir().unwrap();
+        let mut b = one_taxel_frames(20, 30);
+        for k in 50..100u64 {
+            super::super::encode_frame(
+                &mut b,
+                super::super::SampleFormat::F32,
+                k as u32,
+                k * 10_000,
+                &[1.0, 1.0],
+            );
+        }
+        std::fs::write(d.path().join("mixed.daq"), &b).unwrap();
+        let e = one_taxel(d.path(), "mixed.daq", false).trials().unwrap_err();
+        assert!(
+            e.message.contains("mixed.daq: channel mismatch")
+                && e.message.contains("the layout has 1 taxels but 50 valid frames"),
+            "{e}"
+        );
     }
 
     /// A stream that ends on its own without a trial fails, live (`run`)
