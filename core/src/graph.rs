@@ -999,15 +999,30 @@ impl<'t> Loader<'t> {
             );
         }
         // Two values with one label would share a point folder: the second
-        // overwrites the first, and the sweep never counts as complete.
+        // overwrites the first, and the sweep never counts as complete. Two
+        // numbers of one value (`10` and `10.0`) get two folders but run
+        // one setting twice: the same mistake.
         let repeated = |values: &[toml::Value]| -> Option<String> {
             let labels: Vec<String> = values.iter().map(crate::sweep::label).collect();
-            labels
-                .iter()
-                .enumerate()
-                .find(|(i, l)| labels[..*i].contains(l))
-                .map(|(_, l)| {
-                    format!("`values` lists {l} twice (each value is one point, reported in its own folder)")
+            let number = |v: &toml::Value| v.as_float().or_else(|| v.as_integer().map(|i| i as f64));
+            let same = |a: usize, b: usize| {
+                labels[a] == labels[b]
+                    || matches!((number(&values[a]), number(&values[b])), (Some(x), Some(y)) if x == y)
+            };
+            (0..values.len())
+                .find_map(|i| (0..i).find(|&j| same(i, j)).map(|j| (j, i)))
+                .map(|(j, i)| {
+                    if labels[i] == labels[j] {
+                        format!(
+                            "`values` lists {} twice (each value is one point, reported in its own folder)",
+                            labels[i]
+                        )
+                    } else {
+                        format!(
+                            "`values` lists {} and {}, one number: the same setting would run twice",
+                            labels[j], labels[i]
+                        )
+                    }
                 })
         };
         if let Some(msg) = repeated(&sweep.values) {

@@ -257,6 +257,11 @@ set = { "stages.ghost.inputs" = ["a"] }
         "[sweep]\n[[sweep.series]]\nname = \"s\"\nkey = \"stages.b.factor\"\nvalues = [2.0, 2.0]\n",
     ));
     assert!(twice.contains("series `s`: `values` lists 2.0 twice"), "{twice}");
+    // An integer and a float of one value: two folders, one setting run twice.
+    let twice = load_error(&with_sweep(
+        "[sweep]\nkey = \"stages.b.factor\"\nvalues = [2, 1.5, 2.0]\n",
+    ));
+    assert!(twice.contains("`values` lists 2 and 2.0, one number"), "{twice}");
 
     let no_values = load_error(&with_sweep("[sweep]\nkey = \"stages.b.factor\"\nrepeats = 2\n"));
     assert!(no_values.contains("`values` lists no value"), "{no_values}");

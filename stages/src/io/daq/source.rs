@@ -53,7 +53,7 @@
 //! holding valid frames of another channel count is refused too.
 //!
 //! The frames' timestamps must keep the pace of `sample_rate_hz` (within
-//! half a sample and 0.1 %, [`RateCheck`]): a board stamping 500 Hz read
+//! half a sample and 0.1 %, `RateCheck`): a board stamping 500 Hz read
 //! at the default 1 kHz is an error naming both rates, not trials stretched
 //! twofold. A board without a clock (every timestamp equal) is not timed.
 //!
