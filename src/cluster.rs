@@ -68,7 +68,18 @@ fn load_all(manifest: &Manifest, out: &Path) -> Result<(Graph, PointGraphs), Str
         .sweep
         .clone()
         .ok_or_else(|| format!("{}: the graph has no [sweep] table", manifest.file))?;
-    let stem = core::shard::stem(&manifest.file);
+    // A job name as Slurm shows it, from the graph's file name: letters,
+    // digits and `-_.` (`my graph;x.toml` would split the `#SBATCH` line).
+    let stem: String = core::shard::stem(&manifest.file)
+        .chars()
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || "-_.".contains(c) {
+                c
+            } else {
+                '_'
+            }
+        })
+        .collect();
     let graphs = load_points(&manifest.text, &manifest.file, &stem, &opts, &base, &sweep)
         .map_err(|e| e.to_string())?;
     Ok((base, graphs))
@@ -498,6 +509,21 @@ pub fn slurm_scripts(job: &SweepJob<'_>, o: &SlurmOptions) -> Result<Vec<PathBuf
     }
     let n = o.array_size.min(manifest.points.max(1));
     let out = absolute(&job.graph.out_dir);
+    // `#SBATCH` lines are not shell lines: Slurm splits their values at
+    // white space and reads `%` as a file-name pattern, so a folder holding
+    // either would send the logs elsewhere; refused before anything is
+    // written. (The `exec` lines are quoted and carry any path.)
+    if let Some(c) = out
+        .to_string_lossy()
+        .chars()
+        .find(|c| c.is_whitespace() || "%\"'\\".contains(*c))
+    {
+        return Err(format!(
+            "the output folder {} holds {c:?}, which a `#SBATCH --output` line cannot carry (Slurm splits \
+             its values at spaces and reads % as a pattern): give --out a folder without it",
+            out.display()
+        ));
+    }
     let dir = out.join("slurm");
     std::fs::create_dir_all(dir.join("logs")).map_err(|e| format!("cannot create {}: {e}", dir.display()))?;
     let exe = std::env::current_exe().map_err(|e| format!("cannot find palpate's own path: {e}"))?;

@@ -312,6 +312,16 @@ fn slurm_writes_an_array_and_a_dependent_merge() {
     assert!(out.join("sweep-manifest.json").is_file());
     let o = palpate(&["slurm", GRAPH, "--out", s(&out), "--partition", "a b"]);
     assert!(!o.status.success());
+    // A folder with a space (or a %) cannot be an `#SBATCH --output` value:
+    // refused, naming it, before any script is written.
+    let spaced = dir.path().join("o sp");
+    let o = palpate(&["slurm", GRAPH, "--out", s(&spaced)]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success() && err.contains("o sp") && err.contains("#SBATCH"),
+        "{err}"
+    );
+    assert!(!spaced.join("slurm/array.sbatch").exists());
     // Slurm's time forms pass; a typo, or a CPU count no run would accept,
     // fails now rather than at submission or in every task.
     for t in [
