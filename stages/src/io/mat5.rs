@@ -712,21 +712,11 @@ mod tests {
     fn every_storage_type_of_a_double_class() {
         let vals = [-3.0f64, 0.0, 7.0, 100.0];
         for big in [false, true] {
+            // `src` as `$t`, in the file's byte order (unsigned types take
+            // the absolute values).
             macro_rules! bytes {
-                ($t:ty) => {
-                    vals.iter()
-                        .map(|&v| v.abs() as $t)
-                        .flat_map(|v| {
-                            if big {
-                                v.to_be_bytes()
-                            } else {
-                                v.to_le_bytes()
-                            }
-                        })
-                        .collect::<Vec<u8>>()
-                };
-                (signed $t:ty) => {
-                    vals.iter()
+                ($src:expr, $t:ty) => {
+                    $src.iter()
                         .map(|&v| v as $t)
                         .flat_map(|v| {
                             if big {
@@ -740,16 +730,16 @@ mod tests {
             }
             let abs: Vec<f64> = vals.iter().map(|v| v.abs()).collect();
             let cases: Vec<(u32, Vec<u8>, &[f64])> = vec![
-                (1, bytes!(signed i8), &vals),
-                (2, bytes!(u8), &abs),
-                (3, bytes!(signed i16), &vals),
-                (4, bytes!(u16), &abs),
-                (5, bytes!(signed i32), &vals),
-                (6, bytes!(u32), &abs),
-                (7, bytes!(signed f32), &vals),
-                (9, bytes!(signed f64), &vals),
-                (12, bytes!(signed i64), &vals),
-                (13, bytes!(u64), &abs),
+                (1, bytes!(vals, i8), &vals),
+                (2, bytes!(abs, u8), &abs),
+                (3, bytes!(vals, i16), &vals),
+                (4, bytes!(abs, u16), &abs),
+                (5, bytes!(vals, i32), &vals),
+                (6, bytes!(abs, u32), &abs),
+                (7, bytes!(vals, f32), &vals),
+                (9, bytes!(vals, f64), &vals),
+                (12, bytes!(vals, i64), &vals),
+                (13, bytes!(abs, u64), &abs),
             ];
             for (ty, raw, want) in cases {
                 let m = matrix(big, 6, &[1, 4], "x", Some(element(big, ty, &raw)));
